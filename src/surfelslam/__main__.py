@@ -1,0 +1,3 @@
+from surfelslam.cli import main
+
+main()

@@ -1,0 +1,177 @@
+"""The sequence interface every dataset adapter implements.
+
+An adapter only has to list its files (``_entries``) and its native intrinsics / depth scale;
+selection (start/end/stride), downsampling, image decoding and validation live here, once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.errors import ConfigError, FrameError
+from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+
+
+@dataclass(frozen=True)
+class DatasetOptions:
+    """User overrides common to every adapter (the CLI's dataset options).
+
+    Attributes:
+        intrinsics: ``(fx, fy, cx, cy)`` at full resolution, overriding the layout's default.
+        depth_scale: raw depth units per metre (5000 for TUM, 1000 for millimetres).
+        start: first frame position (0-based, in the full sequence).
+        end: one past the last frame position (``None``: to the end).
+        stride: keep every ``stride``-th frame.
+        downsample: image sampling factor ``[::n, ::n]`` (intrinsics divided by n).
+    """
+
+    intrinsics: tuple[float, float, float, float] | None = None
+    depth_scale: float | None = None
+    start: int = 0
+    end: int | None = None
+    stride: int = 1
+    downsample: int = 1
+
+    def __post_init__(self) -> None:
+        if self.start < 0:
+            raise ConfigError(f"--start must be >= 0, got {self.start}")
+        if self.end is not None and self.end <= self.start:
+            raise ConfigError(f"--end ({self.end}) must be greater than --start ({self.start})")
+        if self.stride < 1:
+            raise ConfigError(f"--stride must be >= 1, got {self.stride}")
+        if self.downsample < 1:
+            raise ConfigError(f"--downsample must be >= 1, got {self.downsample}")
+        if self.depth_scale is not None and not (self.depth_scale > 0 and np.isfinite(self.depth_scale)):
+            raise ConfigError(f"--depth-scale must be a positive number, got {self.depth_scale}")
+        if self.intrinsics is not None:
+            if len(self.intrinsics) != 4 or not all(np.isfinite(self.intrinsics)):
+                raise ConfigError(f"--intrinsics must be four numbers fx,fy,cx,cy, got {self.intrinsics}")
+            if self.intrinsics[0] == 0 or self.intrinsics[1] == 0:
+                raise ConfigError("--intrinsics: focal lengths must be non-zero")
+
+
+@dataclass(frozen=True)
+class FrameEntry:
+    """One frame's files before loading: timestamps in seconds, absolute paths."""
+
+    timestamp: float
+    rgb_path: Path
+    depth_path: Path
+
+
+class RGBDSequence:
+    """A selected, possibly downsampled RGB-D sequence.
+
+    Attributes:
+        layout: adapter name (``"tum"``, ``"icl"``, ``"7scenes"``, ``"folder"``, ``"synthetic"``).
+        root: the sequence folder.
+        intrinsics: intrinsics *after* downsampling.
+        full_intrinsics: intrinsics at the files' resolution.
+        depth_scale: raw depth units per metre.
+        entries: selected frames' files, in time order.
+        ground_truth: the whole ground-truth trajectory, or ``None`` when the folder has none.
+
+    ``seq[i]`` loads frame ``i`` of the selection as an :class:`RGBDFrame` whose ``index`` is ``i``;
+    a corrupt file raises :class:`FrameError` naming it.
+    """
+
+    layout: str = "base"
+
+    def __init__(
+        self,
+        root: Path,
+        entries: list[FrameEntry],
+        full_intrinsics: Intrinsics,
+        depth_scale: float,
+        options: DatasetOptions,
+        ground_truth: Trajectory | None = None,
+        depth_invalid_raw: tuple[int, ...] = (0,),
+    ):
+        self.root = Path(root)
+        self.options = options
+        self.full_intrinsics = full_intrinsics
+        self.intrinsics = full_intrinsics.scaled(options.downsample)
+        self.depth_scale = float(depth_scale)
+        self.all_entries = entries
+        self.entries = entries[options.start : options.end : options.stride]
+        self.ground_truth = ground_truth
+        self.depth_invalid_raw = depth_invalid_raw
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """``(N,)`` float64 timestamps of the selected frames."""
+        return np.array([e.timestamp for e in self.entries], dtype=np.float64)
+
+    def __getitem__(self, i: int) -> RGBDFrame:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame {i} out of range for a sequence of {len(self)} frames")
+        i = i % len(self)
+        e = self.entries[i]
+        from surfelslam.io.images import read_depth_raw, read_rgb
+
+        full = self.full_intrinsics
+        rgb = read_rgb(e.rgb_path)
+        raw = read_depth_raw(e.depth_path)
+        for path, shape in ((e.rgb_path, rgb.shape[:2]), (e.depth_path, raw.shape)):
+            if shape != full.shape:
+                raise FrameError(
+                    path, f"image is {shape[1]}x{shape[0]}, expected {full.width}x{full.height}", index=i
+                )
+        depth_m = raw.astype(np.float32) / np.float32(self.depth_scale)
+        invalid = ~np.isfinite(depth_m) | (depth_m <= 0)
+        for bad in self.depth_invalid_raw:
+            invalid |= raw == bad
+        depth_m[invalid] = 0.0
+        f = self.options.downsample
+        if f > 1:
+            rgb = rgb[::f, ::f]
+            depth_m = depth_m[::f, ::f]
+        return RGBDFrame(i, e.timestamp, np.ascontiguousarray(rgb), np.ascontiguousarray(depth_m))
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    def gt_poses(self, max_dt_s: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-truth pose for each selected frame.
+
+        Returns:
+            ``(T_world_cam (N, 4, 4), valid (N,) bool)``: frames whose nearest ground-truth stamp is
+            farther than ``max_dt_s`` are marked invalid (their pose is identity).
+        """
+        n = len(self)
+        T = np.tile(np.eye(4), (n, 1, 1))
+        valid = np.zeros(n, dtype=bool)
+        if self.ground_truth is None or n == 0:
+            return T, valid
+        gt_t = self.ground_truth.timestamps
+        idx = np.clip(np.searchsorted(gt_t, self.timestamps), 1, max(len(gt_t) - 1, 1))
+        cand = np.stack([idx - 1, np.minimum(idx, len(gt_t) - 1)], axis=1)
+        dt = np.abs(gt_t[cand] - self.timestamps[:, None])
+        best = cand[np.arange(n), np.argmin(dt, axis=1)]
+        valid = np.min(dt, axis=1) <= max_dt_s
+        T[valid] = self.ground_truth.T_world_cam[best[valid]]
+        return T, valid
+
+    def info(self) -> dict:
+        """What was detected, for ``surfelslam info``."""
+        _, gt_valid = self.gt_poses()
+        intr = self.intrinsics
+        return {
+            "layout": self.layout,
+            "root": str(self.root),
+            "frames": len(self),
+            "frames_total": len(self.all_entries),
+            "resolution": [intr.width, intr.height],
+            "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
+            "depth_scale": self.depth_scale,
+            "downsample": self.options.downsample,
+            "ground_truth_poses": 0 if self.ground_truth is None else len(self.ground_truth),
+            "frames_with_ground_truth": int(gt_valid.sum()),
+        }

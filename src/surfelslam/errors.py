@@ -1,0 +1,45 @@
+"""Typed exceptions. The CLI turns every ``SurfelSlamError`` into one line and exit code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class SurfelSlamError(Exception):
+    """Base of every error surfelslam raises on purpose (bad input, bad config, failed tracking)."""
+
+
+class InputError(SurfelSlamError):
+    """A file or folder given by the user is missing, unreadable or malformed.
+
+    The message always names the offending path and the problem.
+    """
+
+    def __init__(self, path: str | Path | None, problem: str):
+        self.path = None if path is None else Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}" if path is not None else problem)
+
+
+class DatasetError(InputError):
+    """A sequence folder cannot be read as any known layout, or its index files disagree."""
+
+
+class FrameError(InputError):
+    """One frame of a sequence is corrupt (bad image, wrong size). Long runs skip and count it."""
+
+    def __init__(self, path: str | Path | None, problem: str, index: int | None = None):
+        self.index = index
+        super().__init__(path, problem)
+
+
+class GroundTruthError(InputError):
+    """Ground truth is missing or cannot be associated with the frames."""
+
+
+class ConfigError(SurfelSlamError):
+    """A configuration value or file is invalid."""
+
+
+class TrackingError(SurfelSlamError):
+    """Tracking could not produce a pose (too few inliers, degenerate geometry)."""

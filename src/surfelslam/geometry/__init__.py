@@ -1,0 +1,1 @@
+"""Rigid-body geometry (SE(3)) and pinhole camera projection."""

@@ -1,0 +1,143 @@
+"""SE(3) helpers on 4x4 homogeneous matrices.
+
+Twist convention: ``xi = (omega, v)`` with rotation first, matching the ICP linearisation
+``A_i = n_i^T [-[p'_i]x  I]``; ``exp(xi)`` is the closed-form SE(3) exponential.
+All functions accept a single pose ``(4, 4)`` or a batch ``(N, 4, 4)`` where noted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+_SMALL_ANGLE_RAD = 1e-8  # below this angle, series expansions replace the closed forms
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """``(3,)`` vector -> ``(3, 3)`` cross-product matrix ``[w]x`` with ``[w]x p = w x p``."""
+    w = np.asarray(w, dtype=np.float64)
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rotation(s) ``(..., 3, 3)`` and translation(s) ``(..., 3)`` -> pose(s) ``(..., 4, 4)``."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of pose(s) ``(..., 4, 4)`` using ``R^T``, not a general matrix inverse."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Rt = np.swapaxes(R, -1, -2)
+    return make_T(Rt, -np.einsum("...ij,...j->...i", Rt, t))
+
+
+def compose(*Ts: np.ndarray) -> np.ndarray:
+    """``compose(A, B, C) = A @ B @ C``."""
+    out = np.asarray(Ts[0], dtype=np.float64)
+    for T in Ts[1:]:
+        out = out @ T
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply pose ``(4, 4)`` to points ``(..., 3)``."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def so3_exp(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues: axis-angle ``(3,)`` -> rotation ``(3, 3)``."""
+    omega = np.asarray(omega, dtype=np.float64)
+    theta = float(np.linalg.norm(omega))
+    W = skew(omega)
+    if theta < _SMALL_ANGLE_RAD:
+        return np.eye(3) + W + 0.5 * W @ W
+    return np.eye(3) + np.sin(theta) / theta * W + (1 - np.cos(theta)) / theta**2 * W @ W
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation ``(3, 3)`` -> axis-angle ``(3,)`` (robust near 0 and pi via scipy)."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+
+
+def _left_jacobian(omega: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(omega))
+    W = skew(omega)
+    if theta < _SMALL_ANGLE_RAD:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    return (
+        np.eye(3)
+        + (1 - np.cos(theta)) / theta**2 * W
+        + (theta - np.sin(theta)) / theta**3 * W @ W
+    )
+
+
+def exp(xi: np.ndarray) -> np.ndarray:
+    """SE(3) exponential: twist ``(6,) = (omega, v)`` -> pose ``(4, 4)``."""
+    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    omega, v = xi[:3], xi[3:]
+    return make_T(so3_exp(omega), _left_jacobian(omega) @ v)
+
+
+def log(T: np.ndarray) -> np.ndarray:
+    """SE(3) logarithm: pose ``(4, 4)`` -> twist ``(6,) = (omega, v)``."""
+    T = np.asarray(T, dtype=np.float64)
+    omega = so3_log(T[:3, :3])
+    v = np.linalg.solve(_left_jacobian(omega), T[:3, 3])
+    return np.concatenate([omega, v])
+
+
+def small_angle_update(xi: np.ndarray) -> np.ndarray:
+    """First-order update ``[[I + [omega]x, v], [0, 1]]`` re-orthonormalised by SVD.
+
+    This is the seeds' linearised increment; :func:`exp` is the exact one.
+    """
+    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    U, _, Vt = np.linalg.svd(np.eye(3) + skew(xi[:3]))
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return make_T(R, xi[3:])
+
+
+def rotation_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """Rotation(s) ``(..., 3, 3)`` -> unit quaternion(s) ``(..., 4)`` in ``(qx, qy, qz, qw)`` order, qw >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def quat_xyzw_to_rotation(q: np.ndarray) -> np.ndarray:
+    """Quaternion(s) ``(..., 4)`` in ``(qx, qy, qz, qw)`` order -> rotation(s) ``(..., 3, 3)``.
+
+    Quaternions are normalised first, so slightly non-unit file values are accepted.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    R = Rotation.from_quat(q.reshape(-1, 4)).as_matrix()
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation ``(3, 3)`` in degrees (robust for small angles)."""
+    return float(np.degrees(np.linalg.norm(so3_log(R))))
+
+
+def pose_error(T_est: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
+    """``(translation error m, rotation error deg)`` of ``T_ref^-1 T_est``."""
+    E = invert(T_ref) @ T_est
+    return float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
+
+
+def motion_norm(T: np.ndarray) -> float:
+    """The seeds' motion norm ``||t|| + min(||r||, 2 pi - ||r||)`` (metres + radians)."""
+    r = float(np.linalg.norm(so3_log(T[:3, :3])))
+    return float(np.linalg.norm(T[:3, 3])) + min(r, 2 * np.pi - r)

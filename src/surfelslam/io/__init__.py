@@ -1,0 +1,1 @@
+"""File input/output: images, trajectories, PLY, atomic writes."""

@@ -1,0 +1,158 @@
+"""Core data types: camera intrinsics, RGB-D frames and trajectories.
+
+Conventions
+-----------
+* Images are indexed ``[v, u]`` (row, column); pixel centres sit at integer coordinates,
+  so pixel ``(u, v)`` covers ``[u - 0.5, u + 0.5) x [v - 0.5, v + 0.5)``.
+* Camera frame: x right, y down, z forward (optical axis). ``u = fx * x / z + cx``.
+* Poses are 4x4 homogeneous matrices named ``T_a_b``: they map points from frame b to frame a,
+  so ``T_world_cam`` is the camera-to-world pose.
+* Depth is metric (``depth_m``, float32); 0 marks an invalid pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from surfelslam.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of an image of ``width`` x ``height`` pixels.
+
+    ``fy`` may be negative (the ICL-NUIM convention); projection and back-projection use it as is.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if self.fx == 0 or self.fy == 0:
+            raise ConfigError(f"intrinsics: focal lengths must be non-zero (fx={self.fx}, fy={self.fy})")
+        if self.width <= 0 or self.height <= 0:
+            raise ConfigError(f"intrinsics: image size must be positive ({self.width}x{self.height})")
+
+    def scaled(self, factor: int) -> Intrinsics:
+        """Intrinsics of the image sampled ``[::factor, ::factor]``.
+
+        With pixel centres at integer coordinates, new pixel ``u'`` is old pixel ``factor * u'``,
+        so focal lengths and the principal point are divided by ``factor`` exactly (no half-pixel
+        shift). The size is ``ceil(size / factor)``, which is what the slicing produces.
+        """
+        if factor < 1 or int(factor) != factor:
+            raise ConfigError(f"downsample factor must be a positive integer, got {factor}")
+        f = int(factor)
+        if f == 1:
+            return self
+        return Intrinsics(
+            self.fx / f, self.fy / f, self.cx / f, self.cy / f,
+            -(-self.width // f), -(-self.height // f),
+        )
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 camera matrix (float64)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape ``(height, width)``."""
+        return (self.height, self.width)
+
+    def as_tuple(self) -> tuple[float, float, float, float]:
+        return (self.fx, self.fy, self.cx, self.cy)
+
+
+@dataclass
+class RGBDFrame:
+    """One registered RGB-D frame.
+
+    Attributes:
+        index: position of the frame in its sequence (0-based, after start/stride selection).
+        timestamp: seconds.
+        rgb: ``(H, W, 3)`` uint8, RGB order.
+        depth_m: ``(H, W)`` float32 metres, 0 = invalid.
+    """
+
+    index: int
+    timestamp: float
+    rgb: np.ndarray
+    depth_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.depth_m.ndim != 2:
+            raise ValueError(f"depth_m must be (H, W), got shape {self.depth_m.shape}")
+        if self.rgb.shape != (*self.depth_m.shape, 3):
+            raise ValueError(f"rgb must be {(*self.depth_m.shape, 3)}, got {self.rgb.shape}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.depth_m.shape  # type: ignore[return-value]
+
+
+@dataclass
+class Trajectory:
+    """A timed sequence of camera poses.
+
+    Attributes:
+        timestamps: ``(N,)`` float64 seconds, ascending.
+        T_world_cam: ``(N, 4, 4)`` float64 camera-to-world poses.
+    """
+
+    timestamps: np.ndarray
+    T_world_cam: np.ndarray = field(repr=False)
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+        self.T_world_cam = np.asarray(self.T_world_cam, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.timestamps) != len(self.T_world_cam):
+            raise ValueError(
+                f"trajectory has {len(self.timestamps)} timestamps but {len(self.T_world_cam)} poses"
+            )
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """``(N, 3)`` camera centres in the world frame."""
+        return self.T_world_cam[:, :3, 3]
+
+    def to_tum_rows(self) -> np.ndarray:
+        """``(N, 8)`` rows ``timestamp tx ty tz qx qy qz qw``."""
+        from surfelslam.geometry.se3 import rotation_to_quat_xyzw
+
+        q = rotation_to_quat_xyzw(self.T_world_cam[:, :3, :3])
+        return np.column_stack([self.timestamps, self.positions, q])
+
+    @classmethod
+    def from_tum_rows(cls, rows: np.ndarray) -> Trajectory:
+        """Build from ``(N, 8)`` rows ``timestamp tx ty tz qx qy qz qw``."""
+        from surfelslam.geometry.se3 import make_T, quat_xyzw_to_rotation
+
+        rows = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+        T = make_T(quat_xyzw_to_rotation(rows[:, 4:8]), rows[:, 1:4])
+        return cls(rows[:, 0], T)
+
+    @classmethod
+    def read_tum(cls, path) -> Trajectory:
+        """Read a TUM trajectory file (see :mod:`surfelslam.io.trajectory`)."""
+        from surfelslam.io.trajectory import read_tum
+
+        return read_tum(path)
+
+    def write_tum(self, path) -> None:
+        """Write a TUM trajectory file atomically (see :mod:`surfelslam.io.trajectory`)."""
+        from surfelslam.io.trajectory import write_tum
+
+        write_tum(self, path)
+
+    def subset(self, mask_or_index) -> Trajectory:
+        return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])
