@@ -1,0 +1,370 @@
+"""Trajectory error metrics (ATE, RPE) computed with evo's library.
+
+Everything here is pure maths on :class:`~surfelslam.types.Trajectory` objects: no file I/O, no printing.
+Association (:func:`evo.core.sync.associate_trajectories`), Umeyama alignment
+(:meth:`evo.core.trajectory.PosePath3D.align`) and the APE/RPE error definitions (:mod:`evo.core.metrics`)
+are evo's own, so the numbers agree with ``evo_ape`` / ``evo_rpe`` run on the same files.
+
+Protocol (TUM RGB-D benchmark):
+
+* **ATE**: associate estimate and ground-truth poses by nearest timestamp (``|dt| <= max_diff_s``),
+  align the estimate to the ground truth with a rigid SE(3) Umeyama fit (no scale by default), and take
+  the translation error ``|t_gt_i - t_est_aligned_i|`` per associated pose (metres).
+* **RPE**: relative-motion error ``E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` over pose pairs ``(i, j)`` of the
+  associated trajectories; translation part ``|trans(E_ij)|`` (metres) and rotation angle of ``rot(E_ij)``
+  (degrees). No alignment is needed (RPE is invariant to a rigid transform of either trajectory).
+
+  - ``delta_unit="frames"``: evo's pairs ``(i, i + delta)`` (``Unit.frames``; consecutive non-overlapping
+    pairs as in ``evo_rpe``'s default, identical to all pairs for ``delta=1``): "per frame" RPE.
+  - ``delta_unit="seconds"``: evo has no time unit for RPE deltas, so the pairs are chosen here by time,
+    as TUM's ``evaluate_rpe.py --fixed_delta --delta 1 --delta_unit s`` does: for every associated pose
+    ``i``, ``j`` is the pose whose timestamp is closest to ``t_i + delta``; the pair is kept only if
+    ``|t_j - t_i - delta| <= rel_delta_tol * delta`` (evo's ``rel_delta_tol`` convention, default 0.1),
+    which drops pairs across tracking gaps and at the end of the sequence. The error of each pair is then
+    computed with evo's :meth:`evo.core.metrics.RPE.rpe_base` and :func:`evo.core.lie_algebra.so3_log_angle`.
+    With ``delta = 1`` s this is the drift per second (m/s, deg/s). Unlike a frame delta derived from the
+    median frame interval, this stays correct when frames are dropped or the frame rate varies.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from evo.core import filters as evo_filters
+from evo.core import lie_algebra as lie
+from evo.core import metrics as evo_metrics
+from evo.core import sync as evo_sync
+from evo.core.trajectory import PoseTrajectory3D
+
+from surfelslam.errors import GroundTruthError
+from surfelslam.types import Trajectory
+
+MIN_ASSOCIATED_POSES = 3  # fewer pairs cannot constrain an SE(3) alignment
+DEFAULT_MAX_DIFF_S = 0.02  # TUM association window: 20 ms
+DEFAULT_REL_DELTA_TOL = 0.1  # evo's default relative tolerance for non-frame RPE deltas
+
+# evo logs a warning for every unsorted/odd input; keep library calls quiet (the CLI reports errors itself).
+logging.getLogger("evo").setLevel(logging.ERROR)
+
+
+# --------------------------------------------------------------------------------------------- results
+@dataclass
+class AteResult:
+    """Absolute trajectory error after alignment.
+
+    Attributes:
+        rmse_m, mean_m, median_m, max_m, std_m: statistics of ``errors_m`` (std is the population std).
+        n_pairs: number of associated poses N.
+        errors_m: ``(N,)`` translation error per associated pose, metres.
+        timestamps: ``(N,)`` estimate timestamps of the associated poses, seconds.
+        est_aligned: the N associated estimate poses after alignment (``T_align @ T_world_cam``).
+        gt: the N associated ground-truth poses.
+        T_align: ``(4, 4)`` alignment applied to the estimate (identity if ``align=False``; a similarity,
+            ``[sR t; 0 1]``, if ``correct_scale=True``).
+        scale: scale factor of the alignment (1.0 without scale correction).
+    """
+
+    rmse_m: float
+    mean_m: float
+    median_m: float
+    max_m: float
+    std_m: float
+    n_pairs: int
+    errors_m: np.ndarray = field(repr=False)
+    timestamps: np.ndarray = field(repr=False)
+    est_aligned: Trajectory = field(repr=False)
+    gt: Trajectory = field(repr=False)
+    T_align: np.ndarray = field(repr=False)
+    scale: float = 1.0
+
+
+@dataclass
+class RpeResult:
+    """Relative pose error over pose pairs ``(i, j)``.
+
+    Attributes:
+        trans_rmse_m, trans_mean_m, trans_median_m, trans_max_m: statistics of ``trans_errors_m``.
+        rot_rmse_deg, rot_mean_deg, rot_median_deg, rot_max_deg: statistics of ``rot_errors_deg``.
+        n_pairs: number of pose pairs M.
+        delta, delta_unit: the pair spacing (``"frames"`` or ``"seconds"``).
+        pairs: ``(M, 2)`` int indices into the associated trajectories.
+        timestamps: ``(M,)`` estimate timestamp of the second pose of each pair, seconds.
+        trans_errors_m: ``(M,)`` translation error of the relative motion, metres.
+        rot_errors_deg: ``(M,)`` rotation angle of the relative-motion error, degrees.
+    """
+
+    trans_rmse_m: float
+    rot_rmse_deg: float
+    trans_mean_m: float
+    rot_mean_deg: float
+    trans_median_m: float
+    rot_median_deg: float
+    trans_max_m: float
+    rot_max_deg: float
+    n_pairs: int
+    delta: float
+    delta_unit: str
+    pairs: np.ndarray = field(repr=False)
+    timestamps: np.ndarray = field(repr=False)
+    trans_errors_m: np.ndarray = field(repr=False)
+    rot_errors_deg: np.ndarray = field(repr=False)
+
+
+# ------------------------------------------------------------------------------------------ conversion
+def to_evo(traj: Trajectory, name: str | None = None) -> PoseTrajectory3D:
+    """Our :class:`Trajectory` -> evo ``PoseTrajectory3D`` (copies the poses)."""
+    return PoseTrajectory3D(
+        poses_se3=[T.copy() for T in traj.T_world_cam], timestamps=traj.timestamps.copy(), name=name
+    )
+
+
+def from_evo(traj: PoseTrajectory3D) -> Trajectory:
+    """evo ``PoseTrajectory3D`` -> our :class:`Trajectory`."""
+    return Trajectory(np.asarray(traj.timestamps, dtype=np.float64), np.asarray(traj.poses_se3))
+
+
+def _time_range(traj: Trajectory) -> str:
+    if len(traj) == 0:
+        return "empty"
+    return f"{traj.timestamps[0]:.3f}..{traj.timestamps[-1]:.3f} s"
+
+
+def _association_error(est: Trajectory, gt: Trajectory, max_diff_s: float, n_found: int) -> GroundTruthError:
+    return GroundTruthError(
+        None,
+        f"only {n_found} estimate/ground-truth pose pairs within max_diff {max_diff_s} s "
+        f"(need >= {MIN_ASSOCIATED_POSES}): estimate has {len(est)} poses over {_time_range(est)}, "
+        f"ground truth has {len(gt)} poses over {_time_range(gt)}",
+    )
+
+
+def _associate_evo(
+    est: Trajectory, gt: Trajectory, max_diff_s: float
+) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
+    """Associate with evo exactly as ``evo_ape``/``evo_rpe`` do (reference first); returns (est, gt)."""
+    if max_diff_s < 0:
+        raise ValueError(f"max_diff_s must be >= 0, got {max_diff_s}")
+    if len(est) == 0 or len(gt) == 0:
+        raise _association_error(est, gt, max_diff_s, 0)
+    try:
+        gt_sync, est_sync = evo_sync.associate_trajectories(
+            to_evo(gt, "ground truth"), to_evo(est, "estimate"), max_diff=max_diff_s
+        )
+    except evo_sync.SyncException:
+        raise _association_error(est, gt, max_diff_s, 0) from None
+    if est_sync.num_poses < MIN_ASSOCIATED_POSES:
+        raise _association_error(est, gt, max_diff_s, est_sync.num_poses)
+    return est_sync, gt_sync
+
+
+# ------------------------------------------------------------------------------------------------- API
+def associate(
+    est: Trajectory, gt: Trajectory, max_diff_s: float = DEFAULT_MAX_DIFF_S
+) -> tuple[Trajectory, Trajectory]:
+    """Pair estimate and ground-truth poses by nearest timestamp (evo's ``associate_trajectories``).
+
+    Returns ``(est_sync, gt_sync)`` with equal length N >= 3; ``est_sync.timestamps[k]`` and
+    ``gt_sync.timestamps[k]`` differ by at most ``max_diff_s`` seconds.
+
+    Raises:
+        GroundTruthError: fewer than 3 poses could be associated.
+    """
+    est_sync, gt_sync = _associate_evo(est, gt, max_diff_s)
+    return from_evo(est_sync), from_evo(gt_sync)
+
+
+def _stats(errors: np.ndarray) -> dict[str, float]:
+    """rmse / mean / median / max / std exactly as evo's ``PE.get_statistic`` defines them."""
+    m = evo_metrics.APE()
+    m.error = np.asarray(errors, dtype=np.float64)
+    S = evo_metrics.StatisticsType
+    return {s.value: float(m.get_statistic(s)) for s in (S.rmse, S.mean, S.median, S.max, S.std)}
+
+
+def ate(
+    est: Trajectory,
+    gt: Trajectory,
+    max_diff_s: float = DEFAULT_MAX_DIFF_S,
+    align: bool = True,
+    correct_scale: bool = False,
+) -> AteResult:
+    """Absolute trajectory error (TUM protocol: associate, SE(3)-align the estimate, translation error).
+
+    Equal to ``evo_ape tum GT EST -a --t_max_diff max_diff_s`` (add ``-s`` for ``correct_scale``).
+
+    Raises:
+        GroundTruthError: fewer than 3 poses could be associated.
+    """
+    est_sync, gt_sync = _associate_evo(est, gt, max_diff_s)
+    T_align = np.eye(4)
+    scale = 1.0
+    if align or correct_scale:
+        r_a, t_a, s = est_sync.align(gt_sync, correct_scale=correct_scale, correct_only_scale=not align)
+        scale = float(s)
+        T_align = lie.sim3(r_a, t_a, s) if align else lie.sim3(np.eye(3), np.zeros(3), s)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((gt_sync, est_sync))
+    st = _stats(ape.error)
+    return AteResult(
+        rmse_m=st["rmse"],
+        mean_m=st["mean"],
+        median_m=st["median"],
+        max_m=st["max"],
+        std_m=st["std"],
+        n_pairs=int(est_sync.num_poses),
+        errors_m=np.asarray(ape.error, dtype=np.float64),
+        timestamps=np.asarray(est_sync.timestamps, dtype=np.float64),
+        est_aligned=from_evo(est_sync),
+        gt=from_evo(gt_sync),
+        T_align=np.asarray(T_align, dtype=np.float64),
+        scale=scale,
+    )
+
+
+def time_delta_pairs(
+    timestamps: np.ndarray, delta_s: float, rel_delta_tol: float = DEFAULT_REL_DELTA_TOL
+) -> np.ndarray:
+    """Pose pairs ``(i, j)`` about ``delta_s`` seconds apart.
+
+    For every ``i``, ``j`` is the index whose timestamp is closest to ``t_i + delta_s``; the pair is kept
+    if ``|t_j - t_i - delta_s| <= rel_delta_tol * delta_s`` and ``j > i``.
+
+    Args:
+        timestamps: ``(N,)`` ascending seconds.
+    Returns:
+        ``(M, 2)`` int64 index pairs.
+    """
+    t = np.asarray(timestamps, dtype=np.float64)
+    if delta_s <= 0:
+        raise ValueError(f"delta must be > 0 seconds, got {delta_s}")
+    target = t + delta_s
+    hi = np.clip(np.searchsorted(t, target), 1, len(t) - 1)
+    lo = hi - 1
+    j = np.where(np.abs(t[hi] - target) < np.abs(t[lo] - target), hi, lo)
+    i = np.arange(len(t))
+    keep = (np.abs(t[j] - target) <= rel_delta_tol * delta_s) & (j > i)
+    return np.column_stack([i[keep], j[keep]]).astype(np.int64)
+
+
+def rpe(
+    est: Trajectory,
+    gt: Trajectory,
+    delta: float = 1,
+    delta_unit: str = "frames",
+    max_diff_s: float = DEFAULT_MAX_DIFF_S,
+    rel_delta_tol: float = DEFAULT_REL_DELTA_TOL,
+) -> RpeResult:
+    """Relative pose error, translation (m) and rotation angle (deg), over pairs ``delta`` apart.
+
+    ``delta_unit="frames"`` equals ``evo_rpe tum GT EST --t_max_diff max_diff_s --delta delta
+    --delta_unit f`` (``-r trans_part`` / ``-r angle_deg``). ``delta_unit="seconds"`` pairs poses by time
+    (see the module docstring); with ``delta=1`` the errors are drift per second.
+
+    Raises:
+        GroundTruthError: fewer than 3 poses could be associated.
+        ValueError: bad delta / unit, or no pose pair ``delta`` apart.
+    """
+    est_sync, gt_sync = _associate_evo(est, gt, max_diff_s)
+    stamps = np.asarray(est_sync.timestamps, dtype=np.float64)
+    if delta_unit == "frames":
+        if delta < 1 or int(delta) != delta:
+            raise ValueError(f"frame delta must be a positive integer, got {delta}")
+        rel = evo_metrics.PoseRelation
+        per_relation = {}
+        for relation in (rel.translation_part, rel.rotation_angle_deg):
+            metric = evo_metrics.RPE(relation, delta=int(delta), delta_unit=evo_metrics.Unit.frames)
+            try:
+                metric.process_data((gt_sync, est_sync))
+            except evo_filters.FilterException as exc:
+                raise ValueError(str(exc)) from None
+            per_relation[relation] = metric
+        trans = np.asarray(per_relation[rel.translation_part].error, dtype=np.float64)
+        rot = np.asarray(per_relation[rel.rotation_angle_deg].error, dtype=np.float64)
+        second = np.asarray(per_relation[rel.translation_part].delta_ids, dtype=np.int64)
+        pairs = np.column_stack([second - int(delta), second])
+    elif delta_unit == "seconds":
+        pairs = time_delta_pairs(stamps, float(delta), rel_delta_tol)
+        if len(pairs) == 0:
+            raise ValueError(
+                f"no pose pairs {delta} s apart (+/- {rel_delta_tol * delta:.3f} s) among {len(stamps)} "
+                f"associated poses spanning {stamps[-1] - stamps[0]:.3f} s"
+            )
+        P = est_sync.poses_se3
+        Q = gt_sync.poses_se3
+        E = [evo_metrics.RPE.rpe_base(Q[i], Q[j], P[i], P[j]) for i, j in pairs]
+        trans = np.array([np.linalg.norm(E_ij[:3, 3]) for E_ij in E])
+        rot = np.array([abs(lie.so3_log_angle(E_ij[:3, :3], True)) for E_ij in E])
+    else:
+        raise ValueError(f"delta_unit must be 'frames' or 'seconds', got {delta_unit!r}")
+    st_t = _stats(trans)
+    st_r = _stats(rot)
+    return RpeResult(
+        trans_rmse_m=st_t["rmse"],
+        rot_rmse_deg=st_r["rmse"],
+        trans_mean_m=st_t["mean"],
+        rot_mean_deg=st_r["mean"],
+        trans_median_m=st_t["median"],
+        rot_median_deg=st_r["median"],
+        trans_max_m=st_t["max"],
+        rot_max_deg=st_r["max"],
+        n_pairs=len(pairs),
+        delta=float(delta),
+        delta_unit=delta_unit,
+        pairs=pairs,
+        timestamps=stamps[pairs[:, 1]],
+        trans_errors_m=trans,
+        rot_errors_deg=rot,
+    )
+
+
+def evaluate_all(
+    est: Trajectory, gt: Trajectory, max_diff_s: float = DEFAULT_MAX_DIFF_S
+) -> tuple[AteResult, RpeResult, RpeResult | None]:
+    """ATE, RPE per frame (delta 1 frame) and RPE per second (delta 1 s; None if the run spans < 1 s)."""
+    a = ate(est, gt, max_diff_s)
+    rf = rpe(est, gt, 1, "frames", max_diff_s)
+    try:
+        rs: RpeResult | None = rpe(est, gt, 1.0, "seconds", max_diff_s)
+    except ValueError:
+        rs = None
+    return a, rf, rs
+
+
+def summary(
+    a: AteResult, rf: RpeResult, rs: RpeResult | None, n_est: int, n_gt: int, max_diff_s: float
+) -> dict:
+    """The JSON-serialisable dict of :func:`evaluate` from already computed results."""
+    return {
+        "ate_rmse_m": a.rmse_m,
+        "ate_mean_m": a.mean_m,
+        "ate_median_m": a.median_m,
+        "ate_max_m": a.max_m,
+        "ate_std_m": a.std_m,
+        "rpe_trans_rmse_m_per_frame": rf.trans_rmse_m,
+        "rpe_rot_rmse_deg_per_frame": rf.rot_rmse_deg,
+        "rpe_trans_rmse_m_per_s": None if rs is None else rs.trans_rmse_m,
+        "rpe_rot_rmse_deg_per_s": None if rs is None else rs.rot_rmse_deg,
+        "rpe_pairs_per_frame": rf.n_pairs,
+        "rpe_pairs_per_s": 0 if rs is None else rs.n_pairs,
+        "n_pairs": a.n_pairs,
+        "n_est": int(n_est),
+        "n_gt": int(n_gt),
+        "max_diff_s": float(max_diff_s),
+    }
+
+
+def evaluate(est: Trajectory, gt: Trajectory, max_diff_s: float = DEFAULT_MAX_DIFF_S) -> dict:
+    """ATE and RPE (per frame and per second) as a JSON-serialisable dict of plain floats/ints.
+
+    Keys: ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, ate_std_m, rpe_trans_rmse_m_per_frame,
+    rpe_rot_rmse_deg_per_frame, rpe_trans_rmse_m_per_s, rpe_rot_rmse_deg_per_s, rpe_pairs_per_frame,
+    rpe_pairs_per_s, n_pairs, n_est, n_gt, max_diff_s. The per-second values are ``None`` when no pose
+    pair is 1 s apart (the associated trajectory spans less than about one second).
+
+    Raises:
+        GroundTruthError: fewer than 3 poses could be associated.
+    """
+    a, rf, rs = evaluate_all(est, gt, max_diff_s)
+    return summary(a, rf, rs, len(est), len(gt), max_diff_s)

@@ -1,0 +1,24 @@
+"""Shared look of every surfelslam figure: colours, sizes, line widths, DPI."""
+
+from __future__ import annotations
+
+# Colours (matplotlib's tab10 subset, readable in print and for common colour-blindness types).
+GT_COLOR = "#444444"  # ground truth: dark grey, dashed
+EST_COLOR = "#1f77b4"  # estimate: blue
+ERROR_COLOR = "#d62728"  # errors: red
+SECONDARY_COLOR = "#ff7f0e"  # a second error series (RPE): orange
+LOOP_COLOR = "#2ca02c"  # loop-closure edges: green
+START_COLOR = "#2ca02c"
+END_COLOR = "#9467bd"
+
+GT_LINESTYLE = "--"
+LINE_WIDTH = 1.2
+THIN_LINE_WIDTH = 0.8
+MARKER_SIZE = 12
+
+DPI = 120
+TRAJECTORY_FIGSIZE_IN = (12.0, 6.5)  # top view + 3 time panels
+ERRORS_FIGSIZE_IN = (10.0, 5.0)
+TITLE_FONTSIZE = 11
+LABEL_FONTSIZE = 9
+GRID_ALPHA = 0.3
