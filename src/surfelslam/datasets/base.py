@@ -79,6 +79,9 @@ class RGBDSequence:
     """
 
     layout: str = "base"
+    #: where the intrinsics / depth scale came from (an option, a metadata file, or the layout default)
+    intrinsics_source: str = "unknown"
+    depth_scale_source: str = "unknown"
 
     def __init__(
         self,

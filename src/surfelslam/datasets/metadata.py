@@ -1,0 +1,235 @@
+"""Camera descriptions that sequence folders carry themselves, and how they combine with options.
+
+Two sources are read, when present in the sequence folder:
+
+* ``INFO.txt``: free text with ``key : value`` lines (a line starting with white space continues the
+  previous value). Used keys: ``intrinsics`` (the first ``fx=``, ``fy=``, ``cx=``, ``cy=`` numbers in the
+  value, or else the first four numbers of its first line), ``depth scale`` (the first number of the
+  value) and ``generator`` (``surfelslam synth`` marks our synthetic sequences).
+* ``camera-intrinsics.txt`` (7-Scenes / tsdf-fusion style): a 3x3 camera matrix, in the folder or its
+  parent. Only used for what ``INFO.txt`` does not give.
+
+Precedence, highest first: command-line options > metadata in the folder > the layout's defaults
+(which may depend on the folder name, e.g. TUM freiburg1/2/3).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
+from surfelslam.errors import ConfigError, DatasetError
+from surfelslam.types import Intrinsics, Trajectory
+
+INFO_FILE = "INFO.txt"
+CAMERA_INTRINSICS_FILE = "camera-intrinsics.txt"
+SYNTH_GENERATOR = "surfelslam synth"
+
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_KEY_LINE = re.compile(r"^(?P<key>[A-Za-z][^:]*?)\s*:\s?(?P<value>.*)$")
+
+
+@dataclass(frozen=True)
+class FolderMetadata:
+    """What a sequence folder says about its own camera.
+
+    Attributes:
+        intrinsics: ``(fx, fy, cx, cy)`` at full resolution, or ``None``.
+        depth_scale: raw depth units per metre, or ``None``.
+        generator: the ``generator`` value of ``INFO.txt`` (lower case), or ``None``.
+        intrinsics_file / depth_scale_file: the file each value came from.
+        fields: every ``key : value`` of ``INFO.txt`` (keys lower case, single-spaced).
+    """
+
+    intrinsics: tuple[float, float, float, float] | None = None
+    depth_scale: float | None = None
+    generator: str | None = None
+    intrinsics_file: Path | None = None
+    depth_scale_file: Path | None = None
+    fields: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def is_synthetic(self) -> bool:
+        return self.generator is not None and SYNTH_GENERATOR in self.generator
+
+
+@dataclass(frozen=True)
+class CameraSetup:
+    """The camera a sequence ends up with, and where each value came from."""
+
+    intrinsics: Intrinsics
+    depth_scale: float
+    intrinsics_source: str
+    depth_scale_source: str
+
+
+def read_info_fields(path: Path) -> dict[str, str]:
+    """``key : value`` lines of an INFO.txt-style file; continuation lines are appended to the value."""
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read metadata file ({exc.strerror or exc})") from None
+    fields: dict[str, str] = {}
+    key = None
+    for line in text.splitlines():
+        if not line.strip():
+            key = None
+            continue
+        if line[0].isspace():
+            if key is not None:
+                fields[key] += "\n" + line.strip()
+            continue
+        m = _KEY_LINE.match(line)
+        if m is None:
+            key = None
+            continue
+        key = " ".join(m.group("key").lower().split())
+        fields.setdefault(key, "")
+        fields[key] = (fields[key] + "\n" + m.group("value").strip()).strip()
+    return fields
+
+
+def parse_intrinsics_text(text: str) -> tuple[float, float, float, float] | None:
+    """``fx=.. fy=.. cx=.. cy=..`` (first match of each) or the first four numbers of the first line."""
+    vals = []
+    for name in ("fx", "fy", "cx", "cy"):
+        m = re.search(rf"\b{name}\s*=\s*({_NUMBER})", text)
+        if m is None:
+            break
+        vals.append(float(m.group(1)))
+    if len(vals) != 4:
+        first_line = text.splitlines()[0] if text else ""
+        nums = re.findall(_NUMBER, first_line)
+        if len(nums) < 4:
+            return None
+        vals = [float(x) for x in nums[:4]]
+    if not all(np.isfinite(vals)) or vals[0] == 0 or vals[1] == 0:
+        return None
+    return (vals[0], vals[1], vals[2], vals[3])
+
+
+def parse_depth_scale_text(text: str) -> float | None:
+    """The first number of the value (``1000 (MILLIMETRES ...)`` -> 1000)."""
+    m = re.search(_NUMBER, text)
+    if m is None:
+        return None
+    val = float(m.group(0))
+    return val if val > 0 and np.isfinite(val) else None
+
+
+def read_camera_matrix(path: Path) -> tuple[float, float, float, float]:
+    """A 3x3 camera matrix file (7-Scenes ``camera-intrinsics.txt``) -> ``(fx, fy, cx, cy)``."""
+    try:
+        K = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(path, f"cannot read a 3x3 camera matrix ({exc})") from None
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise DatasetError(path, f"expected a 3x3 camera matrix, got shape {K.shape[0]}x{K.shape[1]}")
+    if K[0, 0] == 0 or K[1, 1] == 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise DatasetError(path, "not a camera matrix (zero focal length or last row is not 0 0 1)")
+    return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+
+
+def read_metadata(root: Path) -> FolderMetadata:
+    """Read ``INFO.txt`` and ``camera-intrinsics.txt`` of a sequence folder (each optional)."""
+    root = Path(root)
+    intr = scale = generator = None
+    intr_file = scale_file = None
+    fields: dict[str, str] = {}
+    info = root / INFO_FILE
+    if info.is_file():
+        fields = read_info_fields(info)
+        if "intrinsics" in fields:
+            intr = parse_intrinsics_text(fields["intrinsics"])
+            intr_file = info if intr is not None else None
+        if "depth scale" in fields:
+            scale = parse_depth_scale_text(fields["depth scale"])
+            scale_file = info if scale is not None else None
+        if "generator" in fields:
+            generator = fields["generator"].strip().lower()
+    if intr is None:
+        for cand in (root / CAMERA_INTRINSICS_FILE, root.parent / CAMERA_INTRINSICS_FILE):
+            if cand.is_file():
+                intr, intr_file = read_camera_matrix(cand), cand
+                break
+    return FolderMetadata(intr, scale, generator, intr_file, scale_file, fields)
+
+
+def first_depth_shape(path: Path) -> tuple[int, int]:
+    """``(height, width)`` of a depth image (the sequence's resolution); FrameError if unreadable."""
+    from surfelslam.io.images import read_depth_raw
+
+    return read_depth_raw(path).shape  # type: ignore[return-value]
+
+
+def resolve_camera(
+    options: DatasetOptions,
+    meta: FolderMetadata,
+    layout_intrinsics: tuple[float, float, float, float] | None,
+    layout_depth_scale: float | None,
+    layout_desc: str,
+    first_depth_path: Path,
+) -> CameraSetup | None:
+    """Combine options > folder metadata > layout defaults; ``None`` when a value has no source at all.
+
+    The resolution comes from the first depth image.
+    """
+    if options.intrinsics is not None:
+        intr, intr_src = options.intrinsics, "--intrinsics"
+    elif meta.intrinsics is not None:
+        intr, intr_src = meta.intrinsics, str(meta.intrinsics_file)
+    else:
+        intr, intr_src = layout_intrinsics, layout_desc
+    if options.depth_scale is not None:
+        scale, scale_src = options.depth_scale, "--depth-scale"
+    elif meta.depth_scale is not None:
+        scale, scale_src = meta.depth_scale, str(meta.depth_scale_file)
+    else:
+        scale, scale_src = layout_depth_scale, layout_desc
+    if intr is None or scale is None:
+        return None
+    h, w = first_depth_shape(first_depth_path)
+    fx, fy, cx, cy = (float(x) for x in intr)
+    return CameraSetup(Intrinsics(fx, fy, cx, cy, int(w), int(h)), float(scale), intr_src, scale_src)
+
+
+def build_sequence(
+    cls: type[RGBDSequence],
+    root: Path,
+    entries: list[FrameEntry],
+    options: DatasetOptions,
+    meta: FolderMetadata,
+    layout_intrinsics: tuple[float, float, float, float] | None,
+    layout_depth_scale: float | None,
+    layout_desc: str,
+    ground_truth: Trajectory | None = None,
+    depth_invalid_raw: tuple[int, ...] = (0,),
+) -> RGBDSequence:
+    """Construct an adapter's sequence once its files are listed (shared by every adapter).
+
+    Raises:
+        DatasetError: no frames. ConfigError: intrinsics or depth scale known from nowhere.
+    """
+    if not entries:
+        raise DatasetError(root, "no frames found")
+    cam = resolve_camera(
+        options, meta, layout_intrinsics, layout_depth_scale, layout_desc, entries[0].depth_path
+    )
+    if cam is None:
+        missing = []
+        if options.intrinsics is None and meta.intrinsics is None and layout_intrinsics is None:
+            missing.append("--intrinsics fx,fy,cx,cy")
+        if options.depth_scale is None and meta.depth_scale is None and layout_depth_scale is None:
+            missing.append("--depth-scale UNITS_PER_METRE")
+        raise ConfigError(
+            f"{root}: the {cls.layout!r} layout has no camera defaults; give {' and '.join(missing)} "
+            f"(or write an {INFO_FILE} with 'intrinsics : fx=.. fy=.. cx=.. cy=..' and 'depth scale : N')"
+        )
+    seq = cls(root, entries, cam.intrinsics, cam.depth_scale, options, ground_truth, depth_invalid_raw)
+    seq.intrinsics_source = cam.intrinsics_source
+    seq.depth_scale_source = cam.depth_scale_source
+    return seq

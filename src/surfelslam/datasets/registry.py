@@ -1,0 +1,141 @@
+"""Layout detection: which adapter reads a folder, and helpers every command shares.
+
+Detection order (first match wins), so that name- or metadata-based special cases of the TUM layout
+come before plain TUM:
+
+1. ``7scenes``   native ``frame-XXXXXX.*`` files (or one ``seq-XX``), or TUM layout named 7scenes/7-scenes
+2. ``synthetic`` TUM layout whose ``INFO.txt`` says ``generator : surfelslam synth``
+3. ``icl``       numbered ``rgb/`` + ``depth/`` with ``*.gt.freiburg``, or TUM layout named
+                 icl / living_room / office
+4. ``tum``       any of ``rgb.txt``, ``depth.txt``, ``associations.txt``
+5. ``folder``    ``rgb/`` and ``depth/`` with numbered images (camera from options or INFO.txt)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.datasets.base import DatasetOptions, RGBDSequence
+from surfelslam.datasets.folder import FolderSequence
+from surfelslam.datasets.icl import IclSequence
+from surfelslam.datasets.metadata import read_metadata
+from surfelslam.datasets.sevenscenes import SevenScenesSequence
+from surfelslam.datasets.tum import SyntheticSequence, TumSequence
+from surfelslam.errors import ConfigError, DatasetError, GroundTruthError
+from surfelslam.types import RGBDFrame, Trajectory
+
+#: Adapter name -> adapter class, in detection order.
+LAYOUTS: dict[str, type[RGBDSequence]] = {
+    cls.layout: cls
+    for cls in (SevenScenesSequence, SyntheticSequence, IclSequence, TumSequence, FolderSequence)
+}
+
+#: Median valid depth of one frame outside this range (metres) suggests a wrong depth scale.
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.2, 10.0)
+
+
+def known_layouts_text() -> str:
+    return "; ".join(f"{name}: {cls.expects}" for name, cls in LAYOUTS.items())  # type: ignore[attr-defined]
+
+
+def detect_layout(path: str | Path) -> str:
+    """Name of the first adapter (in :data:`LAYOUTS` order) that recognises the folder.
+
+    Raises:
+        DatasetError: missing folder, empty folder, or no layout matches (the message lists the layouts).
+    """
+    root = Path(path)
+    if not root.exists():
+        raise DatasetError(root, "sequence folder not found")
+    if not root.is_dir():
+        raise DatasetError(root, "not a folder (give the sequence folder)")
+    if not any(root.iterdir()):
+        raise DatasetError(root, "sequence folder is empty")
+    meta = read_metadata(root)
+    for name, cls in LAYOUTS.items():
+        if cls.detect(root, meta):  # type: ignore[attr-defined]
+            return name
+    raise DatasetError(root, f"not a known RGB-D sequence layout. Known layouts: {known_layouts_text()}")
+
+
+def open_sequence(
+    path: str | Path, options: DatasetOptions | None = None, layout: str | None = None
+) -> RGBDSequence:
+    """Open a sequence folder with the adapter its layout calls for.
+
+    Args:
+        path: the sequence folder.
+        options: user overrides and frame selection (default: none).
+        layout: force an adapter by name (a key of :data:`LAYOUTS`) instead of detecting it.
+    Raises:
+        DatasetError / FrameError: unreadable folder or index files. ConfigError: bad options, unknown
+        ``layout``, missing camera for the plain folder layout, or a selection with no frames.
+    """
+    options = DatasetOptions() if options is None else options
+    root = Path(path)
+    if layout is None:
+        layout = detect_layout(root)
+    elif layout not in LAYOUTS:
+        raise ConfigError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
+    elif not root.is_dir():
+        raise DatasetError(root, "sequence folder not found")
+    seq = LAYOUTS[layout].open(root, options)  # type: ignore[attr-defined]
+    if len(seq) == 0:
+        raise ConfigError(
+            f"{root}: the selection (--start {options.start} --end {options.end} --stride {options.stride}) "
+            f"keeps no frame of the {len(seq.all_entries)}"
+        )
+    return seq
+
+
+def require_ground_truth(seq: RGBDSequence, max_dt_s: float = 0.02) -> Trajectory:
+    """The sequence's ground truth, or GroundTruthError when it has none or none of its frames match it."""
+    if seq.ground_truth is None:
+        raise GroundTruthError(seq.root, "this sequence has no ground truth (e.g. groundtruth.txt)")
+    _, valid = seq.gt_poses(max_dt_s)
+    if not valid.any():
+        raise GroundTruthError(
+            seq.root, f"no frame has a ground-truth pose within {max_dt_s} s of its timestamp"
+        )
+    return seq.ground_truth
+
+
+def median_valid_depth_m(frame: RGBDFrame) -> float | None:
+    """Median of the frame's valid depth (metres), ``None`` when no pixel is valid."""
+    d = frame.depth_m[frame.depth_m > 0]
+    return float(np.median(d)) if d.size else None
+
+
+def check_depth_scale(
+    frame: RGBDFrame,
+    depth_scale: float | None = None,
+    plausible_m: tuple[float, float] = PLAUSIBLE_MEDIAN_DEPTH_M,
+) -> str | None:
+    """A warning when the frame's median depth is implausible for an indoor RGB-D sensor, else ``None``."""
+    med = median_valid_depth_m(frame)
+    scale = "" if depth_scale is None else f" (now {depth_scale:g} units per metre)"
+    if med is None:
+        return f"frame {frame.index} has no valid depth pixel; check --depth-scale{scale} and the depth files"
+    if not plausible_m[0] <= med <= plausible_m[1]:
+        return (
+            f"median depth of frame {frame.index} is {med:.3g} m, "
+            f"outside {plausible_m[0]}-{plausible_m[1]} m; "
+            f"is the depth scale right{scale}?"
+        )
+    return None
+
+
+def describe(seq: RGBDSequence) -> dict:
+    """``seq.info()`` plus where the camera came from and the first frame's median depth (loads frame 0)."""
+    out = seq.info()
+    out["full_resolution"] = [seq.full_intrinsics.width, seq.full_intrinsics.height]
+    out["intrinsics_source"] = seq.intrinsics_source
+    out["depth_scale_source"] = seq.depth_scale_source
+    first = seq[0]
+    med = median_valid_depth_m(first)
+    out["first_frame_median_depth_m"] = None if med is None else round(med, 4)
+    out["first_frame_valid_depth_fraction"] = round(float((first.depth_m > 0).mean()), 4)
+    out["depth_scale_warning"] = check_depth_scale(first, seq.depth_scale)
+    return out

@@ -1,0 +1,124 @@
+"""Microsoft 7-Scenes (Shotton et al. 2013), in either of two forms.
+
+* Native: ``seq-XX/frame-XXXXXX.color.png`` (or ``.jpg``), ``frame-XXXXXX.depth.png`` and
+  ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world). Give the ``seq-XX`` folder, or a scene folder holding
+  exactly one ``seq-XX``. Timestamps are ``frame number / 30`` s.
+* The TUM layout (rgb.txt / depth.txt / groundtruth.txt) in a folder whose name (or parent's) contains
+  ``7scenes``, ``7-scenes``, ``7_scenes`` or ``sevenscenes``.
+
+Camera: fx=fy=585, cx=320, cy=240 (the depth camera; colour is not registered to it); depth in
+millimetres (scale 1000), raw 0 and 65535 are invalid.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
+from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
+from surfelslam.datasets.tum import has_tum_index, read_ground_truth, read_tum_entries
+from surfelslam.errors import DatasetError
+from surfelslam.types import Trajectory
+
+SEVENSCENES_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+SEVENSCENES_DEPTH_SCALE = 1000.0
+SEVENSCENES_INVALID_RAW = (0, 65535)
+#: Frame rate of the Kinect v1 recordings (Hz); timestamps are frame number / this.
+SEVENSCENES_FPS_HZ = 30.0
+#: Largest deviation of a pose.txt rotation from orthonormal accepted (|R R^T - I| max).
+POSE_ORTHONORMAL_TOL = 1e-2
+_NAME = re.compile(r"7[-_ ]?scenes|sevenscenes|seven[-_]scenes")
+_FRAME = re.compile(r"^frame-(\d+)\.depth\.png$")
+_DEFAULT_DESC = "7-Scenes default 585/585/320/240, scale 1000 (mm)"
+
+
+def _seq_dirs(root: Path) -> list[Path]:
+    return sorted(p for p in root.glob("seq-*") if p.is_dir())
+
+
+def _has_frames(folder: Path) -> bool:
+    return any(_FRAME.match(p.name) for p in folder.glob("frame-*.depth.png"))
+
+
+def name_says_7scenes(root: Path) -> bool:
+    return any(_NAME.search(n.lower()) for n in (root.name, root.parent.name))
+
+
+def _native_folder(root: Path) -> Path | None:
+    """The folder holding ``frame-*`` files: ``root`` itself or its single ``seq-XX``; None if neither."""
+    if _has_frames(root):
+        return root
+    seqs = [s for s in _seq_dirs(root) if _has_frames(s)]
+    if len(seqs) > 1:
+        raise DatasetError(
+            root,
+            f"holds {len(seqs)} 7-Scenes sequences ({', '.join(s.name for s in seqs)}); give one of them",
+        )
+    return seqs[0] if seqs else None
+
+
+def _read_pose(path: Path) -> np.ndarray:
+    try:
+        T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(path, f"cannot read a 4x4 pose ({exc})") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        shape = f"{T.shape[0]}x{T.shape[1]}"
+        raise DatasetError(path, f"expected a 4x4 camera-to-world matrix, got shape {shape}")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > POSE_ORTHONORMAL_TOL or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise DatasetError(path, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    return T
+
+
+def _read_native(folder: Path) -> tuple[list[FrameEntry], Trajectory | None]:
+    entries, gt_t, gt_T = [], [], []
+    numbered = sorted(
+        (int(m.group(1)), p) for p in folder.glob("frame-*.depth.png") if (m := _FRAME.match(p.name))
+    )
+    for n, depth in numbered:
+        stem = depth.name[: -len(".depth.png")]
+        candidates = (folder / f"{stem}.color.png", folder / f"{stem}.color.jpg")
+        color = next((c for c in candidates if c.is_file()), None)
+        if color is None:
+            raise DatasetError(depth, f"has no colour image ({stem}.color.png or .color.jpg)")
+        t = n / SEVENSCENES_FPS_HZ
+        entries.append(FrameEntry(t, color, depth))
+        pose = folder / f"{stem}.pose.txt"
+        if pose.is_file():
+            gt_t.append(t)
+            gt_T.append(_read_pose(pose))
+    gt = Trajectory(np.array(gt_t), np.array(gt_T)) if gt_t else None
+    return entries, gt
+
+
+class SevenScenesSequence(RGBDSequence):
+    """Microsoft 7-Scenes (Kinect v1, millimetre depth)."""
+
+    layout = "7scenes"
+    expects = (
+        "seq-XX/frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}, or the TUM layout in a folder named "
+        "7scenes / 7-scenes; depth in mm"
+    )
+
+    @classmethod
+    def detect(cls, root: Path, meta: FolderMetadata) -> bool:
+        return _native_folder(root) is not None or (has_tum_index(root) and name_says_7scenes(root))
+
+    @classmethod
+    def open(cls, root: Path, options: DatasetOptions, meta: FolderMetadata | None = None) -> RGBDSequence:
+        native = _native_folder(root)
+        if native is not None:
+            meta = read_metadata(native)
+            entries, gt = _read_native(native)
+            root = native
+        else:
+            meta = read_metadata(root) if meta is None else meta
+            entries, gt = read_tum_entries(root), read_ground_truth(root)
+        return build_sequence(
+            cls, root, entries, options, meta, SEVENSCENES_INTRINSICS, SEVENSCENES_DEPTH_SCALE, _DEFAULT_DESC,
+            gt, depth_invalid_raw=SEVENSCENES_INVALID_RAW,
+        )

@@ -1,0 +1,74 @@
+"""``surfelslam info SEQ``: what was detected in a sequence folder (layout, frames, camera, ground truth)."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from surfelslam.tools.common import (
+    DepthScaleOpt,
+    DownsampleOpt,
+    EndOpt,
+    IntrinsicsOpt,
+    SeqArg,
+    StartOpt,
+    StrideOpt,
+    console,
+    dataset_options,
+    handle_errors,
+)
+
+
+def info_table(d: dict) -> Table:
+    """The ``describe()`` dict as a two-column rich table."""
+    table = Table(title=f"sequence {escape(d['root'])}", show_header=False)
+    table.add_column("field", style="bold")
+    table.add_column("value")
+    intr = d["intrinsics"]
+    med = d["first_frame_median_depth_m"]
+    rows = [
+        ("layout", d["layout"]),
+        ("frames", f"{d['frames']} selected of {d['frames_total']}"),
+        ("resolution", f"{d['resolution'][0]}x{d['resolution'][1]} (files {d['full_resolution'][0]}x"
+                       f"{d['full_resolution'][1]}, downsample {d['downsample']})"),
+        ("intrinsics", f"fx={intr['fx']:g} fy={intr['fy']:g} cx={intr['cx']:g} cy={intr['cy']:g}"
+                       f"  (from {d['intrinsics_source']})"),
+        ("depth scale", f"{d['depth_scale']:g} units/m  (from {d['depth_scale_source']})"),
+        ("ground truth", f"{d['ground_truth_poses']} poses; {d['frames_with_ground_truth']} of {d['frames']} "
+                         "frames have one within 0.02 s"),
+        ("first frame depth", "no valid pixel" if med is None else
+         f"median {med:.3f} m, {100 * d['first_frame_valid_depth_fraction']:.1f}% valid"),
+    ]
+    if d["depth_scale_warning"]:
+        rows.append(("warning", d["depth_scale_warning"]))
+    for k, v in rows:
+        table.add_row(k, escape(str(v)), style="yellow" if k == "warning" else None)
+    return table
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("info")
+    @handle_errors
+    def info(
+        seq: SeqArg,
+        intrinsics: IntrinsicsOpt = None,
+        depth_scale: DepthScaleOpt = None,
+        start: StartOpt = 0,
+        end: EndOpt = None,
+        stride: StrideOpt = 1,
+        downsample: DownsampleOpt = 1,
+        json_out: Annotated[bool, typer.Option("--json", help="Print the information as JSON.")] = False,
+    ) -> None:
+        """Show the detected layout, frames, resolution, intrinsics, depth scale and ground-truth coverage."""
+        from surfelslam.datasets import describe, open_sequence
+
+        opts = dataset_options(intrinsics, depth_scale, start, end, stride, downsample)
+        d = describe(open_sequence(seq, opts))
+        if json_out:
+            typer.echo(json.dumps(d, indent=2))
+        else:
+            console.print(info_table(d))
