@@ -5,45 +5,18 @@ PNG files are written atomically: rendered to a temp file in the target folder, 
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
-from matplotlib.figure import Figure
 
 from surfelslam.eval.metrics import AteResult, RpeResult
 from surfelslam.types import Trajectory
 from surfelslam.viz import style
+from surfelslam.viz.save import new_figure, save_figure
 
 AXIS_NAMES = ("x", "y", "z")
-
-
-def new_figure(figsize_in: tuple[float, float]) -> Figure:
-    """A Figure bound to an Agg canvas (independent of pyplot and of the global backend)."""
-    fig = Figure(figsize=figsize_in, dpi=style.DPI)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def save_figure_atomic(fig: Figure, path: str | Path) -> Path:
-    """Render ``fig`` to PNG at ``path`` via a temp file + ``os.replace`` (never a half-written PNG)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=style.DPI)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def top_view_axes(gt_positions: np.ndarray) -> tuple[int, int]:
@@ -127,7 +100,7 @@ def plot_trajectory(
             ax.set_xlabel("time [s]", fontsize=style.LABEL_FONTSIZE)
     fig.suptitle(title, fontsize=style.TITLE_FONTSIZE)
     fig.tight_layout()
-    return save_figure_atomic(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_errors(
@@ -159,4 +132,4 @@ def plot_errors(
     axes[-1].set_xlabel("time [s]", fontsize=style.LABEL_FONTSIZE)
     fig.suptitle(title or f"ATE over time ({ate_result.n_pairs} poses)", fontsize=style.TITLE_FONTSIZE)
     fig.tight_layout()
-    return save_figure_atomic(fig, path)
+    return save_figure(fig, path)
