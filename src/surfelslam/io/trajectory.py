@@ -27,7 +27,9 @@ def read_tum(path: str | Path) -> Trajectory:
             continue
         parts = line.replace(",", " ").split()
         if len(parts) != 8:
-            raise InputError(path, f"line {lineno}: expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
+            raise InputError(
+                path, f"line {lineno}: expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(parts)}"
+            )
         try:
             vals = [float(p) for p in parts]
         except ValueError:
