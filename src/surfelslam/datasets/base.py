@@ -119,8 +119,13 @@ class RGBDSequence:
         from surfelslam.io.images import read_depth_raw, read_rgb
 
         full = self.full_intrinsics
-        rgb = read_rgb(e.rgb_path)
-        raw = read_depth_raw(e.depth_path)
+        try:
+            rgb = read_rgb(e.rgb_path)
+            raw = read_depth_raw(e.depth_path)
+        except FrameError as exc:
+            if exc.index is None:
+                exc.index = i  # the position in the selection, for runs that skip and count bad frames
+            raise
         for path, shape in ((e.rgb_path, rgb.shape[:2]), (e.depth_path, raw.shape)):
             if shape != full.shape:
                 raise FrameError(

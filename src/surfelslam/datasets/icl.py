@@ -6,8 +6,8 @@
   ``n + (first GT id - first image number)`` (``n + 1`` for the official release) and matches its GT line
   exactly. Timestamps are therefore in *frames*, not seconds (1 frame apart).
 * The TUM layout (rgb.txt / depth.txt) in a folder whose name (or parent's) says ``icl``,
-  ``living_room`` / ``livingRoom`` or ``office`` (but not ``redwood``, ``aug``, ``freiburg`` or
-  ``rgbd_dataset``, which are Augmented ICL-NUIM / TUM). Ground truth: ``groundtruth.txt`` or
+  ``living_room`` / ``livingRoom`` or ``office`` (but not ``redwood``, ``aug``, ``freiburg``, ``frN``,
+  ``tum`` or ``rgbd_dataset``, which are Augmented ICL-NUIM / TUM). Ground truth: ``groundtruth.txt`` or
   ``*.gt.freiburg``.
 
 Camera: fx=481.2, fy=-480 (NEGATIVE, kept: our projection handles it, and the GT poses assume it),
@@ -31,7 +31,8 @@ ICL_INTRINSICS = (481.2, -480.0, 319.5, 239.5)
 ICL_DEPTH_SCALE = 5000.0
 GT_SUFFIX = ".gt.freiburg"
 _ICL_NAME = re.compile(r"icl|living_?room|office")
-_NOT_ICL_NAME = re.compile(r"redwood|aug|freiburg|rgbd_dataset")
+# Augmented ICL-NUIM (Redwood) and TUM names (freiburgN, frN, tum) are not ICL-NUIM.
+_NOT_ICL_NAME = re.compile(r"redwood|aug|freiburg|rgbd_dataset|(?<![a-z])(?:fr[123]|tum)(?![a-z0-9])")
 _DEFAULT_DESC = "ICL-NUIM default 481.2/-480/319.5/239.5, scale 5000"
 
 
