@@ -382,11 +382,12 @@ def test_tum_unmatched_rgb_dropped_and_unsorted_index_sorted(tmp_path):
 def test_associations_used_when_index_files_absent(tmp_path):
     root = make_tum(tmp_path / "seq", n=3)
     rows = [ln.split() for ln in (root / "rgb.txt").read_text().splitlines()[1:]]
-    (root / "associations.txt").write_text("".join(f"{t} {f} {t} {f.replace('rgb', 'depth')}\n" for t, f in rows))
-    (root / "rgb.txt").unlink()
+    # ICL-NUIM order: the depth pair first
+    (root / "associations.txt").write_text("".join(f"{t} {f.replace('rgb', 'depth')} {t} {f}\n" for t, f in rows))
     (root / "depth.txt").unlink()
     seq = open_sequence(root)
     assert len(seq) == 3 and seq.entries[1].depth_path.parent.name == "depth"
+    assert seq.entries[1].rgb_path.parent.name == "rgb" and np.allclose(seq[1].depth_m, 1.0)
 
 
 def test_ground_truth_helpers(tmp_path):

@@ -3,7 +3,7 @@ optional ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, camera-to-worl
 
 Colour and depth are paired by nearest timestamp within :data:`MAX_RGB_DEPTH_DT_S` (each depth image used
 at most once, the closest pair wins); the frame takes the colour timestamp. ``associations.txt`` is only
-used when ``rgb.txt`` and ``depth.txt`` are both absent.
+used when ``rgb.txt`` or ``depth.txt`` is absent (its lines may list the depth pair first, as ICL-NUIM's do).
 
 This module also holds the ``synthetic`` layout: the TUM layout written by ``surfelslam synth``
 (recognised by ``generator : surfelslam synth`` in its ``INFO.txt``).
@@ -125,9 +125,9 @@ def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt_s: float) -> tuple[np.nda
 
 
 def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> list[FrameEntry]:
-    """Frames of a TUM-layout folder (rgb.txt + depth.txt, or associations.txt when both are absent)."""
+    """Frames of a TUM-layout folder (rgb.txt + depth.txt, else associations.txt)."""
     rgb_idx, depth_idx, assoc = root / RGB_INDEX, root / DEPTH_INDEX, root / ASSOC_INDEX
-    if not rgb_idx.is_file() and not depth_idx.is_file() and assoc.is_file():
+    if not (rgb_idx.is_file() and depth_idx.is_file()) and assoc.is_file():
         return _read_associations(assoc, root)
     t_rgb, rgb_paths = read_timed_files(rgb_idx, root)
     t_depth, depth_paths = read_timed_files(depth_idx, root)
