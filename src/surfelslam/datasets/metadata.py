@@ -230,6 +230,7 @@ def build_sequence(
             f"(or write an {INFO_FILE} with 'intrinsics : fx=.. fy=.. cx=.. cy=..' and 'depth scale : N')"
         )
     seq = cls(root, entries, cam.intrinsics, cam.depth_scale, options, ground_truth, depth_invalid_raw)
-    seq.intrinsics_source = cam.intrinsics_source
-    seq.depth_scale_source = cam.depth_scale_source
+    prefix = f"{root}/"  # show metadata files inside the sequence folder by their name
+    seq.intrinsics_source = cam.intrinsics_source.removeprefix(prefix)
+    seq.depth_scale_source = cam.depth_scale_source.removeprefix(prefix)
     return seq
