@@ -1,0 +1,421 @@
+"""Sparse feature odometry: ORB keypoints with depth, Hamming matching, PnP-RANSAC.
+
+The pipeline follows the feature-based RGB-D tutorial in the seeds:
+
+1. :func:`extract` detects ORB keypoints spread over the image (retain-best per grid cell), computes
+   their descriptors and lifts each keypoint to 3D with the depth image (camera frame).
+2. :func:`match` pairs descriptors of a reference and a current frame (cross-check or ratio test)
+   and keeps the "good" matches, whose Hamming distance is below ``k * max(min_distance, floor)``.
+3. :func:`estimate_motion` solves PnP-RANSAC with 3D points from the *reference* frame and 2D
+   keypoints of the *current* frame, refines on the inliers, and applies the rejection rules
+   (too few good matches, too few inliers, motion norm too large). The solution maps reference
+   camera points into the current camera: ``T_cur_ref``.
+
+``fy`` may be negative (ICL-NUIM). OpenCV's PnP is only exercised with a positive focal length:
+for ``fy < 0`` the image rows are mirrored about ``cy`` (``v' = 2 cy - v``) and ``fy' = -fy``,
+which describes exactly the same projection of the same 3D points, so the pose is unchanged.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
+from surfelslam.types import Intrinsics, RGBDFrame
+
+MATCHING_MODES = ("crosscheck", "ratio")
+REJECT_REASONS = ("too_few_matches", "too_few_inliers", "motion_too_large", "pnp_failed")
+_DESCRIPTOR_BYTES = 32
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """ORB extraction, matching and PnP parameters (units in the names; counts are plain ints).
+
+    Attributes:
+        n_features: keypoints kept per image (after grid bucketing).
+        detect_oversample: ORB first detects ``n_features * detect_oversample`` candidates; the
+            strongest per grid cell are then retained.
+        grid_cols, grid_rows: bucketing grid; each cell keeps at most ``ceil(n_features / cells)``.
+        scale_factor: ORB pyramid scale ratio between levels.
+        n_levels: ORB pyramid levels.
+        fast_threshold: FAST corner threshold (grey levels, 0..255).
+        edge_threshold_px: border (pixels) where no keypoint is detected (also the ORB patch size).
+        matching: ``"crosscheck"`` (mutual nearest neighbours) or ``"ratio"`` (Lowe test).
+        ratio: nearest / second-nearest Hamming distance bound of the ratio test.
+        good_match_k: good matches have distance ``< good_match_k * max(min_distance, floor)``
+            (seeds: 4 at first, 10 later).
+        good_match_floor_bits: the floor of ``min_distance`` in that rule (seeds: 10 bits).
+        depth_median_3x3: lift keypoints with the median of the valid depths in their 3x3 pixel
+            neighbourhood (robust at edges and for slightly misregistered colour/depth) instead of the
+            nearest pixel's depth.
+        min_depth_m, max_depth_m: keypoints with depth outside this range get no 3D point.
+        ransac_iterations: PnP-RANSAC iterations. The seeds use 100; at 10 % inlier ratio (wide
+            baselines on real data) 100 EPnP samples often miss, so the default is 300.
+        reprojection_error_px: RANSAC inlier threshold. The seeds use 1.0 px; on real Kinect data
+            (7-Scenes: colour and depth are not registered) 2.0 px keeps more correct inliers and gives
+            a better pose, so that is the default.
+        ransac_confidence: RANSAC success probability (early stop).
+        refine: refine the RANSAC pose on its inliers with Levenberg-Marquardt.
+        min_good_matches: fewer good matches with valid reference depth -> ``too_few_matches``.
+        min_inliers: fewer PnP inliers -> ``too_few_inliers`` (seeds: 5).
+        max_motion_norm: motion norm ``||t|| + min(||r||, 2 pi - ||r||)`` (m + rad) above this ->
+            ``motion_too_large`` (seeds: 0.3).
+    """
+
+    n_features: int = 1000
+    detect_oversample: float = 2.0
+    grid_cols: int = 8
+    grid_rows: int = 6
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 12
+    edge_threshold_px: int = 19
+    matching: str = "crosscheck"
+    ratio: float = 0.8
+    good_match_k: float = 4.0
+    good_match_floor_bits: float = 10.0
+    depth_median_3x3: bool = True
+    min_depth_m: float = 0.1
+    max_depth_m: float = 6.0
+    ransac_iterations: int = 300
+    reprojection_error_px: float = 2.0
+    ransac_confidence: float = 0.99
+    refine: bool = True
+    min_good_matches: int = 10
+    min_inliers: int = 5
+    max_motion_norm: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.matching not in MATCHING_MODES:
+            raise ValueError(f"matching must be one of {MATCHING_MODES}, got {self.matching!r}")
+        if self.n_features < 1 or self.grid_cols < 1 or self.grid_rows < 1:
+            raise ValueError("n_features, grid_cols and grid_rows must be >= 1")
+        if not 0.0 < self.ratio <= 1.0:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
+        if self.min_depth_m < 0 or self.max_depth_m <= self.min_depth_m:
+            raise ValueError(f"need 0 <= min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}")
+        if self.min_inliers < 4:
+            raise ValueError(f"min_inliers must be >= 4 (PnP needs 4 points), got {self.min_inliers}")
+
+
+@dataclass
+class Features:
+    """Keypoints of one image.
+
+    Attributes:
+        keypoints_uv: ``(N, 2)`` float32 pixel coordinates ``(u, v)`` at full resolution.
+        descriptors: ``(N, 32)`` uint8 ORB descriptors.
+        points_cam: ``(N, 3)`` float32 camera-frame points (metres); NaN where depth is invalid.
+        valid: ``(N,)`` bool, True where ``points_cam`` is finite.
+        response: ``(N,)`` float32 detector response (for diagnostics).
+    """
+
+    keypoints_uv: np.ndarray
+    descriptors: np.ndarray
+    points_cam: np.ndarray
+    valid: np.ndarray
+    response: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.keypoints_uv)
+
+
+@dataclass
+class MatchResult:
+    """Good matches between a reference and a current :class:`Features`.
+
+    Attributes:
+        pairs: ``(M, 2)`` int64 ``(ref_index, cur_index)`` of the good matches, ordered by ref index.
+        distances: ``(M,)`` float32 Hamming distances (bits).
+        n_raw: matches before the distance filter.
+        n_good: ``M``.
+        min_dist, max_dist: smallest / largest raw match distance (bits; 0 when there is none).
+    """
+
+    pairs: np.ndarray
+    distances: np.ndarray
+    n_raw: int
+    n_good: int
+    min_dist: float
+    max_dist: float
+
+
+@dataclass
+class MotionResult:
+    """Outcome of :func:`estimate_motion`.
+
+    Attributes:
+        T_cur_ref: ``(4, 4)`` maps reference-camera points into the current camera (identity when
+            PnP failed; still filled when a later rule rejects the motion).
+        ok: True when every rule passed.
+        reason: ``None`` or one of ``REJECT_REASONS``.
+        n_matches: raw matches; n_good: good matches with a valid reference 3D point;
+        n_inliers: PnP inliers.
+        rvec, tvec: ``(3,)`` OpenCV pose (the same transform as ``T_cur_ref``).
+        inlier_mask: ``(n_good,)`` bool over ``pairs``.
+        pairs: ``(n_good, 2)`` the good matches used for PnP (ref, cur).
+    """
+
+    T_cur_ref: np.ndarray
+    ok: bool
+    reason: str | None
+    n_matches: int
+    n_good: int
+    n_inliers: int
+    rvec: np.ndarray
+    tvec: np.ndarray
+    inlier_mask: np.ndarray
+    pairs: np.ndarray
+
+    @property
+    def motion_norm(self) -> float:
+        return motion_norm(self.T_cur_ref)
+
+
+def _orb(cfg: FeatureConfig) -> cv2.ORB:
+    n_detect = int(np.ceil(cfg.n_features * cfg.detect_oversample))
+    return cv2.ORB_create(
+        nfeatures=n_detect,
+        scaleFactor=cfg.scale_factor,
+        nlevels=cfg.n_levels,
+        edgeThreshold=cfg.edge_threshold_px,
+        patchSize=cfg.edge_threshold_px,
+        fastThreshold=cfg.fast_threshold,
+    )
+
+
+def _to_grey(rgb: np.ndarray) -> np.ndarray:
+    if rgb.ndim == 2:
+        return np.ascontiguousarray(rgb, dtype=np.uint8)
+    return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+
+
+def bucket_keypoints(
+    uv: np.ndarray, response: np.ndarray, shape: tuple[int, int], cfg: FeatureConfig
+) -> np.ndarray:
+    """Indices of the keypoints kept by grid bucketing (strongest first within each cell).
+
+    Args:
+        uv: ``(N, 2)`` pixel coordinates.
+        response: ``(N,)`` detector responses.
+        shape: image ``(H, W)``.
+
+    Returns:
+        ``(K,)`` int64 indices into ``uv``, ascending, ``K <= n_features``. Cells with fewer
+        keypoints than their quota leave room that is refilled with the best remaining keypoints.
+    """
+    n = len(uv)
+    if n <= cfg.n_features:
+        return np.arange(n, dtype=np.int64)
+    h, w = shape
+    cu = np.clip((uv[:, 0] * cfg.grid_cols / w).astype(np.int64), 0, cfg.grid_cols - 1)
+    cv_ = np.clip((uv[:, 1] * cfg.grid_rows / h).astype(np.int64), 0, cfg.grid_rows - 1)
+    cell = cv_ * cfg.grid_cols + cu
+    # stable sort by (cell, -response, index): deterministic ranks within each cell
+    order = np.lexsort((np.arange(n), -response, cell))
+    cell_sorted = cell[order]
+    first = np.searchsorted(cell_sorted, cell_sorted, side="left")
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n) - first
+    quota = int(np.ceil(cfg.n_features / (cfg.grid_cols * cfg.grid_rows)))
+    # global order: by rank within the cell first, then by response -> fill evenly, then the strongest
+    global_order = np.lexsort((np.arange(n), -response, np.minimum(rank, quota)))
+    keep = global_order[: cfg.n_features]
+    return np.sort(keep)
+
+
+def _keypoint_depth(depth_m: np.ndarray, uv: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
+    """Depth (m) at each keypoint ``(N,)``; NaN where invalid or out of [min_depth_m, max_depth_m]."""
+    h, w = depth_m.shape
+    ui = np.clip(np.floor(uv[:, 0] + 0.5).astype(np.int64), 0, w - 1)
+    vi = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.int64), 0, h - 1)
+    if cfg.depth_median_3x3:
+        offs = np.array([-1, 0, 1])
+        uu = np.clip(ui[:, None, None] + offs[None, None, :], 0, w - 1)
+        vv = np.clip(vi[:, None, None] + offs[None, :, None], 0, h - 1)
+        patch = depth_m[vv, uu].reshape(len(uv), 9).astype(np.float64)
+        ok = (patch >= cfg.min_depth_m) & (patch <= cfg.max_depth_m)
+        patch[~ok] = np.nan
+        centre_ok = ok[:, 4]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows -> NaN, handled below
+            z = np.nanmedian(patch, axis=1)
+        # the centre pixel must itself be valid: a keypoint on a hole has no reliable depth
+        z[~centre_ok] = np.nan
+        return z
+    z = depth_m[vi, ui].astype(np.float64)
+    z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
+    return z
+
+
+def extract(rgb: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, cfg: FeatureConfig) -> Features:
+    """Detect ORB keypoints, compute descriptors and lift them to 3D.
+
+    Args:
+        rgb: ``(H, W, 3)`` uint8 RGB (or ``(H, W)`` grey).
+        depth_m: ``(H, W)`` float32 metres, 0 = invalid.
+        intr: intrinsics of these images.
+
+    Returns:
+        :class:`Features`; ``points_cam`` rows are NaN where the depth is invalid.
+    """
+    grey = _to_grey(rgb)
+    if grey.shape != depth_m.shape:
+        raise ValueError(f"rgb {grey.shape} and depth {depth_m.shape} sizes differ")
+    kps, desc = _orb(cfg).detectAndCompute(grey, None)
+    if desc is None or len(kps) == 0:
+        empty2 = np.zeros((0, 2), np.float32)
+        return Features(
+            empty2, np.zeros((0, _DESCRIPTOR_BYTES), np.uint8), np.zeros((0, 3), np.float32),
+            np.zeros(0, bool), np.zeros(0, np.float32),
+        )
+    uv = np.array([kp.pt for kp in kps], dtype=np.float32).reshape(-1, 2)
+    response = np.array([kp.response for kp in kps], dtype=np.float32)
+    keep = bucket_keypoints(uv, response, grey.shape, cfg)
+    uv, response, desc = uv[keep], response[keep], np.ascontiguousarray(desc[keep])
+    z = _keypoint_depth(depth_m, uv, cfg)
+    x = (uv[:, 0] - intr.cx) / intr.fx * z
+    y = (uv[:, 1] - intr.cy) / intr.fy * z
+    pts = np.column_stack([x, y, z]).astype(np.float32)
+    return Features(uv, desc, pts, np.isfinite(z), response)
+
+
+def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
+    """Match ``ref`` descriptors to ``cur`` descriptors and keep the good matches.
+
+    Good matches: Hamming distance ``< good_match_k * max(min_dist, good_match_floor_bits)`` where
+    ``min_dist`` is the smallest distance of all raw matches (the seeds' rule).
+    """
+    empty = MatchResult(np.zeros((0, 2), np.int64), np.zeros(0, np.float32), 0, 0, 0.0, 0.0)
+    if len(ref) == 0 or len(cur) == 0:
+        return empty
+    if cfg.matching == "crosscheck":
+        raw = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(ref.descriptors, cur.descriptors)
+    else:
+        knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(ref.descriptors, cur.descriptors, k=2)
+        raw = [m[0] for m in knn if len(m) == 2 and m[0].distance < cfg.ratio * m[1].distance]
+    if not raw:
+        return empty
+    arr = np.array([(m.queryIdx, m.trainIdx, m.distance) for m in raw], dtype=np.float64)
+    order = np.argsort(arr[:, 0], kind="stable")
+    arr = arr[order]
+    d = arr[:, 2]
+    min_d, max_d = float(d.min()), float(d.max())
+    thresh = cfg.good_match_k * max(min_d, cfg.good_match_floor_bits)
+    good = d < thresh
+    pairs = arr[good, :2].astype(np.int64)
+    return MatchResult(pairs, d[good].astype(np.float32), len(arr), int(good.sum()), min_d, max_d)
+
+
+def _cv_camera(intr: Intrinsics) -> tuple[np.ndarray, float]:
+    """OpenCV camera matrix with positive fy and the row sign to apply to v (+1 or -1 mirror)."""
+    K = intr.K.copy()
+    if intr.fy < 0:
+        K[1, 1] = -intr.fy
+        return K, -1.0
+    return K, 1.0
+
+
+def _image_points_cv(uv: np.ndarray, intr: Intrinsics, sign: float) -> np.ndarray:
+    pts = uv.astype(np.float64).copy()
+    if sign < 0:
+        pts[:, 1] = 2.0 * intr.cy - pts[:, 1]
+    return pts
+
+
+def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionResult:
+    return MotionResult(
+        np.eye(4), False, reason, n_raw, n_good, 0, np.zeros(3), np.zeros(3),
+        np.zeros(len(pairs), bool), pairs,
+    )
+
+
+def estimate_motion(
+    ref: Features,
+    cur: Features,
+    intr: Intrinsics,
+    cfg: FeatureConfig,
+    T_init_cur_ref: np.ndarray | None = None,
+) -> MotionResult:
+    """Relative pose ``T_cur_ref`` by PnP-RANSAC: 3D from the reference depth, 2D from the current image.
+
+    Args:
+        ref, cur: features of the reference and the current frame (same intrinsics).
+        intr: camera intrinsics (``fy`` may be negative).
+        T_init_cur_ref: optional ``(4, 4)`` initial guess (used by RANSAC's iterative solver).
+
+    Returns:
+        :class:`MotionResult`; ``ok`` is False with a ``reason`` when a rejection rule fired.
+    """
+    m = match(ref, cur, cfg)
+    pairs = m.pairs[ref.valid[m.pairs[:, 0]]] if m.n_good else m.pairs
+    n_good = len(pairs)
+    if n_good < max(cfg.min_good_matches, 4):
+        return _failed(m.n_raw, n_good, "too_few_matches", pairs)
+    obj = ref.points_cam[pairs[:, 0]].astype(np.float64)
+    K, sign = _cv_camera(intr)
+    img = _image_points_cv(cur.keypoints_uv[pairs[:, 1]], intr, sign)
+    use_guess = T_init_cur_ref is not None
+    if use_guess:
+        rvec0 = so3_log(T_init_cur_ref[:3, :3]).reshape(3, 1).copy()
+        tvec0 = np.asarray(T_init_cur_ref[:3, 3], np.float64).reshape(3, 1).copy()
+    else:
+        rvec0 = np.zeros((3, 1))
+        tvec0 = np.zeros((3, 1))
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj, img, K, None, rvec0, tvec0, use_guess,
+            cfg.ransac_iterations, cfg.reprojection_error_px, cfg.ransac_confidence,
+            flags=cv2.SOLVEPNP_ITERATIVE if use_guess else cv2.SOLVEPNP_EPNP,
+        )
+    except cv2.error:
+        return _failed(m.n_raw, n_good, "pnp_failed", pairs)
+    if not ok or inl is None:
+        return _failed(m.n_raw, n_good, "too_few_inliers" if ok else "pnp_failed", pairs)
+    inl = inl.reshape(-1)
+    mask = np.zeros(n_good, bool)
+    mask[inl] = True
+    if len(inl) < cfg.min_inliers:
+        res = _failed(m.n_raw, n_good, "too_few_inliers", pairs)
+        res.n_inliers = len(inl)
+        res.inlier_mask = mask
+        return res
+    if cfg.refine:
+        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], K, None, rvec.copy(), tvec.copy())
+    rvec = np.asarray(rvec, np.float64).reshape(3)
+    tvec = np.asarray(tvec, np.float64).reshape(3)
+    T = make_T(so3_exp(rvec), tvec)
+    res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs)
+    if not np.all(np.isfinite(T)):
+        res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
+    elif motion_norm(T) > cfg.max_motion_norm:
+        res.ok, res.reason = False, "motion_too_large"
+    return res
+
+
+def feature_guess(
+    src_frame: RGBDFrame, tgt_frame: RGBDFrame, intr: Intrinsics, cfg: FeatureConfig
+) -> tuple[np.ndarray | None, MotionResult]:
+    """Relative pose between two frames for an ICP initial guess.
+
+    Returns:
+        ``(T_target_source, result)``: ``T_target_source`` ``(4, 4)`` maps points from the source camera
+        into the target camera, or ``None`` when a rejection rule fired (see ``result.reason``).
+    """
+    f_src = extract(src_frame.rgb, src_frame.depth_m, intr, cfg)
+    f_tgt = extract(tgt_frame.rgb, tgt_frame.depth_m, intr, cfg)
+    # reference = target (its depth gives the 3D points), current = source: T_cur_ref = T_source_target
+    res = estimate_motion(f_tgt, f_src, intr, cfg)
+    if not res.ok:
+        return None, res
+    return invert(res.T_cur_ref), res
+
+
+def with_max_motion_norm(cfg: FeatureConfig, max_motion_norm: float) -> FeatureConfig:
+    """Copy of ``cfg`` with another motion-norm bound (loops and relocalisation use larger ones)."""
+    return replace(cfg, max_motion_norm=max_motion_norm)

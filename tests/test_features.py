@@ -1,0 +1,249 @@
+"""ORB extraction, matching and PnP-RANSAC odometry (synthetic textured room + real 7-Scenes pairs)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from surfelslam.geometry.se3 import invert, make_T, motion_norm, pose_error, so3_exp
+from surfelslam.tracking.features import (
+    FeatureConfig,
+    bucket_keypoints,
+    estimate_motion,
+    extract,
+    feature_guess,
+    match,
+)
+from surfelslam.types import Intrinsics, RGBDFrame
+
+ROOM_HALF_M = np.array([2.0, 1.2, 2.5])  # axis-aligned room [-h, h]^3 around the origin (y down)
+TEX_CELL_M = (0.09, 0.035)  # two layers of random blocks
+
+
+def _textures(seed: int = 7) -> np.ndarray:
+    """``(6, 2, 128, 128)`` uint8 random block values per face and layer."""
+    return np.random.default_rng(seed).integers(0, 256, size=(6, 2, 128, 128), dtype=np.uint8)
+
+
+_TEX = _textures()
+_TINT = np.array([[1.0, 0.8, 0.7], [0.7, 1.0, 0.8], [0.8, 0.7, 1.0], [1.0, 1.0, 0.7], [0.7, 1.0, 1.0], [1.0, 0.7, 1.0]])
+
+
+def render_room(T_world_cam: np.ndarray, intr: Intrinsics, supersample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast the textured box room: ``(rgb (H, W, 3) uint8, depth_m (H, W) float32)``.
+
+    Colour is anti-aliased by averaging ``supersample^2`` rays per pixel; depth is the centre ray's.
+    """
+    s = supersample
+    v, u = np.mgrid[0 : intr.height * s, 0 : intr.width * s].astype(np.float64)
+    u = (u - (s - 1) / 2) / s
+    v = (v - (s - 1) / 2) / s
+    d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+    d = d_cam @ T_world_cam[:3, :3].T
+    o = T_world_cam[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_hi = (ROOM_HALF_M - o) / d
+        t_lo = (-ROOM_HALF_M - o) / d
+    t_axis = np.where(d > 0, t_hi, t_lo)  # (H, W, 3): exit distance through each axis' wall
+    t_axis = np.where(np.isfinite(t_axis) & (t_axis > 0), t_axis, np.inf)
+    axis = np.argmin(t_axis, axis=-1)
+    t = np.take_along_axis(t_axis, axis[..., None], -1)[..., 0]
+    p = o + t[..., None] * d
+    face = axis * 2 + (np.take_along_axis(d, axis[..., None], -1)[..., 0] > 0)
+    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]  # the two in-plane axes
+    a = np.take_along_axis(p, other[..., :1], -1)[..., 0]
+    b = np.take_along_axis(p, other[..., 1:], -1)[..., 0]
+    grey = np.zeros(a.shape)
+    for layer, (cell, w) in enumerate(zip(TEX_CELL_M, (0.6, 0.4), strict=True)):
+        ia = np.floor(a / cell).astype(np.int64) % 128
+        ib = np.floor(b / cell).astype(np.int64) % 128
+        grey += w * _TEX[face, layer, ia, ib]
+    rgb = grey[..., None] * _TINT[face]
+    rgb = rgb.reshape(intr.height, s, intr.width, s, 3).mean(axis=(1, 3))
+    rgb = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
+    if s > 1:  # depth of the exact pixel centre (a planar room: one more cheap ray cast)
+        _, depth = render_room(T_world_cam, intr, supersample=1)
+        return rgb, depth
+    return rgb, t.astype(np.float32)  # d_cam has z = 1, so the ray parameter is the depth
+
+
+def look_pose(position: np.ndarray, yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
+    """Camera at ``position`` turned by yaw (about world y) then pitch (about camera x)."""
+    R = so3_exp([0.0, yaw_rad, 0.0]) @ so3_exp([pitch_rad, 0.0, 0.0])
+    return make_T(R, position)
+
+
+INTR = Intrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
+INTR_NEG = Intrinsics(260.0, -260.0, 159.5, 119.5, 320, 240)
+CFG = FeatureConfig(n_features=600)
+
+
+def _frame(T_world_cam: np.ndarray, intr: Intrinsics, index: int = 0) -> RGBDFrame:
+    rgb, depth = render_room(T_world_cam, intr)
+    return RGBDFrame(index, float(index), rgb, depth)
+
+
+def _pair(intr: Intrinsics = INTR):
+    T_a = look_pose(np.array([0.1, 0.0, -0.3]), 0.1)
+    T_b = look_pose(np.array([0.16, 0.03, -0.25]), 0.16, 0.04)
+    return T_a, T_b, _frame(T_a, intr, 0), _frame(T_b, intr, 1)
+
+
+def test_extract_spreads_keypoints_and_lifts_depth() -> None:
+    _, _, fa, _ = _pair()
+    f = extract(fa.rgb, fa.depth_m, INTR, CFG)
+    assert 300 <= len(f) <= CFG.n_features
+    assert f.descriptors.shape == (len(f), 32) and f.descriptors.dtype == np.uint8
+    assert f.keypoints_uv.dtype == np.float32 and f.points_cam.dtype == np.float32
+    # all four image quadrants hold keypoints
+    q = (f.keypoints_uv[:, 0] > INTR.cx).astype(int) * 2 + (f.keypoints_uv[:, 1] > INTR.cy)
+    assert np.bincount(q, minlength=4).min() > 0.1 * len(f)
+    # 3D points re-project onto their keypoints
+    p = f.points_cam[f.valid]
+    uv = f.keypoints_uv[f.valid]
+    assert f.valid.mean() > 0.95
+    np.testing.assert_allclose(INTR.fx * p[:, 0] / p[:, 2] + INTR.cx, uv[:, 0], atol=1e-3)
+    np.testing.assert_allclose(INTR.fy * p[:, 1] / p[:, 2] + INTR.cy, uv[:, 1], atol=1e-3)
+
+
+def test_invalid_depth_gives_nan_points() -> None:
+    _, _, fa, _ = _pair()
+    depth = fa.depth_m.copy()
+    depth[:, : INTR.width // 2] = 0.0
+    f = extract(fa.rgb, depth, INTR, CFG)
+    left = f.keypoints_uv[:, 0] < INTR.width // 2 - 2
+    assert left.sum() > 50
+    assert not f.valid[left].any() and np.isnan(f.points_cam[left]).all()
+    assert f.valid[f.keypoints_uv[:, 0] > INTR.width // 2 + 2].all()
+
+
+def test_bucketing_is_spread_and_deterministic() -> None:
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [320, 240], size=(500, 2)).astype(np.float32)
+    resp = rng.uniform(size=500).astype(np.float32)
+    resp[uv[:, 0] < 80] += 10.0  # the left quarter is much stronger
+    cfg = FeatureConfig(n_features=96, grid_cols=4, grid_rows=3)
+    keep = bucket_keypoints(uv, resp, (240, 320), cfg)
+    assert len(keep) == 96 and np.all(np.diff(keep) > 0)
+    assert (uv[keep, 0] >= 80).sum() >= 60  # every cell got its quota despite weaker responses
+    np.testing.assert_array_equal(keep, bucket_keypoints(uv, resp, (240, 320), cfg))
+
+
+@pytest.mark.parametrize("matching", ["crosscheck", "ratio"])
+def test_match_good_filter(matching: str) -> None:
+    _, _, fa, fb = _pair()
+    cfg = replace(CFG, matching=matching)
+    a = extract(fa.rgb, fa.depth_m, INTR, cfg)
+    b = extract(fb.rgb, fb.depth_m, INTR, cfg)
+    m = match(a, b, cfg)
+    assert m.n_good == len(m.pairs) == len(m.distances) > 100
+    assert m.n_raw >= m.n_good
+    thresh = cfg.good_match_k * max(m.min_dist, cfg.good_match_floor_bits)
+    assert m.distances.max() < thresh
+    assert len(np.unique(m.pairs[:, 0])) == m.n_good
+
+
+@pytest.mark.parametrize("intr", [INTR, INTR_NEG], ids=["fy_pos", "fy_neg"])
+def test_pnp_recovers_known_pose(intr: Intrinsics) -> None:
+    T_a, T_b, fa, fb = _pair(intr)
+    a = extract(fa.rgb, fa.depth_m, intr, CFG)
+    b = extract(fb.rgb, fb.depth_m, intr, CFG)
+    res = estimate_motion(a, b, intr, CFG)
+    assert res.ok and res.reason is None
+    T_gt_b_a = invert(T_b) @ T_a
+    dt, dr = pose_error(res.T_cur_ref, T_gt_b_a)
+    assert dt < 0.02 and dr < 0.5  # FAST keypoints are integer pixels: ~0.5 px noise per axis
+    assert res.n_inliers >= 0.6 * res.n_good
+    assert res.inlier_mask.sum() == res.n_inliers
+    # with an initial guess the answer is the same
+    res2 = estimate_motion(a, b, intr, CFG, T_init_cur_ref=T_gt_b_a)
+    assert pose_error(res2.T_cur_ref, T_gt_b_a)[0] < 0.02
+
+
+def test_feature_guess_direction() -> None:
+    T_a, T_b, fa, fb = _pair()
+    T_tgt_src, res = feature_guess(fb, fa, INTR, CFG)  # source b, target a
+    assert T_tgt_src is not None
+    dt, dr = pose_error(T_tgt_src, invert(T_a) @ T_b)
+    assert dt < 0.02 and dr < 0.5  # FAST keypoints are integer pixels: ~0.5 px noise per axis
+
+
+def test_textureless_rejected_too_few_matches() -> None:
+    rgb = np.full((240, 320, 3), 128, np.uint8)
+    depth = np.full((240, 320), 2.0, np.float32)
+    f = extract(rgb, depth, INTR, CFG)
+    res = estimate_motion(f, f, INTR, CFG)
+    assert not res.ok and res.reason == "too_few_matches"
+    T, res2 = feature_guess(RGBDFrame(0, 0.0, rgb, depth), RGBDFrame(1, 0.1, rgb, depth), INTR, CFG)
+    assert T is None and res2.reason == "too_few_matches"
+
+
+def test_large_motion_rejected() -> None:
+    T_a = look_pose(np.array([0.0, 0.0, 0.0]), 0.0)
+    T_b = look_pose(np.array([0.25, 0.0, 0.2]), 0.2)  # norm ~0.52 > 0.3
+    fa, fb = _frame(T_a, INTR), _frame(T_b, INTR)
+    a = extract(fa.rgb, fa.depth_m, INTR, CFG)
+    b = extract(fb.rgb, fb.depth_m, INTR, CFG)
+    res = estimate_motion(a, b, INTR, CFG)
+    assert not res.ok and res.reason == "motion_too_large"
+    assert pose_error(res.T_cur_ref, invert(T_b) @ T_a)[0] < 0.03  # the pose itself was right
+    assert motion_norm(res.T_cur_ref) > CFG.max_motion_norm
+    ok = estimate_motion(a, b, INTR, replace(CFG, max_motion_norm=1.0))
+    assert ok.ok
+
+
+def test_too_few_inliers() -> None:
+    _, _, fa, _ = _pair()
+    a = extract(fa.rgb, fa.depth_m, INTR, CFG)
+    # scramble the 2D side: descriptors match perfectly but the geometry is random
+    rng = np.random.default_rng(3)
+    b = replace(a, keypoints_uv=a.keypoints_uv[rng.permutation(len(a))])
+    res = estimate_motion(a, b, INTR, replace(CFG, min_inliers=20))
+    assert not res.ok and res.reason in ("too_few_inliers", "pnp_failed")
+
+
+def test_deterministic() -> None:
+    _, _, fa, fb = _pair()
+    r = [estimate_motion(extract(fa.rgb, fa.depth_m, INTR, CFG), extract(fb.rgb, fb.depth_m, INTR, CFG),
+                         INTR, CFG) for _ in range(2)]
+    np.testing.assert_array_equal(r[0].T_cur_ref, r[1].T_cur_ref)
+    np.testing.assert_array_equal(r[0].inlier_mask, r[1].inlier_mask)
+
+
+# --- real data ---------------------------------------------------------------------------------
+
+
+def _load_7scenes(i: int):
+    from conftest import shared_sequence
+    from surfelslam.io.images import read_depth_raw, read_rgb
+    from surfelslam.io.trajectory import read_tum
+
+    root = shared_sequence("7scenes_redkitchen_0000_0499")
+    rgb = read_rgb(root / "rgb" / f"{i:06d}.jpg")
+    depth = read_depth_raw(root / "depth" / f"{i:06d}.png").astype(np.float32) / 1000.0
+    gt = read_tum(root / "groundtruth.txt")
+    return RGBDFrame(i, i / 30.0, rgb, depth), gt.T_world_cam[i]
+
+
+SEVEN_INTR = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
+
+
+@pytest.mark.parametrize("a,b", [(10, 40), (200, 210), (200, 230), (300, 330)])
+def test_7scenes_pairs_within_5cm_5deg(a: int, b: int) -> None:
+    fa, Ta = _load_7scenes(a)
+    fb, Tb = _load_7scenes(b)
+    cfg = FeatureConfig(max_motion_norm=1.0)  # 300->330 moves 0.33 (> the 0.3 frame-to-frame bound)
+    T_a_b, res = feature_guess(fb, fa, SEVEN_INTR, cfg)
+    assert T_a_b is not None, res.reason
+    dt, dr = pose_error(T_a_b, invert(Ta) @ Tb)
+    assert dt < 0.05 and dr < 5.0
+
+
+def test_7scenes_low_overlap_pair_rejected() -> None:
+    """Frames 10 and 100 overlap ~15 % (GT motion norm 0.81): no trustworthy pose; must not be accepted."""
+    fa, _ = _load_7scenes(10)
+    fb, _ = _load_7scenes(100)
+    T, res = feature_guess(fb, fa, SEVEN_INTR, FeatureConfig())
+    assert T is None and not res.ok
