@@ -1,0 +1,335 @@
+"""Point-based fusion kernels: association, merge, addition, removal rules.
+
+Determinism: association only reads the map; each map surfel occupies at most one cell of the
+supersampled index map, so it is the candidate of at most one input pixel and the merge writes never
+conflict (rows run in parallel, results do not depend on the schedule). New surfels are appended in
+raster order by a serial kernel. Each kernel has a numpy reference ``<name>_ref``.
+
+Association status per input pixel (``assoc`` int32 ``(H, W)``): ``>= 0`` the surfel row to merge into,
+``ASSOC_INVALID`` no usable measurement, ``ASSOC_COVERED`` no candidate in the pixel's own cells but a
+matching surfel in a neighbouring pixel's cells (neither merged nor added), ``ASSOC_NEW`` add a surfel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+ASSOC_INVALID = -1
+ASSOC_COVERED = -2
+ASSOC_NEW = -3
+
+
+@njit(cache=True, inline="always")
+def _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle):
+    """Squared distance of surfel ``i`` to the measurement if it passes both tests, else -1."""
+    dx = pos[i, 0] - qx
+    dy = pos[i, 1] - qy
+    dz = pos[i, 2] - qz
+    d2 = dx * dx + dy * dy + dz * dz
+    if d2 >= dist2:
+        return -1.0
+    if nrm[i, 0] * mx + nrm[i, 1] * my + nrm[i, 2] * mz <= cos_angle:
+        return -1.0
+    return d2
+
+
+@njit(cache=True, parallel=True)
+def associate(vertex, normal, index_s, scale, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
+              cover_radius_px, assoc_out):
+    """Pick, for every input pixel, the map surfel it updates (Keller's rule on the supersampled index map).
+
+    Args:
+        vertex, normal: float32 ``(H, W, 3)`` camera-frame measurement (normal 0 or depth 0 = invalid).
+        index_s: int32 ``(H*scale, W*scale)`` index map rendered at the frame's pose.
+        pos, nrm, conf: map arrays (world frame).
+        R, t: float64 camera-to-world rotation ``(3, 3)`` and translation ``(3,)``.
+        dist_m: max |p - q| (metres); cos_angle: min cosine between normals.
+        min_depth, max_depth: measurements outside this depth range are not fused.
+        cover_radius_px: neighbour pixels searched when the pixel's own cells have no match (0 = none).
+        assoc_out: int32 ``(H, W)`` status (see module doc).
+
+    Among the candidates in the pixel's ``scale x scale`` cells that pass |p - q| < dist_m and the
+    normal test, the one with the highest confidence wins; ties: smaller distance, then smaller row.
+    """
+    H, W = assoc_out.shape
+    SH, SW = index_s.shape
+    dist2 = dist_m * dist_m
+    for v in prange(H):
+        for u in range(W):
+            z = vertex[v, u, 2]
+            n0 = normal[v, u, 0]
+            n1 = normal[v, u, 1]
+            n2 = normal[v, u, 2]
+            if not (z >= min_depth and z <= max_depth) or (n0 * n0 + n1 * n1 + n2 * n2) < 0.25:
+                assoc_out[v, u] = ASSOC_INVALID
+                continue
+            x = vertex[v, u, 0]
+            y = vertex[v, u, 1]
+            qx = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+            qy = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+            qz = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+            mx = R[0, 0] * n0 + R[0, 1] * n1 + R[0, 2] * n2
+            my = R[1, 0] * n0 + R[1, 1] * n1 + R[1, 2] * n2
+            mz = R[2, 0] * n0 + R[2, 1] * n1 + R[2, 2] * n2
+            best = -1
+            best_c = -1.0
+            best_d = 0.0
+            for sv in range(v * scale, v * scale + scale):
+                for su in range(u * scale, u * scale + scale):
+                    i = index_s[sv, su]
+                    if i < 0:
+                        continue
+                    d2 = _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle)
+                    if d2 < 0:
+                        continue
+                    c = conf[i]
+                    if best < 0 or c > best_c or (c == best_c and (d2 < best_d or (d2 == best_d and i < best))):
+                        best = i
+                        best_c = c
+                        best_d = d2
+            if best >= 0:
+                assoc_out[v, u] = best
+                continue
+            status = ASSOC_NEW
+            r = cover_radius_px
+            sv0 = max((v - r) * scale, 0)
+            sv1 = min((v + r + 1) * scale, SH)
+            su0 = max((u - r) * scale, 0)
+            su1 = min((u + r + 1) * scale, SW)
+            for sv in range(sv0, sv1):
+                if status == ASSOC_COVERED:
+                    break
+                for su in range(su0, su1):
+                    i = index_s[sv, su]
+                    if i < 0 or (sv // scale == v and su // scale == u):
+                        continue
+                    if _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle) >= 0:
+                        status = ASSOC_COVERED
+                        break
+            assoc_out[v, u] = status
+
+
+def associate_ref(vertex, normal, index_s, scale, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
+                  cover_radius_px):
+    """Numpy reference of :func:`associate`; returns ``assoc`` int32 ``(H, W)``."""
+    H, W = vertex.shape[:2]
+    z = vertex[..., 2].astype(np.float64)
+    n = normal.astype(np.float64)
+    valid = (z >= min_depth) & (z <= max_depth) & ((n**2).sum(-1) >= 0.25)
+    q = vertex.astype(np.float64) @ R.T + t
+    mn = n @ R.T
+
+    def passes(cells):  # cells: (H, W, K) surfel rows or -1 -> (ok, d2)
+        ci = np.where(cells >= 0, cells, 0)
+        d2 = ((pos[ci].astype(np.float64) - q[:, :, None, :]) ** 2).sum(-1)
+        dot = (nrm[ci].astype(np.float64) * mn[:, :, None, :]).sum(-1)
+        return (cells >= 0) & (d2 < dist_m**2) & (dot > cos_angle), d2
+
+    own = index_s.reshape(H, scale, W, scale).transpose(0, 2, 1, 3).reshape(H, W, scale * scale)
+    ok, d2 = passes(own)
+    c = np.where(ok, conf[np.where(own >= 0, own, 0)].astype(np.float64), -np.inf)
+    d2 = np.where(ok, d2, np.inf)
+    rows = np.where(ok, own, np.iinfo(np.int32).max).astype(np.int64)
+    # lexicographic choice: max conf, then min d2, then min row
+    cmax = c.max(-1, keepdims=True)
+    cand = ok & (c == cmax)
+    dmin = np.where(cand, d2, np.inf).min(-1, keepdims=True)
+    cand &= d2 == dmin
+    best = np.where(cand, rows, np.iinfo(np.int64).max).min(-1)
+    has = ok.any(-1)
+    assoc = np.where(has, best, ASSOC_NEW).astype(np.int32)
+    # covered test on neighbouring pixels' cells
+    r = cover_radius_px
+    covered = np.zeros((H, W), bool)
+    if r > 0:
+        pad = np.full((H + 2 * r, W + 2 * r, scale * scale), -1, np.int32)
+        pad[r : r + H, r : r + W] = own
+        for dv in range(-r, r + 1):
+            for du in range(-r, r + 1):
+                if dv == 0 and du == 0:
+                    continue
+                nb_ok, _ = passes(pad[r + dv : r + dv + H, r + du : r + du + W])
+                covered |= nb_ok.any(-1)
+    assoc = np.where(~has & covered, ASSOC_COVERED, assoc)
+    return np.where(valid, assoc, ASSOC_INVALID).astype(np.int32)
+
+
+@njit(cache=True, inline="always")
+def _pixel_radius(x, y, z, n0, n1, n2, radius_per_depth, min_cos, max_radius):
+    """Surfel radius (metres) for a measurement: ``radius_per_depth * z / max(|cos|, min_cos)``, clamped."""
+    norm = math.sqrt(x * x + y * y + z * z)
+    c = abs(n0 * x + n1 * y + n2 * z) / norm
+    r = radius_per_depth * z / max(c, min_cos)
+    return min(r, max_radius)
+
+
+@njit(cache=True, parallel=True)
+def merge(assoc, vertex, normal, rgb, weight, R, t, frame, max_radius_ratio, radius_per_depth, min_cos,
+          max_radius, pos, nrm, col, conf, rad, last_seen, hits):
+    """Confidence-weighted update of the associated surfels (in place; rows of ``assoc >= 0``).
+
+    For pixel measurement ``q`` (world), normal ``m``, colour ``c`` and weight ``w`` merged into a surfel of
+    confidence ``C``: if the measurement's radius ``r_q <= max_radius_ratio * r``, position, normal
+    (renormalised), colour and radius become ``(C x + w x_q) / (C + w)``; always ``C += w``,
+    ``last_seen = frame``, ``hits += 1``. ``weight`` float32 ``(H, W)``; ``radius_per_depth`` metres per
+    metre of depth (new-radius rule, see :func:`_pixel_radius`).
+    """
+    H, W = assoc.shape
+    for v in prange(H):
+        for u in range(W):
+            i = assoc[v, u]
+            if i < 0:
+                continue
+            x = vertex[v, u, 0]
+            y = vertex[v, u, 1]
+            z = vertex[v, u, 2]
+            n0 = normal[v, u, 0]
+            n1 = normal[v, u, 1]
+            n2 = normal[v, u, 2]
+            w = np.float64(weight[v, u])
+            C = np.float64(conf[i])
+            rq = _pixel_radius(x, y, z, n0, n1, n2, radius_per_depth, min_cos, max_radius)
+            if rq <= max_radius_ratio * rad[i]:
+                a = C / (C + w)
+                b = w / (C + w)
+                for k in range(3):
+                    qk = R[k, 0] * x + R[k, 1] * y + R[k, 2] * z + t[k]
+                    pos[i, k] = a * pos[i, k] + b * qk
+                mx = a * nrm[i, 0] + b * (R[0, 0] * n0 + R[0, 1] * n1 + R[0, 2] * n2)
+                my = a * nrm[i, 1] + b * (R[1, 0] * n0 + R[1, 1] * n1 + R[1, 2] * n2)
+                mz = a * nrm[i, 2] + b * (R[2, 0] * n0 + R[2, 1] * n1 + R[2, 2] * n2)
+                s = math.sqrt(mx * mx + my * my + mz * mz)
+                if s > 0:
+                    nrm[i, 0] = mx / s
+                    nrm[i, 1] = my / s
+                    nrm[i, 2] = mz / s
+                for k in range(3):
+                    col[i, k] = a * col[i, k] + b * rgb[v, u, k]
+                rad[i] = a * rad[i] + b * rq
+            conf[i] = C + w
+            last_seen[i] = frame
+            hits[i] += 1
+
+
+def merge_ref(assoc, vertex, normal, rgb, weight, R, t, frame, max_radius_ratio, radius_per_depth, min_cos,
+              max_radius, pos, nrm, col, conf, rad, last_seen, hits):
+    """Numpy reference of :func:`merge`; returns updated copies ``(pos, nrm, col, conf, rad, last_seen, hits)``."""
+    pos, nrm, col, conf, rad, last_seen, hits = (a.copy() for a in (pos, nrm, col, conf, rad, last_seen, hits))
+    vv, uu = np.nonzero(assoc >= 0)
+    i = assoc[vv, uu]
+    p = vertex[vv, uu].astype(np.float64)
+    n = normal[vv, uu].astype(np.float64)
+    w = weight[vv, uu].astype(np.float64)
+    C = conf[i].astype(np.float64)
+    cosang = np.abs((n * p).sum(1)) / np.linalg.norm(p, axis=1)
+    rq = np.minimum(radius_per_depth * p[:, 2] / np.maximum(cosang, min_cos), max_radius)
+    full = rq <= max_radius_ratio * rad[i]
+    a = (C / (C + w))[:, None]
+    b = (w / (C + w))[:, None]
+    f = full
+    fi = i[f]
+    pos[fi] = a[f] * pos[fi] + b[f] * (p[f] @ R.T + t)
+    m = a[f] * nrm[fi] + b[f] * (n[f] @ R.T)
+    nrm[fi] = m / np.linalg.norm(m, axis=1, keepdims=True)
+    col[fi] = a[f] * col[fi] + b[f] * rgb[vv[f], uu[f]]
+    rad[fi] = a[f, 0] * rad[fi] + b[f, 0] * rq[f]
+    conf[i] = C + w
+    last_seen[i] = frame
+    hits[i] += 1
+    return pos, nrm, col, conf, rad, last_seen, hits
+
+
+@njit(cache=True)
+def add_new(assoc, vertex, normal, rgb, weight, R, t, frame, radius_per_depth, min_cos, max_radius, start,
+            pos, nrm, col, conf, rad, first_seen, last_seen, hits, dead):
+    """Append a surfel (world frame) for every ``assoc == ASSOC_NEW`` pixel, in raster order, at rows
+    ``start, start+1, ...`` (capacity must already suffice). Returns the number added.
+
+    New surfel: position ``R q + t``, normal ``R m``, colour of the pixel, confidence = the pixel weight,
+    radius from :func:`_pixel_radius`, ``first_seen = last_seen = frame``, ``hits = 1``.
+    """
+    H, W = assoc.shape
+    j = start
+    for v in range(H):
+        for u in range(W):
+            if assoc[v, u] != ASSOC_NEW:
+                continue
+            x = vertex[v, u, 0]
+            y = vertex[v, u, 1]
+            z = vertex[v, u, 2]
+            n0 = normal[v, u, 0]
+            n1 = normal[v, u, 1]
+            n2 = normal[v, u, 2]
+            s = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            for k in range(3):
+                pos[j, k] = R[k, 0] * x + R[k, 1] * y + R[k, 2] * z + t[k]
+                nrm[j, k] = (R[k, 0] * n0 + R[k, 1] * n1 + R[k, 2] * n2) / s
+                col[j, k] = rgb[v, u, k]
+            conf[j] = weight[v, u]
+            rad[j] = _pixel_radius(x, y, z, n0 / s, n1 / s, n2 / s, radius_per_depth, min_cos, max_radius)
+            first_seen[j] = frame
+            last_seen[j] = frame
+            hits[j] = 1
+            dead[j] = 0
+            j += 1
+    return j - start
+
+
+def add_new_ref(assoc, vertex, normal, rgb, weight, R, t, radius_per_depth, min_cos, max_radius):
+    """Numpy reference of :func:`add_new`: ``(pos, nrm, col, conf, rad)`` of the new surfels, raster order."""
+    vv, uu = np.nonzero(assoc == ASSOC_NEW)
+    p = vertex[vv, uu].astype(np.float64)
+    n = normal[vv, uu].astype(np.float64)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    cosang = np.abs((n * p).sum(1)) / np.linalg.norm(p, axis=1)
+    rad = np.minimum(radius_per_depth * p[:, 2] / np.maximum(cosang, min_cos), max_radius)
+    return p @ R.T + t, n @ R.T, rgb[vv, uu].astype(np.float32), weight[vv, uu], rad
+
+
+@njit(cache=True)
+def dormant_scan(first_seen, hits, dead, cursor, size, frame, max_age_frames, min_hits):
+    """Seeds' dormant-surfel rule, incremental: rows from ``cursor`` on whose age ``frame - first_seen``
+    exceeds ``max_age_frames`` are checked once; those with ``hits < min_hits`` are flagged dead.
+    Stops at the first row that is still too young (rows are in ``first_seen`` order).
+
+    Returns ``(new_cursor, n_flagged)``.
+    """
+    i = cursor
+    k = 0
+    while i < size and frame - first_seen[i] > max_age_frames:
+        if dead[i] == 0 and hits[i] < min_hits:
+            dead[i] = 1
+            k += 1
+        i += 1
+    return i, k
+
+
+def dormant_scan_ref(first_seen, hits, dead, cursor, size, frame, max_age_frames, min_hits):
+    """Numpy reference of :func:`dormant_scan`; returns ``(new_cursor, flagged_rows)``."""
+    young = np.flatnonzero(frame - first_seen[cursor:size] <= max_age_frames)
+    stop = cursor + (young[0] if len(young) else size - cursor)
+    rows = np.arange(cursor, stop)
+    flag = rows[(dead[rows] == 0) & (hits[rows] < min_hits)]
+    return stop, flag
+
+
+@njit(cache=True)
+def stale_unstable(cand, m, conf, last_seen, dead, frame, max_age_frames, min_conf):
+    """Keller's removal among the surfels in view: confidence below ``min_conf`` and not updated for more
+    than ``max_age_frames`` frames -> flagged dead. Returns the number flagged."""
+    k = 0
+    for j in range(m):
+        i = cand[j]
+        if dead[i] == 0 and conf[i] < min_conf and frame - last_seen[i] > max_age_frames:
+            dead[i] = 1
+            k += 1
+    return k
+
+
+def stale_unstable_ref(cand, m, conf, last_seen, dead, frame, max_age_frames, min_conf):
+    """Numpy reference of :func:`stale_unstable`; returns the flagged rows."""
+    c = cand[:m]
+    return c[(dead[c] == 0) & (conf[c] < min_conf) & (frame - last_seen[c] > max_age_frames)]

@@ -1,0 +1,338 @@
+"""Surfel rendering kernels: frustum culling of blocks, splatting z-buffer, attribute fill, index map.
+
+Conventions: pixel centres at integer coordinates, images ``[v, u]``; ``u = fx x / z + cx`` with ``fy``
+possibly negative (no sign assumption anywhere). Each kernel has a numpy reference ``<name>_ref``.
+Depths in the z-buffers are float64 so that kernel and reference compare identically.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_GRAZING_COS = 1e-3  # |n . ray| below this: the splat plane is edge-on, only the centre pixel is drawn
+
+
+# ---------------------------------------------------------------------------------------------------- culling
+@njit(cache=True)
+def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far,
+                visible_out):
+    """Frustum test of block boxes: ``visible_out[b] = 1`` unless all 8 corners lie outside one face.
+
+    Args:
+        block_ijk: int32 ``(>= nb, 3)`` integer block coordinates; block ``b`` spans
+            ``[ijk * block_size - margin, (ijk + 1) * block_size + margin]`` (metres, world frame).
+        R, t: ``(3, 3)``, ``(3,)`` float64 world-to-camera rotation and translation.
+        umin, umax, vmin, vmax: image rectangle (pixels); near, far: depth range (metres).
+        visible_out: uint8 ``(>= nb,)``.
+
+    The frustum faces are the half-spaces ``z >= near``, ``z <= far``, ``fx x + (cx - umin) z >= 0``,
+    ``(umax - cx) z - fx x >= 0`` and the same for ``v`` with ``fy`` (valid for either sign of ``fy``).
+    """
+    for b in range(nb):
+        outside = np.zeros(6, np.int64)
+        for c in range(8):
+            wx = (block_ijk[b, 0] + (c & 1)) * block_size + (margin if (c & 1) else -margin)
+            wy = (block_ijk[b, 1] + ((c >> 1) & 1)) * block_size + (margin if ((c >> 1) & 1) else -margin)
+            wz = (block_ijk[b, 2] + ((c >> 2) & 1)) * block_size + (margin if ((c >> 2) & 1) else -margin)
+            x = R[0, 0] * wx + R[0, 1] * wy + R[0, 2] * wz + t[0]
+            y = R[1, 0] * wx + R[1, 1] * wy + R[1, 2] * wz + t[1]
+            z = R[2, 0] * wx + R[2, 1] * wy + R[2, 2] * wz + t[2]
+            if z < near:
+                outside[0] += 1
+            if z > far:
+                outside[1] += 1
+            if fx * x + (cx - umin) * z < 0:
+                outside[2] += 1
+            if (umax - cx) * z - fx * x < 0:
+                outside[3] += 1
+            if fy * y + (cy - vmin) * z < 0:
+                outside[4] += 1
+            if (vmax - cy) * z - fy * y < 0:
+                outside[5] += 1
+        vis = 1
+        for f in range(6):
+            if outside[f] == 8:
+                vis = 0
+        visible_out[b] = vis
+
+
+def cull_blocks_ref(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far):
+    """Numpy reference of :func:`cull_blocks`; returns uint8 ``(nb,)``."""
+    bits = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.float64)  # (8, 3)
+    lo = block_ijk[:nb].astype(np.float64)[:, None, :] * block_size - margin
+    corners = lo + bits[None] * (block_size + 2 * margin)  # (nb, 8, 3)
+    cam = corners @ R.T + t
+    x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
+    faces = [
+        z < near, z > far, fx * x + (cx - umin) * z < 0, (umax - cx) * z - fx * x < 0,
+        fy * y + (cy - vmin) * z < 0, (vmax - cy) * z - fy * y < 0,
+    ]
+    culled = np.zeros(nb, bool)
+    for f in faces:
+        culled |= f.all(axis=1)
+    return (~culled).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------------- splats
+@njit(cache=True)
+def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
+                  max_splat_px, near, far, cull_back, depth_buf, index_buf):
+    """Z-buffer of surfel discs (camera-frame depth of the ray/disc intersection) into ``(H, W)`` buffers.
+
+    Args:
+        cand: int32 ``(>= m,)`` surfel indices to draw, in this order (ties keep the earlier one).
+        pos, nrm: float32 ``(N, 3)`` world frame; rad: float32 ``(N,)`` metres; conf: float32 ``(N,)``.
+        first_seen: int32 ``(N,)``; a surfel is drawn when ``conf >= min_conf`` or
+            ``first_seen >= young_from_frame`` (young surfels are drawn while they gather confidence).
+        R, t: float64 world-to-camera rotation ``(3, 3)`` and translation ``(3,)``.
+        max_splat_px: cap of the footprint radius in pixels.
+        near, far: depth range in metres; cull_back: skip surfels whose normal faces away from the camera.
+        depth_buf: float64 ``(H, W)`` initialised to +inf; index_buf: int32 ``(H, W)`` initialised to -1.
+    """
+    H, W = depth_buf.shape
+    afx = abs(fx)
+    afy = abs(fy)
+    for k in range(m):
+        i = cand[k]
+        if conf[i] < min_conf and first_seen[i] < young_from_frame:
+            continue
+        px = R[0, 0] * pos[i, 0] + R[0, 1] * pos[i, 1] + R[0, 2] * pos[i, 2] + t[0]
+        py = R[1, 0] * pos[i, 0] + R[1, 1] * pos[i, 1] + R[1, 2] * pos[i, 2] + t[1]
+        pz = R[2, 0] * pos[i, 0] + R[2, 1] * pos[i, 1] + R[2, 2] * pos[i, 2] + t[2]
+        if pz < near or pz > far:
+            continue
+        nx = R[0, 0] * nrm[i, 0] + R[0, 1] * nrm[i, 1] + R[0, 2] * nrm[i, 2]
+        ny = R[1, 0] * nrm[i, 0] + R[1, 1] * nrm[i, 1] + R[1, 2] * nrm[i, 2]
+        nz = R[2, 0] * nrm[i, 0] + R[2, 1] * nrm[i, 1] + R[2, 2] * nrm[i, 2]
+        npd = nx * px + ny * py + nz * pz
+        if cull_back and npd >= 0.0:
+            continue
+        u = fx * px / pz + cx
+        v = fy * py / pz + cy
+        ui = int(math.floor(u + 0.5))
+        vi = int(math.floor(v + 0.5))
+        r = rad[i]
+        rx = min(r * afx / pz, max_splat_px)
+        ry = min(r * afy / pz, max_splat_px)
+        u0 = min(int(math.ceil(u - rx)), ui)
+        u1 = max(int(math.floor(u + rx)), ui)
+        v0 = min(int(math.ceil(v - ry)), vi)
+        v1 = max(int(math.floor(v + ry)), vi)
+        if u1 < 0 or v1 < 0 or u0 >= W or v0 >= H:
+            continue
+        u0 = max(u0, 0)
+        v0 = max(v0, 0)
+        u1 = min(u1, W - 1)
+        v1 = min(v1, H - 1)
+        r2 = float(r) * float(r)
+        for pv in range(v0, v1 + 1):
+            dy = (pv - cy) / fy
+            for pu in range(u0, u1 + 1):
+                dx = (pu - cx) / fx
+                centre = pu == ui and pv == vi
+                nd = nx * dx + ny * dy + nz
+                depth = pz
+                ok = False
+                if abs(nd) >= _GRAZING_COS:
+                    d = npd / nd
+                    ex = d * dx - px
+                    ey = d * dy - py
+                    ez = d - pz
+                    if d >= near and ex * ex + ey * ey + ez * ez <= r2:
+                        depth = d
+                        ok = True
+                    elif centre:  # the ray misses the disc: plane depth, kept within r of the centre's
+                        depth = min(max(d, pz - r), pz + r)
+                        ok = True
+                elif centre:
+                    ok = True
+                if ok and depth < depth_buf[pv, pu]:
+                    depth_buf[pv, pu] = depth
+                    index_buf[pv, pu] = i
+
+
+def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
+                      max_splat_px, near, far, cull_back, shape):
+    """Numpy reference of :func:`splat_zbuffer`; returns ``(depth (H, W) float64, index (H, W) int32)``."""
+    H, W = shape
+    idx = cand[:m].astype(np.int64)
+    keep = (conf[idx] >= min_conf) | (first_seen[idx] >= young_from_frame)
+    k_order = np.arange(m)[keep]
+    idx = idx[keep]
+    P = pos[idx].astype(np.float64)
+    N = nrm[idx].astype(np.float64)
+    px = R[0, 0] * P[:, 0] + R[0, 1] * P[:, 1] + R[0, 2] * P[:, 2] + t[0]
+    py = R[1, 0] * P[:, 0] + R[1, 1] * P[:, 1] + R[1, 2] * P[:, 2] + t[1]
+    pz = R[2, 0] * P[:, 0] + R[2, 1] * P[:, 1] + R[2, 2] * P[:, 2] + t[2]
+    nx = R[0, 0] * N[:, 0] + R[0, 1] * N[:, 1] + R[0, 2] * N[:, 2]
+    ny = R[1, 0] * N[:, 0] + R[1, 1] * N[:, 1] + R[1, 2] * N[:, 2]
+    nz = R[2, 0] * N[:, 0] + R[2, 1] * N[:, 1] + R[2, 2] * N[:, 2]
+    npd = nx * px + ny * py + nz * pz
+    ok = (pz >= near) & (pz <= far)
+    if cull_back:
+        ok &= npd < 0
+    sel = np.flatnonzero(ok)
+    idx, k_order = idx[sel], k_order[sel]
+    px, py, pz, nx, ny, nz, npd = (a[sel] for a in (px, py, pz, nx, ny, nz, npd))
+    u = fx * px / pz + cx
+    v = fy * py / pz + cy
+    ui = np.floor(u + 0.5).astype(np.int64)
+    vi = np.floor(v + 0.5).astype(np.int64)
+    r = rad[idx]
+    rx = np.minimum(r * abs(fx) / pz, max_splat_px)
+    ry = np.minimum(r * abs(fy) / pz, max_splat_px)
+    u0 = np.minimum(np.ceil(u - rx).astype(np.int64), ui)
+    v0 = np.minimum(np.ceil(v - ry).astype(np.int64), vi)
+    u1 = np.maximum(np.floor(u + rx).astype(np.int64), ui)
+    v1 = np.maximum(np.floor(v + ry).astype(np.int64), vi)
+    span = int(math.ceil(max_splat_px)) + 1
+    offs = np.arange(-span, span + 1)
+    ou, ov = np.meshgrid(offs, offs)
+    pu = ui[:, None] + ou.reshape(1, -1)
+    pv = vi[:, None] + ov.reshape(1, -1)
+    inbox = (pu >= u0[:, None]) & (pu <= u1[:, None]) & (pv >= v0[:, None]) & (pv <= v1[:, None])
+    inbox &= (pu >= 0) & (pu < W) & (pv >= 0) & (pv < H)
+    dx = (pu - cx) / fx
+    dy = (pv - cy) / fy
+    nd = nx[:, None] * dx + ny[:, None] * dy + nz[:, None]
+    good = np.abs(nd) >= _GRAZING_COS
+    d = np.where(good, npd[:, None] / np.where(good, nd, 1.0), 0.0)
+    ex = d * dx - px[:, None]
+    ey = d * dy - py[:, None]
+    ez = d - pz[:, None]
+    r2 = (r.astype(np.float64) ** 2)[:, None]
+    hit = good & (d >= near) & (ex * ex + ey * ey + ez * ez <= r2)
+    centre = (pu == ui[:, None]) & (pv == vi[:, None])
+    rr = r.astype(np.float64)[:, None]
+    clamped = np.minimum(np.maximum(d, pz[:, None] - rr), pz[:, None] + rr)
+    depth = np.where(hit, d, np.where(good, clamped, pz[:, None]))
+    ok = inbox & (hit | centre)
+    ci, oi = np.nonzero(ok)
+    pix = pv[ci, oi] * W + pu[ci, oi]
+    dep = depth[ci, oi]
+    korder = k_order[ci]
+    srt = np.lexsort((korder, dep, pix))
+    pix, dep, win = pix[srt], dep[srt], idx[ci[srt]]
+    first = np.ones(len(pix), bool)
+    first[1:] = pix[1:] != pix[:-1]
+    depth_buf = np.full(H * W, np.inf)
+    index_buf = np.full(H * W, -1, np.int32)
+    depth_buf[pix[first]] = dep[first]
+    index_buf[pix[first]] = win[first]
+    return depth_buf.reshape(H, W), index_buf.reshape(H, W)
+
+
+# ---------------------------------------------------------------------------------------------------- fill
+@njit(cache=True, parallel=True)
+def fill_view(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy, vertex_out, normal_out, colour_out,
+              conf_out):
+    """Per pixel: camera-frame vertex (depth along the pixel ray), camera-frame normal, colour, confidence.
+
+    Rows are independent (parallel over rows, deterministic). Empty pixels (index -1) get zeros.
+    ``colour_out`` uint8 ``(H, W, 3)`` is the rounded, clipped surfel colour.
+    """
+    H, W = index_buf.shape
+    for v in prange(H):
+        dy = (v - cy) / fy
+        for u in range(W):
+            i = index_buf[v, u]
+            if i < 0:
+                for c in range(3):
+                    vertex_out[v, u, c] = 0.0
+                    normal_out[v, u, c] = 0.0
+                    colour_out[v, u, c] = 0
+                conf_out[v, u] = 0.0
+                continue
+            d = depth_buf[v, u]
+            vertex_out[v, u, 0] = d * (u - cx) / fx
+            vertex_out[v, u, 1] = d * dy
+            vertex_out[v, u, 2] = d
+            for c in range(3):
+                normal_out[v, u, c] = R[c, 0] * nrm[i, 0] + R[c, 1] * nrm[i, 1] + R[c, 2] * nrm[i, 2]
+                x = math.floor(col[i, c] + 0.5)
+                colour_out[v, u, c] = np.uint8(min(max(x, 0.0), 255.0))
+            conf_out[v, u] = conf[i]
+
+
+def fill_view_ref(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy):
+    """Numpy reference of :func:`fill_view`; returns ``(vertex, normal, colour, confidence)``."""
+    H, W = index_buf.shape
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    valid = index_buf >= 0
+    i = np.where(valid, index_buf, 0)
+    d = np.where(valid, depth_buf, 0.0)
+    vertex = np.stack([d * (u - cx) / fx, d * ((v - cy) / fy), d], axis=-1).astype(np.float32)
+    n = nrm[i].astype(np.float64)
+    normal = np.einsum("ij,hwj->hwi", R, n).astype(np.float32)
+    normal[~valid] = 0
+    colour = np.clip(np.floor(col[i] + 0.5), 0, 255).astype(np.uint8)
+    colour[~valid] = 0
+    confidence = np.where(valid, conf[i], 0).astype(np.float32)
+    return vertex, normal, colour, confidence
+
+
+# ---------------------------------------------------------------------------------------------------- index map
+@njit(cache=True)
+def index_zbuffer(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far, cull_back, depth_buf, index_buf):
+    """Supersampled index map: each surfel centre lands in ONE cell of an ``(H*scale, W*scale)`` grid.
+
+    Cell ``(su, sv)`` belongs to pixel ``(su // scale, sv // scale)``; ``su = floor((u + 0.5) * scale)``.
+    Nearest surfel (camera z) wins, ties keep the earlier candidate. ``depth_buf`` float64 +inf,
+    ``index_buf`` int32 -1 on entry. Other arguments as in :func:`splat_zbuffer`.
+    """
+    SH, SW = depth_buf.shape
+    for k in range(m):
+        i = cand[k]
+        px = R[0, 0] * pos[i, 0] + R[0, 1] * pos[i, 1] + R[0, 2] * pos[i, 2] + t[0]
+        py = R[1, 0] * pos[i, 0] + R[1, 1] * pos[i, 1] + R[1, 2] * pos[i, 2] + t[1]
+        pz = R[2, 0] * pos[i, 0] + R[2, 1] * pos[i, 1] + R[2, 2] * pos[i, 2] + t[2]
+        if pz < near or pz > far:
+            continue
+        if cull_back:
+            nx = R[0, 0] * nrm[i, 0] + R[0, 1] * nrm[i, 1] + R[0, 2] * nrm[i, 2]
+            ny = R[1, 0] * nrm[i, 0] + R[1, 1] * nrm[i, 1] + R[1, 2] * nrm[i, 2]
+            nz = R[2, 0] * nrm[i, 0] + R[2, 1] * nrm[i, 1] + R[2, 2] * nrm[i, 2]
+            if nx * px + ny * py + nz * pz >= 0.0:
+                continue
+        su = int(math.floor((fx * px / pz + cx + 0.5) * scale))
+        sv = int(math.floor((fy * py / pz + cy + 0.5) * scale))
+        if su < 0 or sv < 0 or su >= SW or sv >= SH:
+            continue
+        if pz < depth_buf[sv, su]:
+            depth_buf[sv, su] = pz
+            index_buf[sv, su] = i
+
+
+def index_zbuffer_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far, cull_back, shape_s):
+    """Numpy reference of :func:`index_zbuffer`; returns ``(depth, index)`` of shape ``shape_s``."""
+    SH, SW = shape_s
+    idx = cand[:m].astype(np.int64)
+    P = pos[idx].astype(np.float64)
+    N = nrm[idx].astype(np.float64)
+    px = R[0, 0] * P[:, 0] + R[0, 1] * P[:, 1] + R[0, 2] * P[:, 2] + t[0]
+    py = R[1, 0] * P[:, 0] + R[1, 1] * P[:, 1] + R[1, 2] * P[:, 2] + t[1]
+    pz = R[2, 0] * P[:, 0] + R[2, 1] * P[:, 1] + R[2, 2] * P[:, 2] + t[2]
+    ok = (pz >= near) & (pz <= far)
+    if cull_back:
+        nx = R[0, 0] * N[:, 0] + R[0, 1] * N[:, 1] + R[0, 2] * N[:, 2]
+        ny = R[1, 0] * N[:, 0] + R[1, 1] * N[:, 1] + R[1, 2] * N[:, 2]
+        nz = R[2, 0] * N[:, 0] + R[2, 1] * N[:, 1] + R[2, 2] * N[:, 2]
+        ok &= nx * px + ny * py + nz * pz < 0
+    pzs = np.where(ok, pz, 1.0)
+    su = np.floor((fx * px / pzs + cx + 0.5) * scale).astype(np.int64)
+    sv = np.floor((fy * py / pzs + cy + 0.5) * scale).astype(np.int64)
+    ok &= (su >= 0) & (sv >= 0) & (su < SW) & (sv < SH)
+    k = np.flatnonzero(ok)
+    pix = sv[k] * SW + su[k]
+    srt = np.lexsort((k, pz[k], pix))
+    pix, kk = pix[srt], k[srt]
+    first = np.ones(len(pix), bool)
+    first[1:] = pix[1:] != pix[:-1]
+    depth = np.full(SH * SW, np.inf)
+    index = np.full(SH * SW, -1, np.int32)
+    depth[pix[first]] = pz[kk[first]]
+    index[pix[first]] = idx[kk[first]]
+    return depth.reshape(SH, SW), index.reshape(SH, SW)

@@ -1,0 +1,128 @@
+"""Surfel-map bookkeeping kernels: stable compaction, block grouping (counting sort), candidate gathering.
+
+Each kernel has a plain-numpy reference ``<name>_ref`` used by the tests.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def compact_rows(position, normal, colour, confidence, radius, first_seen, last_seen, hits, block_id, dead, size):
+    """Stable in-place compaction of the first ``size`` rows, dropping rows with ``dead != 0``.
+
+    Args:
+        position, normal, colour: float32 ``(cap, 3)``.
+        confidence, radius: float32 ``(cap,)``.
+        first_seen, last_seen, hits, block_id: int32 ``(cap,)``.
+        dead: uint8 ``(cap,)``; cleared for the kept rows.
+        size: number of rows in use.
+
+    Returns:
+        The new size (number of kept rows); kept rows keep their relative order.
+    """
+    j = 0
+    for i in range(size):
+        if dead[i]:
+            continue
+        if j != i:
+            for k in range(3):
+                position[j, k] = position[i, k]
+                normal[j, k] = normal[i, k]
+                colour[j, k] = colour[i, k]
+            confidence[j] = confidence[i]
+            radius[j] = radius[i]
+            first_seen[j] = first_seen[i]
+            last_seen[j] = last_seen[i]
+            hits[j] = hits[i]
+            block_id[j] = block_id[i]
+        j += 1
+    for i in range(size):
+        dead[i] = 0
+    return j
+
+
+def compact_rows_ref(arrays, dead, size):
+    """Numpy reference: the compacted copies of each ``a[:size]`` in ``arrays`` (no in-place update)."""
+    keep = dead[:size] == 0
+    return [a[:size][keep] for a in arrays]
+
+
+@njit(cache=True)
+def group_by_block(block_id, n, n_blocks, order_out, start_out, count_out):
+    """Stable counting sort of surfels ``0..n-1`` by ``block_id``.
+
+    Args:
+        block_id: int32 ``(>= n,)`` block of each surfel, in ``[0, n_blocks)``.
+        order_out: int32 ``(>= n,)`` receives surfel indices grouped by block (ascending within a block).
+        start_out, count_out: int32 ``(>= n_blocks,)`` receive each block's segment in ``order_out``.
+    """
+    for b in range(n_blocks):
+        count_out[b] = 0
+    for i in range(n):
+        count_out[block_id[i]] += 1
+    acc = 0
+    for b in range(n_blocks):
+        start_out[b] = acc
+        acc += count_out[b]
+    # count_out doubles as the fill cursor of each segment (ends equal to the count again)
+    for b in range(n_blocks):
+        count_out[b] = 0
+    for i in range(n):
+        b = block_id[i]
+        order_out[start_out[b] + count_out[b]] = i
+        count_out[b] += 1
+
+
+def group_by_block_ref(block_id, n, n_blocks):
+    """Numpy reference: ``(order, start, count)``."""
+    ids = block_id[:n]
+    order = np.argsort(ids, kind="stable").astype(np.int32)
+    count = np.bincount(ids, minlength=n_blocks).astype(np.int32)
+    start = (np.cumsum(count) - count).astype(np.int32)
+    return order, start, count
+
+
+@njit(cache=True)
+def gather_candidates(visible, order, start, count, n_blocks_sorted, block_id, n_sorted, size, dead, out):
+    """Surfel indices that may be in view: those of visible blocks (grouped part) + the visible tail.
+
+    Args:
+        visible: uint8 ``(n_blocks,)`` 1 where the block's box meets the view frustum.
+        order, start, count: the grouping of surfels ``0..n_sorted-1`` (see :func:`group_by_block`), covering
+            blocks ``0..n_blocks_sorted-1``.
+        block_id: int32 ``(>= size,)``; used for the ungrouped tail ``n_sorted..size-1``.
+        dead: uint8 ``(>= size,)`` removed-but-not-compacted surfels, skipped.
+        out: int32 ``(>= size,)`` receives the candidates.
+
+    Returns:
+        Number of candidates written (order: visible blocks ascending, then the tail ascending).
+    """
+    m = 0
+    for b in range(n_blocks_sorted):
+        if visible[b]:
+            s = start[b]
+            for k in range(s, s + count[b]):
+                i = order[k]
+                if not dead[i]:
+                    out[m] = i
+                    m += 1
+    for i in range(n_sorted, size):
+        if visible[block_id[i]] and not dead[i]:
+            out[m] = i
+            m += 1
+    return m
+
+
+def gather_candidates_ref(visible, order, start, count, n_blocks_sorted, block_id, n_sorted, size, dead):
+    """Numpy reference of :func:`gather_candidates` (returns the array)."""
+    parts = []
+    for b in np.flatnonzero(visible[:n_blocks_sorted]):
+        parts.append(order[start[b] : start[b] + count[b]])
+    grouped = np.concatenate(parts) if parts else np.zeros(0, np.int32)
+    grouped = grouped[dead[grouped] == 0]
+    tail = np.arange(n_sorted, size)
+    tail = tail[(visible[block_id[tail]] != 0) & (dead[tail] == 0)]
+    return np.concatenate([grouped, tail]).astype(np.int32)

@@ -1,0 +1,336 @@
+"""The surfel map: preallocated, growable arrays of surfels plus a voxel-block index for view culling.
+
+Storage
+-------
+Every attribute lives in a preallocated array of ``capacity`` rows; the first ``size`` rows are in use.
+When an append does not fit, the capacity doubles (amortised O(1) per surfel; the map is never
+concatenated as a whole per frame). The properties ``map.position`` etc. return views ``[:size]``.
+
+Rows are appended in fusion order, so ``first_seen`` is non-decreasing along the rows as long as frames
+are fused in increasing order; :meth:`SurfelMap.remove` and :meth:`SurfelMap.compact` keep the order
+(stable compaction), which the dormant-surfel rule of :mod:`surfelslam.mapping.fusion` relies on.
+
+Removal is two-step for speed: :meth:`mark_dead` flags rows (rendering and fusion skip them at once) and
+:meth:`compact` moves the live rows down. ``size`` counts flagged rows until the next compaction;
+``n_alive`` does not. :meth:`remove` does both.
+
+Culling index
+-------------
+Each surfel belongs to the cubic block (edge ``block_size_m``) holding its position when it was added.
+The index keeps, for the first ``n_grouped`` surfels, their indices grouped by block (a stable counting
+sort, ``order`` + per-block ``start``/``count``); surfels appended since then form the *tail*. For a view,
+the blocks' boxes (grown by ``block_margin_m`` to allow for surfels that drifted while being merged) are
+tested against the frustum, and only the surfels of visible blocks plus the visible part of the tail are
+handed to the renderers, so the per-frame cost follows what is in view, not the map size. The grouping is
+rebuilt when the tail exceeds ``index_max_tail`` surfels or after a compaction (O(size), amortised).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from surfelslam.errors import ConfigError
+from surfelslam.kernels import render as kr
+from surfelslam.kernels import surfels as ks
+from surfelslam.types import Intrinsics
+
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+@dataclass
+class MapConfig:
+    """Storage and culling-index settings of a :class:`SurfelMap`."""
+
+    initial_capacity: int = 65536
+    block_size_m: float = 0.5  # edge of the cubic culling blocks
+    block_margin_m: float = 0.1  # blocks' boxes are grown by this much in the frustum test
+    index_max_tail: int = 131072  # rebuild the block grouping when this many surfels are ungrouped
+
+    def __post_init__(self) -> None:
+        if self.initial_capacity < 1:
+            raise ConfigError(f"map: initial_capacity must be >= 1, got {self.initial_capacity}")
+        if self.block_size_m <= 0:
+            raise ConfigError(f"map: block_size_m must be > 0, got {self.block_size_m}")
+        if self.block_margin_m < 0:
+            raise ConfigError(f"map: block_margin_m must be >= 0, got {self.block_margin_m}")
+        if self.index_max_tail < 0:
+            raise ConfigError(f"map: index_max_tail must be >= 0, got {self.index_max_tail}")
+
+
+def _pack_keys(ijk: np.ndarray) -> np.ndarray:
+    """Integer block coordinates ``(N, 3)`` -> int64 keys (21 bits per axis)."""
+    o = (ijk.astype(np.int64) + _KEY_OFFSET) & ((1 << _KEY_BITS) - 1)
+    return (o[:, 0] << (2 * _KEY_BITS)) | (o[:, 1] << _KEY_BITS) | o[:, 2]
+
+
+class SurfelMap:
+    """Growable surfel arrays (world frame) with a voxel-block culling index.
+
+    Attributes (views of the first ``size`` rows):
+        position: ``(N, 3)`` float32 metres, world frame.
+        normal: ``(N, 3)`` float32 unit vectors, world frame.
+        colour: ``(N, 3)`` float32 RGB in [0, 255] (averaged, so kept as float).
+        confidence: ``(N,)`` float32 accumulated observation weight.
+        radius: ``(N,)`` float32 metres.
+        first_seen, last_seen: ``(N,)`` int32 frame indices of the first and the latest observation.
+        hits: ``(N,)`` int32 number of frames the surfel was observed in (its creation counts as 1).
+        block_id: ``(N,)`` int32 culling block of each surfel.
+        dead: ``(N,)`` uint8, 1 for surfels flagged for removal but not yet compacted.
+    """
+
+    def __init__(self, cfg: MapConfig | None = None):
+        self.cfg = cfg or MapConfig()
+        self._size = 0
+        self._n_dead = 0
+        self.latest_frame = -1  # highest frame index fused so far (set by fusion)
+        self.dormant_cursor = 0  # rows before this were already checked by the dormant rule (fusion)
+        self._alloc(self.cfg.initial_capacity)
+        # block index
+        self._inv_block = 1.0 / self.cfg.block_size_m
+        self._key_to_block: dict[int, int] = {}
+        self._block_ijk = np.zeros((64, 3), np.int32)
+        self._n_blocks = 0
+        self._order = np.zeros(self._cap, np.int32)
+        self._block_start = np.zeros(64, np.int32)
+        self._block_count = np.zeros(64, np.int32)
+        self._n_grouped = 0
+        self._n_blocks_grouped = 0
+        self._cand = np.zeros(self._cap, np.int32)
+        self._visible = np.zeros(64, np.uint8)
+
+    # ------------------------------------------------------------------ storage
+    def _alloc(self, cap: int) -> None:
+        self._cap = cap
+        self._position = np.zeros((cap, 3), np.float32)
+        self._normal = np.zeros((cap, 3), np.float32)
+        self._colour = np.zeros((cap, 3), np.float32)
+        self._confidence = np.zeros(cap, np.float32)
+        self._radius = np.zeros(cap, np.float32)
+        self._first_seen = np.zeros(cap, np.int32)
+        self._last_seen = np.zeros(cap, np.int32)
+        self._hits = np.zeros(cap, np.int32)
+        self._block_id = np.zeros(cap, np.int32)
+        self._dead = np.zeros(cap, np.uint8)
+
+    _FIELDS = (
+        "_position", "_normal", "_colour", "_confidence", "_radius",
+        "_first_seen", "_last_seen", "_hits", "_block_id", "_dead",
+    )
+
+    def reserve(self, n_total: int) -> None:
+        """Make room for ``n_total`` rows; capacity at least doubles when it has to grow."""
+        if n_total <= self._cap:
+            return
+        new_cap = max(2 * self._cap, int(n_total))
+        n = self._size
+        for name in self._FIELDS:
+            old = getattr(self, name)
+            new = np.zeros((new_cap, *old.shape[1:]), old.dtype)
+            new[:n] = old[:n]
+            setattr(self, name, new)
+        self._cap = new_cap
+        order = np.zeros(new_cap, np.int32)
+        order[: self._n_grouped] = self._order[: self._n_grouped]
+        self._order = order
+        self._cand = np.zeros(new_cap, np.int32)
+
+    @property
+    def size(self) -> int:
+        """Rows in use (including rows flagged dead and not yet compacted)."""
+        return self._size
+
+    @property
+    def capacity(self) -> int:
+        return self._cap
+
+    @property
+    def n_dead(self) -> int:
+        return self._n_dead
+
+    @property
+    def n_alive(self) -> int:
+        return self._size - self._n_dead
+
+    def __len__(self) -> int:
+        return self._size
+
+    position = property(lambda self: self._position[: self._size])
+    normal = property(lambda self: self._normal[: self._size])
+    colour = property(lambda self: self._colour[: self._size])
+    confidence = property(lambda self: self._confidence[: self._size])
+    radius = property(lambda self: self._radius[: self._size])
+    first_seen = property(lambda self: self._first_seen[: self._size])
+    last_seen = property(lambda self: self._last_seen[: self._size])
+    hits = property(lambda self: self._hits[: self._size])
+    block_id = property(lambda self: self._block_id[: self._size])
+    dead = property(lambda self: self._dead[: self._size])
+
+    def alive_mask(self) -> np.ndarray:
+        """``(size,)`` bool, True for live surfels."""
+        return self._dead[: self._size] == 0
+
+    def append(
+        self,
+        position: np.ndarray,
+        normal: np.ndarray,
+        colour: np.ndarray,
+        confidence: np.ndarray | float,
+        radius: np.ndarray | float,
+        frame_index: int,
+    ) -> slice:
+        """Append ``n`` surfels (world frame); returns the slice of their rows.
+
+        ``position``/``normal`` ``(n, 3)``, ``colour`` ``(n, 3)`` in [0, 255], ``confidence``/``radius``
+        scalars or ``(n,)``. ``first_seen = last_seen = frame_index``, ``hits = 1``.
+        """
+        position = np.asarray(position, np.float32).reshape(-1, 3)
+        n = len(position)
+        s0 = self._size
+        self.reserve(s0 + n)
+        rows = slice(s0, s0 + n)
+        self._position[rows] = position
+        self._normal[rows] = np.asarray(normal, np.float32).reshape(-1, 3)
+        self._colour[rows] = np.asarray(colour, np.float32).reshape(-1, 3)
+        self._confidence[rows] = confidence
+        self._radius[rows] = radius
+        self._first_seen[rows] = frame_index
+        self._last_seen[rows] = frame_index
+        self._hits[rows] = 1
+        self._dead[rows] = 0
+        self._size = s0 + n
+        self._assign_blocks(s0, s0 + n)
+        return rows
+
+    def commit_appended(self, start: int, stop: int) -> None:
+        """Register rows ``start..stop-1`` written directly into the arrays by a kernel (sets ``size``)."""
+        self._size = stop
+        self._assign_blocks(start, stop)
+
+    # ------------------------------------------------------------------ removal
+    def mark_dead(self, mask_or_index: np.ndarray) -> int:
+        """Flag surfels for removal (rendering and fusion skip them); returns how many were newly flagged."""
+        sel = np.zeros(self._size, bool)
+        sel[mask_or_index] = True
+        sel &= self._dead[: self._size] == 0
+        k = int(sel.sum())
+        self._dead[: self._size][sel] = 1
+        self._n_dead += k
+        return k
+
+    def add_dead_count(self, k: int) -> None:
+        """Account for ``k`` surfels a kernel flagged directly in ``dead``."""
+        self._n_dead += int(k)
+
+    def compact(self) -> int:
+        """Remove all flagged surfels in place (stable order); returns how many were removed."""
+        if self._n_dead == 0:
+            return 0
+        n_before_cursor = int(np.count_nonzero(self._dead[: self.dormant_cursor] == 0))
+        new_size = ks.compact_rows(
+            self._position, self._normal, self._colour, self._confidence, self._radius,
+            self._first_seen, self._last_seen, self._hits, self._block_id, self._dead, self._size,
+        )
+        removed = self._size - new_size
+        self._size = new_size
+        self._n_dead = 0
+        self.dormant_cursor = n_before_cursor
+        self._n_grouped = 0  # indices moved: the grouping is rebuilt on the next query
+        return removed
+
+    def remove(self, mask: np.ndarray) -> int:
+        """Remove the surfels where ``mask`` (``(size,)`` bool) is True; compacts in place, stable order."""
+        mask = np.asarray(mask, bool)
+        if mask.shape != (self._size,):
+            raise ValueError(f"remove: mask must have shape ({self._size},), got {mask.shape}")
+        self.mark_dead(mask)
+        return self.compact()
+
+    # ------------------------------------------------------------------ block index
+    def _assign_blocks(self, start: int, stop: int) -> None:
+        if stop <= start:
+            return
+        ijk = np.floor(self._position[start:stop] * self._inv_block).astype(np.int32)
+        keys = _pack_keys(ijk)
+        uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+        ids = np.empty(len(uniq), np.int32)
+        for j, key in enumerate(uniq.tolist()):  # one iteration per distinct block, not per surfel
+            b = self._key_to_block.get(key)
+            if b is None:
+                b = self._new_block(ijk[first[j]])
+                self._key_to_block[key] = b
+            ids[j] = b
+        self._block_id[start:stop] = ids[inv.reshape(-1)]
+
+    def _new_block(self, ijk: np.ndarray) -> int:
+        b = self._n_blocks
+        if b >= len(self._block_ijk):
+            n2 = 2 * len(self._block_ijk)
+            for name, dtype, shape in (
+                ("_block_ijk", np.int32, (n2, 3)), ("_block_start", np.int32, (n2,)),
+                ("_block_count", np.int32, (n2,)), ("_visible", np.uint8, (n2,)),
+            ):
+                new = np.zeros(shape, dtype)
+                old = getattr(self, name)
+                new[: len(old)] = old
+                setattr(self, name, new)
+        self._block_ijk[b] = ijk
+        self._n_blocks = b + 1
+        return b
+
+    @property
+    def n_blocks(self) -> int:
+        return self._n_blocks
+
+    @property
+    def n_grouped(self) -> int:
+        """Surfels covered by the block grouping (the rest is the tail, scanned linearly)."""
+        return self._n_grouped
+
+    def rebuild_index(self) -> None:
+        """Group all current surfels by block (O(size + n_blocks))."""
+        ks.group_by_block(
+            self._block_id, self._size, self._n_blocks, self._order, self._block_start, self._block_count
+        )
+        self._n_grouped = self._size
+        self._n_blocks_grouped = self._n_blocks
+
+    def visible_candidates(
+        self, T_world_cam: np.ndarray, intr: Intrinsics, min_depth_m: float, max_depth_m: float,
+        margin_px: float = 0.0,
+    ) -> np.ndarray:
+        """Indices of live surfels whose block's box meets the view frustum (a superset of what is seen).
+
+        Args:
+            T_world_cam: ``(4, 4)`` camera-to-world pose.
+            intr: intrinsics of the view.
+            min_depth_m, max_depth_m: depth range of the frustum (camera z).
+            margin_px: the image rectangle is grown by this many pixels (for splats crossing the border).
+
+        Returns:
+            ``(M,)`` int32 view into an internal buffer (valid until the next call).
+        """
+        if self._size - self._n_grouped > self.cfg.index_max_tail or self._n_grouped > self._size:
+            self.rebuild_index()
+        nb = self._n_blocks
+        if self._size == 0 or nb == 0:
+            return self._cand[:0]
+        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, np.float64))
+        kr.cull_blocks(
+            self._block_ijk, nb, self.cfg.block_size_m, self.cfg.block_margin_m,
+            np.ascontiguousarray(T_cam_world[:3, :3]), np.ascontiguousarray(T_cam_world[:3, 3]),
+            float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
+            -0.5 - margin_px, intr.width - 0.5 + margin_px, -0.5 - margin_px, intr.height - 0.5 + margin_px,
+            float(min_depth_m), float(max_depth_m), self._visible,
+        )
+        m = ks.gather_candidates(
+            self._visible, self._order, self._block_start, self._block_count, self._n_blocks_grouped,
+            self._block_id, self._n_grouped, self._size, self._dead, self._cand,
+        )
+        return self._cand[:m]
+
+    # raw arrays for the kernels (full capacity; callers use [:size])
+    def raw(self) -> dict[str, np.ndarray]:
+        return {name[1:]: getattr(self, name) for name in self._FIELDS}

@@ -1,0 +1,236 @@
+"""SurfelMap storage, culling index and rendering kernels (vs numpy references and analytic planes)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surfelslam.errors import ConfigError
+from surfelslam.geometry.se3 import invert, make_T, so3_exp
+from surfelslam.kernels import render as kr
+from surfelslam.kernels import surfels as ks
+from surfelslam.mapping import MapConfig, RenderConfig, SurfelMap, render, render_index_map
+from surfelslam.types import Intrinsics
+
+INTR = Intrinsics(120.0, -115.0, 79.5, 59.5, 160, 120)  # negative fy on purpose (ICL-NUIM style)
+
+
+def _random_map(n: int, seed: int = 0, cfg: MapConfig | None = None) -> SurfelMap:
+    rng = np.random.default_rng(seed)
+    m = SurfelMap(cfg or MapConfig(initial_capacity=8))
+    pos = rng.uniform([-3, -2, 0.5], [3, 2, 6], size=(n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm[:, 2] = -np.abs(nrm[:, 2]) - 0.5  # mostly facing a camera at the origin looking along +z
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    col = rng.uniform(0, 255, size=(n, 3))
+    m.append(pos, nrm, col, rng.uniform(0.5, 5, n).astype(np.float32), rng.uniform(0.005, 0.03, n), 0)
+    m.confidence[:] = rng.uniform(0.5, 5, n)
+    m.first_seen[:] = rng.integers(0, 20, n)
+    return m
+
+
+def _plane_map(z_m: float, spacing_m: float = 0.01, half_m: float = 3.0) -> SurfelMap:
+    g = np.arange(-half_m, half_m, spacing_m)
+    xx, yy = np.meshgrid(g, g)
+    pos = np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, z_m)])
+    m = SurfelMap()
+    m.append(pos, np.tile([0.0, 0.0, -1.0], (len(pos), 1)), np.full((len(pos), 3), 77.0), 1.0, spacing_m, 0)
+    return m
+
+
+# ------------------------------------------------------------------------------------------------ storage
+def test_growth_by_doubling_preserves_data():
+    m = SurfelMap(MapConfig(initial_capacity=4))
+    rng = np.random.default_rng(1)
+    chunks = [rng.normal(size=(k, 3)).astype(np.float32) for k in (3, 2, 7, 1, 20)]
+    caps = []
+    for f, c in enumerate(chunks):
+        m.append(c, c, np.abs(c) * 10, float(f + 1), 0.01, f)
+        caps.append(m.capacity)
+    allp = np.concatenate(chunks)
+    assert m.size == len(allp) == 33
+    np.testing.assert_array_equal(m.position, allp)
+    np.testing.assert_array_equal(m.first_seen, np.repeat(np.arange(5), [3, 2, 7, 1, 20]))
+    np.testing.assert_array_equal(m.confidence, np.repeat(np.arange(1, 6), [3, 2, 7, 1, 20]))
+    assert caps == [4, 8, 16, 16, 33]  # doubles (or jumps to the request when doubling is not enough)
+    assert np.all(m.hits == 1)
+
+
+def test_remove_compacts_stably_and_deterministically():
+    m = _random_map(1000, seed=2)
+    before = {k: getattr(m, k).copy() for k in ("position", "normal", "colour", "confidence", "first_seen")}
+    mask = np.random.default_rng(3).random(1000) < 0.3
+    removed = m.remove(mask)
+    assert removed == mask.sum()
+    assert m.size == m.n_alive == 1000 - mask.sum()
+    for k, v in before.items():
+        np.testing.assert_array_equal(getattr(m, k), v[~mask])
+    m2 = _random_map(1000, seed=2)
+    m2.remove(mask)
+    np.testing.assert_array_equal(m.position, m2.position)
+    with pytest.raises(ValueError, match="mask must have shape"):
+        m.remove(np.zeros(3, bool))
+
+
+def test_compact_kernel_matches_reference():
+    m = _random_map(500, seed=4)
+    dead = (np.random.default_rng(5).random(500) < 0.4).astype(np.uint8)
+    ref = ks.compact_rows_ref([m.position.copy(), m.confidence.copy(), m.first_seen.copy()], dead, 500)
+    m.mark_dead(dead.astype(bool))
+    assert m.n_dead == dead.sum()
+    m.compact()
+    np.testing.assert_array_equal(m.position, ref[0])
+    np.testing.assert_array_equal(m.confidence, ref[1])
+    np.testing.assert_array_equal(m.first_seen, ref[2])
+    assert m.n_dead == 0 and not m.dead.any()
+
+
+def test_bad_config_is_rejected():
+    with pytest.raises(ConfigError, match="block_size_m"):
+        MapConfig(block_size_m=0)
+    with pytest.raises(ConfigError, match="min_depth_m"):
+        RenderConfig(min_depth_m=5, max_depth_m=1)
+
+
+# ------------------------------------------------------------------------------------------------ index
+def test_group_by_block_matches_reference():
+    rng = np.random.default_rng(6)
+    ids = rng.integers(0, 37, 2000).astype(np.int32)
+    order = np.zeros(2000, np.int32)
+    start = np.zeros(37, np.int32)
+    count = np.zeros(37, np.int32)
+    ks.group_by_block(ids, 2000, 37, order, start, count)
+    o2, s2, c2 = ks.group_by_block_ref(ids, 2000, 37)
+    np.testing.assert_array_equal(order, o2)
+    np.testing.assert_array_equal(start, s2)
+    np.testing.assert_array_equal(count, c2)
+
+
+def test_cull_and_gather_match_reference_and_keep_every_visible_surfel():
+    m = _random_map(20000, seed=7, cfg=MapConfig(initial_capacity=8, index_max_tail=5000, block_size_m=0.5))
+    m.rebuild_index()
+    # a tail of ungrouped surfels too
+    rng = np.random.default_rng(8)
+    extra = rng.uniform([-3, -2, 0.5], [3, 2, 6], size=(3000, 3))
+    m.append(extra, np.tile([0, 0, -1.0], (3000, 1)), np.zeros((3000, 3)), 1.0, 0.01, 1)
+    assert m.n_grouped == 20000 and m.size == 23000
+    T = make_T(so3_exp([0.1, 0.4, -0.05]), [0.2, -0.1, 0.3])
+    cand = m.visible_candidates(T, INTR, 0.1, 4.0).copy()
+    # reference culling + gathering
+    Tcw = invert(T)
+    vis_ref = kr.cull_blocks_ref(
+        m._block_ijk, m.n_blocks, 0.5, m.cfg.block_margin_m, Tcw[:3, :3], Tcw[:3, 3],
+        INTR.fx, INTR.fy, INTR.cx, INTR.cy, -0.5, INTR.width - 0.5, -0.5, INTR.height - 0.5, 0.1, 4.0,
+    )
+    np.testing.assert_array_equal(m._visible[: m.n_blocks], vis_ref)
+    assert 0 < vis_ref.sum() < m.n_blocks  # some culled, some kept
+    ref = ks.gather_candidates_ref(vis_ref, m._order, m._block_start, m._block_count, m._n_blocks_grouped,
+                                   m._block_id, m.n_grouped, m.size, m._dead)
+    np.testing.assert_array_equal(cand, ref)
+    # every surfel that projects into the image within the depth range is a candidate
+    pc = m.position.astype(np.float64) @ Tcw[:3, :3].T + Tcw[:3, 3]
+    z = pc[:, 2]
+    u = INTR.fx * pc[:, 0] / z + INTR.cx
+    v = INTR.fy * pc[:, 1] / z + INTR.cy
+    inview = (z > 0.1) & (z < 4.0) & (u > -0.5) & (u < INTR.width - 0.5) & (v > -0.5) & (v < INTR.height - 0.5)
+    assert inview.sum() > 1000
+    assert np.isin(np.flatnonzero(inview), cand).all()
+    assert len(cand) < 0.8 * m.size  # and culling removed a real share
+
+
+# ------------------------------------------------------------------------------------------------ render
+def test_render_plane_depth_and_normal_at_known_pixels():
+    z0 = 2.0
+    m = _plane_map(z0)
+    # camera translated and rotated about y: plane z = z0 in world
+    T = make_T(so3_exp([0.0, 0.2, 0.0]), [0.1, 0.05, -0.3])
+    view = render(m, T, INTR)
+    assert view.valid.mean() > 0.99  # no holes
+    Tcw = invert(T)
+    n_cam = Tcw[:3, :3] @ np.array([0.0, 0.0, -1.0])
+    # expected: intersection of each pixel ray with the plane n_cam . x = n_cam . p0 (p0 a plane point in cam)
+    p0 = Tcw[:3, :3] @ np.array([0.0, 0.0, z0]) + Tcw[:3, 3]
+    for u, v in [(0, 0), (80, 60), (159, 119), (23, 97), (140, 11)]:
+        d = np.array([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, 1.0])
+        t = n_cam @ p0 / (n_cam @ d)
+        np.testing.assert_allclose(view.vertex_cam[v, u], t * d, atol=1e-5)
+        np.testing.assert_allclose(view.normal_cam[v, u], n_cam, atol=1e-6)
+        assert view.colour[v, u].tolist() == [77, 77, 77]
+    # image row 0 sees world y > 0 side? with fy < 0, v = 0 is +y: check sign convention directly
+    assert view.vertex_cam[0, 80, 1] > 0 and view.vertex_cam[119, 80, 1] < 0
+
+
+def test_render_from_closer_has_no_holes_thanks_to_splats():
+    m = _plane_map(2.0, spacing_m=0.012)
+    view = render(m, make_T(np.eye(3), [0, 0, 0.6]), INTR)  # 1.4 m away: spacing ~1.0 px... closer than creation
+    assert view.valid.mean() > 0.99
+    view0 = render(m, make_T(np.eye(3), [0, 0, 0.6]), INTR, RenderConfig(max_splat_radius_px=0.0))
+    assert view0.valid.mean() < view.valid.mean()
+
+
+def test_render_culls_backfaces_and_handles_min_confidence_fallback():
+    m = _plane_map(2.0)
+    # the camera behind the plane (looking along -z from z = 4) sees the back of every surfel
+    T_back = make_T(so3_exp([0.0, np.pi, 0.0]), [0.0, 0.0, 4.0])
+    assert not render(m, T_back, INTR).valid.any()
+    assert render(m, T_back, INTR, RenderConfig(cull_backfaces=False)).valid.mean() > 0.99
+    # min_confidence: all surfels have confidence 1, first seen at frame 0
+    m.latest_frame = 5
+    strict = RenderConfig(min_confidence=2.0, young_age_frames=3)
+    assert not render(m, np.eye(4), INTR, strict).valid.any()  # old and unstable: hidden
+    young = RenderConfig(min_confidence=2.0, young_age_frames=10)
+    assert render(m, np.eye(4), INTR, young).valid.mean() > 0.99  # young map: fallback draws them
+
+
+def test_splat_fill_and_index_kernels_match_references():
+    m = _random_map(30000, seed=9)
+    T = make_T(so3_exp([0.02, -0.05, 0.01]), [0.05, 0.0, -0.1])
+    Tcw = invert(T)
+    R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
+    cand = np.arange(m.size, dtype=np.int32)[::-1].copy()  # arbitrary order matters only for exact ties
+    a = m.raw()
+    H, W = INTR.shape
+    args = (cand, len(cand), a["position"], a["normal"], a["radius"], a["confidence"], a["first_seen"], 2.0, 15,
+            R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, 2.0, 0.1, 8.0, True)
+    depth = np.full((H, W), np.inf)
+    index = np.full((H, W), -1, np.int32)
+    kr.splat_zbuffer(*args, depth, index)
+    depth_r, index_r = kr.splat_zbuffer_ref(*args, (H, W))
+    assert (index >= 0).mean() > 0.5
+    np.testing.assert_array_equal(index, index_r)
+    np.testing.assert_array_equal(depth, depth_r)
+
+    out = [np.empty((H, W, 3), np.float32), np.empty((H, W, 3), np.float32), np.empty((H, W, 3), np.uint8),
+           np.empty((H, W), np.float32)]
+    kr.fill_view(index, depth, a["normal"], a["colour"], a["confidence"], R, INTR.fx, INTR.fy, INTR.cx, INTR.cy,
+                 *out)
+    ref = kr.fill_view_ref(index, depth, a["normal"], a["colour"], a["confidence"], R,
+                           INTR.fx, INTR.fy, INTR.cx, INTR.cy)
+    for o, r in zip(out, ref, strict=True):
+        np.testing.assert_allclose(o.astype(np.float64), r.astype(np.float64), atol=1e-5)
+
+    shape_s = (H * 4, W * 4)
+    d4 = np.full(shape_s, np.inf)
+    i4 = np.full(shape_s, -1, np.int32)
+    iargs = (cand, len(cand), a["position"], a["normal"], R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, 4, 0.1, 8.0,
+             True)
+    kr.index_zbuffer(*iargs, d4, i4)
+    d4r, i4r = kr.index_zbuffer_ref(*iargs, shape_s)
+    np.testing.assert_array_equal(i4, i4r)
+    np.testing.assert_array_equal(d4, d4r)
+    # each surfel appears at most once in the index map
+    ids = i4[i4 >= 0]
+    assert len(np.unique(ids)) == len(ids) > 1000
+
+
+def test_render_index_map_cell_of_known_surfel():
+    m = SurfelMap()
+    # one surfel exactly on the ray of pixel (u, v) = (10.3, 20.6) at 2 m
+    u, v, z = 10.3, 20.6, 2.0
+    p = [(u - INTR.cx) / INTR.fx * z, (v - INTR.cy) / INTR.fy * z, z]
+    m.append(np.array([p]), np.array([[0, 0, -1.0]]), np.zeros((1, 3)), 1.0, 0.01, 0)
+    im = render_index_map(m, np.eye(4), INTR, scale=4)
+    sv, su = np.argwhere(im.index == 0)[0]
+    assert (su, sv) == (int(np.floor((u + 0.5) * 4)), int(np.floor((v + 0.5) * 4)))
+    assert (su // 4, sv // 4) == (10, 21)
+    assert (im.index >= 0).sum() == 1
