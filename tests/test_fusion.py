@@ -11,7 +11,7 @@ from surfelslam.errors import ConfigError
 from surfelslam.geometry.camera import backproject
 from surfelslam.geometry.se3 import make_T, so3_exp
 from surfelslam.kernels import fusion as kf
-from surfelslam.mapping import FusionConfig, SurfelMap, fuse, pixel_weights, render, render_index_map
+from surfelslam.mapping import FusionConfig, SurfelMap, fuse, pixel_weights, render
 from surfelslam.types import Intrinsics
 
 INTR = Intrinsics(130.0, -130.0, 79.5, 59.5, 160, 120)  # negative fy (ICL-NUIM convention)
@@ -79,15 +79,33 @@ def _setup_two_frames(noise_m=0.003):
     return m, cfg, T1, V1, N1, C1
 
 
-def test_associate_kernel_matches_reference():
+def _buckets(m, T):
+    cand = m.visible_candidates(T, INTR, 0.1, 4.0).copy()
+    a = m.raw()
+    Tcw = np.linalg.inv(T)
+    H, W = INTR.shape
+    start = np.empty(H * W + 1, np.int32)
+    order = np.empty(len(cand), np.int32)
+    pix = np.empty(len(cand), np.int32)
+    args = (cand, len(cand), a["position"], a["normal"], Tcw[:3, :3].copy(), Tcw[:3, 3].copy(),
+            INTR.fx, INTR.fy, INTR.cx, INTR.cy, H, W, 0.1, 4.0, True)
+    n = kf.bucket_by_pixel(*args, pix, start, order)
+    start_r, order_r = kf.bucket_by_pixel_ref(*args)
+    np.testing.assert_array_equal(start, start_r)
+    np.testing.assert_array_equal(order[:n], order_r)
+    return start, order
+
+
+def test_bucket_and_associate_kernels_match_references():
     m, cfg, T1, V1, N1, _ = _setup_two_frames()
-    im = render_index_map(m, T1, INTR, scale=4)
+    start, order = _buckets(m, T1)
+    assert np.diff(start).max() >= 1 and start[-1] > 0.5 * INTR.width * INTR.height
     a = m.raw()
     R, t = T1[:3, :3].copy(), T1[:3, 3].copy()
     cos_a = math.cos(math.radians(20))
     for cover in (0, 1):
         out = np.empty(INTR.shape, np.int32)
-        args = (V1, N1, im.index, 4, a["position"], a["normal"], a["confidence"], R, t, 0.03, cos_a, 0.1, 4.0,
+        args = (V1, N1, start, order, a["position"], a["normal"], a["confidence"], R, t, 0.03, cos_a, 0.1, 4.0,
                 cover)
         kf.associate(*args, out)
         ref = kf.associate_ref(*args)
@@ -95,15 +113,17 @@ def test_associate_kernel_matches_reference():
         assert (out >= 0).mean() > 0.5 and (out == kf.ASSOC_NEW).any()
         if cover:
             assert (out == kf.ASSOC_COVERED).any()
+        merged = out[out >= 0]
+        assert len(np.unique(merged)) == len(merged)  # a surfel is updated by at most one pixel
 
 
 def test_merge_and_add_kernels_match_references():
     m, cfg, T1, V1, N1, C1 = _setup_two_frames()
-    im = render_index_map(m, T1, INTR, scale=4)
+    start, order = _buckets(m, T1)
     a = m.raw()
     R, t = T1[:3, :3].copy(), T1[:3, 3].copy()
     assoc = np.empty(INTR.shape, np.int32)
-    kf.associate(V1, N1, im.index, 4, a["position"], a["normal"], a["confidence"], R, t, 0.03,
+    kf.associate(V1, N1, start, order, a["position"], a["normal"], a["confidence"], R, t, 0.03,
                  math.cos(math.radians(20)), 0.1, 4.0, 1, assoc)
     w = pixel_weights(INTR, "keller", 0.6)
     rpd = 1.0 / 130.0

@@ -1,13 +1,13 @@
 """Point-based fusion kernels: association, merge, addition, removal rules.
 
-Determinism: association only reads the map; each map surfel occupies at most one cell of the
-supersampled index map, so it is the candidate of at most one input pixel and the merge writes never
+Determinism: association only reads the map; each map surfel projects into exactly one input pixel
+(:func:`bucket_by_pixel`), so it is the candidate of at most one input pixel and the merge writes never
 conflict (rows run in parallel, results do not depend on the schedule). New surfels are appended in
 raster order by a serial kernel. Each kernel has a numpy reference ``<name>_ref``.
 
 Association status per input pixel (``assoc`` int32 ``(H, W)``): ``>= 0`` the surfel row to merge into,
-``ASSOC_INVALID`` no usable measurement, ``ASSOC_COVERED`` no candidate in the pixel's own cells but a
-matching surfel in a neighbouring pixel's cells (neither merged nor added), ``ASSOC_NEW`` add a surfel.
+``ASSOC_INVALID`` no usable measurement, ``ASSOC_COVERED`` no candidate in the pixel's own bucket but a
+matching surfel in a neighbouring pixel's bucket (neither merged nor added), ``ASSOC_NEW`` add a surfel.
 """
 
 from __future__ import annotations
@@ -36,26 +36,107 @@ def _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle):
     return d2
 
 
+@njit(cache=True)
+def bucket_by_pixel(cand, m, pos, nrm, R, t, fx, fy, cx, cy, H, W, near, far, cull_back, pix_scratch,
+                    start_out, order_out):
+    """Group candidate surfels by the input pixel their centre projects to (stable counting sort).
+
+    Args:
+        cand: int32 ``(>= m,)`` surfel rows (culled candidates); pos, nrm: float32 ``(N, 3)`` world frame.
+        R, t: float64 world-to-camera rotation ``(3, 3)`` and translation ``(3,)``.
+        near, far: depth range (metres); cull_back: drop surfels whose normal faces away from the camera.
+        pix_scratch: int32 ``(>= m,)`` scratch; start_out: int32 ``(H*W + 1,)``; order_out: int32 ``(>= m,)``.
+
+    Afterwards the surfels projecting into pixel ``p = v * W + u`` are
+    ``order_out[start_out[p]:start_out[p + 1]]`` (candidate order). This is the index map of Keller et al.
+    with unlimited supersampling: every surfel lands in exactly one pixel, so each is the candidate of at
+    most one input pixel. Returns the number of bucketed surfels.
+    """
+    npix = H * W
+    for p in range(npix + 1):
+        start_out[p] = 0
+    for k in range(m):
+        i = cand[k]
+        px = R[0, 0] * pos[i, 0] + R[0, 1] * pos[i, 1] + R[0, 2] * pos[i, 2] + t[0]
+        py = R[1, 0] * pos[i, 0] + R[1, 1] * pos[i, 1] + R[1, 2] * pos[i, 2] + t[1]
+        pz = R[2, 0] * pos[i, 0] + R[2, 1] * pos[i, 1] + R[2, 2] * pos[i, 2] + t[2]
+        pix_scratch[k] = -1
+        if pz < near or pz > far:
+            continue
+        if cull_back:
+            nx = R[0, 0] * nrm[i, 0] + R[0, 1] * nrm[i, 1] + R[0, 2] * nrm[i, 2]
+            ny = R[1, 0] * nrm[i, 0] + R[1, 1] * nrm[i, 1] + R[1, 2] * nrm[i, 2]
+            nz = R[2, 0] * nrm[i, 0] + R[2, 1] * nrm[i, 1] + R[2, 2] * nrm[i, 2]
+            if nx * px + ny * py + nz * pz >= 0.0:
+                continue
+        u = int(math.floor(fx * px / pz + cx + 0.5))
+        v = int(math.floor(fy * py / pz + cy + 0.5))
+        if u < 0 or v < 0 or u >= W or v >= H:
+            continue
+        p = v * W + u
+        pix_scratch[k] = p
+        start_out[p + 1] += 1
+    for p in range(npix):
+        start_out[p + 1] += start_out[p]
+    n = start_out[npix]
+    # scatter with a cursor: start_out[p] is advanced, then shifted back
+    for k in range(m):
+        p = pix_scratch[k]
+        if p >= 0:
+            order_out[start_out[p]] = cand[k]
+            start_out[p] += 1
+    for p in range(npix, 0, -1):
+        start_out[p] = start_out[p - 1]
+    start_out[0] = 0
+    return n
+
+
+def bucket_by_pixel_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, H, W, near, far, cull_back):
+    """Numpy reference of :func:`bucket_by_pixel`; returns ``(start (H*W+1,), order (n,))``."""
+    idx = cand[:m].astype(np.int64)
+    P = pos[idx].astype(np.float64)
+    N = nrm[idx].astype(np.float64)
+    px = R[0, 0] * P[:, 0] + R[0, 1] * P[:, 1] + R[0, 2] * P[:, 2] + t[0]
+    py = R[1, 0] * P[:, 0] + R[1, 1] * P[:, 1] + R[1, 2] * P[:, 2] + t[1]
+    pz = R[2, 0] * P[:, 0] + R[2, 1] * P[:, 1] + R[2, 2] * P[:, 2] + t[2]
+    ok = (pz >= near) & (pz <= far)
+    if cull_back:
+        nx = R[0, 0] * N[:, 0] + R[0, 1] * N[:, 1] + R[0, 2] * N[:, 2]
+        ny = R[1, 0] * N[:, 0] + R[1, 1] * N[:, 1] + R[1, 2] * N[:, 2]
+        nz = R[2, 0] * N[:, 0] + R[2, 1] * N[:, 1] + R[2, 2] * N[:, 2]
+        ok &= nx * px + ny * py + nz * pz < 0
+    pzs = np.where(ok, pz, 1.0)
+    u = np.floor(fx * px / pzs + cx + 0.5).astype(np.int64)
+    v = np.floor(fy * py / pzs + cy + 0.5).astype(np.int64)
+    ok &= (u >= 0) & (v >= 0) & (u < W) & (v < H)
+    k = np.flatnonzero(ok)
+    pix = v[k] * W + u[k]
+    srt = np.argsort(pix, kind="stable")
+    counts = np.bincount(pix, minlength=H * W)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    return start, idx[k[srt]].astype(np.int32)
+
+
 @njit(cache=True, parallel=True)
-def associate(vertex, normal, index_s, scale, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
+def associate(vertex, normal, bstart, border, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
               cover_radius_px, assoc_out):
-    """Pick, for every input pixel, the map surfel it updates (Keller's rule on the supersampled index map).
+    """Pick, for every input pixel, the map surfel it updates.
 
     Args:
         vertex, normal: float32 ``(H, W, 3)`` camera-frame measurement (normal 0 or depth 0 = invalid).
-        index_s: int32 ``(H*scale, W*scale)`` index map rendered at the frame's pose.
+        bstart, border: the surfels projecting into each pixel at the frame's pose
+            (see :func:`bucket_by_pixel`).
         pos, nrm, conf: map arrays (world frame).
         R, t: float64 camera-to-world rotation ``(3, 3)`` and translation ``(3,)``.
         dist_m: max |p - q| (metres); cos_angle: min cosine between normals.
         min_depth, max_depth: measurements outside this depth range are not fused.
-        cover_radius_px: neighbour pixels searched when the pixel's own cells have no match (0 = none).
+        cover_radius_px: neighbour pixels searched when the pixel's own surfels have no match (0 = none).
         assoc_out: int32 ``(H, W)`` status (see module doc).
 
-    Among the candidates in the pixel's ``scale x scale`` cells that pass |p - q| < dist_m and the
-    normal test, the one with the highest confidence wins; ties: smaller distance, then smaller row.
+    Among the pixel's surfels that pass |p - q| < dist_m and the normal test, the one with the highest
+    confidence wins; ties: smaller distance, then smaller row.
     """
     H, W = assoc_out.shape
-    SH, SW = index_s.shape
     dist2 = dist_m * dist_m
     for v in prange(H):
         for u in range(W):
@@ -77,84 +158,80 @@ def associate(vertex, normal, index_s, scale, pos, nrm, conf, R, t, dist_m, cos_
             best = -1
             best_c = -1.0
             best_d = 0.0
-            for sv in range(v * scale, v * scale + scale):
-                for su in range(u * scale, u * scale + scale):
-                    i = index_s[sv, su]
-                    if i < 0:
-                        continue
-                    d2 = _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle)
-                    if d2 < 0:
-                        continue
-                    c = conf[i]
-                    if best < 0 or c > best_c or (c == best_c and (d2 < best_d or (d2 == best_d and i < best))):
-                        best = i
-                        best_c = c
-                        best_d = d2
+            p = v * W + u
+            for k in range(bstart[p], bstart[p + 1]):
+                i = border[k]
+                d2 = _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle)
+                if d2 < 0:
+                    continue
+                c = conf[i]
+                if best < 0 or c > best_c or (c == best_c and (d2 < best_d or (d2 == best_d and i < best))):
+                    best = i
+                    best_c = c
+                    best_d = d2
             if best >= 0:
                 assoc_out[v, u] = best
                 continue
             status = ASSOC_NEW
             r = cover_radius_px
-            sv0 = max((v - r) * scale, 0)
-            sv1 = min((v + r + 1) * scale, SH)
-            su0 = max((u - r) * scale, 0)
-            su1 = min((u + r + 1) * scale, SW)
-            for sv in range(sv0, sv1):
+            for vv in range(max(v - r, 0), min(v + r + 1, H)):
                 if status == ASSOC_COVERED:
                     break
-                for su in range(su0, su1):
-                    i = index_s[sv, su]
-                    if i < 0 or (sv // scale == v and su // scale == u):
+                for uu in range(max(u - r, 0), min(u + r + 1, W)):
+                    if vv == v and uu == u:
                         continue
-                    if _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle) >= 0:
-                        status = ASSOC_COVERED
+                    pp = vv * W + uu
+                    for k in range(bstart[pp], bstart[pp + 1]):
+                        if _match(border[k], qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle) >= 0:
+                            status = ASSOC_COVERED
+                            break
+                    if status == ASSOC_COVERED:
                         break
             assoc_out[v, u] = status
 
 
-def associate_ref(vertex, normal, index_s, scale, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
+def associate_ref(vertex, normal, bstart, border, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
                   cover_radius_px):
     """Numpy reference of :func:`associate`; returns ``assoc`` int32 ``(H, W)``."""
     H, W = vertex.shape[:2]
-    z = vertex[..., 2].astype(np.float64)
-    n = normal.astype(np.float64)
+    z = vertex[..., 2].astype(np.float64).ravel()
+    n = normal.astype(np.float64).reshape(-1, 3)
     valid = (z >= min_depth) & (z <= max_depth) & ((n**2).sum(-1) >= 0.25)
-    q = vertex.astype(np.float64) @ R.T + t
+    q = vertex.reshape(-1, 3).astype(np.float64) @ R.T + t
     mn = n @ R.T
+    counts = np.diff(bstart)
+    pair_pix = np.repeat(np.arange(H * W), counts)  # (pixel, surfel) pairs of the buckets
+    pair_row = border[: bstart[-1]].astype(np.int64)
 
-    def passes(cells):  # cells: (H, W, K) surfel rows or -1 -> (ok, d2)
-        ci = np.where(cells >= 0, cells, 0)
-        d2 = ((pos[ci].astype(np.float64) - q[:, :, None, :]) ** 2).sum(-1)
-        dot = (nrm[ci].astype(np.float64) * mn[:, :, None, :]).sum(-1)
-        return (cells >= 0) & (d2 < dist_m**2) & (dot > cos_angle), d2
+    def passes(target_pix, rows):
+        d2 = ((pos[rows].astype(np.float64) - q[target_pix]) ** 2).sum(-1)
+        dot = (nrm[rows].astype(np.float64) * mn[target_pix]).sum(-1)
+        return (d2 < dist_m**2) & (dot > cos_angle), d2
 
-    own = index_s.reshape(H, scale, W, scale).transpose(0, 2, 1, 3).reshape(H, W, scale * scale)
-    ok, d2 = passes(own)
-    c = np.where(ok, conf[np.where(own >= 0, own, 0)].astype(np.float64), -np.inf)
-    d2 = np.where(ok, d2, np.inf)
-    rows = np.where(ok, own, np.iinfo(np.int32).max).astype(np.int64)
-    # lexicographic choice: max conf, then min d2, then min row
-    cmax = c.max(-1, keepdims=True)
-    cand = ok & (c == cmax)
-    dmin = np.where(cand, d2, np.inf).min(-1, keepdims=True)
-    cand &= d2 == dmin
-    best = np.where(cand, rows, np.iinfo(np.int64).max).min(-1)
-    has = ok.any(-1)
-    assoc = np.where(has, best, ASSOC_NEW).astype(np.int32)
-    # covered test on neighbouring pixels' cells
+    ok, d2 = passes(pair_pix, pair_row)
+    sel = np.flatnonzero(ok)
+    srt = np.lexsort((pair_row[sel], d2[sel], -conf[pair_row[sel]].astype(np.float64), pair_pix[sel]))
+    sp = pair_pix[sel][srt]
+    first = np.ones(len(sp), bool)
+    first[1:] = sp[1:] != sp[:-1]
+    assoc = np.full(H * W, ASSOC_NEW, np.int64)
+    assoc[sp[first]] = pair_row[sel][srt][first]
+    has = np.zeros(H * W, bool)
+    has[sp] = True
+    covered = np.zeros(H * W, bool)
     r = cover_radius_px
-    covered = np.zeros((H, W), bool)
-    if r > 0:
-        pad = np.full((H + 2 * r, W + 2 * r, scale * scale), -1, np.int32)
-        pad[r : r + H, r : r + W] = own
-        for dv in range(-r, r + 1):
-            for du in range(-r, r + 1):
-                if dv == 0 and du == 0:
-                    continue
-                nb_ok, _ = passes(pad[r + dv : r + dv + H, r + du : r + du + W])
-                covered |= nb_ok.any(-1)
+    pv, pu = np.divmod(pair_pix, W)
+    for dv in range(-r, r + 1):
+        for du in range(-r, r + 1):
+            if dv == 0 and du == 0:
+                continue
+            tv, tu = pv - dv, pu - du  # the pixel that sees this bucket as its neighbour (dv, du)
+            inside = (tv >= 0) & (tv < H) & (tu >= 0) & (tu < W)
+            tp = (tv * W + tu)[inside]
+            nb_ok, _ = passes(tp, pair_row[inside])
+            covered[tp[nb_ok]] = True
     assoc = np.where(~has & covered, ASSOC_COVERED, assoc)
-    return np.where(valid, assoc, ASSOC_INVALID).astype(np.int32)
+    return np.where(valid, assoc, ASSOC_INVALID).astype(np.int32).reshape(H, W)
 
 
 @njit(cache=True, inline="always")

@@ -2,8 +2,10 @@
 
 Per frame, at the frame's pose ``T_world_cam``:
 
-1. association (pass 1): the map is rendered into a supersampled index map (``index_scale`` x the frame
-   resolution, one cell per surfel); the surfels in a pixel's ``scale x scale`` cells are its candidates.
+1. association (pass 1): the culled map surfels in front of the camera are projected into the frame and
+   bucketed by the pixel their centre falls in (Keller's supersampled index map taken to the limit: every
+   surfel lands in exactly one pixel, none is hidden by a z-test). A pixel's bucket holds its candidates;
+   only pixels with valid depth in ``[min_depth_m, max_depth_m]`` and a normal take part.
 2. filter (pass 2): a candidate must satisfy ``|p - q| < dist_diff_m`` (world frame) and an angle between
    the normals below ``angle_diff_deg``; the most confident passing candidate is chosen (ties: nearest,
    then lowest row).
@@ -42,7 +44,6 @@ import numpy as np
 
 from surfelslam.errors import ConfigError
 from surfelslam.kernels import fusion as kf
-from surfelslam.mapping.render import render_index_map
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.types import Intrinsics
 
@@ -57,12 +58,11 @@ class FusionConfig:
     angle_diff_deg: float = 20.0
     weight_mode: str = "keller"
     radial_weight_sigma: float = 0.6  # in units of the centre-to-corner distance
-    index_scale: int = 4  # supersampling of the association index map (Keller: 4)
     cover_radius_px: int = 1
     min_depth_m: float = 0.1
     max_depth_m: float = 4.0
-    new_radius_px: float = 1.0  # new surfel radius, in pixel footprints at its depth
-    radius_min_cos: float = 0.2  # clamps the 1/cos growth of the radius on slanted surfaces
+    new_radius_px: float = 0.75  # new surfel radius, in pixel footprints at its depth (>= 0.71 covers a pixel)
+    radius_min_cos: float = 0.3  # clamps the 1/cos growth of the radius on slanted surfaces
     max_radius_m: float = 0.05
     merge_max_radius_ratio: float = 1.5  # Keller's (1 + delta)
     remove_unstable: bool = True
@@ -81,8 +81,8 @@ class FusionConfig:
             raise ConfigError(f"fusion: angle_diff_deg must be in (0, 180], got {self.angle_diff_deg}")
         if self.radial_weight_sigma <= 0:
             raise ConfigError(f"fusion: radial_weight_sigma must be > 0, got {self.radial_weight_sigma}")
-        if self.index_scale < 1 or self.cover_radius_px < 0:
-            raise ConfigError("fusion: index_scale must be >= 1 and cover_radius_px >= 0")
+        if self.cover_radius_px < 0:
+            raise ConfigError(f"fusion: cover_radius_px must be >= 0, got {self.cover_radius_px}")
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise ConfigError(
                 f"fusion: need 0 < min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}"
@@ -180,11 +180,21 @@ def fuse(
     cos_angle = math.cos(math.radians(cfg.angle_diff_deg))
     radius_per_depth = cfg.new_radius_px / (0.5 * (abs(intr.fx) + abs(intr.fy)))
 
-    imap = render_index_map(smap, T, intr, cfg.index_scale, cfg.min_depth_m, cfg.max_depth_m, cfg.cull_backfaces)
+    cand = smap.visible_candidates(T, intr, cfg.min_depth_m, cfg.max_depth_m)
+    T_cam_world = np.linalg.inv(T)
+    H, W = intr.shape
+    bstart = smap.scratch("fusion_bucket_start", H * W + 1, np.int32)
+    border = smap.scratch("fusion_bucket_order", len(cand), np.int32)
+    pix = smap.scratch("fusion_bucket_pixel", len(cand), np.int32)
     arr = smap.raw()
+    kf.bucket_by_pixel(
+        cand, len(cand), arr["position"], arr["normal"], np.ascontiguousarray(T_cam_world[:3, :3]),
+        np.ascontiguousarray(T_cam_world[:3, 3]), float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
+        H, W, float(cfg.min_depth_m), float(cfg.max_depth_m), bool(cfg.cull_backfaces), pix, bstart, border,
+    )
     assoc = np.empty(intr.shape, np.int32)
     kf.associate(
-        vertex, normal, imap.index, cfg.index_scale, arr["position"], arr["normal"], arr["confidence"], R, t,
+        vertex, normal, bstart, border, arr["position"], arr["normal"], arr["confidence"], R, t,
         float(cfg.dist_diff_m), cos_angle, float(cfg.min_depth_m), float(cfg.max_depth_m),
         int(cfg.cover_radius_px), assoc,
     )
@@ -217,7 +227,7 @@ def fuse(
         )
         smap.dormant_cursor = int(cursor)
         k2 = kf.stale_unstable(
-            imap.candidates, len(imap.candidates), arr["confidence"], arr["last_seen"], arr["dead"], frame,
+            cand, len(cand), arr["confidence"], arr["last_seen"], arr["dead"], frame,
             int(cfg.unstable_max_age_frames), float(cfg.stable_min_confidence),
         )
         removed = int(k1) + int(k2)
@@ -227,5 +237,5 @@ def fuse(
         compacted = smap.compact()
     return FusionStats(
         merged=n_merged, added=int(added), removed=removed, covered=n_covered, invalid=n_invalid,
-        candidates=len(imap.candidates), compacted=compacted, map_size=smap.n_alive,
+        candidates=len(cand), compacted=compacted, map_size=smap.n_alive,
     )

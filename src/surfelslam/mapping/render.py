@@ -109,7 +109,8 @@ def render(
     R, t = _world_to_cam(T_world_cam)
     cand = smap.visible_candidates(T_world_cam, intr, cfg.min_depth_m, cfg.max_depth_m,
                                    margin_px=cfg.max_splat_radius_px)
-    depth = np.full((H, W), np.inf)
+    depth = smap.scratch("render_depth", H * W, np.float64).reshape(H, W)
+    depth.fill(np.inf)
     index = np.full((H, W), -1, np.int32)
     arr = smap.raw()
     young_from = smap.latest_frame - cfg.young_age_frames + 1 if cfg.min_confidence > 0 else -(2**31)
@@ -134,8 +135,9 @@ def render_index_map(
     min_depth_m: float = 0.1, max_depth_m: float = 8.0, cull_backfaces: bool = True,
 ) -> IndexMap:
     """Keller's supersampled index map: every live surfel in the frustum lands in one cell of an
-    ``(H*scale, W*scale)`` grid (no splatting), nearest wins. Used by fusion for association: the
-    ``scale x scale`` cells of an input pixel list the surfels that project into that pixel."""
+    ``(H*scale, W*scale)`` grid (no splatting), nearest wins: the ``scale x scale`` cells of an input pixel
+    list the surfels that project into that pixel. (Fusion uses the equivalent per-pixel buckets of
+    :func:`surfelslam.kernels.fusion.bucket_by_pixel`, which hide no surfel and need no large buffer.)"""
     if scale < 1:
         raise ConfigError(f"render_index_map: scale must be >= 1, got {scale}")
     R, t = _world_to_cam(T_world_cam)

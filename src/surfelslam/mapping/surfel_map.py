@@ -100,6 +100,7 @@ class SurfelMap:
         self._n_blocks_grouped = 0
         self._cand = np.zeros(self._cap, np.int32)
         self._visible = np.zeros(64, np.uint8)
+        self._scratch: dict[str, np.ndarray] = {}
 
     # ------------------------------------------------------------------ storage
     def _alloc(self, cap: int) -> None:
@@ -237,7 +238,7 @@ class SurfelMap:
         self._size = new_size
         self._n_dead = 0
         self.dormant_cursor = n_before_cursor
-        self._n_grouped = 0  # indices moved: the grouping is rebuilt on the next query
+        self.rebuild_index()  # rows moved: regroup (O(size), like the compaction itself)
         return removed
 
     def remove(self, mask: np.ndarray) -> int:
@@ -330,6 +331,14 @@ class SurfelMap:
             self._block_id, self._n_grouped, self._size, self._dead, self._cand,
         )
         return self._cand[:m]
+
+    def scratch(self, name: str, n: int, dtype) -> np.ndarray:
+        """A reusable 1-D work buffer of at least ``n`` elements (grown by doubling), for per-frame kernels."""
+        buf = self._scratch.get(name)
+        if buf is None or len(buf) < n or buf.dtype != np.dtype(dtype):
+            buf = np.empty(max(int(n), 2 * (len(buf) if buf is not None else 0)), dtype)
+            self._scratch[name] = buf
+        return buf[:n]
 
     # raw arrays for the kernels (full capacity; callers use [:size])
     def raw(self) -> dict[str, np.ndarray]:
