@@ -1,0 +1,59 @@
+"""Keyframes: features for matching and a voxel-filtered coloured cloud for the map."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from surfelslam.geometry.camera import backproject
+from surfelslam.kernels.voxel import voxel_filter
+from surfelslam.tracking.features import Features
+from surfelslam.types import Intrinsics, RGBDFrame
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Keyframe clouds and the final map (seeds: voxel grid 0.01-0.02 m, depth 0-4 m).
+
+    Attributes:
+        voxel_size_m: voxel edge of the per-keyframe and the final voxel-grid filter.
+        min_depth_m, max_depth_m: pixels outside this depth range are not mapped.
+        pixel_stride: keyframe depth is sampled every ``pixel_stride`` pixels before filtering.
+    """
+
+    voxel_size_m: float = 0.02
+    min_depth_m: float = 0.0
+    max_depth_m: float = 4.0
+    pixel_stride: int = 2
+
+
+@dataclass
+class Keyframe:
+    """A keyframe.
+
+    Attributes:
+        kf_id: index in the keyframe list and pose-graph node id.
+        frame_index, timestamp: the frame it was made from.
+        features: its ORB features (with 3D points in its camera frame).
+        cloud_xyz_cam: ``(M, 3)`` float32 voxel-filtered points in its camera frame (m).
+        cloud_rgb: ``(M, 3)`` uint8 colours.
+    """
+
+    kf_id: int
+    frame_index: int
+    timestamp: float
+    features: Features
+    cloud_xyz_cam: np.ndarray
+    cloud_rgb: np.ndarray
+
+
+def keyframe_cloud(frame: RGBDFrame, intr: Intrinsics, cfg: MapConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame coloured cloud of a frame: ``(xyz (M, 3) float32, rgb (M, 3) uint8)``, voxel-filtered."""
+    s = cfg.pixel_stride
+    vtx = backproject(frame.depth_m, intr)[::s, ::s].reshape(-1, 3)
+    rgb = frame.rgb[::s, ::s].reshape(-1, 3)
+    z = vtx[:, 2]
+    keep = (z > cfg.min_depth_m) & (z <= cfg.max_depth_m)
+    xyz, col, _ = voxel_filter(vtx[keep], rgb[keep], cfg.voxel_size_m)
+    return xyz, col

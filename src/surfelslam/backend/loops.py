@@ -1,0 +1,99 @@
+"""Loop-closure candidates (nearby, random, appearance-retrieved keyframes) and their verification."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
+from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, estimate_motion
+from surfelslam.types import Intrinsics
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Loop detection (seeds: 5 nearby and 5 random keyframes, loop motion norm up to 2.0).
+
+    Attributes:
+        n_nearby: the keyframes just before the previous one that are checked (local edges).
+        n_random: keyframes drawn uniformly (seeded) among the older ones.
+        seed: seed of the random draws.
+        n_retrieved: older keyframes proposed by descriptor voting (:mod:`place_recognition`).
+        max_norm_loop: loop edges may span up to this motion norm (m + rad).
+        min_loop_inliers: PnP inliers needed to accept an edge (nearby or loop).
+        min_loop_inlier_ratio: and this fraction of the good matches.
+        retrieval: descriptor-voting parameters.
+    """
+
+    n_nearby: int = 5
+    n_random: int = 5
+    seed: int = 0
+    n_retrieved: int = 3
+    max_norm_loop: float = 2.0
+    min_loop_inliers: int = 30
+    min_loop_inlier_ratio: float = 0.25
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A keyframe to verify against the new one; ``source`` is "nearby", "random" or "retrieved"."""
+
+    kf_id: int
+    source: str
+
+
+def loop_candidates(
+    new_kf: int,
+    descriptors: np.ndarray,
+    index: DescriptorIndex,
+    rng: np.random.Generator,
+    cfg: LoopConfig,
+) -> list[Candidate]:
+    """Candidates for keyframe ``new_kf`` (its predecessor ``new_kf - 1`` has the odometry edge).
+
+    Nearby: ``new_kf - 2 ... new_kf - 1 - n_nearby``. Older keyframes ``[0, new_kf - 1 - n_nearby)``:
+    ``n_retrieved`` by appearance, then ``n_random`` drawn without replacement. No duplicates.
+    """
+    out: list[Candidate] = []
+    seen: set[int] = set()
+    for k in range(new_kf - 2, max(new_kf - 2 - cfg.n_nearby, -1), -1):
+        out.append(Candidate(k, "nearby"))
+        seen.add(k)
+    n_old = max(new_kf - 1 - cfg.n_nearby, 0)
+    if n_old == 0:
+        return out
+    for k, _votes in index.query(descriptors, cfg.n_retrieved, before_kf=n_old):
+        if k not in seen:
+            out.append(Candidate(k, "retrieved"))
+            seen.add(k)
+    draws = rng.permutation(n_old)[: cfg.n_random + cfg.n_retrieved]  # fixed number of draws per call
+    for k in draws:
+        if len([c for c in out if c.source == "random"]) >= cfg.n_random:
+            break
+        if int(k) not in seen:
+            out.append(Candidate(int(k), "random"))
+            seen.add(int(k))
+    return out
+
+
+def verify_edge(
+    ref: Features, cur: Features, intr: Intrinsics, feat_cfg: FeatureConfig, cfg: LoopConfig
+) -> MotionResult:
+    """PnP between two keyframes with the loop bounds; ``ok`` only if the inlier rules pass too.
+
+    ``result.T_cur_ref`` maps points of the candidate (ref) keyframe into the new (cur) keyframe.
+    """
+    # too few good matches to ever reach min_loop_inliers: skip RANSAC (cheap rejection of non-overlap)
+    loop_feat_cfg = replace(
+        feat_cfg,
+        max_motion_norm=cfg.max_norm_loop,
+        min_good_matches=max(feat_cfg.min_good_matches, cfg.min_loop_inliers),
+    )
+    res = estimate_motion(ref, cur, intr, loop_feat_cfg)
+    if res.ok and (
+        res.n_inliers < cfg.min_loop_inliers or res.n_inliers < cfg.min_loop_inlier_ratio * res.n_good
+    ):
+        res.ok, res.reason = False, "too_few_inliers"
+    return res

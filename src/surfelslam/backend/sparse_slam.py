@@ -1,0 +1,378 @@
+"""Sparse RGB-D SLAM: ORB/PnP odometry against the last keyframe, keyframes, loops, pose graph.
+
+Per frame (:meth:`SparseSlam.process`):
+
+1. ORB features are extracted and matched against the reference keyframe (the last one); PnP-
+   RANSAC gives ``T_cur_kf`` with the rejection rules of :mod:`surfelslam.tracking.features`.
+2. Accepted: ``T_world_cam = T_world_kf T_kf_cam``. If the motion norm from the keyframe reaches
+   ``keyframe_threshold`` the frame becomes a keyframe: a graph node with an odometry edge, then
+   loop candidates (nearby, appearance-retrieved, random; :mod:`loops`) are verified by PnP and
+   accepted ones become robust loop edges. The graph is optimised whenever an edge to an older
+   (non-nearby) keyframe is accepted, and in :meth:`finish`.
+3. Rejected: the reason is counted and the frame gets the constant-velocity prediction
+   (``rejected_pose = "constant_velocity"``) or the last pose (``"last"``); it never becomes a
+   keyframe. After ``relocalise_after_failures`` consecutive rejections, :meth:`relocalise`
+   searches all keyframes and, on success, tracking resumes against the keyframe found.
+
+Every frame pose is stored relative to its reference keyframe, so graph corrections move whole
+stretches of the trajectory rigidly with their keyframe.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from surfelslam.backend.keyframes import Keyframe, MapConfig, keyframe_cloud
+from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
+from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
+from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
+from surfelslam.geometry.se3 import invert, motion_norm, transform_points
+from surfelslam.kernels.voxel import voxel_filter
+from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, estimate_motion, extract
+from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+
+REJECTED_POSE_MODES = ("constant_velocity", "last")
+
+
+@dataclass(frozen=True)
+class SparseSlamConfig:
+    """Sparse SLAM settings.
+
+    Attributes:
+        features: ORB / matching / PnP settings (frame-to-keyframe odometry).
+        keyframe_threshold: motion norm (m + rad) from the reference keyframe that makes a new keyframe
+            (seeds: 0.1).
+        rejected_pose: pose of a rejected frame: ``"constant_velocity"`` or ``"last"``.
+        relocalise_after_failures: consecutive rejected frames before relocalisation is tried.
+        relocalise_max_norm: motion-norm bound (m + rad) of a relocalisation PnP.
+        loop: loop-candidate selection and verification.
+        graph: pose-graph weights and solver.
+        map: keyframe clouds and the final voxel-filtered map.
+    """
+
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    keyframe_threshold: float = 0.1
+    rejected_pose: str = "constant_velocity"
+    relocalise_after_failures: int = 3
+    relocalise_max_norm: float = 10.0
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+
+    def __post_init__(self) -> None:
+        if self.rejected_pose not in REJECTED_POSE_MODES:
+            raise ValueError(f"rejected_pose must be one of {REJECTED_POSE_MODES}, got {self.rejected_pose!r}")
+        if self.keyframe_threshold <= 0:
+            raise ValueError(f"keyframe_threshold must be positive, got {self.keyframe_threshold}")
+
+
+@dataclass
+class SparseFrameResult:
+    """Outcome of one :meth:`SparseSlam.process` call.
+
+    Attributes:
+        T_world_cam: ``(4, 4)`` current estimate of the frame's pose.
+        is_keyframe: the frame became a keyframe.
+        ok: odometry accepted (False: ``reason`` names the rejection rule).
+        n_inliers: PnP inliers against the reference keyframe.
+        loops_added: edges to older keyframes accepted for this keyframe (nearby edges excluded).
+        relocalised: the pose came from :meth:`SparseSlam.relocalise`.
+    """
+
+    T_world_cam: np.ndarray
+    is_keyframe: bool
+    ok: bool
+    reason: str | None
+    n_inliers: int
+    loops_added: int
+    relocalised: bool = False
+
+
+@dataclass
+class SparseSlamResult:
+    """Outcome of :meth:`SparseSlam.finish`.
+
+    Attributes:
+        trajectory: every processed frame, after the final optimisation.
+        keyframe_indices: ``(K,)`` frame index of each keyframe.
+        keyframe_poses: ``(K, 4, 4)`` optimised ``T_world_kf``.
+        loops_found: ``[(kf_old, kf_new, n_inliers)]`` older-keyframe candidates whose PnP succeeded.
+        loops_accepted: the subset that became graph edges.
+        n_nearby_edges: accepted edges to nearby keyframes.
+        rejected: ``{reason: count}`` of rejected frames.
+        map_xyz: ``(M, 3)`` float32 world points (voxel-filtered keyframe clouds).
+        map_rgb: ``(M, 3)`` uint8 colours.
+    """
+
+    trajectory: Trajectory
+    keyframe_indices: np.ndarray
+    keyframe_poses: np.ndarray
+    loops_found: list[tuple[int, int, int]]
+    loops_accepted: list[tuple[int, int, int]]
+    n_nearby_edges: int
+    rejected: dict[str, int]
+    map_xyz: np.ndarray
+    map_rgb: np.ndarray
+
+
+class SparseSlam:
+    """Frame-by-frame sparse SLAM (see the module docstring).
+
+    Args:
+        intr: intrinsics of the frames that will be processed (``fy`` may be negative).
+        cfg: settings.
+        T_world_first: pose of the first frame (default identity).
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
+                 T_world_first: np.ndarray | None = None) -> None:
+        self.intr = intr
+        self.cfg = cfg or SparseSlamConfig()
+        self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
+        self._graph = PoseGraph(self.cfg.graph)
+        self._index = DescriptorIndex(self.cfg.loop.retrieval)
+        self._rng = np.random.default_rng(self.cfg.loop.seed)
+        self._kfs: list[Keyframe] = []
+        self._kf_pose_buf = np.zeros((16, 4, 4))  # current estimates T_world_kf (grown by doubling)
+        self._ref_kf = -1
+        # per processed frame: timestamp, reference keyframe, pose relative to it
+        self._timestamps: list[float] = []
+        self._frame_kf: list[int] = []
+        self._T_kf_cam: list[np.ndarray] = []
+        self._velocity = np.eye(4)  # T_prev_last: last inter-frame motion (camera frame)
+        self._n_failures = 0
+        self.loops_found: list[tuple[int, int, int]] = []
+        self.loops_accepted: list[tuple[int, int, int]] = []
+        self.n_nearby_edges = 0
+        self.rejected: Counter[str] = Counter()
+
+    # --- state -------------------------------------------------------------------------------------
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._kfs)
+
+    @property
+    def _kf_poses(self) -> np.ndarray:
+        return self._kf_pose_buf[: len(self._kfs)]
+
+    def _append_kf_pose(self, T_world_kf: np.ndarray) -> None:
+        k = len(self._kfs)
+        if k >= len(self._kf_pose_buf):
+            buf = np.zeros((2 * len(self._kf_pose_buf), 4, 4))
+            buf[:k] = self._kf_pose_buf[:k]
+            self._kf_pose_buf = buf
+        self._kf_pose_buf[k] = T_world_kf
+
+    def keyframe_poses(self) -> np.ndarray:
+        """Current (optimised) keyframe poses ``T_world_kf`` ``(K, 4, 4)``; ids = keyframe ids."""
+        return self._kf_poses.copy()
+
+    def keyframe_frame_indices(self) -> np.ndarray:
+        """``(K,)`` frame index of each keyframe."""
+        return np.array([k.frame_index for k in self._kfs], dtype=np.int64)
+
+    def _last_pose(self) -> np.ndarray:
+        return self._kf_poses[self._frame_kf[-1]] @ self._T_kf_cam[-1]
+
+    def _predict(self) -> np.ndarray:
+        """Constant-velocity prediction of the next ``T_world_cam``."""
+        return self._last_pose() @ self._velocity
+
+    # --- processing ----------------------------------------------------------------------------------
+
+    def process(self, frame: RGBDFrame, T_world_cam_dense: np.ndarray | None = None) -> SparseFrameResult:
+        """Track one frame; may add a keyframe, loop edges and re-optimise the graph.
+
+        Args:
+            frame: the next frame (any resolution matching ``intr``).
+            T_world_cam_dense: optional pose from another tracker (hybrid mode). When given it is the
+                frame's pose and the odometry measurement of a new keyframe; PnP still runs for the
+                keyframe decision's statistics.
+        """
+        feats = extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+        if not self._kfs:
+            T0 = self._T_world_first if T_world_cam_dense is None else np.asarray(T_world_cam_dense, np.float64)
+            self._add_keyframe(frame, feats, T0, None, None)
+            self._record(frame.timestamp, 0, np.eye(4), None)
+            return SparseFrameResult(T0.copy(), True, True, None, 0, 0)
+
+        T_pred = self._predict()
+        T_world_kf = self._kf_poses[self._ref_kf]
+        ref = self._kfs[self._ref_kf]
+        res = estimate_motion(ref.features, feats, self.intr, self.cfg.features,
+                              T_init_cur_ref=invert(T_pred) @ T_world_kf)
+        relocalised = False
+        if T_world_cam_dense is not None:
+            T_world_cam = np.asarray(T_world_cam_dense, np.float64)
+            T_kf_cam = invert(T_world_kf) @ T_world_cam
+            ok = True
+        elif res.ok:
+            T_kf_cam = invert(res.T_cur_ref)
+            T_world_cam = T_world_kf @ T_kf_cam
+            ok = True
+        else:
+            ok = False
+            self.rejected[res.reason or "pnp_failed"] += 1
+            self._n_failures += 1
+            reloc = None
+            if self._n_failures >= self.cfg.relocalise_after_failures:
+                reloc = self._relocalise_features(feats)
+            if reloc is not None:
+                T_world_cam, self._ref_kf, _ = reloc
+                self._n_failures = 0
+                relocalised = True
+                T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+            else:
+                T_world_cam = T_pred if self.cfg.rejected_pose == "constant_velocity" else self._last_pose()
+                T_kf_cam = invert(T_world_kf) @ T_world_cam
+            self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+            return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0, relocalised)
+
+        self._n_failures = 0
+        is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
+        loops_added = 0
+        if is_kf:
+            loops_added = self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam)
+            T_world_cam = self._kf_poses[-1]
+            self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
+        else:
+            self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+        return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, res.n_inliers, loops_added)
+
+    def _record(self, timestamp: float, kf: int, T_kf_cam: np.ndarray, T_world_cam: np.ndarray | None) -> None:
+        if T_world_cam is not None and self._timestamps:
+            self._velocity = invert(self._last_pose()) @ T_world_cam
+        self._timestamps.append(float(timestamp))
+        self._frame_kf.append(kf)
+        self._T_kf_cam.append(np.asarray(T_kf_cam, np.float64).copy())
+
+    def _add_keyframe(self, frame: RGBDFrame, feats: Features, T_world_cam: np.ndarray,
+                      prev_kf: int | None, T_prev_new: np.ndarray | None) -> int:
+        """Add a keyframe, its odometry edge and verified loop edges; returns the loops accepted."""
+        kf_id = self._graph.add_node(T_world_cam)
+        xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
+        self._append_kf_pose(T_world_cam)
+        self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, feats, xyz, rgb))
+        self._ref_kf = kf_id
+        if prev_kf is not None and T_prev_new is not None:
+            self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry"))
+        n_loops = 0
+        if prev_kf is not None:
+            n_loops = self._check_loops(kf_id, feats)
+            if n_loops > 0:
+                self._optimise()
+        self._index.add(self._query_descriptors(feats))
+        return n_loops
+
+    def _query_descriptors(self, feats: Features) -> np.ndarray:
+        n_max = self.cfg.loop.retrieval.max_descriptors_per_keyframe
+        return select_descriptors(feats.descriptors, feats.response, feats.valid, n_max)
+
+    def _check_loops(self, kf_id: int, feats: Features) -> int:
+        n_loops = 0
+        for cand in loop_candidates(kf_id, self._query_descriptors(feats), self._index, self._rng, self.cfg.loop):
+            res = verify_edge(self._kfs[cand.kf_id].features, feats, self.intr, self.cfg.features, self.cfg.loop)
+            far = cand.source != "nearby"
+            if far and res.reason != "too_few_matches" and res.n_inliers >= self.cfg.features.min_inliers \
+                    and res.reason != "motion_too_large":
+                self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
+            if not res.ok:
+                continue
+            self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop"))
+            if far:
+                self.loops_accepted.append((cand.kf_id, kf_id, res.n_inliers))
+                n_loops += 1
+            else:
+                self.n_nearby_edges += 1
+        return n_loops
+
+    def _optimise(self) -> None:
+        self._kf_pose_buf[: len(self._kfs)] = self._graph.optimise()
+
+    # --- queries for the dense pipeline ---------------------------------------------------------------
+
+    def _relocalise_features(self, feats: Features) -> tuple[np.ndarray, int, MotionResult] | None:
+        cands = [k for k, _ in self._index.query(self._query_descriptors(feats), self.cfg.loop.n_retrieved)]
+        last = self.n_keyframes - 1
+        if last >= 0 and last not in cands:
+            cands.append(last)
+        loop_cfg = replace(self.cfg.loop, max_norm_loop=self.cfg.relocalise_max_norm)
+        best: tuple[np.ndarray, int, MotionResult] | None = None
+        for k in cands:
+            res = verify_edge(self._kfs[k].features, feats, self.intr, self.cfg.features, loop_cfg)
+            if res.ok and (best is None or res.n_inliers > best[2].n_inliers):
+                best = (self._kf_poses[k] @ invert(res.T_cur_ref), k, res)
+        return best
+
+    def relocalise(self, frame: RGBDFrame) -> tuple[np.ndarray, int] | None:
+        """Pose of ``frame`` found by retrieval over all keyframes + PnP verification.
+
+        Returns:
+            ``(T_world_cam (4, 4), kf_id)`` of the best-verified keyframe, or ``None``. State is unchanged.
+        """
+        feats = extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+        best = self._relocalise_features(feats)
+        return None if best is None else (best[0], best[1])
+
+    def pose_guess_against_last_keyframe(self, frame: RGBDFrame,
+                                         T_world_cam_pred: np.ndarray | None = None) -> np.ndarray | None:
+        """PnP pose ``T_world_cam`` of ``frame`` against the reference keyframe (an ICP initial guess).
+
+        Args:
+            T_world_cam_pred: optional prediction used as PnP initial guess.
+
+        Returns:
+            ``(4, 4)`` or ``None`` when a rejection rule fired. State is unchanged.
+        """
+        if not self._kfs:
+            return None
+        feats = extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+        T_world_kf = self._kf_poses[self._ref_kf]
+        init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
+        res = estimate_motion(self._kfs[self._ref_kf].features, feats, self.intr, self.cfg.features, init)
+        return T_world_kf @ invert(res.T_cur_ref) if res.ok else None
+
+    # --- results -------------------------------------------------------------------------------------
+
+    def trajectory(self) -> Trajectory:
+        """Current estimate of every processed frame's pose."""
+        kf = np.asarray(self._frame_kf, dtype=np.int64)
+        T = self._kf_poses[kf] @ np.asarray(self._T_kf_cam).reshape(-1, 4, 4)
+        return Trajectory(np.asarray(self._timestamps), T)
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe clouds in the world frame, joined and voxel-filtered: ``(xyz (M, 3) f32, rgb (M, 3) u8)``."""
+        if not self._kfs:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+        n = sum(len(k.cloud_xyz_cam) for k in self._kfs)
+        xyz = np.empty((n, 3), np.float32)
+        rgb = np.empty((n, 3), np.uint8)
+        i = 0
+        for k, T in zip(self._kfs, self._kf_poses, strict=True):
+            m = len(k.cloud_xyz_cam)
+            xyz[i : i + m] = transform_points(T, k.cloud_xyz_cam.astype(np.float64))
+            rgb[i : i + m] = k.cloud_rgb
+            i += m
+        out_xyz, out_rgb, _ = voxel_filter(xyz, rgb, self.cfg.map.voxel_size_m)
+        return out_xyz, out_rgb
+
+    def finish(self) -> SparseSlamResult:
+        """Optimise the graph once more and return trajectory, keyframes, loops and the map."""
+        if self.n_keyframes > 1:
+            self._optimise()
+        xyz, rgb = self.map_points()
+        return SparseSlamResult(
+            trajectory=self.trajectory(),
+            keyframe_indices=self.keyframe_frame_indices(),
+            keyframe_poses=self.keyframe_poses(),
+            loops_found=list(self.loops_found),
+            loops_accepted=list(self.loops_accepted),
+            n_nearby_edges=self.n_nearby_edges,
+            rejected=dict(self.rejected),
+            map_xyz=xyz,
+            map_rgb=rgb,
+        )

@@ -1,0 +1,177 @@
+"""Sparse SLAM on a synthetic loop (loop closure reduces the error), relocalisation, voxel filter kernel."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from surfelslam.backend.loops import LoopConfig
+from surfelslam.backend.place_recognition import DescriptorIndex
+from surfelslam.backend.sparse_slam import SparseSlam, SparseSlamConfig
+from surfelslam.geometry.se3 import pose_error
+from surfelslam.kernels.voxel import voxel_filter, voxel_filter_ref
+from surfelslam.types import RGBDFrame
+from test_features import CFG, INTR, look_pose, render_room
+
+N_LOOP = 40  # frames per revolution (9 deg and ~8 cm per frame)
+N_EXTRA = 6  # frames past the start: the loop closes
+
+
+def _loop_poses() -> np.ndarray:
+    poses = []
+    for k in range(N_LOOP + N_EXTRA):
+        th = 2 * np.pi * k / N_LOOP
+        pos = np.array([0.5 * np.sin(th), 0.05 * np.sin(3 * th), -0.5 * np.cos(th)])
+        poses.append(look_pose(pos, th + 0.3, 0.05 * np.cos(2 * th)))
+    return np.array(poses)
+
+
+@pytest.fixture(scope="module")
+def loop_frames() -> tuple[np.ndarray, list[RGBDFrame]]:
+    rng = np.random.default_rng(0)
+    poses = _loop_poses()
+    frames = []
+    for k, T in enumerate(poses):
+        rgb, depth = render_room(T, INTR, supersample=1)
+        depth = depth * (1.0 + rng.normal(0.0, 0.01, depth.shape)).astype(np.float32)  # 1 % depth noise
+        rgb = np.clip(rgb + rng.normal(0.0, 4.0, rgb.shape), 0, 255).astype(np.uint8)
+        frames.append(RGBDFrame(k, k / 30.0, rgb, depth))
+    return poses, frames
+
+
+LOOP_CFG = SparseSlamConfig(
+    features=replace(CFG, n_features=400),
+    loop=LoopConfig(n_nearby=2, n_random=1, n_retrieved=2),
+)
+NO_LOOP_CFG = replace(LOOP_CFG, loop=LoopConfig(n_nearby=0, n_random=0, n_retrieved=0))
+
+
+def _run(cfg: SparseSlamConfig, poses: np.ndarray, frames: list[RGBDFrame]):
+    slam = SparseSlam(INTR, cfg, T_world_first=poses[0])
+    per_frame = [slam.process(f) for f in frames]
+    return slam, per_frame, slam.finish()
+
+
+def _ate_m(est: np.ndarray, gt: np.ndarray) -> float:
+    # the first pose is anchored to ground truth, so no alignment is needed
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def loop_run(loop_frames):
+    poses, frames = loop_frames
+    return _run(LOOP_CFG, poses, frames)
+
+
+def test_loop_closure_found_and_reduces_ate(loop_frames, loop_run) -> None:
+    poses, frames = loop_frames
+    slam, per_frame, res = loop_run
+    assert all(r.ok for r in per_frame) and res.rejected == {}
+    assert len(res.trajectory) == len(frames)
+    assert per_frame[0].is_keyframe and len(res.keyframe_indices) > 10
+    # the revisit of the start is recognised: edges from the last frames back to the first keyframes
+    far = [(i, j, n) for i, j, n in res.loops_accepted if j - i > N_LOOP // 2]
+    assert len(far) >= 3 and min(i for i, _, _ in far) <= 2
+    assert all(n >= LOOP_CFG.loop.min_loop_inliers for _, _, n in res.loops_accepted)
+    assert len(res.loops_accepted) <= len(res.loops_found)
+    _, _, res_no = _run(NO_LOOP_CFG, poses, frames)
+    assert res_no.loops_accepted == []
+    ate_loop = _ate_m(res.trajectory.T_world_cam, poses)
+    ate_no = _ate_m(res_no.trajectory.T_world_cam, poses)
+    assert ate_loop < 0.6 * ate_no
+    assert ate_loop < 0.05
+    # keyframe poses exposed for re-posing a dense map
+    np.testing.assert_allclose(slam.keyframe_poses(), res.keyframe_poses)
+    kf_frames = res.keyframe_indices
+    np.testing.assert_allclose(res.trajectory.T_world_cam[kf_frames], res.keyframe_poses, atol=1e-9)
+    # the map: voxel-filtered keyframe clouds inside the room
+    assert len(res.map_xyz) > 10000 and res.map_rgb.shape == res.map_xyz.shape
+    assert np.all(np.abs(res.map_xyz) < np.array([2.2, 1.4, 2.7]))
+
+
+def test_deterministic(loop_frames, loop_run) -> None:
+    poses, frames = loop_frames
+    _, _, a = loop_run
+    _, _, b = _run(LOOP_CFG, poses, frames)
+    np.testing.assert_array_equal(a.trajectory.T_world_cam, b.trajectory.T_world_cam)
+    assert a.loops_accepted == b.loops_accepted
+    np.testing.assert_array_equal(a.map_xyz, b.map_xyz)
+
+
+def test_relocalise_and_pose_guess(loop_frames, loop_run) -> None:
+    poses, frames = loop_frames
+    slam, _, _ = loop_run
+    k = N_LOOP // 4  # a frame a quarter of the way round
+    found = slam.relocalise(frames[k])
+    assert found is not None
+    T, kf = found
+    dt, dr = pose_error(T, poses[k])
+    assert dt < 0.05 and dr < 3.0
+    # textureless frame: nothing to relocalise against
+    flat = RGBDFrame(0, 0.0, np.full_like(frames[0].rgb, 90), frames[0].depth_m)
+    assert slam.relocalise(flat) is None
+    # the last frame against the last keyframe
+    g = slam.pose_guess_against_last_keyframe(frames[-1])
+    assert g is not None
+    assert pose_error(g, poses[-1])[0] < 0.05
+
+
+def test_rejected_frames_counted_and_predicted(loop_frames) -> None:
+    poses, frames = loop_frames
+    cfg = replace(NO_LOOP_CFG, relocalise_after_failures=100)
+    slam = SparseSlam(INTR, cfg, T_world_first=poses[0])
+    for f in frames[:3]:
+        assert slam.process(f).ok
+    flat = RGBDFrame(3, 0.1, np.full_like(frames[0].rgb, 90), frames[3].depth_m)
+    r = slam.process(flat)
+    assert not r.ok and r.reason == "too_few_matches" and not r.is_keyframe
+    # constant velocity: the rejected frame continues the last motion
+    traj = slam.trajectory().T_world_cam
+    expected = traj[2] @ np.linalg.inv(traj[1]) @ traj[2]
+    np.testing.assert_allclose(r.T_world_cam, expected, atol=1e-9)
+    assert slam.finish().rejected == {"too_few_matches": 1}
+
+
+def test_descriptor_index_votes_and_prefix() -> None:
+    rng = np.random.default_rng(0)
+    kf_desc = [rng.integers(0, 256, (100, 32), dtype=np.uint8) for _ in range(5)]
+    idx = DescriptorIndex()
+    for d in kf_desc:
+        idx.add(d)
+    # a query made of keyframe 3's descriptors with a few flipped bits
+    q = kf_desc[3].copy()
+    q[:, 0] ^= 0b101
+    res = idx.query(q, 2)
+    assert res[0][0] == 3 and res[0][1] >= 90
+    assert all(k != 3 for k, _ in idx.query(q, 2, before_kf=3))  # keyframe 3 excluded by the prefix
+
+
+# --- voxel filter kernel -----------------------------------------------------------------------
+
+
+def test_voxel_filter_matches_reference() -> None:
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(-1.0, 1.0, (20000, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (20000, 3), dtype=np.uint8)
+    a = voxel_filter(xyz, rgb, 0.05)
+    b = voxel_filter_ref(xyz, rgb, 0.05)
+    np.testing.assert_allclose(a[0], b[0], atol=1e-6)
+    np.testing.assert_array_equal(a[1], b[1])
+    np.testing.assert_array_equal(a[2], b[2])
+    n_vox = len(np.unique(np.floor(xyz.astype(np.float64) / 0.05).astype(np.int64), axis=0))
+    assert a[2].sum() == 20000 and len(a[0]) == n_vox
+
+
+def test_voxel_filter_known_values() -> None:
+    xyz = np.array([[0.01, 0.01, 0.01], [0.03, 0.01, 0.01], [0.5, 0.5, 0.5]], np.float32)
+    rgb = np.array([[10, 20, 30], [20, 40, 61], [1, 2, 3]], np.uint8)
+    out, col, cnt = voxel_filter(xyz, rgb, 0.1)
+    np.testing.assert_allclose(out, [[0.02, 0.01, 0.01], [0.5, 0.5, 0.5]], atol=1e-7)
+    np.testing.assert_array_equal(col, [[15, 30, 46], [1, 2, 3]])
+    np.testing.assert_array_equal(cnt, [2, 1])
+    e = voxel_filter(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), 0.1)
+    assert e[0].shape == (0, 3)
+    with pytest.raises(ValueError):
+        voxel_filter(xyz, rgb, 0.0)
