@@ -1,0 +1,104 @@
+"""Sparse odometry timings (ms per call, median after warm-up): ORB extract, match, PnP-RANSAC.
+
+Frames: consecutive 7-Scenes redkitchen pairs (i, i+5) from ../shared/data when present, otherwise a
+synthetic textured plane (random grey blocks, 2 m away, shifted 3 cm between the two frames). Run at
+640x480 and 320x240 (``downsample`` 2). Default FeatureConfig (1000 features at 640x480; 500 at 320x240).
+
+Usage: ``.venv/bin/python benchmarks/bench_orb.py [--quick]``; ``run(quick)`` returns the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.tracking.features import FeatureConfig, estimate_motion, extract, match
+from surfelslam.types import Intrinsics, RGBDFrame
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
+
+
+def _synthetic_pairs(intr: Intrinsics, n: int) -> list[tuple[RGBDFrame, RGBDFrame]]:
+    rng = np.random.default_rng(0)
+    tex = rng.integers(0, 256, (64, 64), dtype=np.uint8)
+    v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float64)
+    depth = np.full(intr.shape, 2.0, np.float32)
+    out = []
+    for k in range(n):
+        frames = []
+        for shift_m in (0.0, 0.03):
+            x = (u - intr.cx) / intr.fx * 2.0 + shift_m + 0.01 * k
+            y = (v - intr.cy) / intr.fy * 2.0
+            g = tex[np.floor(y / 0.04).astype(int) % 64, np.floor(x / 0.04).astype(int) % 64]
+            frames.append(RGBDFrame(k, 0.0, np.repeat(g[..., None], 3, axis=2), depth))
+        out.append((frames[0], frames[1]))
+    return out
+
+
+def _pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[RGBDFrame, RGBDFrame]], str]:
+    full = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
+    if SHARED.is_dir():
+        from surfelslam.datasets import open_sequence
+        from surfelslam.datasets.base import DatasetOptions
+
+        seq = open_sequence(SHARED, DatasetOptions(downsample=downsample))
+        idx = np.linspace(0, len(seq) - 6, n).astype(int)
+        return seq.intrinsics, [(seq[i], seq[i + 5]) for i in idx], "7scenes"
+    intr = full.scaled(downsample)
+    return intr, _synthetic_pairs(intr, n), "synthetic"
+
+
+def _median_ms(fn, reps: int) -> float:
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(times))
+
+
+def _time_pairs(pairs, intr: Intrinsics, cfg: FeatureConfig):
+    ext, mat, pnp, inl = [], [], [], []
+    for a, b in pairs:
+        fa = extract(a.rgb, a.depth_m, intr, cfg)
+        fb = extract(b.rgb, b.depth_m, intr, cfg)
+        ext.append(_median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), 3))
+        mat.append(_median_ms(lambda fa=fa, fb=fb: match(fa, fb, cfg), 3))
+        # PnP alone: estimate_motion minus its matching
+        tot = _median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), 3)
+        pnp.append(max(tot - mat[-1], 0.0))
+        inl.append(estimate_motion(fa, fb, intr, cfg).n_inliers)
+    return ext, mat, pnp, inl
+
+
+def run(quick: bool = False) -> list[dict]:
+    rows = []
+    n_pairs = 3 if quick else 10
+    for downsample, n_feat in ((1, 1000), (2, 500)):
+        intr, pairs, source = _pairs(downsample, n_pairs)
+        cfg = replace(FeatureConfig(), n_features=n_feat)
+        ext, mat, pnp, inl = _time_pairs(pairs, intr, cfg)
+        rows.append({
+            "resolution": f"{intr.width}x{intr.height}", "source": source, "n_features": n_feat,
+            "extract_ms": float(np.median(ext)), "match_ms": float(np.median(mat)),
+            "pnp_ms": float(np.median(pnp)), "median_inliers": float(np.median(inl)),
+        })
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    rows = run(ap.parse_args().quick)
+    cols = list(rows[0])
+    print(" | ".join(cols))
+    for r in rows:
+        print(" | ".join(f"{r[c]:.1f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+
+
+if __name__ == "__main__":
+    main()
