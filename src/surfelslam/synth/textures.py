@@ -1,0 +1,158 @@
+"""Procedural textures for the synthetic scenes (deterministic from a seed).
+
+Every texture is a square ``(S, S, 3)`` uint8 RGB image that tiles a surface at ``texel_m`` metres per
+texel. Patterns combine a coarse structure (checker, stripes/planks, blobs, rectangles) with value noise
+at several scales and high-contrast small marks, so ORB finds corners at every pyramid level.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+TEXTURE_KINDS = ("wallpaper", "wood", "plaster", "checker", "blobs", "fabric", "books", "metal", "poster")
+
+
+@dataclass(frozen=True)
+class TextureConfig:
+    size_px: int = 1024  # texture side S (texels)
+    texel_m: float = 0.004  # metres per texel: 1024 texels cover 4.1 m before repeating
+
+
+def value_noise(rng: np.random.Generator, size_px: int, cell_px: int) -> np.ndarray:
+    """``(S, S)`` float32 smooth noise in [0, 1]: a random grid of ``S / cell_px`` cells, bicubic upsampled."""
+    n = max(2, size_px // cell_px + 1)
+    grid = rng.random((n, n), dtype=np.float32)
+    up = cv2.resize(grid, (size_px, size_px), interpolation=cv2.INTER_CUBIC)
+    return np.clip(up, 0.0, 1.0)
+
+
+def fractal_noise(rng: np.random.Generator, size_px: int, cells_px: tuple[int, ...]) -> np.ndarray:
+    """Sum of value-noise octaves (one per cell size, amplitude proportional to cell size), in [0, 1]."""
+    acc = np.zeros((size_px, size_px), np.float32)
+    total = 0.0
+    for c in cells_px:
+        w = float(c) ** 0.5
+        acc += w * value_noise(rng, size_px, c)
+        total += w
+    acc /= total
+    # stretch to about +-2.3 standard deviations (cheaper than percentiles, same effect)
+    mean = float(acc.mean())
+    std = max(float(acc.std()), 1e-6)
+    return np.clip((acc - mean) / (4.6 * std) + 0.5, 0.0, 1.0)
+
+
+def _mix(c0, c1, t: np.ndarray) -> np.ndarray:
+    c0 = np.asarray(c0, np.float32)
+    c1 = np.asarray(c1, np.float32)
+    return c0 + (c1 - c0) * t[..., None]
+
+
+def _speckle(rng: np.random.Generator, img: np.ndarray, n: int, radius_px: tuple[int, int], palette) -> None:
+    """Draw ``n`` small filled discs of palette colours (high-contrast corners for ORB), in place."""
+    s = img.shape[0]
+    xs = rng.integers(0, s, n)
+    ys = rng.integers(0, s, n)
+    rs = rng.integers(radius_px[0], radius_px[1] + 1, n)
+    cs = rng.integers(0, len(palette), n)
+    for x, y, r, c in zip(xs, ys, rs, cs, strict=True):
+        cv2.circle(img, (int(x), int(y)), int(r), tuple(float(v) for v in palette[c]), -1, cv2.LINE_8)
+
+
+def _rects(rng: np.random.Generator, img: np.ndarray, n: int, size_px: tuple[int, int], palette) -> None:
+    s = img.shape[0]
+    for _ in range(n):
+        x, y = (int(v) for v in rng.integers(0, s, 2))
+        w, h = (int(v) for v in rng.integers(size_px[0], size_px[1] + 1, 2))
+        c = palette[int(rng.integers(0, len(palette)))]
+        cv2.rectangle(img, (x, y), (x + w, y + h), tuple(float(v) for v in c), -1, cv2.LINE_8)
+
+
+def make_texture(kind: str, rng: np.random.Generator, size_px: int) -> np.ndarray:
+    """One texture ``(S, S, 3)`` uint8 RGB of the given kind (see :data:`TEXTURE_KINDS`)."""
+    s = size_px
+    base = rng.random(3).astype(np.float32) * 60.0  # per-texture tint so each scene looks different
+    detail = fractal_noise(rng, s, (4, 16, 64))
+    if kind == "wallpaper":
+        t = fractal_noise(rng, s, (8, 32, 128, 256))
+        img = _mix((200, 180, 150), (110, 80, 60), t) + base * 0.5
+        v = np.arange(s, dtype=np.float32)
+        stripes = (np.sin(v * 2 * np.pi / 48.0) > 0.6).astype(np.float32)[None, :]
+        img *= (1.0 - 0.35 * stripes)[..., None]
+        _speckle(rng, img, 900, (2, 9), [(40, 30, 30), (240, 230, 210), (150, 40, 40), (30, 60, 120)])
+    elif kind == "plaster":
+        t = fractal_noise(rng, s, (4, 16, 64, 256))
+        img = _mix((225, 225, 215), (120, 125, 130), t)
+        _speckle(rng, img, 700, (2, 7), [(60, 60, 70), (250, 250, 245), (90, 110, 80)])
+    elif kind == "wood":
+        grain = fractal_noise(rng, s, (4, 32))
+        plank_px = int(rng.integers(40, 70))
+        u = np.arange(s)[None, :] % plank_px
+        seam = (u < 2).astype(np.float32)
+        plank_id = np.arange(s)[None, :] // plank_px
+        plank_tone = (np.sin(plank_id * 12.9898) * 43758.5453) % 1.0
+        v = np.arange(s, dtype=np.float32)[:, None]
+        rings = 0.5 + 0.5 * np.sin(v / 6.0 + 8.0 * grain)
+        t = np.clip(0.45 * rings + 0.35 * plank_tone + 0.2 * grain, 0, 1)
+        img = _mix((190, 140, 90), (90, 55, 30), t) + base * 0.3
+        img *= (1.0 - 0.7 * seam)[..., None]
+        _speckle(rng, img, 400, (1, 4), [(40, 25, 10), (220, 180, 130)])
+    elif kind == "checker":
+        cell = int(rng.integers(24, 48))
+        yy, xx = np.mgrid[0:s, 0:s]
+        chk = ((xx // cell + yy // cell) % 2).astype(np.float32)
+        img = _mix((235, 230, 220), (35, 40, 60), chk) + base * 0.4
+        _speckle(rng, img, 500, (2, 8), [(200, 40, 30), (30, 150, 60), (240, 200, 40)])
+    elif kind == "blobs":
+        img = _mix((210, 200, 190), (150, 140, 130), fractal_noise(rng, s, (32, 128)))
+        palette = [(200, 50, 40), (40, 90, 180), (240, 190, 30), (30, 30, 30), (250, 250, 250), (40, 150, 80)]
+        _speckle(rng, img, 40, (30, 70), palette)
+        _speckle(rng, img, 300, (8, 20), palette)
+        _speckle(rng, img, 2000, (2, 6), palette)
+    elif kind == "fabric":
+        t = fractal_noise(rng, s, (4, 8, 64))
+        yy, xx = np.mgrid[0:s, 0:s]
+        weave = (((xx // 6) + (yy // 6)) % 2).astype(np.float32)
+        img = _mix((60, 90, 140), (150, 170, 200), 0.6 * t + 0.4 * weave) + base * 0.5
+        _speckle(rng, img, 600, (2, 6), [(230, 220, 200), (20, 20, 40), (180, 60, 60)])
+    elif kind == "books":
+        img = np.full((s, s, 3), 50.0, np.float32)
+        palette = [(160, 30, 30), (30, 60, 140), (220, 200, 60), (30, 110, 60), (230, 230, 220), (90, 50, 30)]
+        x = 0
+        while x < s:
+            w = int(rng.integers(8, 28))
+            c = np.asarray(palette[int(rng.integers(0, len(palette)))], np.float32)
+            img[:, x : x + w] = c
+            img[:, x + w - 1 : x + w] = 15.0
+            x += w
+        _rects(rng, img, 500, (3, 10), [(250, 250, 240), (10, 10, 10), (200, 170, 60)])
+    elif kind == "metal":
+        t = fractal_noise(rng, s, (2, 8, 128))
+        img = _mix((90, 95, 100), (200, 205, 210), t)
+        _rects(rng, img, 200, (4, 16), [(40, 40, 45), (230, 230, 235)])
+    elif kind == "poster":
+        img = _mix((240, 240, 235), (200, 190, 180), fractal_noise(rng, s, (64,)))
+        palette = [(200, 30, 30), (20, 40, 120), (20, 20, 20), (240, 180, 0), (0, 130, 120)]
+        _rects(rng, img, 150, (10, 80), palette)
+        _speckle(rng, img, 400, (3, 12), palette)
+    else:
+        raise ValueError(f"unknown texture kind {kind!r}; known: {TEXTURE_KINDS}")
+    img = img * (0.8 + 0.4 * detail[..., None])  # fine-scale detail everywhere
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=4)
+def make_texture_bank(kinds: tuple[str, ...], seed: int, cfg: TextureConfig = TextureConfig()) -> np.ndarray:
+    """Textures ``(T, S, S, 3)`` uint8 RGB, one per kind, deterministic from ``seed``.
+
+    Cached (a few banks): the result is read-only and shared between scenes built with the same seed.
+    """
+    out = np.empty((len(kinds), cfg.size_px, cfg.size_px, 3), np.uint8)
+    for i, kind in enumerate(kinds):
+        rng = np.random.default_rng([seed, i, 7919])
+        out[i] = make_texture(kind, rng, cfg.size_px)
+    out.setflags(write=False)
+    return out

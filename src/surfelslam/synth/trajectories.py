@@ -1,0 +1,167 @@
+"""Camera trajectories with exact poses for the synthetic scenes.
+
+Every style is a look-at rig: an eye position and a look-at target, both smooth functions of a progress
+angle ``theta`` (radians), plus a small roll. Poses are ``T_world_cam`` (camera x right, y down, z forward;
+world z up). Styles:
+
+* ``slow``: a smooth orbit-with-wobble across the room centre, ``theta`` advancing a fixed step per frame
+  (about 1-1.5 cm and 0.5 deg per frame at 30 Hz), looking across the room at furniture;
+* ``fast``: the ``slow`` curve at 3x speed (3x the step per frame, same path);
+* ``handheld``: the ``slow`` curve plus band-limited jitter (a few mm and a few tenths of a degree);
+* ``loop``: one walking lap round the room (``n_frames`` per lap), looking outward-and-ahead at the walls;
+  the last frame is one step before the start, so the loop closes.
+
+For a ``"wall"`` scene (``plane``) the camera keeps facing the wall and sways / circles in front of it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from surfelslam.errors import ConfigError
+from surfelslam.geometry.se3 import exp as se3_exp
+from surfelslam.synth.scenes import Scene
+from surfelslam.types import Trajectory
+
+STYLES = ["slow", "fast", "handheld", "loop"]
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    slow_step_deg: float = 0.5  # heading advance per frame of "slow" (the progress angle)
+    fast_factor: float = 3.0  # "fast" = "slow" curve at this many times the step
+    wobble_m: float = 0.3  # horizontal eye wobble amplitude around the orbit
+    bob_m: float = 0.1  # vertical eye bob amplitude
+    target_sway_rad: float = 0.25  # look direction sway around the heading
+    target_bob_m: float = 0.3  # look-at height sway
+    roll_deg: float = 3.0  # roll amplitude
+    loop_look_ahead_deg: float = 35.0  # "loop": heading = outward direction + this (towards the walk direction)
+    loop_look_distance_m: float = 1.8
+    jitter_trans_m: float = 0.003  # "handheld": std of the translation jitter per axis
+    jitter_rot_deg: float = 0.3  # "handheld": std of the rotation jitter per axis
+    jitter_smooth_s: float = 0.12  # "handheld": Gaussian smoothing of the white jitter (band limit)
+    wall_sway_m: float = 0.35  # "wall" scenes: lateral sway amplitude
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, roll_rad: np.ndarray | float = 0.0) -> np.ndarray:
+    """Poses ``(N, 4, 4)`` of cameras at ``eye (N, 3)`` looking at ``target (N, 3)``, world z up, rolled."""
+    eye = np.atleast_2d(np.asarray(eye, np.float64))
+    target = np.atleast_2d(np.asarray(target, np.float64))
+    z = target - eye
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    roll = np.broadcast_to(np.asarray(roll_rad, np.float64), (len(eye),))
+    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
+    xr = c * x + s * y
+    yr = -s * x + c * y
+    T = np.zeros((len(eye), 4, 4))
+    T[:, :3, 0] = xr
+    T[:, :3, 1] = yr
+    T[:, :3, 2] = z
+    T[:, :3, 3] = eye
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _orbit_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig):
+    v = scene.view
+    c = np.asarray(v.centre)
+    if v.kind == "wall":
+        f = np.asarray(v.facing, np.float64)
+        lat = np.cross(f, [0.0, 0.0, 1.0])
+        up = np.array([0.0, 0.0, 1.0])
+        sway = cfg.wall_sway_m * np.sin(4.0 * theta + ph[0])
+        eye = (c + sway[:, None] * lat + (cfg.bob_m * np.sin(5.2 * theta + ph[1]))[:, None] * up
+               + (v.orbit_radius_m * np.sin(2.8 * theta + ph[2]))[:, None] * f)
+        target = c + v.look_distance_m * f + (0.5 * sway)[:, None] * lat
+        target[:, 2] = v.look_height_m + 0.3 * np.sin(3.6 * theta + ph[3])
+        return eye, target
+    eye = np.column_stack([
+        c[0] - v.orbit_radius_m * np.cos(theta) + cfg.wobble_m * np.sin(2.1 * theta + ph[0]),
+        c[1] - v.orbit_radius_m * np.sin(theta) + cfg.wobble_m * np.sin(1.6 * theta + ph[1]),
+        v.eye_height_m + cfg.bob_m * np.sin(2.7 * theta + ph[2]),
+    ])
+    psi = theta + cfg.target_sway_rad * np.sin(1.3 * theta + ph[3])
+    target = np.column_stack([
+        c[0] + v.look_distance_m * np.cos(psi),
+        c[1] + v.look_distance_m * np.sin(psi),
+        v.look_height_m + cfg.target_bob_m * np.sin(1.9 * theta + ph[4]),
+    ])
+    return eye, target
+
+
+def _loop_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig):
+    v = scene.view
+    c = np.asarray(v.centre)
+    ax, ay = v.loop_radii_m
+    if v.kind == "wall":
+        f = np.asarray(v.facing, np.float64)
+        lat = np.cross(f, [0.0, 0.0, 1.0])
+        up = np.array([0.0, 0.0, 1.0])
+        eye = c + (ax * np.cos(theta))[:, None] * lat + (ay * np.sin(theta))[:, None] * up
+        target = np.tile(c + v.look_distance_m * f, (len(theta), 1))
+        return eye, target
+    eye = np.column_stack([
+        c[0] + ax * np.cos(theta),
+        c[1] + ay * np.sin(theta),
+        v.eye_height_m + cfg.bob_m * np.sin(2.0 * theta + ph[2]),
+    ])
+    psi = theta + np.radians(cfg.loop_look_ahead_deg) + 0.5 * cfg.target_sway_rad * np.sin(2.0 * theta + ph[3])
+    target = np.column_stack([
+        eye[:, 0] + cfg.loop_look_distance_m * np.cos(psi),
+        eye[:, 1] + cfg.loop_look_distance_m * np.sin(psi),
+        v.look_height_m + cfg.target_bob_m * np.sin(3.0 * theta + ph[4]),
+    ])
+    return eye, target
+
+
+def _jitter(rng: np.random.Generator, n: int, fps: float, cfg: TrajectoryConfig) -> np.ndarray:
+    """``(n, 6)`` band-limited twists (rad, m): white noise smoothed by a Gaussian, scaled to the std."""
+    sigma_frames = max(cfg.jitter_smooth_s * fps, 1e-6)
+    white = rng.standard_normal((n, 6))
+    smooth = gaussian_filter1d(white, sigma_frames, axis=0, mode="reflect")
+    # std of unit white noise after a unit-sum Gaussian filter of std sigma: 1 / sqrt(2 sqrt(pi) sigma)
+    gain = np.sqrt(2.0 * np.sqrt(np.pi) * sigma_frames) if sigma_frames >= 1.0 else 1.0
+    scale = np.array([np.radians(cfg.jitter_rot_deg)] * 3 + [cfg.jitter_trans_m] * 3)
+    return smooth * gain * scale
+
+
+def make_trajectory(
+    style: str, n_frames: int, scene: Scene, fps: float = 30.0, seed: int = 0,
+    cfg: TrajectoryConfig = TrajectoryConfig(),
+) -> Trajectory:
+    """Trajectory of ``n_frames`` poses at ``fps`` in ``scene``; deterministic from ``seed``.
+
+    Timestamps are ``index / fps``. Unknown ``style`` -> ConfigError listing :data:`STYLES`.
+    """
+    if style not in STYLES:
+        raise ConfigError(f"unknown trajectory style {style!r}; known styles: {', '.join(STYLES)}")
+    if n_frames < 1:
+        raise ConfigError(f"number of frames must be >= 1, got {n_frames}")
+    if fps <= 0:
+        raise ConfigError(f"fps must be positive, got {fps}")
+    rng = np.random.default_rng([seed, 15485863])
+    ph = rng.uniform(0.0, 2.0 * np.pi, 8)
+    k = np.arange(n_frames, dtype=np.float64)
+    theta0 = ph[7]
+    roll_phase = ph[6]
+    if style == "loop":
+        theta = theta0 + 2.0 * np.pi * k / n_frames
+        eye, target = _loop_rig(scene, theta, ph, cfg)
+        roll = np.radians(cfg.roll_deg) * 0.5 * np.sin(2.0 * theta + roll_phase)
+    else:
+        step = np.radians(cfg.slow_step_deg) * (cfg.fast_factor if style == "fast" else 1.0)
+        theta = theta0 + step * k
+        eye, target = _orbit_rig(scene, theta, ph, cfg)
+        roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
+    T = look_at(eye, target, roll)
+    if style == "handheld":
+        xi = _jitter(rng, n_frames, fps, cfg)
+        for i in range(n_frames):  # per pose (not per pixel): a 4x4 product each
+            T[i] = T[i] @ se3_exp(xi[i])
+    return Trajectory(k / fps, T)
