@@ -95,6 +95,8 @@ def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from
     H, W = depth_buf.shape
     afx = abs(fx)
     afy = abs(fy)
+    ifx = 1.0 / fx
+    ify = 1.0 / fy
     for k in range(m):
         i = cand[k]
         if conf[i] < min_conf and first_seen[i] < young_from_frame:
@@ -129,9 +131,9 @@ def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from
         v1 = min(v1, H - 1)
         r2 = float(r) * float(r)
         for pv in range(v0, v1 + 1):
-            dy = (pv - cy) / fy
+            dy = (pv - cy) * ify
             for pu in range(u0, u1 + 1):
-                dx = (pu - cx) / fx
+                dx = (pu - cx) * ifx
                 centre = pu == ui and pv == vi
                 nd = nx * dx + ny * dy + nz
                 depth = pz
@@ -195,8 +197,8 @@ def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_
     pv = vi[:, None] + ov.reshape(1, -1)
     inbox = (pu >= u0[:, None]) & (pu <= u1[:, None]) & (pv >= v0[:, None]) & (pv <= v1[:, None])
     inbox &= (pu >= 0) & (pu < W) & (pv >= 0) & (pv < H)
-    dx = (pu - cx) / fx
-    dy = (pv - cy) / fy
+    dx = (pu - cx) * (1.0 / fx)
+    dy = (pv - cy) * (1.0 / fy)
     nd = nx[:, None] * dx + ny[:, None] * dy + nz[:, None]
     good = np.abs(nd) >= _GRAZING_COS
     d = np.where(good, npd[:, None] / np.where(good, nd, 1.0), 0.0)
@@ -252,8 +254,8 @@ def fill_view(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy, vertex_ou
             vertex_out[v, u, 2] = d
             for c in range(3):
                 normal_out[v, u, c] = R[c, 0] * nrm[i, 0] + R[c, 1] * nrm[i, 1] + R[c, 2] * nrm[i, 2]
-                x = math.floor(col[i, c] + 0.5)
-                colour_out[v, u, c] = np.uint8(min(max(x, 0.0), 255.0))
+                x = int(col[i, c] + 0.5)  # colours are averages of uint8 values: within [0, 255]
+                colour_out[v, u, c] = np.uint8(x if x < 255 else 255)
             conf_out[v, u] = conf[i]
 
 
@@ -268,7 +270,7 @@ def fill_view_ref(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy):
     n = nrm[i].astype(np.float64)
     normal = np.einsum("ij,hwj->hwi", R, n).astype(np.float32)
     normal[~valid] = 0
-    colour = np.clip(np.floor(col[i] + 0.5), 0, 255).astype(np.uint8)
+    colour = np.minimum((col[i] + 0.5).astype(np.int64), 255).astype(np.uint8)
     colour[~valid] = 0
     confidence = np.where(valid, conf[i], 0).astype(np.float32)
     return vertex, normal, colour, confidence

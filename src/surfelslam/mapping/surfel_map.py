@@ -194,7 +194,7 @@ class SurfelMap:
         rows = slice(s0, s0 + n)
         self._position[rows] = position
         self._normal[rows] = np.asarray(normal, np.float32).reshape(-1, 3)
-        self._colour[rows] = np.asarray(colour, np.float32).reshape(-1, 3)
+        self._colour[rows] = np.clip(np.asarray(colour, np.float32).reshape(-1, 3), 0, 255)
         self._confidence[rows] = confidence
         self._radius[rows] = radius
         self._first_seen[rows] = frame_index
