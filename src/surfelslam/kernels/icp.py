@@ -1,0 +1,346 @@
+"""Projective data association and point-to-plane normal equations (numba), with numpy references.
+
+For every valid source pixel ``p`` (camera frame of the source) with normal ``n_p``:
+
+    p' = R p + t                      (current estimate of T_target_source)
+    (u, v) = nearest pixel of p' in the target image
+    q, n_q = target vertex / normal at (u, v)
+
+The pair is an inlier when ``(u, v)`` is inside the image, ``q_z > 0``, ``n_q != 0``,
+``|p' - q| < dist_thresh_m`` and ``(R n_p) . n_q >= cos(angle_thresh)``. Each inlier contributes
+
+    A_i = n_q^T [-[p']x  I] = [ (p' x n_q)^T , n_q^T ]        (1 x 6, twist xi = (omega, t))
+    b_i = n_q^T (p' - q)                                        (signed point-to-plane residual, m)
+
+with robust weight ``w_i = rho'(b_i) / b_i`` to ``A^T W A`` and ``A^T W b``; the Gauss-Newton step solves
+``(A^T W A) xi = -A^T W b`` and updates ``T <- exp(xi) T``.
+
+Layout of the accumulated vector (``N_STATS`` float64 values):
+    [0:21]  upper triangle of A^T W A, row-major ((0,0), (0,1), ..., (0,5), (1,1), ..., (5,5))
+    [21:27] A^T W b
+    [27]    sum w_i b_i^2          [28] sum b_i^2 (unweighted)
+    [29]    inlier count           [30] sum of inlier source depths p_z (m)
+    [31]    number of valid source points (z > 0 and normal != 0)
+
+Determinism: source rows are split into ``N_CHUNKS`` fixed chunks (independent of the thread count);
+each chunk accumulates its own partial sums in row-major pixel order and the chunks are added in
+chunk order, so the result is bit-identical for any number of threads.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+N_CHUNKS = 8
+N_STATS = 32
+
+ROBUST_NONE = 0
+ROBUST_HUBER = 1
+ROBUST_TUKEY = 2
+ROBUST_KINDS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "tukey": ROBUST_TUKEY}
+
+
+@njit(cache=True, inline="always")
+def _robust_weight(r, kind, scale):
+    if kind == ROBUST_HUBER:
+        a = abs(r)
+        return 1.0 if a <= scale else scale / a
+    if kind == ROBUST_TUKEY:
+        x = r / scale
+        if abs(x) >= 1.0:
+            return 0.0
+        y = 1.0 - x * x
+        return y * y
+    return 1.0
+
+
+def robust_weight_ref(r: np.ndarray, kind: int, scale: float) -> np.ndarray:
+    """Numpy reference of the per-residual robust weight."""
+    r = np.asarray(r, dtype=np.float64)
+    if kind == ROBUST_HUBER:
+        a = np.abs(r)
+        return np.where(a <= scale, 1.0, scale / np.where(a > 0, a, 1.0))
+    if kind == ROBUST_TUKEY:
+        x = r / scale
+        return np.where(np.abs(x) < 1.0, (1.0 - x * x) ** 2, 0.0)
+    return np.ones_like(r)
+
+
+@njit(parallel=True, cache=True)
+def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
+                                dist_thresh_m, cos_angle_thresh, robust_kind, robust_scale_m, out):
+    """One association pass + accumulation of the weighted normal equations.
+
+    Args:
+        src_vertex, src_normal: ``(H, W, 3)`` float32 source camera frame (invalid: ``z <= 0`` / zero normal).
+        tgt_vertex, tgt_normal: ``(H', W', 3)`` float32 target camera frame.
+        T: ``(4, 4)`` float64 current ``T_target_source``.
+        fx, fy, cx, cy: target intrinsics (``fy`` may be negative).
+        dist_thresh_m: maximum ``|p' - q|``; cos_angle_thresh: minimum ``(R n_p) . n_q``.
+        robust_kind: ``ROBUST_NONE | ROBUST_HUBER | ROBUST_TUKEY``; robust_scale_m: kernel scale (m).
+        out: ``(N_STATS,)`` float64, receives the sums (layout in the module docstring).
+    """
+    H, W = src_vertex.shape[0], src_vertex.shape[1]
+    Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
+    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    d2max = dist_thresh_m * dist_thresh_m
+    partial = np.zeros((N_CHUNKS, N_STATS))
+    for c in prange(N_CHUNKS):
+        # scalar accumulators (kept in registers): s0..s20 AtA, s21..s26 Atb, then the counters
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
+        s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
+        s21 = s22 = s23 = s24 = s25 = s26 = 0.0
+        s27 = s28 = s29 = s30 = s31 = 0.0
+        row0 = (c * H) // N_CHUNKS
+        row1 = ((c + 1) * H) // N_CHUNKS
+        for v in range(row0, row1):
+            for u in range(W):
+                pz0 = np.float64(src_vertex[v, u, 2])
+                if pz0 <= 0.0:
+                    continue
+                nx0 = np.float64(src_normal[v, u, 0])
+                ny0 = np.float64(src_normal[v, u, 1])
+                nz0 = np.float64(src_normal[v, u, 2])
+                if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
+                    continue
+                s31 += 1.0
+                px0 = np.float64(src_vertex[v, u, 0])
+                py0 = np.float64(src_vertex[v, u, 1])
+                px = r00 * px0 + r01 * py0 + r02 * pz0 + t0
+                py = r10 * px0 + r11 * py0 + r12 * pz0 + t1
+                pz = r20 * px0 + r21 * py0 + r22 * pz0 + t2
+                if pz <= 0.0:
+                    continue
+                iz = 1.0 / pz
+                uf = fx * px * iz + cx + 0.5  # nearest pixel = floor(uf)
+                vf = fy * py * iz + cy + 0.5
+                if uf < 0.0 or uf >= Wt or vf < 0.0 or vf >= Ht:
+                    continue
+                ui = int(uf)
+                vi = int(vf)
+                qz = np.float64(tgt_vertex[vi, ui, 2])
+                if qz <= 0.0:
+                    continue
+                dx = px - tgt_vertex[vi, ui, 0]
+                dy = py - tgt_vertex[vi, ui, 1]
+                dz = pz - qz
+                if dx * dx + dy * dy + dz * dz >= d2max:
+                    continue
+                mx = np.float64(tgt_normal[vi, ui, 0])
+                my = np.float64(tgt_normal[vi, ui, 1])
+                mz = np.float64(tgt_normal[vi, ui, 2])
+                rnx = r00 * nx0 + r01 * ny0 + r02 * nz0
+                rny = r10 * nx0 + r11 * ny0 + r12 * nz0
+                rnz = r20 * nx0 + r21 * ny0 + r22 * nz0
+                if rnx * mx + rny * my + rnz * mz < cos_angle_thresh:
+                    continue
+                b = mx * dx + my * dy + mz * dz
+                w = _robust_weight(b, robust_kind, robust_scale_m)
+                a0 = py * mz - pz * my
+                a1 = pz * mx - px * mz
+                a2 = px * my - py * mx
+                wa0 = w * a0
+                wa1 = w * a1
+                wa2 = w * a2
+                wa3 = w * mx
+                wa4 = w * my
+                wa5 = w * mz
+                s0 += wa0 * a0
+                s1 += wa0 * a1
+                s2 += wa0 * a2
+                s3 += wa0 * mx
+                s4 += wa0 * my
+                s5 += wa0 * mz
+                s6 += wa1 * a1
+                s7 += wa1 * a2
+                s8 += wa1 * mx
+                s9 += wa1 * my
+                s10 += wa1 * mz
+                s11 += wa2 * a2
+                s12 += wa2 * mx
+                s13 += wa2 * my
+                s14 += wa2 * mz
+                s15 += wa3 * mx
+                s16 += wa3 * my
+                s17 += wa3 * mz
+                s18 += wa4 * my
+                s19 += wa4 * mz
+                s20 += wa5 * mz
+                s21 += wa0 * b
+                s22 += wa1 * b
+                s23 += wa2 * b
+                s24 += wa3 * b
+                s25 += wa4 * b
+                s26 += wa5 * b
+                s27 += w * b * b
+                s28 += b * b
+                s29 += 1.0
+                s30 += pz0
+        pc = partial[c]
+        pc[0] = s0
+        pc[1] = s1
+        pc[2] = s2
+        pc[3] = s3
+        pc[4] = s4
+        pc[5] = s5
+        pc[6] = s6
+        pc[7] = s7
+        pc[8] = s8
+        pc[9] = s9
+        pc[10] = s10
+        pc[11] = s11
+        pc[12] = s12
+        pc[13] = s13
+        pc[14] = s14
+        pc[15] = s15
+        pc[16] = s16
+        pc[17] = s17
+        pc[18] = s18
+        pc[19] = s19
+        pc[20] = s20
+        pc[21] = s21
+        pc[22] = s22
+        pc[23] = s23
+        pc[24] = s24
+        pc[25] = s25
+        pc[26] = s26
+        pc[27] = s27
+        pc[28] = s28
+        pc[29] = s29
+        pc[30] = s30
+        pc[31] = s31
+    for k in range(N_STATS):
+        s = 0.0
+        for c in range(N_CHUNKS):
+            s += partial[c, k]
+        out[k] = s
+
+
+def build_linear_system_ref(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
+                            dist_thresh_m, cos_angle_thresh, robust_kind=ROBUST_NONE, robust_scale_m=1.0):
+    """Numpy reference: the explicit system of :func:`accumulate_normal_equations`.
+
+    Returns:
+        ``(A (N, 6), b (N,), w (N,), src_z (N,), n_valid_source)`` for the N inliers, in row-major
+        source-pixel order; ``A^T diag(w) A`` and ``A^T diag(w) b`` are the normal equations.
+    """
+    P0 = src_vertex.reshape(-1, 3).astype(np.float64)
+    N0 = src_normal.reshape(-1, 3).astype(np.float64)
+    ok = (P0[:, 2] > 0) & np.any(N0 != 0, axis=1)
+    n_valid = int(ok.sum())
+    P0, N0 = P0[ok], N0[ok]
+    R, t = np.asarray(T[:3, :3], np.float64), np.asarray(T[:3, 3], np.float64)
+    P = P0 @ R.T + t
+    Nr = N0 @ R.T
+    Ht, Wt = tgt_vertex.shape[:2]
+    front = P[:, 2] > 0
+    iz = 1.0 / np.where(front, P[:, 2], 1.0)
+    uf = fx * P[:, 0] * iz + cx + 0.5  # nearest pixel = floor(uf), as in the kernel
+    vf = fy * P[:, 1] * iz + cy + 0.5
+    inside = front & (uf >= 0) & (uf < Wt) & (vf >= 0) & (vf < Ht)
+    ui = np.where(inside, np.floor(uf), 0).astype(np.int64)
+    vi = np.where(inside, np.floor(vf), 0).astype(np.int64)
+    Q = tgt_vertex[vi, ui].astype(np.float64)
+    M = tgt_normal[vi, ui].astype(np.float64)
+    D = P - Q
+    keep = inside & (Q[:, 2] > 0)
+    keep &= np.sum(D * D, axis=1) < dist_thresh_m**2
+    keep &= np.sum(Nr * M, axis=1) >= cos_angle_thresh
+    P, M, D, z = P[keep], M[keep], D[keep], P0[keep, 2]
+    A = np.concatenate([np.cross(P, M), M], axis=1)
+    b = np.sum(M * D, axis=1)
+    w = robust_weight_ref(b, robust_kind, robust_scale_m)
+    return A, b, w, z, n_valid
+
+
+def normal_equations_ref(A: np.ndarray, b: np.ndarray, w: np.ndarray | None = None):
+    """``(A^T W A (6, 6), A^T W b (6,))`` from the explicit system."""
+    if w is None:
+        w = np.ones(len(b))
+    Aw = A * w[:, None]
+    return Aw.T @ A, Aw.T @ b
+
+
+def unpack_normal_equations(stats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Accumulated vector -> ``(AtA (6, 6) symmetric, Atb (6,))``."""
+    H = np.empty((6, 6))
+    iu = np.triu_indices(6)
+    H[iu] = stats[:21]
+    H.T[iu] = stats[:21]
+    return H, stats[21:27].copy()
+
+
+@njit(cache=True)
+def gauss_newton_step(stats, T, T_out):
+    """Cholesky solve of the accumulated normal equations and the update ``T_out = exp(xi) T``.
+
+    Args:
+        stats: ``(N_STATS,)`` from :func:`accumulate_normal_equations`.
+        T: ``(4, 4)`` float64 current pose. T_out: ``(4, 4)`` float64, receives the updated pose.
+
+    Returns:
+        the twist norm ``|xi|``, or ``-1.0`` when ``A^T W A`` is not positive definite (``T_out = T``).
+    """
+    # unpack the upper triangle and factorise A^T W A = L L^T (6x6, in place)
+    L = np.zeros((6, 6))
+    k = 0
+    for i in range(6):
+        for j in range(i, 6):
+            L[j, i] = stats[k]
+            k += 1
+    for j in range(6):
+        d = L[j, j]
+        for m in range(j):
+            d -= L[j, m] * L[j, m]
+        if not d > 0.0:
+            T_out[:, :] = T
+            return -1.0
+        d = np.sqrt(d)
+        L[j, j] = d
+        for i in range(j + 1, 6):
+            s = L[i, j]
+            for m in range(j):
+                s -= L[i, m] * L[j, m]
+            L[i, j] = s / d
+    # forward (L y = -Atb) and backward (L^T xi = y) substitution
+    xi = np.empty(6)
+    for i in range(6):
+        s = -stats[21 + i]
+        for m in range(i):
+            s -= L[i, m] * xi[m]
+        xi[i] = s / L[i, i]
+    for i in range(5, -1, -1):
+        s = xi[i]
+        for m in range(i + 1, 6):
+            s -= L[m, i] * xi[m]
+        xi[i] = s / L[i, i]
+    se3_exp_left_update(xi, T, T_out)
+    return np.sqrt(np.sum(xi * xi))
+
+
+@njit(cache=True)
+def se3_exp_left_update(xi, T, T_out):
+    """``T_out = exp(xi) @ T`` for a twist ``xi = (omega, v)`` (closed-form SE(3) exponential)."""
+    wx, wy, wz = xi[0], xi[1], xi[2]
+    th2 = wx * wx + wy * wy + wz * wz
+    th = np.sqrt(th2)
+    if th < 1e-8:
+        a = 1.0 - th2 / 6.0
+        b = 0.5 - th2 / 24.0
+        c = 1.0 / 6.0 - th2 / 120.0
+    else:
+        a = np.sin(th) / th
+        b = (1.0 - np.cos(th)) / th2
+        c = (th - np.sin(th)) / (th2 * th)
+    W = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    W2 = W @ W
+    R = np.eye(3) + a * W + b * W2
+    V = np.eye(3) + b * W + c * W2
+    t = V @ xi[3:]
+    E = np.eye(4)
+    E[:3, :3] = R
+    E[:3, 3] = t
+    T_out[:, :] = E @ T

@@ -1,0 +1,328 @@
+"""Numba kernels for depth preprocessing: bilateral filter, back-projection, normals, pyramid.
+
+Every kernel writes into a caller-provided output array (no allocation in the hot path) and has a
+plain-numpy reference ``<kernel>_ref`` beside it that returns a new array with identical values
+(up to float rounding). The kernels parallelise over image rows with ``prange``; each output pixel
+depends only on the input, so the result does not depend on the thread count.
+
+Conventions: images ``[v, u]``; vertex / normal maps are ``(H, W, 3)`` float32 in the camera frame;
+an invalid pixel has depth 0, vertex ``(0, 0, 0)`` and normal ``(0, 0, 0)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# ----------------------------------------------------------------------------------------------
+# Bilateral filter
+# ----------------------------------------------------------------------------------------------
+
+
+def bilateral_tables(radius_px: int, sigma_px: float, sigma_depth_m: float, lut_size: int = 256):
+    """Spatial weights ``(2r+1, 2r+1)`` and a range-weight lookup table.
+
+    The range weight ``exp(-d^2 / (2 sigma_depth^2))`` is tabulated for ``|d|`` in
+    ``[0, 3 sigma_depth)`` in ``lut_size`` steps; depth differences beyond ``3 sigma_depth`` get weight 0.
+
+    Returns:
+        ``(spatial (2r+1, 2r+1) float64, range_lut (lut_size,) float64, lut_step_m float)``.
+    """
+    d = np.arange(-radius_px, radius_px + 1, dtype=np.float64)
+    spatial = np.exp(-(d[:, None] ** 2 + d[None, :] ** 2) / (2.0 * sigma_px**2))
+    step = 3.0 * sigma_depth_m / lut_size
+    centres = (np.arange(lut_size) + 0.5) * step
+    lut = np.exp(-(centres**2) / (2.0 * sigma_depth_m**2))
+    return spatial, lut, step
+
+
+@njit(parallel=True, cache=True)
+def bilateral_filter(depth_m, min_depth_m, max_depth_m, spatial, range_lut, lut_step_m, out):
+    """Edge-preserving depth smoothing that ignores invalid pixels.
+
+    Args:
+        depth_m: ``(H, W)`` float32 metres; pixels outside ``[min_depth_m, max_depth_m]`` are invalid.
+        spatial: ``(2r+1, 2r+1)`` spatial weights; range_lut / lut_step_m: see :func:`bilateral_tables`.
+        out: ``(H, W)`` float32, receives the filtered depth; invalid pixels (of the input) stay 0.
+    """
+    H, W = depth_m.shape
+    r = spatial.shape[0] // 2
+    nlut = range_lut.shape[0]
+    for v in prange(H):
+        for u in range(W):
+            z0 = np.float64(depth_m[v, u])
+            if not (z0 >= min_depth_m and z0 <= max_depth_m):
+                out[v, u] = 0.0
+                continue
+            sw = 0.0
+            sz = 0.0
+            for dv in range(-r, r + 1):
+                vv = v + dv
+                if vv < 0 or vv >= H:
+                    continue
+                for du in range(-r, r + 1):
+                    uu = u + du
+                    if uu < 0 or uu >= W:
+                        continue
+                    z = np.float64(depth_m[vv, uu])
+                    if not (z >= min_depth_m and z <= max_depth_m):
+                        continue
+                    k = int(abs(z - z0) / lut_step_m)
+                    if k >= nlut:
+                        continue
+                    w = spatial[dv + r, du + r] * range_lut[k]
+                    sw += w
+                    sz += w * z
+            out[v, u] = sz / sw
+
+
+def bilateral_filter_ref(depth_m, min_depth_m, max_depth_m, spatial, range_lut, lut_step_m):
+    """Numpy reference of :func:`bilateral_filter`; returns a new ``(H, W)`` float32 array."""
+    H, W = depth_m.shape
+    r = spatial.shape[0] // 2
+    z0 = depth_m.astype(np.float64)
+    valid0 = (z0 >= min_depth_m) & (z0 <= max_depth_m)
+    pad = np.pad(np.where(valid0, z0, np.nan), r, constant_values=np.nan)
+    sw = np.zeros((H, W))
+    sz = np.zeros((H, W))
+    for dv in range(-r, r + 1):  # loops over the (2r+1)^2 window offsets, not over pixels
+        for du in range(-r, r + 1):
+            z = pad[r + dv : r + dv + H, r + du : r + du + W]
+            k = np.floor(np.abs(np.nan_to_num(z, nan=np.inf) - z0) / lut_step_m)
+            ok = np.isfinite(z) & (k < len(range_lut))
+            w = np.where(ok, spatial[dv + r, du + r] * range_lut[np.where(ok, k, 0).astype(np.int64)], 0.0)
+            sw += w
+            sz += w * np.nan_to_num(z)
+    out = np.where(valid0, sz / np.where(sw > 0, sw, 1.0), 0.0)
+    return out.astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Back-projection
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def depth_to_vertex(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m, out):
+    """Depth ``(H, W)`` -> vertex map ``out (H, W, 3)`` float32; depth outside the range gives 0.
+
+    ``x = (u - cx) / fx * z``, ``y = (v - cy) / fy * z`` (``fy`` may be negative).
+    """
+    H, W = depth_m.shape
+    for v in prange(H):
+        for u in range(W):
+            z = depth_m[v, u]
+            if z >= min_depth_m and z <= max_depth_m:
+                out[v, u, 0] = (u - cx) / fx * z
+                out[v, u, 1] = (v - cy) / fy * z
+                out[v, u, 2] = z
+            else:
+                out[v, u, 0] = 0.0
+                out[v, u, 1] = 0.0
+                out[v, u, 2] = 0.0
+
+
+def depth_to_vertex_ref(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m):
+    """Numpy reference of :func:`depth_to_vertex`; returns ``(H, W, 3)`` float32."""
+    H, W = depth_m.shape
+    v, u = np.mgrid[0:H, 0:W]
+    z = depth_m.astype(np.float64)
+    ok = (z >= min_depth_m) & (z <= max_depth_m)
+    z = np.where(ok, z, 0.0)
+    return np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Normals
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def vertex_normals(vertex, max_depth_jump_m, out):
+    """Normal map from central differences of a vertex map.
+
+    ``n = (V[v, u+1] - V[v, u-1]) x (V[v+1, u] - V[v-1, u])``, normalised and flipped so that
+    ``n . p < 0`` (it faces the camera, whatever the sign of ``fy``). The normal is invalid (zeros) at
+    the image border, when the pixel or any of its 4 neighbours is invalid (``z <= 0``), or when a
+    neighbour's depth differs from the pixel's by more than ``max_depth_jump_m``.
+
+    Args:
+        vertex: ``(H, W, 3)`` float32 camera-frame points, ``z <= 0`` = invalid.
+        out: ``(H, W, 3)`` float32 unit normals.
+    """
+    H, W = vertex.shape[0], vertex.shape[1]
+    for v in prange(H):
+        for u in range(W):
+            out[v, u, 0] = 0.0
+            out[v, u, 1] = 0.0
+            out[v, u, 2] = 0.0
+            if v == 0 or v == H - 1 or u == 0 or u == W - 1:
+                continue
+            z = vertex[v, u, 2]
+            if z <= 0.0:
+                continue
+            zl = vertex[v, u - 1, 2]
+            zr = vertex[v, u + 1, 2]
+            zu = vertex[v - 1, u, 2]
+            zd = vertex[v + 1, u, 2]
+            if zl <= 0.0 or zr <= 0.0 or zu <= 0.0 or zd <= 0.0:
+                continue
+            if (abs(zl - z) > max_depth_jump_m or abs(zr - z) > max_depth_jump_m
+                    or abs(zu - z) > max_depth_jump_m or abs(zd - z) > max_depth_jump_m):
+                continue
+            ax = np.float64(vertex[v, u + 1, 0]) - vertex[v, u - 1, 0]
+            ay = np.float64(vertex[v, u + 1, 1]) - vertex[v, u - 1, 1]
+            az = np.float64(zr) - zl
+            bx = np.float64(vertex[v + 1, u, 0]) - vertex[v - 1, u, 0]
+            by = np.float64(vertex[v + 1, u, 1]) - vertex[v - 1, u, 1]
+            bz = np.float64(zd) - zu
+            nx = ay * bz - az * by
+            ny = az * bx - ax * bz
+            nz = ax * by - ay * bx
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if norm <= 0.0:
+                continue
+            if nx * vertex[v, u, 0] + ny * vertex[v, u, 1] + nz * z > 0.0:
+                norm = -norm
+            out[v, u, 0] = nx / norm
+            out[v, u, 1] = ny / norm
+            out[v, u, 2] = nz / norm
+
+
+def vertex_normals_ref(vertex, max_depth_jump_m):
+    """Numpy reference of :func:`vertex_normals`; returns ``(H, W, 3)`` float32."""
+    V = vertex.astype(np.float64)
+    H, W = V.shape[:2]
+    out = np.zeros((H, W, 3))
+    c = V[1:-1, 1:-1]
+    left, right, up, down = V[1:-1, :-2], V[1:-1, 2:], V[:-2, 1:-1], V[2:, 1:-1]
+    ok = c[..., 2] > 0
+    for nb in (left, right, up, down):
+        ok &= (nb[..., 2] > 0) & (np.abs(nb[..., 2] - c[..., 2]) <= max_depth_jump_m)
+    n = np.cross(right - left, down - up)
+    norm = np.linalg.norm(n, axis=-1)
+    ok &= norm > 0
+    sign = np.where(np.sum(n * c, axis=-1) > 0, -1.0, 1.0)
+    n = n * (sign / np.where(ok, norm, 1.0))[..., None]
+    out[1:-1, 1:-1] = np.where(ok[..., None], n, 0.0)
+    return out.astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Pyramid (2x2 block averaging)
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def downsample_vertex(vertex, max_depth_diff_m, out):
+    """Halve a vertex map by averaging 2x2 blocks of camera-frame points.
+
+    Output pixel ``(u', v')`` covers input pixels ``2u'..2u'+1`` x ``2v'..2v'+1``; it is the mean of
+    the block's valid points whose depth is within ``max_depth_diff_m`` of the block's smallest valid
+    depth (so foreground and background are never mixed). A block without valid points is invalid.
+    A full valid block on a plane gives the point seen at the block centre ``(2u'+0.5, 2v'+0.5)``.
+
+    Args:
+        vertex: ``(H, W, 3)`` float32. out: ``(H // 2, W // 2, 3)`` float32.
+    """
+    Ho, Wo = out.shape[0], out.shape[1]
+    for vo in prange(Ho):
+        for uo in range(Wo):
+            zmin = np.inf
+            for dv in range(2):
+                for du in range(2):
+                    z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                    if z > 0.0 and z < zmin:
+                        zmin = z
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            cnt = 0
+            if zmin < np.inf:
+                for dv in range(2):
+                    for du in range(2):
+                        z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                        if z > 0.0 and z - zmin <= max_depth_diff_m:
+                            sx += vertex[2 * vo + dv, 2 * uo + du, 0]
+                            sy += vertex[2 * vo + dv, 2 * uo + du, 1]
+                            sz += z
+                            cnt += 1
+            if cnt > 0:
+                out[vo, uo, 0] = sx / cnt
+                out[vo, uo, 1] = sy / cnt
+                out[vo, uo, 2] = sz / cnt
+            else:
+                out[vo, uo, 0] = 0.0
+                out[vo, uo, 1] = 0.0
+                out[vo, uo, 2] = 0.0
+
+
+def _block_selection_ref(vertex, max_depth_diff_m):
+    H, W = vertex.shape[0] // 2 * 2, vertex.shape[1] // 2 * 2
+    V = vertex[:H, :W].astype(np.float64)
+    blocks = V.reshape(H // 2, 2, W // 2, 2, 3).transpose(0, 2, 1, 3, 4).reshape(H // 2, W // 2, 4, 3)
+    z = blocks[..., 2]
+    valid = z > 0
+    zmin = np.min(np.where(valid, z, np.inf), axis=-1, keepdims=True)
+    sel = valid & (z - zmin <= max_depth_diff_m)
+    return blocks, sel
+
+
+def downsample_vertex_ref(vertex, max_depth_diff_m):
+    """Numpy reference of :func:`downsample_vertex`; returns ``(H // 2, W // 2, 3)`` float32."""
+    blocks, sel = _block_selection_ref(vertex, max_depth_diff_m)
+    cnt = sel.sum(axis=-1)
+    s = np.sum(np.where(sel[..., None], blocks, 0.0), axis=-2)
+    return np.where(cnt[..., None] > 0, s / np.maximum(cnt, 1)[..., None], 0.0).astype(np.float32)
+
+
+@njit(parallel=True, cache=True)
+def downsample_normal(vertex, normal, max_depth_diff_m, out):
+    """Halve a normal map with the same block selection as :func:`downsample_vertex`.
+
+    The selected normals (those with a non-zero normal among the block's selected points) are summed
+    and renormalised; a block whose selection has no valid normal gets ``(0, 0, 0)``.
+
+    Args:
+        vertex, normal: ``(H, W, 3)`` float32. out: ``(H // 2, W // 2, 3)`` float32.
+    """
+    Ho, Wo = out.shape[0], out.shape[1]
+    for vo in prange(Ho):
+        for uo in range(Wo):
+            zmin = np.inf
+            for dv in range(2):
+                for du in range(2):
+                    z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                    if z > 0.0 and z < zmin:
+                        zmin = z
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            if zmin < np.inf:
+                for dv in range(2):
+                    for du in range(2):
+                        z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                        if z > 0.0 and z - zmin <= max_depth_diff_m:
+                            sx += normal[2 * vo + dv, 2 * uo + du, 0]
+                            sy += normal[2 * vo + dv, 2 * uo + du, 1]
+                            sz += normal[2 * vo + dv, 2 * uo + du, 2]
+            norm = np.sqrt(sx * sx + sy * sy + sz * sz)
+            if norm > 0.0:
+                out[vo, uo, 0] = sx / norm
+                out[vo, uo, 1] = sy / norm
+                out[vo, uo, 2] = sz / norm
+            else:
+                out[vo, uo, 0] = 0.0
+                out[vo, uo, 1] = 0.0
+                out[vo, uo, 2] = 0.0
+
+
+def downsample_normal_ref(vertex, normal, max_depth_diff_m):
+    """Numpy reference of :func:`downsample_normal`; returns ``(H // 2, W // 2, 3)`` float32."""
+    _, sel = _block_selection_ref(vertex, max_depth_diff_m)
+    H, W = sel.shape[0] * 2, sel.shape[1] * 2
+    N = normal[:H, :W].astype(np.float64)
+    nb = N.reshape(H // 2, 2, W // 2, 2, 3).transpose(0, 2, 1, 3, 4).reshape(H // 2, W // 2, 4, 3)
+    s = np.sum(np.where(sel[..., None], nb, 0.0), axis=-2)
+    norm = np.linalg.norm(s, axis=-1, keepdims=True)
+    return np.where(norm > 0, s / np.where(norm > 0, norm, 1.0), 0.0).astype(np.float32)

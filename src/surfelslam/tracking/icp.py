@@ -1,0 +1,314 @@
+"""Coarse-to-fine projective point-to-plane ICP (Gauss-Newton on SE(3)).
+
+``icp(source, target)`` estimates ``T_target_source`` (maps source-camera points into the target
+camera frame) from two :class:`~surfelslam.tracking.preprocess.FramePyramid` objects. At each
+pyramid level, from the coarsest to the finest, it repeats: projective association + normal
+equations (:mod:`surfelslam.kernels.icp`), solve ``(A^T W A) xi = -A^T W b``, ``T <- exp(xi) T``.
+
+Per-level settings are tuples indexed by pyramid level: **index 0 is the finest level**, the last
+entry the coarsest. ``iterations=(5, 8, 10, 40)`` thus runs up to 40 iterations at level 3 (1/8 resolution),
+then 10 at level 2, 8 at level 1 and 5 at level 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from surfelslam.errors import ConfigError
+from surfelslam.geometry import se3
+from surfelslam.kernels import icp as kicp
+from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor
+from surfelslam.types import Intrinsics
+
+SOLVERS = ("cholesky", "lu", "qr", "pinv")
+_MIN_INLIERS_PER_STEP = 6  # a 6-DoF step needs at least 6 constraints
+
+
+@dataclass
+class ICPConfig:
+    """Settings of :func:`icp`. Per-level tuples: index = pyramid level, 0 = finest.
+
+    Attributes:
+        levels: pyramid levels used (<= the pyramids' depth); 1 = full resolution only.
+        iterations: maximum Gauss-Newton iterations per level.
+        dist_thresh_m: association gate ``|p' - q|`` per level.
+        angle_thresh_deg: association gate on the angle between ``R n_p`` and ``n_q`` per level.
+        solver: ``cholesky | lu | qr | pinv`` (see :func:`solve`); ``cholesky`` runs in numba
+            (:func:`surfelslam.kernels.icp.gauss_newton_step`, tested equal to scipy's ``cho_solve``).
+        robust_kernel: ``none | huber | tukey``, applied to the point-to-plane residual.
+        robust_scale_m: Huber threshold / Tukey cut-off (m).
+        min_update_norm: a level stops when the twist norm ``|xi|`` (rad + m) falls below this.
+        min_relative_residual_change: a level stops when the weighted mean squared residual changes by
+            less than this fraction between iterations.
+        min_inliers: minimum inlier count at the finest level (coarser levels need ``min_inliers / 4^l``,
+            at least 6).
+        min_inlier_fraction: minimum inliers / valid source points at the finest level (below it the
+            result is reported as not converged; coarse levels only need the inlier count).
+        max_condition_number: the finest-level normal matrix (rotation columns scaled by the mean inlier
+            depth) with a larger eigenvalue ratio marks the problem degenerate.
+        max_translation_m, max_rotation_deg: a correction ``T T_init^-1`` larger than this is rejected
+            as implausible.
+    """
+
+    levels: int = 4
+    iterations: tuple[int, ...] = (5, 8, 10, 40)
+    dist_thresh_m: tuple[float, ...] = (0.1, 0.2, 0.4, 1.0)
+    angle_thresh_deg: tuple[float, ...] = (30.0, 45.0, 60.0, 90.0)
+    solver: str = "cholesky"
+    robust_kernel: str = "huber"
+    robust_scale_m: float = 0.02
+    min_update_norm: float = 1e-4
+    min_relative_residual_change: float = 1e-4
+    min_inliers: int = 500
+    min_inlier_fraction: float = 0.25
+    max_condition_number: float = 1e4
+    max_translation_m: float = 0.5
+    max_rotation_deg: float = 30.0
+
+    def __post_init__(self) -> None:
+        if self.levels < 1:
+            raise ConfigError(f"icp: levels must be >= 1, got {self.levels}")
+        for name in ("iterations", "dist_thresh_m", "angle_thresh_deg"):
+            vals = tuple(getattr(self, name))
+            setattr(self, name, vals)
+            if len(vals) < self.levels:
+                raise ConfigError(f"icp: {name} needs one value per level ({self.levels}), got {list(vals)}")
+        if any(i < 1 for i in self.iterations):
+            raise ConfigError(f"icp: iterations must be >= 1, got {list(self.iterations)}")
+        if any(not d > 0 for d in self.dist_thresh_m):
+            raise ConfigError(f"icp: dist_thresh_m must be > 0, got {list(self.dist_thresh_m)}")
+        if any(not 0 < a <= 180 for a in self.angle_thresh_deg):
+            raise ConfigError(f"icp: angle_thresh_deg must be in (0, 180], got {list(self.angle_thresh_deg)}")
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"icp: solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.robust_kernel not in kicp.ROBUST_KINDS:
+            raise ConfigError(f"icp: robust_kernel must be one of {tuple(kicp.ROBUST_KINDS)}, "
+                              f"got {self.robust_kernel!r}")
+        if not self.robust_scale_m > 0:
+            raise ConfigError(f"icp: robust_scale_m must be > 0, got {self.robust_scale_m}")
+        if not 0 <= self.min_inlier_fraction <= 1:
+            raise ConfigError(f"icp: min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction}")
+
+
+@dataclass
+class LevelInfo:
+    """What happened at one pyramid level (statistics of its last linearisation)."""
+
+    level: int
+    iterations: int
+    inliers: int
+    inlier_fraction: float
+    rmse_m: float
+    update_norm: float
+    stop: str  # "update" | "residual" | "max_iterations" | "too_few_inliers" | "solver"
+
+
+@dataclass
+class ICPResult:
+    """Result of :func:`icp`.
+
+    Attributes:
+        T_target_source: ``(4, 4)`` estimate (maps source-camera points into the target camera frame).
+        inliers, inlier_fraction, rmse_m: finest level, at the last linearisation (``rmse_m`` is the
+            unweighted RMS point-to-plane residual of the inliers).
+        iterations: total Gauss-Newton iterations over all levels.
+        converged: the finest level stopped on a small update / residual change, with enough inliers,
+            a well-conditioned system and a plausible motion.
+        degenerate: the finest-level system is ill-conditioned (e.g. a single plane).
+        condition_number: eigenvalue ratio of the scaled finest-level normal matrix.
+        levels: per-level details, coarsest first.
+        reason: why ``converged`` is False (``None`` when converged).
+    """
+
+    T_target_source: np.ndarray
+    inliers: int
+    inlier_fraction: float
+    rmse_m: float
+    iterations: int
+    converged: bool
+    degenerate: bool
+    condition_number: float
+    levels: list[LevelInfo] = field(default_factory=list)
+    reason: str | None = None
+
+
+def solve(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky",
+          A: np.ndarray | None = None, b: np.ndarray | None = None) -> np.ndarray:
+    """Gauss-Newton step ``xi (6,)`` minimising ``|A xi + b|^2``, i.e. ``AtA xi = -Atb``.
+
+    Methods: ``cholesky`` (scipy ``cho_factor``/``cho_solve``), ``lu`` (``lu_factor``/``lu_solve``),
+    ``pinv`` (pseudo-inverse of ``AtA``) and ``qr``: with the explicit ``A (N, 6)`` and ``b (N,)``
+    (already weighted by ``sqrt(w)`` if a robust kernel is used) it solves ``R xi = -Q^T b`` from
+    ``A = QR`` (never squares the condition number); without them it uses the QR factorisation of the
+    6x6 normal matrix itself (the kernel path, which only has ``AtA``).
+
+    Raises:
+        numpy.linalg.LinAlgError / scipy.linalg.LinAlgError when the system is singular
+        (not for ``pinv``).
+    """
+    if method == "cholesky":
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(AtA, check_finite=False), -Atb,
+                                      check_finite=False)
+    if method == "lu":
+        return scipy.linalg.lu_solve(scipy.linalg.lu_factor(AtA, check_finite=False), -Atb,
+                                     check_finite=False)
+    if method == "qr":
+        if A is not None and b is not None:
+            Q, R = np.linalg.qr(A)
+            return scipy.linalg.solve_triangular(R, -(Q.T @ b))
+        Q, R = np.linalg.qr(AtA)
+        return scipy.linalg.solve_triangular(R, -(Q.T @ Atb))
+    if method == "pinv":
+        return -(np.linalg.pinv(AtA) @ Atb)
+    raise ConfigError(f"icp: unknown solver {method!r}; choose one of {SOLVERS}")
+
+
+def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
+    """Eigenvalue ratio of ``S AtA S`` with ``S = diag(1/d, 1/d, 1/d, 1, 1, 1)``, ``d`` = mean depth.
+
+    Scaling the rotation columns by the mean depth makes rotational and translational constraints
+    comparable (a rotation ``omega`` moves points at depth d by about ``d |omega|``).
+    """
+    d = max(mean_depth_m, 1e-6)
+    s = np.array([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
+    ev = np.linalg.eigvalsh(AtA * s[:, None] * s[None, :])
+    if ev[-1] <= 0:
+        return float("inf")
+    return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = None,
+        cfg: ICPConfig | None = None) -> ICPResult:
+    """Estimate ``T_target_source`` by coarse-to-fine projective point-to-plane ICP.
+
+    Args:
+        source: pyramid of the frame being registered (source camera frame).
+        target: pyramid in the target camera frame (a frame, or a model rendered at the target pose).
+        T_init: ``(4, 4)`` initial ``T_target_source`` (identity when ``None``).
+        cfg: settings (defaults: :class:`ICPConfig`).
+
+    Returns:
+        :class:`ICPResult`; on failure ``converged`` is False, ``reason`` says why and
+        ``T_target_source`` holds the last estimate (the caller decides whether to use it).
+    """
+    cfg = cfg or ICPConfig()
+    n_levels = min(cfg.levels, len(source), len(target))
+    if n_levels < cfg.levels:
+        raise ConfigError(f"icp: config asks for {cfg.levels} levels but the pyramids have "
+                          f"{len(source)} (source) and {len(target)} (target)")
+    T0 = np.eye(4) if T_init is None else np.array(T_init, dtype=np.float64)
+    if T0.shape != (4, 4):
+        raise ConfigError(f"icp: T_init must be 4x4, got {T0.shape}")
+    T = T0.copy()
+    T_next = np.empty((4, 4))
+    robust = kicp.ROBUST_KINDS[cfg.robust_kernel]
+    stats = np.zeros(kicp.N_STATS)
+    infos: list[LevelInfo] = []
+    total_iters = 0
+    fine_stop = "max_iterations"
+    for lvl in range(n_levels - 1, -1, -1):
+        src, tgt = source[lvl], target[lvl]
+        ti = tgt.intrinsics
+        cos_thr = float(np.cos(np.radians(cfg.angle_thresh_deg[lvl])))
+        # inlier count needed to take a step (coarse levels have 4x fewer pixels per level)
+        need = max(cfg.min_inliers / 4.0**lvl, _MIN_INLIERS_PER_STEP)
+        prev_mse = np.inf
+        stop = "max_iterations"
+        upd = np.inf
+        its = 0
+        for _ in range(cfg.iterations[lvl]):
+            kicp.accumulate_normal_equations(src.vertex, src.normal, tgt.vertex, tgt.normal, T,
+                                             ti.fx, ti.fy, ti.cx, ti.cy, cfg.dist_thresh_m[lvl], cos_thr,
+                                             robust, cfg.robust_scale_m, stats)
+            n_in = stats[29]
+            if n_in < need:
+                stop = "too_few_inliers"
+                break
+            if cfg.solver == "cholesky":
+                upd = kicp.gauss_newton_step(stats, T, T_next)
+                if not upd >= 0.0:
+                    stop = "solver"
+                    break
+                T, T_next = T_next, T
+            else:
+                AtA, Atb = kicp.unpack_normal_equations(stats)
+                try:
+                    xi = solve(AtA, Atb, cfg.solver)
+                except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+                    stop = "solver"
+                    break
+                if not np.all(np.isfinite(xi)):
+                    stop = "solver"
+                    break
+                T = se3.exp(xi) @ T
+                upd = float(np.linalg.norm(xi))
+            its += 1
+            mse = stats[27] / n_in
+            if upd < cfg.min_update_norm:
+                stop = "update"
+                break
+            if abs(prev_mse - mse) <= cfg.min_relative_residual_change * mse:
+                stop = "residual"
+                break
+            prev_mse = mse
+        total_iters += its
+        n_in = int(stats[29])
+        infos.append(LevelInfo(lvl, its, n_in, n_in / max(stats[31], 1.0),
+                               float(np.sqrt(stats[28] / max(stats[29], 1.0))), upd, stop))
+        if lvl == 0:
+            fine_stop = stop
+    fine = infos[-1]
+    mean_depth = stats[30] / max(stats[29], 1.0)
+    AtA, _ = kicp.unpack_normal_equations(stats)
+    cond = condition_number(AtA, mean_depth) if fine.inliers > 0 else float("inf")
+    degenerate = cond > cfg.max_condition_number
+    dT = T @ se3.invert(T0)
+    dt_m = float(np.linalg.norm(dT[:3, 3]))
+    dr_deg = se3.rotation_angle_deg(dT[:3, :3])
+    reason = None
+    if fine_stop == "too_few_inliers" or fine.inlier_fraction < cfg.min_inlier_fraction:
+        reason = (f"too few inliers at the finest level ({fine.inliers}, "
+                  f"{100 * fine.inlier_fraction:.1f}% of valid source points)")
+    elif fine_stop == "solver":
+        reason = "the linear system could not be solved (singular)"
+    elif degenerate:
+        reason = f"degenerate geometry (condition number {cond:.3g} > {cfg.max_condition_number:.3g})"
+    elif dt_m > cfg.max_translation_m or dr_deg > cfg.max_rotation_deg:
+        reason = (f"implausible motion ({dt_m:.3f} m, {dr_deg:.1f} deg; limits {cfg.max_translation_m} m, "
+                  f"{cfg.max_rotation_deg} deg)")
+    elif fine_stop == "max_iterations":
+        reason = f"not converged after {fine.iterations} iterations at the finest level"
+    return ICPResult(
+        T_target_source=T,
+        inliers=fine.inliers,
+        inlier_fraction=fine.inlier_fraction,
+        rmse_m=fine.rmse_m,
+        iterations=total_iters,
+        converged=reason is None,
+        degenerate=bool(degenerate),
+        condition_number=cond,
+        levels=infos,
+        reason=reason,
+    )
+
+
+def register_frames(src_depth_m: np.ndarray, tgt_depth_m: np.ndarray, intr: Intrinsics,
+                    T_init: np.ndarray | None = None, icp_cfg: ICPConfig | None = None,
+                    pre_cfg: PreprocessConfig | None = None) -> ICPResult:
+    """Frame-to-frame registration of two depth images ``(H, W)`` float32 metres with the same camera.
+
+    The pyramid depth is ``max(icp_cfg.levels, pre_cfg.pyramid_levels)``.
+    """
+    icp_cfg = icp_cfg or ICPConfig()
+    pre_cfg = pre_cfg or PreprocessConfig()
+    if pre_cfg.pyramid_levels < icp_cfg.levels:
+        from dataclasses import replace
+
+        pre_cfg = replace(pre_cfg, pyramid_levels=icp_cfg.levels)
+    pre = Preprocessor(intr, pre_cfg)
+    src = pre.process(src_depth_m)
+    tgt = pre.process(tgt_depth_m)
+    return icp(src, tgt, T_init, icp_cfg)

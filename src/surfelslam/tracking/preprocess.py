@@ -1,0 +1,227 @@
+"""Depth preprocessing for ICP: range clipping, bilateral filter, vertex/normal maps and pyramids.
+
+Pyramid convention
+------------------
+Level 0 is the input resolution; level ``l + 1`` halves level ``l`` by averaging 2x2 blocks of
+camera-frame points (:func:`surfelslam.kernels.preprocess.downsample_vertex`): new pixel ``u'``
+covers old pixels ``2u'`` and ``2u' + 1``, whose centres average to ``2u' + 0.5``. With pixel centres at
+integer coordinates the level-``l+1`` intrinsics are therefore
+
+    fx' = fx / 2,   fy' = fy / 2,   cx' = (cx - 0.5) / 2,   cy' = (cy - 0.5) / 2,
+
+and the size is ``(H // 2, W // 2)`` (an odd last row / column is dropped). This differs from
+:meth:`Intrinsics.scaled`, which describes ``[::2, ::2]`` *sub-sampling* (no half-pixel shift).
+Normals of coarse levels are recomputed from the coarse vertex map (depth input) or block-averaged
+from the finer normals (:func:`pyramid_from_maps`, for rendered model maps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from surfelslam.errors import ConfigError
+from surfelslam.kernels import preprocess as kp
+from surfelslam.types import Intrinsics
+
+
+@dataclass
+class PreprocessConfig:
+    """Depth preprocessing settings.
+
+    Attributes:
+        min_depth_m, max_depth_m: depths outside this range are treated as invalid.
+        bilateral: smooth depth with an edge-preserving bilateral filter before back-projection.
+        bilateral_radius_px: half-size of the filter window (window ``2r+1`` square).
+        bilateral_sigma_px: spatial standard deviation of the filter (pixels).
+        bilateral_sigma_depth_m: range standard deviation; neighbours more than 3 sigma away in depth
+            get no weight.
+        pyramid_levels: number of levels (1 = full resolution only).
+        normal_max_depth_jump_m: a normal is invalid when a 4-neighbour's depth differs from the
+            pixel's by more than this at level 0; doubled at each coarser level (pixels twice as wide).
+        pyramid_max_depth_diff_m: 2x2 block averaging only merges points within this depth of the
+            block's nearest point when building level 1; doubled at each coarser level.
+    """
+
+    min_depth_m: float = 0.1
+    max_depth_m: float = 5.0
+    bilateral: bool = True
+    bilateral_radius_px: int = 2
+    bilateral_sigma_px: float = 1.5
+    bilateral_sigma_depth_m: float = 0.03
+    pyramid_levels: int = 4
+    normal_max_depth_jump_m: float = 0.05
+    pyramid_max_depth_diff_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.min_depth_m < self.max_depth_m):
+            raise ConfigError(
+                f"preprocess: need 0 <= min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}"
+            )
+        if self.pyramid_levels < 1:
+            raise ConfigError(f"preprocess: pyramid_levels must be >= 1, got {self.pyramid_levels}")
+        if self.bilateral_radius_px < 0:
+            raise ConfigError(f"preprocess: bilateral_radius_px must be >= 0, got {self.bilateral_radius_px}")
+        for name in ("bilateral_sigma_px", "bilateral_sigma_depth_m", "normal_max_depth_jump_m",
+                     "pyramid_max_depth_diff_m"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"preprocess: {name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class PyramidLevel:
+    """One pyramid level: ``vertex``/``normal`` ``(H, W, 3)`` float32 camera frame (invalid = zeros)."""
+
+    vertex: np.ndarray
+    normal: np.ndarray
+    intrinsics: Intrinsics
+
+
+@dataclass
+class FramePyramid:
+    """Vertex/normal maps at decreasing resolutions; ``levels[0]`` is the finest."""
+
+    levels: list[PyramidLevel]
+
+    def __len__(self) -> int:
+        return len(self.levels)
+
+    def __getitem__(self, level: int) -> PyramidLevel:
+        return self.levels[level]
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self.levels[0].intrinsics
+
+    @classmethod
+    def empty(cls, intr: Intrinsics, levels: int) -> FramePyramid:
+        """Allocate (uninitialised) buffers for ``levels`` levels starting at ``intr``."""
+        out = []
+        for li in pyramid_intrinsics(intr, levels):
+            out.append(PyramidLevel(np.empty((li.height, li.width, 3), np.float32),
+                                    np.empty((li.height, li.width, 3), np.float32), li))
+        return cls(out)
+
+
+def halve_intrinsics(intr: Intrinsics) -> Intrinsics:
+    """Intrinsics of the 2x2 block-averaged image (see the module docstring)."""
+    if intr.width < 2 or intr.height < 2:
+        raise ConfigError(f"preprocess: cannot halve an image of {intr.width}x{intr.height} pixels")
+    return Intrinsics(intr.fx / 2, intr.fy / 2, (intr.cx - 0.5) / 2, (intr.cy - 0.5) / 2,
+                      intr.width // 2, intr.height // 2)
+
+
+def pyramid_intrinsics(intr: Intrinsics, levels: int) -> list[Intrinsics]:
+    """``[intr, halve(intr), halve(halve(intr)), ...]`` (``levels`` entries)."""
+    out = [intr]
+    for _ in range(levels - 1):
+        out.append(halve_intrinsics(out[-1]))
+    return out
+
+
+def _check_depth(depth_m: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    depth_m = np.asarray(depth_m)
+    if depth_m.shape != intr.shape:
+        raise ConfigError(
+            f"preprocess: depth image is {depth_m.shape[::-1]} (W, H) but the intrinsics describe "
+            f"{intr.width}x{intr.height}"
+        )
+    return np.ascontiguousarray(depth_m, dtype=np.float32)
+
+
+class Preprocessor:
+    """Depth -> :class:`FramePyramid`, with scratch buffers kept between frames.
+
+    Example::
+
+        pre = Preprocessor(intr, PreprocessConfig())
+        pyr = pre.new_pyramid()          # allocate once
+        pre.process(depth_m, out=pyr)    # refill for every frame
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: PreprocessConfig | None = None):
+        self.cfg = cfg or PreprocessConfig()
+        self.intrinsics = intr
+        self.level_intrinsics = pyramid_intrinsics(intr, self.cfg.pyramid_levels)
+        self._filtered = np.empty(intr.shape, np.float32)
+        c = self.cfg
+        self._spatial, self._lut, self._lut_step = kp.bilateral_tables(
+            c.bilateral_radius_px, c.bilateral_sigma_px, c.bilateral_sigma_depth_m
+        )
+
+    def new_pyramid(self) -> FramePyramid:
+        return FramePyramid.empty(self.intrinsics, self.cfg.pyramid_levels)
+
+    def filter_depth(self, depth_m: np.ndarray) -> np.ndarray:
+        """Range-clipped (and, if configured, bilateral-filtered) depth ``(H, W)`` float32.
+
+        Returns an internal buffer that the next call overwrites.
+        """
+        c = self.cfg
+        depth_m = _check_depth(depth_m, self.intrinsics)
+        if c.bilateral:
+            kp.bilateral_filter(depth_m, c.min_depth_m, c.max_depth_m, self._spatial, self._lut,
+                                self._lut_step, self._filtered)
+        else:
+            np.copyto(self._filtered, depth_m)
+            self._filtered[~((depth_m >= c.min_depth_m) & (depth_m <= c.max_depth_m))] = 0.0
+        return self._filtered
+
+    def process(self, depth_m: np.ndarray, out: FramePyramid | None = None) -> FramePyramid:
+        """Depth ``(H, W)`` float32 metres (0 = invalid) -> pyramid (written into ``out`` if given)."""
+        c = self.cfg
+        pyr = out if out is not None else self.new_pyramid()
+        if len(pyr) != c.pyramid_levels or pyr.intrinsics != self.intrinsics:
+            raise ConfigError("preprocess: output pyramid does not match this preprocessor's size/levels")
+        depth = self.filter_depth(depth_m)
+        i0 = self.intrinsics
+        kp.depth_to_vertex(depth, i0.fx, i0.fy, i0.cx, i0.cy, c.min_depth_m, c.max_depth_m, pyr[0].vertex)
+        kp.vertex_normals(pyr[0].vertex, c.normal_max_depth_jump_m, pyr[0].normal)
+        for lvl in range(1, len(pyr)):
+            scale = 2.0 ** (lvl - 1)
+            kp.downsample_vertex(pyr[lvl - 1].vertex, c.pyramid_max_depth_diff_m * scale, pyr[lvl].vertex)
+            kp.vertex_normals(pyr[lvl].vertex, c.normal_max_depth_jump_m * 2.0 * scale, pyr[lvl].normal)
+        return pyr
+
+
+def build_pyramid(depth_m: np.ndarray, intr: Intrinsics, cfg: PreprocessConfig | None = None) -> FramePyramid:
+    """Depth ``(H, W)`` float32 metres (0 = invalid) -> new :class:`FramePyramid`."""
+    return Preprocessor(intr, cfg).process(depth_m)
+
+
+def pyramid_from_maps(
+    vertex: np.ndarray,
+    normal: np.ndarray,
+    intr: Intrinsics,
+    levels: int = 3,
+    cfg: PreprocessConfig | None = None,
+    out: FramePyramid | None = None,
+) -> FramePyramid:
+    """Pyramid from given vertex/normal maps (e.g. a model rendered in the target camera).
+
+    Args:
+        vertex: ``(H, W, 3)`` camera-frame points; ``z <= 0`` marks an invalid pixel.
+        normal: ``(H, W, 3)`` unit normals (zeros where unknown).
+        levels: number of levels; coarser levels block-average points and normals.
+        cfg: only ``pyramid_max_depth_diff_m`` is used.
+        out: optional pre-allocated pyramid (from :meth:`FramePyramid.empty`); level 0 is copied into it.
+    """
+    cfg = cfg or PreprocessConfig()
+    if vertex.shape != (*intr.shape, 3) or normal.shape != vertex.shape:
+        raise ConfigError(
+            f"preprocess: vertex {vertex.shape} / normal {normal.shape} maps must be {(*intr.shape, 3)}"
+        )
+    if levels < 1:
+        raise ConfigError(f"preprocess: levels must be >= 1, got {levels}")
+    if out is None:
+        out = FramePyramid.empty(intr, levels)
+    elif len(out) != levels or out.intrinsics != intr:
+        raise ConfigError("preprocess: output pyramid does not match the maps' size/levels")
+    np.copyto(out[0].vertex, vertex, casting="same_kind")
+    np.copyto(out[0].normal, normal, casting="same_kind")
+    for lvl in range(1, levels):
+        thr = cfg.pyramid_max_depth_diff_m * 2.0 ** (lvl - 1)
+        kp.downsample_vertex(out[lvl - 1].vertex, thr, out[lvl].vertex)
+        kp.downsample_normal(out[lvl - 1].vertex, out[lvl - 1].normal, thr, out[lvl].normal)
+    return out
