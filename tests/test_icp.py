@@ -1,0 +1,261 @@
+"""Projective point-to-plane ICP: kernel vs reference, solvers, synthetic recovery, degeneracy, real pairs."""
+
+from dataclasses import replace
+
+import numba
+import numpy as np
+import pytest
+import scipy.linalg
+
+from conftest import shared_sequence
+from surfelslam.errors import ConfigError
+from surfelslam.geometry import se3
+from surfelslam.kernels import icp as kicp
+from surfelslam.synth import make_scene, render
+from surfelslam.synth.noise import KinectNoiseConfig, noisy_depth
+from surfelslam.synth.trajectories import look_at
+from surfelslam.tracking.icp import ICPConfig, condition_number, icp, register_frames, solve
+from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor, build_pyramid
+from surfelslam.types import Intrinsics
+
+INTR = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+EYE = np.array([2.5, 2.0, 1.4])
+T_WORLD_TGT = look_at(EYE, np.array([2.5, 0.0, 0.8]))[0]
+
+
+def motion(rot_axis, rot_deg, trans_dir, trans_m):
+    a = np.asarray(rot_axis, float)
+    t = np.asarray(trans_dir, float)
+    return se3.exp(np.concatenate([a / np.linalg.norm(a) * np.radians(rot_deg), t / np.linalg.norm(t) * trans_m]))
+
+
+# T_tgt_src of the synthetic pairs: 10 cm and 10 deg in assorted directions, plus smaller motions
+MOTIONS = [
+    motion((0, 1, 0), 10, (1, 0, 0), 0.10),
+    motion((1, 0, 0), -10, (0, 1, 0.3), 0.10),
+    motion((0, 0, 1), 10, (0, 0, 1), 0.10),
+    motion((1, 1, 1), 10, (-1, 0.5, 0.2), 0.10),
+    motion((0.3, -1, 0.2), 5, (0.2, -0.4, 1), 0.05),
+]
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_scene("room")
+
+
+@pytest.fixture(scope="module")
+def renders(room):
+    """Target render and one source render per motion (exact depth + normals for the noise model)."""
+    tgt = render(room, T_WORLD_TGT, INTR)
+    tgt = (tgt.depth_m.copy(), tgt.normal_cam.copy())
+    srcs = []
+    for T_tgt_src in MOTIONS:
+        r = render(room, T_WORLD_TGT @ T_tgt_src, INTR)
+        srcs.append((r.depth_m.copy(), r.normal_cam.copy()))
+    return tgt, srcs
+
+
+def kinect(depth_normal, seed, intr=INTR):
+    return noisy_depth(depth_normal[0], depth_normal[1], intr, KinectNoiseConfig(), np.random.default_rng(seed))
+
+
+# ---------------------------------------------------------------------------------------------
+# kernel vs reference, solvers
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pair_pyramids(renders):
+    tgt, srcs = renders
+    pre = Preprocessor(INTR, PreprocessConfig())
+    return pre.process(kinect(srcs[4], 1)), pre.process(kinect(tgt, 2))
+
+
+@pytest.mark.parametrize("robust", ["none", "huber", "tukey"])
+def test_kernel_matches_reference(pair_pyramids, robust):
+    src, tgt = pair_pyramids
+    T = MOTIONS[4] @ motion((1, 0, 0), 0.5, (1, 1, 0), 0.01)  # near, not at, the solution
+    kind = kicp.ROBUST_KINDS[robust]
+    i = tgt[0].intrinsics
+    cos_thr = np.cos(np.radians(30.0))
+    stats = np.zeros(kicp.N_STATS)
+    kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal, T,
+                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats)
+    A, b, w, z, n_valid = kicp.build_linear_system_ref(src[0].vertex, src[0].normal, tgt[0].vertex,
+                                                       tgt[0].normal, T, i.fx, i.fy, i.cx, i.cy, 0.05,
+                                                       cos_thr, kind, 0.01)
+    assert len(b) > 20000 and stats[29] == len(b) and stats[31] == n_valid
+    AtA, Atb = kicp.normal_equations_ref(A, b, w)
+    H, g = kicp.unpack_normal_equations(stats)
+    np.testing.assert_allclose(H, AtA, rtol=1e-9, atol=1e-9 * np.abs(AtA).max())
+    np.testing.assert_allclose(g, Atb, rtol=1e-9, atol=1e-9 * np.abs(Atb).max())
+    assert stats[27] == pytest.approx(np.sum(w * b * b), rel=1e-9)
+    assert stats[28] == pytest.approx(np.sum(b * b), rel=1e-9)
+    assert stats[30] == pytest.approx(np.sum(z), rel=1e-9)
+    if robust != "none":
+        assert np.any(w < 1.0)
+
+
+def test_kernel_is_deterministic_across_thread_counts(pair_pyramids):
+    src, tgt = pair_pyramids
+    i = tgt[0].intrinsics
+    results = []
+    old = numba.get_num_threads()
+    try:
+        for n in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+            numba.set_num_threads(n)
+            s = np.zeros(kicp.N_STATS)
+            kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal,
+                                             MOTIONS[4], i.fx, i.fy, i.cx, i.cy, 0.1, 0.5, 1, 0.02, s)
+            results.append(s)
+            results.append(icp(src, tgt).T_target_source)
+    finally:
+        numba.set_num_threads(old)
+    for a, b in zip(results[::2], results[2::2], strict=False):
+        assert np.array_equal(a, b)
+    for a, b in zip(results[1::2], results[3::2], strict=False):
+        assert np.array_equal(a, b)
+
+
+def test_solvers_agree():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(500, 6)) * [2, 2, 2, 1, 1, 1]
+    b = rng.normal(size=500)
+    AtA, Atb = A.T @ A, A.T @ b
+    ref = np.linalg.lstsq(A, -b, rcond=None)[0]
+    for method in ("cholesky", "lu", "qr", "pinv"):
+        np.testing.assert_allclose(solve(AtA, Atb, method), ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(solve(AtA, Atb, "qr", A=A, b=b), ref, rtol=1e-9, atol=1e-12)
+    # the numba Cholesky step equals scipy's cho_solve followed by exp(xi) @ T
+    stats = np.zeros(kicp.N_STATS)
+    stats[:21] = AtA[np.triu_indices(6)]
+    stats[21:27] = Atb
+    T = se3.exp(rng.normal(size=6))
+    T_out = np.empty((4, 4))
+    norm = kicp.gauss_newton_step(stats, T, T_out)
+    xi = scipy.linalg.cho_solve(scipy.linalg.cho_factor(AtA), -Atb)
+    np.testing.assert_allclose(T_out, se3.exp(xi) @ T, atol=1e-12)
+    assert norm == pytest.approx(np.linalg.norm(xi), rel=1e-12)
+    # a singular system is reported, not solved
+    stats[:21] = 0.0
+    assert kicp.gauss_newton_step(stats, T, T_out) == -1.0 and np.array_equal(T_out, T)
+    with pytest.raises(ConfigError):
+        solve(AtA, Atb, "magic")
+
+
+def test_robust_weights_reference():
+    r = np.array([0.0, 0.005, -0.02, 0.05])
+    np.testing.assert_allclose(kicp.robust_weight_ref(r, kicp.ROBUST_HUBER, 0.01), [1, 1, 0.5, 0.2])
+    np.testing.assert_allclose(kicp.robust_weight_ref(r, kicp.ROBUST_TUKEY, 0.04),
+                               [1, (1 - 0.125**2) ** 2, (1 - 0.25) ** 2, 0])
+
+
+# ---------------------------------------------------------------------------------------------
+# synthetic recovery
+# ---------------------------------------------------------------------------------------------
+
+
+def test_noiseless_pairs_recovered(renders):
+    tgt, srcs = renders
+    for k, (T_tgt_src, src) in enumerate(zip(MOTIONS, srcs, strict=True)):
+        res = register_frames(src[0], tgt[0], INTR)
+        t_err, r_err = se3.pose_error(res.T_target_source, T_tgt_src)
+        assert t_err < 1e-3 and r_err < 0.05, (k, t_err, r_err, res.reason)
+        assert res.converged and not res.degenerate and res.reason is None
+        assert res.rmse_m < 1e-3 and res.inlier_fraction > 0.5
+
+
+def test_kinect_noise_pairs_recovered(renders):
+    tgt, srcs = renders
+    dt = kinect(tgt, 100)
+    for k, (T_tgt_src, src) in enumerate(zip(MOTIONS, srcs, strict=True)):
+        res = register_frames(kinect(src, k), dt, INTR)
+        t_err, r_err = se3.pose_error(res.T_target_source, T_tgt_src)
+        assert t_err < 5e-3 and r_err < 0.3, (k, t_err, r_err, res.reason)
+        assert res.converged
+
+
+def test_initial_guess_is_used(renders):
+    tgt, srcs = renders
+    T_true = MOTIONS[3]
+    far = T_true @ motion((0, 1, 0), 25, (1, 0, 0), 0.3)  # far beyond the basin from identity...
+    cfg = ICPConfig(levels=1, iterations=(10,), dist_thresh_m=(0.1,), angle_thresh_deg=(30.0,))
+    res = register_frames(srcs[3][0], tgt[0], INTR, T_init=T_true @ motion((1, 0, 0), 1, (0, 1, 0), 0.01),
+                          icp_cfg=cfg)
+    assert se3.pose_error(res.T_target_source, T_true)[0] < 1e-3
+    bad = register_frames(srcs[3][0], tgt[0], INTR, T_init=far, icp_cfg=cfg)
+    assert not bad.converged and bad.reason is not None
+
+
+def test_negative_fy_gives_the_same_pose(renders):
+    """Flip the images upside down and negate fy: the camera-frame points, hence the pose, are unchanged."""
+    tgt, srcs = renders
+    flipped = Intrinsics(INTR.fx, -INTR.fy, INTR.cx, INTR.height - 1 - INTR.cy, INTR.width, INTR.height)
+    res = register_frames(srcs[0][0][::-1].copy(), tgt[0][::-1].copy(), flipped)
+    t_err, r_err = se3.pose_error(res.T_target_source, MOTIONS[0])
+    assert t_err < 1e-3 and r_err < 0.05 and res.converged
+    pyr = build_pyramid(tgt[0][::-1].copy(), flipped)
+    ok = np.any(pyr[0].normal != 0, -1)
+    assert np.all(np.sum(pyr[0].normal[ok] * pyr[0].vertex[ok], -1) < 0)
+
+
+def test_single_plane_is_degenerate():
+    scene = make_scene("plane")
+    T_w_t = look_at(np.array([1.5, 0.0, 1.5]), np.array([0.0, 0.1, 1.4]))[0]
+    T_t_s = motion((0, 0, 1), 2, (0, 1, 0), 0.03)
+    dt = render(scene, T_w_t, INTR).depth_m.copy()
+    ds = render(scene, T_w_t @ T_t_s, INTR).depth_m.copy()
+    res = register_frames(ds, dt, INTR)
+    assert res.degenerate and not res.converged
+    assert res.condition_number > ICPConfig().max_condition_number
+    assert "degenerate" in res.reason
+
+
+def test_condition_number_scaling():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(1000, 6))
+    A[:, :3] *= 2.0  # rotation columns ~ depth (2 m) times the translation columns
+    assert condition_number(A.T @ A, 2.0) < 2.0 * condition_number(A.T @ A * 1.0, 1e-6) ** 0.5
+
+
+def test_config_validation():
+    with pytest.raises(ConfigError):
+        ICPConfig(levels=3, iterations=(5, 5))
+    with pytest.raises(ConfigError):
+        ICPConfig(solver="svd")
+    with pytest.raises(ConfigError):
+        ICPConfig(robust_kernel="cauchy")
+    with pytest.raises(ConfigError):
+        ICPConfig(dist_thresh_m=(0.1, -1.0, 0.4, 1.0))
+    pyr = build_pyramid(np.ones(INTR.shape, np.float32), INTR, PreprocessConfig(pyramid_levels=2))
+    with pytest.raises(ConfigError, match="levels"):
+        icp(pyr, pyr)
+    res = icp(pyr, pyr, cfg=replace(ICPConfig(), levels=2))  # a fronto-parallel plane: degenerate
+    assert res.degenerate and not res.converged
+
+
+# ---------------------------------------------------------------------------------------------
+# real Kinect pairs (7-Scenes redkitchen, 30 Hz)
+# ---------------------------------------------------------------------------------------------
+
+# Pairs whose GT relative pose agrees with the depth data to < 1 cm. On many other pairs the ICP optimum
+# itself (reached also when ICP starts AT the GT pose) lies 1-3 cm from the GT relative pose, with a lower
+# depth-warp residual than GT: that is the limit of the GT / Kinect depth, not of the registration.
+REAL_PAIRS = [(0, 10), (225, 235), (0, 20), (325, 345), (0, 30), (125, 155), (225, 255), (325, 355)]
+
+
+@pytest.mark.shared
+def test_real_sevenscenes_pairs_with_defaults():
+    from surfelslam.datasets import open_sequence
+
+    seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"))
+    T_wc, valid = seq.gt_poses()
+    pre = Preprocessor(seq.intrinsics, PreprocessConfig())
+    for s, t in REAL_PAIRS:
+        assert valid[s] and valid[t]
+        res = icp(pre.process(seq[s].depth_m), pre.process(seq[t].depth_m))
+        T_gt = se3.invert(T_wc[t]) @ T_wc[s]
+        t_err, r_err = se3.pose_error(res.T_target_source, T_gt)
+        assert t_err < 0.01 and r_err < 1.0, (s, t, t_err, r_err)
+        assert res.converged, (s, t, res.reason)
