@@ -19,6 +19,8 @@ COMMAND_MODULES = [
     "info",
     "synth",
     "eval",
+    "run",
+    "register",
 ]
 
 for _name in COMMAND_MODULES:
