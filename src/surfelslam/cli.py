@@ -19,7 +19,6 @@ COMMAND_MODULES = [
     "info",
     "synth",
     "eval",
-    "run",
     "register",
 ]
 
