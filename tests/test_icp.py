@@ -173,7 +173,7 @@ def test_kinect_noise_pairs_recovered(renders):
         res = register_frames(kinect(src, k), dt, INTR)
         t_err, r_err = se3.pose_error(res.T_target_source, T_tgt_src)
         assert t_err < 5e-3 and r_err < 0.3, (k, t_err, r_err, res.reason)
-        assert res.converged
+        assert res.converged, (k, res.reason)
 
 
 def test_initial_guess_is_used(renders):

@@ -14,6 +14,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+# Only fused multiply-add contraction (no reassociation): results differ from the numpy references
+# by float rounding only.
+_FASTMATH = {"contract"}
+
 # ----------------------------------------------------------------------------------------------
 # Bilateral filter
 # ----------------------------------------------------------------------------------------------
@@ -36,7 +40,7 @@ def bilateral_tables(radius_px: int, sigma_px: float, sigma_depth_m: float, lut_
     return spatial, lut, step
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def bilateral_filter(depth_m, min_depth_m, max_depth_m, spatial, range_lut, lut_step_m, out):
     """Edge-preserving depth smoothing that ignores invalid pixels.
 
@@ -102,7 +106,7 @@ def bilateral_filter_ref(depth_m, min_depth_m, max_depth_m, spatial, range_lut, 
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def depth_to_vertex(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m, out):
     """Depth ``(H, W)`` -> vertex map ``out (H, W, 3)`` float32; depth outside the range gives 0.
 
@@ -137,7 +141,7 @@ def depth_to_vertex_ref(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m):
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def vertex_normals(vertex, max_depth_jump_m, out):
     """Normal map from central differences of a vertex map.
 
@@ -213,7 +217,7 @@ def vertex_normals_ref(vertex, max_depth_jump_m):
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def downsample_vertex(vertex, max_depth_diff_m, out):
     """Halve a vertex map by averaging 2x2 blocks of camera-frame points.
 
@@ -276,7 +280,7 @@ def downsample_vertex_ref(vertex, max_depth_diff_m):
     return np.where(cnt[..., None] > 0, s / np.maximum(cnt, 1)[..., None], 0.0).astype(np.float32)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def downsample_normal(vertex, normal, max_depth_diff_m, out):
     """Halve a normal map with the same block selection as :func:`downsample_vertex`.
 

@@ -47,7 +47,7 @@ class PreprocessConfig:
     min_depth_m: float = 0.1
     max_depth_m: float = 5.0
     bilateral: bool = True
-    bilateral_radius_px: int = 2
+    bilateral_radius_px: int = 1
     bilateral_sigma_px: float = 1.5
     bilateral_sigma_depth_m: float = 0.03
     pyramid_levels: int = 4

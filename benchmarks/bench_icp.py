@@ -1,0 +1,115 @@
+"""Dense tracking timings (ms, median after JIT warm-up): depth preprocessing and pyramid ICP.
+
+Frames: 7-Scenes redkitchen pairs (i, i+5) from ../shared/data when present, otherwise synthetic
+renders of the ``room`` scene (:mod:`surfelslam.synth`) 5 cm / 2 deg apart. Sizes 320x240 (downsample 2)
+and 640x480; numba with 1 thread and with 2 threads. Rows:
+
+* ``preprocess``: depth -> 4-level vertex/normal pyramid into pre-allocated buffers (bilateral on).
+* ``icp 3-level``: :func:`icp` with the first three levels of the defaults (iterations 5/8/10).
+* ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 5/8/10/40 iterations).
+
+Usage: ``.venv/bin/python benchmarks/bench_icp.py [--quick]``; ``run(quick)`` returns the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from surfelslam.tracking.icp import ICPConfig, icp
+from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+from surfelslam.types import Intrinsics
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
+FRAME_GAP = 5
+
+
+def _depth_pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[np.ndarray, np.ndarray]], str]:
+    if SHARED.is_dir():
+        from surfelslam.datasets import open_sequence
+        from surfelslam.datasets.base import DatasetOptions
+
+        seq = open_sequence(SHARED, DatasetOptions(downsample=downsample))
+        idx = np.linspace(0, len(seq) - 1 - FRAME_GAP, n).astype(int)
+        return seq.intrinsics, [(seq[i].depth_m, seq[i + FRAME_GAP].depth_m) for i in idx], "7scenes"
+    from surfelslam.geometry import se3
+    from surfelslam.synth import make_scene, render
+    from surfelslam.synth.trajectories import look_at
+
+    intr = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    if downsample > 1:
+        intr = intr.scaled(downsample)
+    scene = make_scene("room")
+    pairs = []
+    for k in range(n):
+        T_w_t = look_at(np.array([2.5, 2.0, 1.4]), np.array([2.5 - 0.3 * k, 0.0, 0.8]))[0]
+        step = se3.exp(np.array([0.0, np.radians(2.0), 0.0, 0.05, 0.0, 0.0]))
+        pairs.append((render(scene, T_w_t @ step, intr).depth_m.copy(), render(scene, T_w_t, intr).depth_m.copy()))
+    return intr, pairs, "synthetic"
+
+
+def _median_ms(fn, reps: int) -> float:
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(times))
+
+
+def run(quick: bool = False) -> list[dict]:
+    """Rows ``{stage, size, threads, ms, iterations, frames}`` (median ms over pairs x repetitions)."""
+    n_pairs = 2 if quick else 4
+    reps = 3 if quick else 10
+    rows: list[dict] = []
+    old_threads = numba.get_num_threads()
+    cfg4 = ICPConfig()
+    d = ICPConfig()
+    cfg3 = replace(d, levels=3, iterations=d.iterations[:3], dist_thresh_m=d.dist_thresh_m[:3],
+                   angle_thresh_deg=d.angle_thresh_deg[:3])
+    try:
+        for downsample in (2, 1):
+            intr, pairs, source = _depth_pairs(downsample, n_pairs)
+            pre = Preprocessor(intr, PreprocessConfig())
+            pyr_s, pyr_t = pre.new_pyramid(), pre.new_pyramid()
+            size = f"{intr.width}x{intr.height}"
+            for threads in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)}):
+                numba.set_num_threads(threads)
+                pre.process(pairs[0][0], out=pyr_s)  # warm-up (JIT compile / cache load)
+                icp(pyr_s, pre.process(pairs[0][1], out=pyr_t), cfg=cfg4)
+                t_pre, t3, t4, it3, it4 = [], [], [], [], []
+                for ds_m, dt_m in pairs:
+                    t_pre.append(_median_ms(lambda ds_m=ds_m, pre=pre, o=pyr_s: pre.process(ds_m, out=o), reps))
+                    pre.process(dt_m, out=pyr_t)
+                    for cfg, times, its in ((cfg3, t3, it3), (cfg4, t4, it4)):
+                        times.append(_median_ms(lambda cfg=cfg, a=pyr_s, b=pyr_t: icp(a, b, cfg=cfg), reps))
+                        its.append(icp(pyr_s, pyr_t, cfg=cfg).iterations)
+                for stage, times, its in (("preprocess", t_pre, [0]), ("icp 3-level", t3, it3),
+                                          ("icp default", t4, it4)):
+                    rows.append({"stage": stage, "size": size, "threads": threads,
+                                 "ms": float(np.median(times)), "iterations": float(np.mean(its)),
+                                 "frames": source})
+    finally:
+        numba.set_num_threads(old_threads)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer pairs and repetitions")
+    rows = run(ap.parse_args().quick)
+    print(f"frames: {rows[0]['frames']} pairs {FRAME_GAP} apart")
+    print("| stage | size | threads | ms (median) | mean iterations |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        its = "" if r["stage"] == "preprocess" else f"{r['iterations']:.1f}"
+        print(f"| {r['stage']} | {r['size']} | {r['threads']} | {r['ms']:.2f} | {its} |")
+
+
+if __name__ == "__main__":
+    main()
