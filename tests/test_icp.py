@@ -259,3 +259,61 @@ def test_real_sevenscenes_pairs_with_defaults():
         t_err, r_err = se3.pose_error(res.T_target_source, T_gt)
         assert t_err < 0.01 and r_err < 1.0, (s, t, t_err, r_err)
         assert res.converged, (s, t, res.reason)
+
+
+# ---------------------------------------------------------------------------------------------
+# the register command
+# ---------------------------------------------------------------------------------------------
+
+
+def register_app():
+    import typer
+
+    from surfelslam.tools import register as register_tool
+
+    app = typer.Typer(pretty_exceptions_enable=False)
+
+    @app.callback()
+    def _root() -> None:
+        pass
+
+    register_tool.register(app)
+    return app
+
+
+def test_register_command_bad_input_exits_2(tmp_path):
+    from typer.testing import CliRunner
+
+    res = CliRunner().invoke(register_app(), ["register", str(tmp_path / "missing"), "--source", "0",
+                                              "--target", "1", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "Traceback" not in res.output
+
+
+def test_per_level_parsing():
+    from surfelslam.tools.register import per_level
+
+    assert per_level("0.05", (0.1, 0.2), 3, "--dist-thresh") == (0.05, 0.1, 0.2)
+    assert per_level("0.1,0.3", (0.1,), 2, "--dist-thresh") == (0.1, 0.3)
+    assert per_level("7", (5, 8), 2, "--iterations", cast=int, coarser_factor=1.0) == (7, 7)
+    assert per_level(None, (5, 8, 10, 40), 2, "--iterations", cast=int) == (5, 8)
+    with pytest.raises(ConfigError):
+        per_level("0.1,0.2", (0.1,), 3, "--dist-thresh")
+    with pytest.raises(ConfigError):
+        per_level("abc", (0.1,), 1, "--dist-thresh")
+
+
+@pytest.mark.shared
+def test_register_command_on_redwood(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    seq = shared_sequence("redwood_aug_icl_lr1_open3d_5f")
+    res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "0", "--target", "4",
+                                              "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    out = json.loads((tmp_path / "registration.json").read_text())
+    assert np.array(out["T_target_source"]).shape == (4, 4)
+    assert out["converged"] and out["inliers"] > 10000
+    assert out["gt_error"]["trans_m"] < 0.01 and out["gt_error"]["rot_deg"] < 0.5
+    assert (tmp_path / "before.png").stat().st_size > 1000 and (tmp_path / "after.png").stat().st_size > 1000
