@@ -170,29 +170,34 @@ def _hit(kind, ox, oy, oz, dx, dy, dz, sx, sy, sz, t_min, t_best):
 
 @njit(cache=True, inline="always")
 def _sample_texture(textures, tex, u_m, v_m, texel_m):
-    """Bilinear, wrapped texture lookup at ``(u_m, v_m)`` metres -> (r, g, b) floats."""
-    S = textures.shape[1]
+    """Bilinear, wrapped texture lookup at ``(u_m, v_m)`` metres -> (r, g, b) floats.
+
+    The texture side S must be a power of two (wrapping is a bit mask).
+    """
+    mask = textures.shape[1] - 1
     fu = u_m / texel_m
     fv = v_m / texel_m
     iu = math.floor(fu)
     iv = math.floor(fv)
     au = fu - iu
     av = fv - iv
-    u0 = int(iu) % S
-    v0 = int(iv) % S
-    u1 = (u0 + 1) % S
-    v1 = (v0 + 1) % S
+    u0 = int(iu) & mask
+    v0 = int(iv) & mask
+    u1 = (u0 + 1) & mask
+    v1 = (v0 + 1) & mask
     w00 = (1.0 - au) * (1.0 - av)
     w01 = au * (1.0 - av)
     w10 = (1.0 - au) * av
     w11 = au * av
-    r = w00 * textures[tex, v0, u0, 0] + w01 * textures[tex, v0, u1, 0] + w10 * textures[tex, v1, u0, 0] \
-        + w11 * textures[tex, v1, u1, 0]
-    g = w00 * textures[tex, v0, u0, 1] + w01 * textures[tex, v0, u1, 1] + w10 * textures[tex, v1, u0, 1] \
-        + w11 * textures[tex, v1, u1, 1]
-    b = w00 * textures[tex, v0, u0, 2] + w01 * textures[tex, v0, u1, 2] + w10 * textures[tex, v1, u0, 2] \
-        + w11 * textures[tex, v1, u1, 2]
-    return r, g, b
+    t = textures[tex]
+    a = t[v0, u0]
+    b = t[v0, u1]
+    c = t[v1, u0]
+    d = t[v1, u1]
+    r = w00 * a[0] + w01 * b[0] + w10 * c[0] + w11 * d[0]
+    g = w00 * a[1] + w01 * b[1] + w10 * c[1] + w11 * d[1]
+    bl = w00 * a[2] + w01 * b[2] + w10 * c[2] + w11 * d[2]
+    return r, g, bl
 
 
 @njit(cache=True, parallel=True)
@@ -218,6 +223,13 @@ def render_kernel(
     P = prim_type.shape[0]
     for v in prange(H):
         y = (v - cy) / fy
+        # primitives whose pixel bounds cover this row (checked once per row, not per pixel)
+        cand = np.empty(P, np.int64)
+        n_cand = 0
+        for p in range(P):
+            if prim_bbox[p, 2] <= v <= prim_bbox[p, 3] and prim_bbox[p, 1] >= 0 and prim_bbox[p, 0] <= W - 1:
+                cand[n_cand] = p
+                n_cand += 1
         for u in range(W):
             x = (u - cx) / fx
             best_t = np.inf
@@ -227,8 +239,9 @@ def render_kernel(
             bnz = 0.0
             buu = 0.0
             bvv = 0.0
-            for p in range(P):
-                if u < prim_bbox[p, 0] or u > prim_bbox[p, 1] or v < prim_bbox[p, 2] or v > prim_bbox[p, 3]:
+            for c in range(n_cand):
+                p = cand[c]
+                if u < prim_bbox[p, 0] or u > prim_bbox[p, 1]:
                     continue
                 dx = prim_M[p, 0, 0] * x + prim_M[p, 0, 1] * y + prim_M[p, 0, 2]
                 dy = prim_M[p, 1, 0] * x + prim_M[p, 1, 1] * y + prim_M[p, 1, 2]

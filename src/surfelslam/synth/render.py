@@ -43,30 +43,40 @@ def _local_corners(scene: Scene) -> np.ndarray:
     return s[:, None, :] * signs[None, :, :]
 
 
+_BOX_EDGES = np.array([(i, i | b) for b in (1, 2, 4) for i in range(8) if not i & b])  # (12, 2) corner pairs
+
+
 def primitive_pixel_bounds(scene: Scene, T_world_cam: np.ndarray, intr: Intrinsics, near_m: float) -> np.ndarray:
     """Conservative pixel bounds ``(P, 4)`` = ``umin, umax, vmin, vmax`` of each primitive.
 
-    A primitive lies inside the convex hull of its bounding-box corners, so when all corners are in front
-    of the camera its image lies inside the bounds of the projected corners. Primitives with a corner at
-    or behind ``near_m`` get the whole image.
+    A primitive lies inside its bounding box; the part of the box in front of the near plane is the
+    convex hull of its corners in front plus the points where its edges cross the near plane, so the
+    bounds of those points' projections contain the primitive's image. Entirely hidden -> empty bounds.
     """
     R = T_world_cam[:3, :3]
     t = T_world_cam[:3, 3]
     corners_w = np.einsum("pij,pkj->pki", scene.prim_R, _local_corners(scene)) + scene.prim_center[:, None, :]
     pc = (corners_w - t) @ R  # (P, 8, 3) camera frame
-    z = pc[..., 2]
-    front = np.all(z > near_m, axis=1)
-    zs = np.where(z > near_m, z, 1.0)
-    u = intr.fx * pc[..., 0] / zs + intr.cx
-    v = intr.fy * pc[..., 1] / zs + intr.cy
-    big = 1e9
+    a = pc[:, _BOX_EDGES[:, 0]]  # (P, 12, 3)
+    b = pc[:, _BOX_EDGES[:, 1]]
+    za, zb = a[..., 2], b[..., 2]
+    crosses = (za - near_m) * (zb - near_m) < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(crosses, (near_m - za) / np.where(crosses, zb - za, 1.0), 0.0)
+    cross_pts = a + f[..., None] * (b - a)
+    cross_pts[..., 2] = near_m
+    pts = np.concatenate([pc, cross_pts], axis=1)  # (P, 20, 3)
+    use = np.concatenate([pc[..., 2] > near_m, crosses], axis=1)
+    # points exactly on the near plane (crossings) have z = near_m > 0, so projection is safe
+    zs = np.where(use, np.maximum(pts[..., 2], near_m), 1.0)
+    u = intr.fx * pts[..., 0] / zs + intr.cx
+    v = intr.fy * pts[..., 1] / zs + intr.cy
+    big = 1e12
     bbox = np.empty((scene.n_primitives, 4))
-    bbox[:, 0] = np.where(front, u.min(axis=1) - BBOX_MARGIN_PX, -big)
-    bbox[:, 1] = np.where(front, u.max(axis=1) + BBOX_MARGIN_PX, big)
-    bbox[:, 2] = np.where(front, v.min(axis=1) - BBOX_MARGIN_PX, -big)
-    bbox[:, 3] = np.where(front, v.max(axis=1) + BBOX_MARGIN_PX, big)
-    behind = np.all(z <= near_m, axis=1)
-    bbox[behind] = (1.0, -1.0, 1.0, -1.0)  # empty: entirely behind the camera
+    bbox[:, 0] = np.where(use, u, big).min(axis=1) - BBOX_MARGIN_PX
+    bbox[:, 1] = np.where(use, u, -big).max(axis=1) + BBOX_MARGIN_PX
+    bbox[:, 2] = np.where(use, v, big).min(axis=1) - BBOX_MARGIN_PX
+    bbox[:, 3] = np.where(use, v, -big).max(axis=1) + BBOX_MARGIN_PX
     return bbox
 
 

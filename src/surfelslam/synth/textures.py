@@ -13,13 +13,21 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surfelslam.errors import ConfigError
+
 TEXTURE_KINDS = ("wallpaper", "wood", "plaster", "checker", "blobs", "fabric", "books", "metal", "poster")
 
 
 @dataclass(frozen=True)
 class TextureConfig:
-    size_px: int = 1024  # texture side S (texels)
+    size_px: int = 1024  # texture side S (texels); a power of two (the renderer wraps with a bit mask)
     texel_m: float = 0.004  # metres per texel: 1024 texels cover 4.1 m before repeating
+
+    def __post_init__(self) -> None:
+        if self.size_px < 2 or self.size_px & (self.size_px - 1):
+            raise ConfigError(f"texture size_px must be a power of two >= 2, got {self.size_px}")
+        if self.texel_m <= 0:
+            raise ConfigError(f"texture texel_m must be positive, got {self.texel_m}")
 
 
 def value_noise(rng: np.random.Generator, size_px: int, cell_px: int) -> np.ndarray:

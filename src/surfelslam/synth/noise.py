@@ -1,0 +1,118 @@
+"""Kinect-v1-like sensor noise for rendered frames.
+
+Depth (in this order): dropouts at grazing angles (from the rendered normals), axial Gaussian noise with
+sigma growing with depth squared (Nguyen, Izadi, Lovell, 3DIMPVT 2012), disparity quantisation
+(structured light: ``disparity = baseline * focal / z`` in 1/8 pixel steps), the valid range, dropouts at
+depth discontinuities and random small holes. Colour: a slight Gaussian blur and Gaussian pixel noise.
+Every random draw comes from the generator passed in; :func:`frame_rng` makes it from ``(seed, frame)``
+so that any frame can be regenerated on its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from surfelslam.types import Intrinsics
+
+_REFERENCE_WIDTH_PX = 640  # hole sizes and the disparity focal length refer to a 640-pixel-wide sensor image
+
+
+@dataclass(frozen=True)
+class KinectNoiseConfig:
+    min_depth_m: float = 0.4  # nearer -> invalid (0)
+    max_depth_m: float = 4.5  # farther -> invalid (0)
+    axial_sigma_base_m: float = 0.0012  # sigma_z(z) = base + quad * (z - offset)^2
+    axial_sigma_quad_per_m: float = 0.0019
+    axial_sigma_offset_m: float = 0.4
+    baseline_m: float = 0.075  # Kinect v1 projector-camera baseline
+    # focal length of the disparity (sensor) camera; None = the image's |fx| scaled to a 640-pixel width,
+    # so quantisation does not depend on the rendered image size
+    disparity_focal_px: float | None = None
+    disparity_step_px: float = 0.125  # 1/8 sub-pixel disparity steps; 0 disables quantisation
+    grazing_angle_deg: float = 78.0  # drop pixels whose ray-normal angle exceeds this
+    edge_jump_rel: float = 0.04  # a neighbour differing by more than this fraction of z marks an edge
+    edge_dropout_prob: float = 0.5  # probability of dropping an edge pixel
+    holes_per_frame_mean: float = 6.0  # Poisson mean of random holes per frame
+    hole_radius_min_px: int = 2  # (for a 640-pixel-wide image)
+    hole_radius_max_px: int = 7
+    rgb_blur_sigma_px: float = 0.5  # 0 disables
+    rgb_noise_sigma: float = 2.0  # Gaussian noise on 0..255 intensities
+
+
+def frame_rng(seed: int, frame_index: int) -> np.random.Generator:
+    """The random generator of frame ``frame_index`` of a sequence generated with ``seed``."""
+    return np.random.default_rng([int(seed), int(frame_index), 0x5EED])
+
+
+def axial_sigma_m(depth_m: np.ndarray, cfg: KinectNoiseConfig) -> np.ndarray:
+    """Axial (depth) noise standard deviation in metres at each depth."""
+    return cfg.axial_sigma_base_m + cfg.axial_sigma_quad_per_m * (depth_m - cfg.axial_sigma_offset_m) ** 2
+
+
+def ray_normal_cos(normal_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """``(H, W)`` ``|cos|`` of the angle between each pixel's viewing ray and the normal ``(H, W, 3)``."""
+    v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float32)
+    x = (u - intr.cx) / intr.fx
+    y = (v - intr.cy) / intr.fy
+    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+    return np.abs(normal_cam[..., 0] * x + normal_cam[..., 1] * y + normal_cam[..., 2]) * inv
+
+
+def disparity_focal_px(intr: Intrinsics, cfg: KinectNoiseConfig) -> float:
+    """Focal length (px) used for the disparity quantisation."""
+    if cfg.disparity_focal_px is not None:
+        return cfg.disparity_focal_px
+    return abs(intr.fx) * _REFERENCE_WIDTH_PX / intr.width
+
+
+def noisy_depth(
+    depth_m: np.ndarray, normal_cam: np.ndarray, intr: Intrinsics, cfg: KinectNoiseConfig, rng: np.random.Generator
+) -> np.ndarray:
+    """Exact depth ``(H, W)`` (0 = none) -> Kinect-like depth ``(H, W)`` float32 (0 = invalid)."""
+    d = depth_m.astype(np.float32)
+    valid = d > 0
+    valid &= ray_normal_cos(normal_cam, intr) >= np.float32(np.cos(np.radians(cfg.grazing_angle_deg)))
+    sigma = axial_sigma_m(d, cfg).astype(np.float32)
+    z = d + rng.standard_normal(d.shape, dtype=np.float32) * sigma
+    if cfg.disparity_step_px > 0:
+        bf = cfg.baseline_m * disparity_focal_px(intr, cfg)
+        zpos = z > 0
+        disp_steps = np.round(np.float32(bf / cfg.disparity_step_px) / np.where(zpos, z, np.float32(np.inf)))
+        ok = disp_steps > 0
+        z = np.where(ok, np.float32(bf / cfg.disparity_step_px) / np.where(ok, disp_steps, 1.0), 0.0)
+        z = z.astype(np.float32)
+    valid &= (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)
+    # depth discontinuities (on the exact depth): largest jump to a 4-neighbour
+    dh = np.abs(d[:, 1:] - d[:, :-1])
+    dv = np.abs(d[1:, :] - d[:-1, :])
+    jump = np.zeros_like(d)
+    jump[:, 1:] = dh
+    np.maximum(jump[:, :-1], dh, out=jump[:, :-1])
+    np.maximum(jump[1:, :], dv, out=jump[1:, :])
+    np.maximum(jump[:-1, :], dv, out=jump[:-1, :])
+    edge = jump > cfg.edge_jump_rel * d
+    valid &= ~(edge & (rng.random(d.shape, dtype=np.float32) < cfg.edge_dropout_prob))
+    # random holes: small filled discs
+    n_holes = int(rng.poisson(cfg.holes_per_frame_mean))
+    if n_holes > 0:
+        scale = intr.width / _REFERENCE_WIDTH_PX
+        mask = np.zeros(d.shape, np.uint8)
+        cu = rng.integers(0, intr.width, n_holes)
+        cv_ = rng.integers(0, intr.height, n_holes)
+        rad = rng.integers(cfg.hole_radius_min_px, cfg.hole_radius_max_px + 1, n_holes)
+        for a, b, r in zip(cu, cv_, rad, strict=True):  # a few holes per frame, not pixels
+            cv2.circle(mask, (int(a), int(b)), max(1, int(round(r * scale))), 1, -1)
+        valid &= mask == 0
+    return np.where(valid, z, np.float32(0.0)).astype(np.float32)
+
+
+def noisy_rgb(rgb: np.ndarray, cfg: KinectNoiseConfig, rng: np.random.Generator) -> np.ndarray:
+    """``(H, W, 3)`` uint8 -> blurred, noisy ``(H, W, 3)`` uint8."""
+    img = rgb.astype(np.float32)
+    if cfg.rgb_blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), cfg.rgb_blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+    img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(cfg.rgb_noise_sigma)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)

@@ -1,0 +1,165 @@
+"""Synthetic sequences: in-memory frames and the TUM folder layout on disk.
+
+Layout written by :func:`generate_sequence` (TUM RGB-D conventions)::
+
+    rgb/<t>.png        colour, 8-bit RGB PNG
+    depth/<t>.png      depth, uint16 PNG, DEPTH_SCALE units per metre, 0 = invalid
+    rgb.txt depth.txt  "timestamp path" lines
+    associations.txt   "t rgb/<t>.png t depth/<t>.png" lines
+    groundtruth.txt    "t tx ty tz qx qy qz qw" (T_world_cam)
+    INFO.txt           "key : value" lines (generator, scene, intrinsics, depth scale...)
+
+Timestamps are ``index / fps`` formatted ``%.6f``. The same arguments give byte-identical files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.errors import ConfigError
+from surfelslam.io.atomic import write_text_atomic
+from surfelslam.io.images import write_png_depth, write_png_rgb
+from surfelslam.io.trajectory import write_tum
+from surfelslam.synth.noise import KinectNoiseConfig, frame_rng, noisy_depth, noisy_rgb
+from surfelslam.synth.render import RenderOutput, render
+from surfelslam.synth.scenes import Scene, make_scene
+from surfelslam.synth.trajectories import make_trajectory
+from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+
+NOISE_MODELS = ["kinect", "none"]
+DEPTH_SCALE = 5000.0  # raw depth units per metre (TUM)
+_UINT16_MAX = 65535
+_BASE_FOCAL_PX = 525.0  # default intrinsics at 640x480 (TUM / Kinect v1 defaults)
+_BASE_SIZE_PX = (640, 480)
+DEFAULT_FPS = 30.0
+
+
+def default_intrinsics(width: int = 640, height: int = 480) -> Intrinsics:
+    """525/525/319.5/239.5 at 640x480, scaled to ``width`` x ``height`` (pixel centres at integers)."""
+    sx = width / _BASE_SIZE_PX[0]
+    sy = height / _BASE_SIZE_PX[1]
+    return Intrinsics(
+        _BASE_FOCAL_PX * sx, _BASE_FOCAL_PX * sy, (_BASE_SIZE_PX[0] / 2) * sx - 0.5,
+        (_BASE_SIZE_PX[1] / 2) * sy - 0.5, width, height,
+    )
+
+
+def noise_config(name: str) -> KinectNoiseConfig | None:
+    """``"kinect"`` -> default :class:`KinectNoiseConfig`; ``"none"`` -> None (exact depth and colour)."""
+    if name == "kinect":
+        return KinectNoiseConfig()
+    if name == "none":
+        return None
+    raise ConfigError(f"unknown noise model {name!r}; known: {', '.join(NOISE_MODELS)}")
+
+
+def make_frame(
+    index: int, timestamp: float, rendered: RenderOutput, intr: Intrinsics, noise_cfg: KinectNoiseConfig | None,
+    seed: int,
+) -> RGBDFrame:
+    """Frame ``index`` from a rendering: exact (``noise_cfg`` None: depth > 0 kept) or Kinect-like noisy."""
+    if noise_cfg is None:
+        return RGBDFrame(index, timestamp, rendered.rgb.copy(), rendered.depth_m.copy())
+    rng = frame_rng(seed, index)
+    depth = noisy_depth(rendered.depth_m, rendered.normal_cam, intr, noise_cfg, rng)
+    rgb = noisy_rgb(rendered.rgb, noise_cfg, rng)
+    return RGBDFrame(index, timestamp, rgb, depth)
+
+
+def iter_frames(
+    scene: Scene, trajectory: Trajectory, intr: Intrinsics, noise_cfg: KinectNoiseConfig | None = None,
+    seed: int = 0,
+) -> Iterator[RGBDFrame]:
+    """Render every pose of ``trajectory`` -> :class:`RGBDFrame` (index, timestamp, rgb, depth_m)."""
+    buf: RenderOutput | None = None
+    for i, (t, T) in enumerate(zip(trajectory.timestamps, trajectory.T_world_cam, strict=True)):
+        buf = render(scene, T, intr, out=buf)
+        yield make_frame(i, float(t), buf, intr, noise_cfg, seed)
+
+
+def depth_to_raw(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.ndarray:
+    """Metres ``(H, W)`` -> uint16 raw units (rounded); values that do not fit become 0 (invalid)."""
+    raw = np.round(depth_m.astype(np.float64) * depth_scale)
+    raw[(raw > _UINT16_MAX) | ~np.isfinite(raw) | (raw < 0)] = 0
+    return raw.astype(np.uint16)
+
+
+def info_text(
+    scene: str, style: str, noise: str, seed: int, n_frames: int, intr: Intrinsics, fps: float
+) -> str:
+    rows = [
+        ("generator", "surfelslam synth"),
+        ("scene", scene),
+        ("trajectory", style),
+        ("noise", noise),
+        ("seed", str(seed)),
+        ("frames", str(n_frames)),
+        ("fps", f"{fps:g}"),
+        ("image size", f"{intr.width}x{intr.height}"),
+        ("intrinsics", f"fx={intr.fx!r} fy={intr.fy!r} cx={intr.cx!r} cy={intr.cy!r}"),
+        ("depth scale", f"{DEPTH_SCALE:g}"),
+        ("ground truth", "groundtruth.txt, T_world_cam of every frame (exact)"),
+    ]
+    return "".join(f"{k:<15} : {v}\n" for k, v in rows)
+
+
+def generate_sequence(
+    out_dir: str | Path,
+    scene: str = "room",
+    style: str = "slow",
+    n_frames: int = 300,
+    noise: str = "kinect",
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    fps: float = DEFAULT_FPS,
+    progress: bool | Callable[[int], None] = False,
+) -> Path:
+    """Render and write a TUM-layout sequence to ``out_dir`` (created); returns its path.
+
+    ``progress``: a callable ``progress(i)`` is called after frame ``i`` is written; ``True`` shows a tqdm
+    bar on stderr (for the commands; library callers leave it False).
+    Bad names or sizes raise ConfigError before anything is written.
+    """
+    noise_cfg = noise_config(noise)
+    if width < 1 or height < 1:
+        raise ConfigError(f"image size must be positive, got {width}x{height}")
+    sc = make_scene(scene, seed)
+    traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
+    intr = default_intrinsics(width, height)
+    out = Path(out_dir)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    names = [f"{t:.6f}" for t in traj.timestamps]
+    bar = None
+    if progress is True:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_frames, desc="synth", unit="frame")
+    try:
+        for frame in iter_frames(sc, traj, intr, noise_cfg, seed):
+            name = names[frame.index]
+            write_png_rgb(out / "rgb" / f"{name}.png", frame.rgb)
+            write_png_depth(out / "depth" / f"{name}.png", depth_to_raw(frame.depth_m))
+            if bar is not None:
+                bar.update(1)
+            elif callable(progress):
+                progress(frame.index)
+    finally:
+        if bar is not None:
+            bar.close()
+    write_text_atomic(
+        out / "rgb.txt",
+        "# color images\n# timestamp filename\n" + "".join(f"{n} rgb/{n}.png\n" for n in names),
+    )
+    write_text_atomic(
+        out / "depth.txt",
+        "# depth maps\n# timestamp filename\n" + "".join(f"{n} depth/{n}.png\n" for n in names),
+    )
+    write_text_atomic(out / "associations.txt", "".join(f"{n} rgb/{n}.png {n} depth/{n}.png\n" for n in names))
+    write_tum(traj, out / "groundtruth.txt")
+    write_text_atomic(out / "INFO.txt", info_text(scene, style, noise, seed, n_frames, intr, fps))
+    return out

@@ -1,0 +1,200 @@
+"""Synthetic generator: scenes, ray-cast kernel vs numpy reference, trajectories, noise, writer."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from surfelslam.errors import ConfigError
+from surfelslam.geometry.camera import backproject
+from surfelslam.geometry.se3 import rotation_angle_deg
+from surfelslam.kernels.raycast import raycast_ref
+from surfelslam.synth import SCENES, STYLES, make_scene, make_trajectory, render
+from surfelslam.synth.noise import (
+    KinectNoiseConfig,
+    axial_sigma_m,
+    disparity_focal_px,
+    frame_rng,
+    noisy_depth,
+    ray_normal_cos,
+)
+from surfelslam.synth.trajectories import look_at
+from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_frames, noise_config
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return {name: make_scene(name, 0) for name in SCENES}
+
+
+def test_unknown_names_raise_config_error_listing_choices(scenes):
+    with pytest.raises(ConfigError, match="room"):
+        make_scene("kitchen")
+    with pytest.raises(ConfigError, match="handheld"):
+        make_trajectory("zigzag", 10, scenes["room"])
+    with pytest.raises(ConfigError, match="kinect"):
+        noise_config("gaussian")
+
+
+def test_distance_to_surface_known_points(scenes):
+    plane = scenes["plane"]  # one 4 x 3 m quad at x = 0 facing +x, centred at (0, 0, 1.5)
+    pts = np.array([[1.0, 0.0, 1.5], [-0.5, 0.3, 1.0], [0.2, 3.0, 1.5]])
+    assert np.allclose(plane.distance_to_surface(pts), [1.0, 0.5, np.hypot(0.2, 1.0)])
+    assert np.allclose(plane.signed_distance(pts[:2]), [1.0, -0.5])
+    room = scenes["room"]
+    ball = room.prim_names.index("floor_ball")
+    c, r = room.prim_center[ball], room.prim_size[ball, 0]
+    # just inside and just outside the ball's top (well away from the floor)
+    pts = c + np.array([[0.0, 0.0, r - 0.01], [0.0, 0.0, r + 0.02]])
+    assert np.allclose(room.signed_distance(pts), [-0.01, 0.02], atol=1e-9)
+
+
+@pytest.mark.parametrize("name,style", [("room", "handheld"), ("office", "loop"), ("plane", "slow")])
+def test_render_kernel_matches_numpy_reference(scenes, name, style):
+    scene = scenes[name]
+    intr = default_intrinsics(320, 240)
+    traj = make_trajectory(style, 40, scene, seed=3)
+    rng = np.random.default_rng(0)
+    for T in traj.T_world_cam[[0, 39]]:
+        out = render(scene, T, intr)
+        u = rng.integers(0, intr.width, 2000)
+        v = rng.integers(0, intr.height, 2000)
+        d_cam = np.column_stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(len(u))])
+        t, pid, n_world = raycast_ref(
+            np.tile(T[:3, 3], (len(u), 1)), d_cam @ T[:3, :3].T,
+            scene.prim_type, scene.prim_R, scene.prim_center, scene.prim_size, 1e-3,
+        )
+        assert np.all(pid >= 0)  # closed rooms / the wall fill the view
+        assert np.array_equal(pid, out.prim_id[v, u])
+        assert np.allclose(t, out.depth_m[v, u], rtol=1e-6, atol=1e-6)
+        assert np.allclose(n_world @ T[:3, :3], out.normal_cam[v, u], atol=1e-5)
+
+
+def test_negative_fy_flips_the_image(scenes):
+    intr = default_intrinsics(160, 120)
+    flipped = type(intr)(intr.fx, -intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+    T = make_trajectory("slow", 1, scenes["room"]).T_world_cam[0]
+    a = render(scenes["room"], T, intr).depth_m
+    b = render(scenes["room"], T, flipped).depth_m
+    assert np.allclose(a, b[::-1], rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_exact_depth_backprojects_onto_the_surfaces(scenes, name):
+    scene = scenes[name]
+    intr = default_intrinsics(320, 240)
+    traj = make_trajectory("handheld", 30, scene, seed=1)
+    frames = list(iter_frames(scene, traj.subset([0, 29]), intr, None, seed=1))
+    for f, T in zip(frames, traj.T_world_cam[[0, 29]], strict=True):
+        valid = f.depth_m > 0
+        assert valid.mean() > 0.99
+        p_cam = backproject(f.depth_m, intr)[valid].astype(np.float64)
+        p_world = p_cam @ T[:3, :3].T + T[:3, 3]
+        assert scene.distance_to_surface(p_world).max() < 1e-4
+        # most of the view at 0.5-4 m
+        assert np.mean((f.depth_m[valid] > 0.5) & (f.depth_m[valid] < 4.0)) > 0.8
+
+
+def _facing_wall(dist_m: float, angle_deg: float = 0.0) -> np.ndarray:
+    a = np.radians(angle_deg)
+    return look_at(np.array([dist_m * np.cos(a), dist_m * np.sin(a), 1.5]), np.array([0.0, 0.0, 1.5]))[0]
+
+
+def test_noise_sigma_grows_with_depth_and_matches_the_model(scenes):
+    intr = default_intrinsics(320, 240)
+    cfg = KinectNoiseConfig(holes_per_frame_mean=0.0)
+    stds = []
+    for z in (1.0, 3.0):
+        # oblique view: depth varies across the image, so the quantisation error is ~uniform
+        out = render(scenes["plane"], _facing_wall(z, 35.0), intr)
+        centre = np.zeros(out.depth_m.shape, bool)
+        centre[60:180, 80:240] = True  # the wall fills the centre at both distances
+        noisy = noisy_depth(out.depth_m, out.normal_cam, intr, cfg, frame_rng(0, 0))
+        ok = centre & (noisy > 0)
+        assert ok.sum() > 0.95 * centre.sum()
+        err = noisy[ok] - out.depth_m[ok]
+        zc = out.depth_m[ok].astype(np.float64)
+        step = zc**2 / (cfg.baseline_m * disparity_focal_px(intr, cfg)) * cfg.disparity_step_px
+        expected = np.sqrt(np.mean(axial_sigma_m(zc, cfg) ** 2 + step**2 / 12.0))
+        assert abs(err.mean()) < 0.1 * expected
+        assert 0.85 * expected < err.std() < 1.15 * expected
+        stds.append(err.std())
+    assert stds[1] > 4.0 * stds[0]
+
+
+def test_noise_range_clipping_grazing_dropouts_and_holes(scenes):
+    intr = default_intrinsics(320, 240)
+    cfg = KinectNoiseConfig()
+    for z in (0.3, 5.0):  # too near, too far
+        out = render(scenes["plane"], _facing_wall(z), intr)
+        assert (out.depth_m > 0).sum() > 1000
+        assert not np.any(noisy_depth(out.depth_m, out.normal_cam, intr, cfg, frame_rng(0, 1)))
+    T = make_trajectory("loop", 10, scenes["room"]).T_world_cam[3]
+    out = render(scenes["room"], T, intr)
+    noisy = noisy_depth(out.depth_m, out.normal_cam, intr, cfg, frame_rng(0, 2))
+    cosang = ray_normal_cos(out.normal_cam, intr)
+    assert np.all(cosang[noisy > 0] >= np.cos(np.radians(cfg.grazing_angle_deg)) - 1e-6)
+    kept = (noisy > 0).mean()
+    assert 0.6 < kept < 0.999  # some drop-outs, most pixels valid
+    again = noisy_depth(out.depth_m, out.normal_cam, intr, cfg, frame_rng(0, 2))
+    assert np.array_equal(noisy, again)  # a frame can be regenerated from (seed, index) alone
+
+
+def test_trajectory_styles_speeds_and_loop_closure(scenes):
+    for name in ("room", "office"):
+        scene = scenes[name]
+        slow = make_trajectory("slow", 90, scene, seed=2)
+        step = np.linalg.norm(np.diff(slow.positions, axis=0), axis=1)
+        rot = [rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) for a, b in zip(slow.T_world_cam[:-1],
+                                                                           slow.T_world_cam[1:], strict=True)]
+        assert 0.005 < step.mean() < 0.02 and step.max() < 0.03
+        assert 0.3 < np.mean(rot) < 1.0
+        fast = make_trajectory("fast", 30, scene, seed=2)
+        assert np.allclose(fast.T_world_cam, slow.T_world_cam[::3], atol=1e-9)  # same curve, 3x speed
+        hand = make_trajectory("handheld", 90, scene, seed=2)
+        dev = np.linalg.norm(hand.positions - slow.positions, axis=1)
+        assert 1e-4 < np.median(dev) < 0.02
+        loop = make_trajectory("loop", 300, scene, seed=2)
+        assert np.linalg.norm(loop.positions[-1] - loop.positions[0]) < 0.3
+        assert np.ptp(loop.positions[:, 0]) > 1.0  # it really walks round the room
+        assert np.allclose(slow.timestamps, np.arange(90) / 30.0)
+    assert STYLES == ["slow", "fast", "handheld", "loop"]
+
+
+def test_every_scene_has_orb_features(scenes):
+    intr = default_intrinsics(640, 480)
+    orb = cv2.ORB_create(1000)
+    for name in SCENES:
+        T = make_trajectory("slow", 1, scenes[name]).T_world_cam[0]
+        grey = cv2.cvtColor(render(scenes[name], T, intr).rgb, cv2.COLOR_RGB2GRAY)
+        assert len(orb.detect(grey, None)) > 300, name
+
+
+def test_generate_sequence_is_deterministic_and_readable(tmp_path):
+    a = generate_sequence(tmp_path / "a", "room", "handheld", 3, "kinect", seed=5, width=160, height=120)
+    b = generate_sequence(tmp_path / "b", "room", "handheld", 3, "kinect", seed=5, width=160, height=120)
+    c = generate_sequence(tmp_path / "c", "room", "handheld", 3, "kinect", seed=6, width=160, height=120)
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert len(files) == 3 * 2 + 5
+    for f in files:
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    assert (a / "depth/0.033333.png").read_bytes() != (c / "depth/0.033333.png").read_bytes()
+    info = (a / "INFO.txt").read_text()
+    assert "generator       : surfelslam synth" in info
+    assert "intrinsics      : fx=131.25 fy=131.25 cx=79.5 cy=59.5" in info
+    assert "depth scale     : 5000" in info
+
+    from surfelslam.datasets import open_sequence
+
+    seq = open_sequence(a)
+    assert len(seq) == 3 and seq.layout == "synthetic"
+    assert seq.intrinsics.as_tuple() == (131.25, 131.25, 79.5, 59.5)
+    scene = make_scene("room", 5)
+    traj = make_trajectory("handheld", 3, scene, seed=5)
+    assert np.allclose(seq.ground_truth.T_world_cam, traj.T_world_cam, atol=1e-6)
+    frames = list(iter_frames(scene, traj, default_intrinsics(160, 120), noise_config("kinect"), seed=5))
+    for i, f in enumerate(frames):
+        got = seq[i]
+        assert np.array_equal(got.rgb, f.rgb)
+        assert np.allclose(got.depth_m, f.depth_m, atol=0.5 / 5000 + 1e-6)
