@@ -6,7 +6,9 @@ and 640x480; numba with 1 thread and with 2 threads. Rows:
 
 * ``preprocess``: depth -> 4-level vertex/normal pyramid into pre-allocated buffers (bilateral on).
 * ``icp 3-level``: :func:`icp` with the first three levels of the defaults (iterations 5/8/10).
-* ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 5/8/10/40 iterations).
+* ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 5/8/10/40 iterations,
+  finest-level source stride 2).
+* ``icp default stride 1``: the same with every finest-level source pixel.
 
 Usage: ``.venv/bin/python benchmarks/bench_icp.py [--quick]``; ``run(quick)`` returns the rows.
 """
@@ -69,6 +71,7 @@ def run(quick: bool = False) -> list[dict]:
     rows: list[dict] = []
     old_threads = numba.get_num_threads()
     cfg4 = ICPConfig()
+    cfg4s1 = replace(cfg4, finest_source_stride_px=1)
     d = ICPConfig()
     cfg3 = replace(d, levels=3, iterations=d.iterations[:3], dist_thresh_m=d.dist_thresh_m[:3],
                    angle_thresh_deg=d.angle_thresh_deg[:3])
@@ -82,15 +85,15 @@ def run(quick: bool = False) -> list[dict]:
                 numba.set_num_threads(threads)
                 pre.process(pairs[0][0], out=pyr_s)  # warm-up (JIT compile / cache load)
                 icp(pyr_s, pre.process(pairs[0][1], out=pyr_t), cfg=cfg4)
-                t_pre, t3, t4, it3, it4 = [], [], [], [], []
+                t_pre, t3, t4, t41, it3, it4, it41 = [], [], [], [], [], [], []
                 for ds_m, dt_m in pairs:
                     t_pre.append(_median_ms(lambda ds_m=ds_m, pre=pre, o=pyr_s: pre.process(ds_m, out=o), reps))
                     pre.process(dt_m, out=pyr_t)
-                    for cfg, times, its in ((cfg3, t3, it3), (cfg4, t4, it4)):
+                    for cfg, times, its in ((cfg3, t3, it3), (cfg4, t4, it4), (cfg4s1, t41, it41)):
                         times.append(_median_ms(lambda cfg=cfg, a=pyr_s, b=pyr_t: icp(a, b, cfg=cfg), reps))
                         its.append(icp(pyr_s, pyr_t, cfg=cfg).iterations)
                 for stage, times, its in (("preprocess", t_pre, [0]), ("icp 3-level", t3, it3),
-                                          ("icp default", t4, it4)):
+                                          ("icp default", t4, it4), ("icp default stride 1", t41, it41)):
                     rows.append({"stage": stage, "size": size, "threads": threads,
                                  "ms": float(np.median(times)), "iterations": float(np.mean(its)),
                                  "frames": source})

@@ -72,8 +72,8 @@ def pair_pyramids(renders):
     return pre.process(kinect(srcs[4], 1)), pre.process(kinect(tgt, 2))
 
 
-@pytest.mark.parametrize("robust", ["none", "huber", "tukey"])
-def test_kernel_matches_reference(pair_pyramids, robust):
+@pytest.mark.parametrize("robust,stride", [("none", 1), ("huber", 1), ("tukey", 1), ("huber", 2)])
+def test_kernel_matches_reference(pair_pyramids, robust, stride):
     src, tgt = pair_pyramids
     T = MOTIONS[4] @ motion((1, 0, 0), 0.5, (1, 1, 0), 0.01)  # near, not at, the solution
     kind = kicp.ROBUST_KINDS[robust]
@@ -81,11 +81,11 @@ def test_kernel_matches_reference(pair_pyramids, robust):
     cos_thr = np.cos(np.radians(30.0))
     stats = np.zeros(kicp.N_STATS)
     kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal, T,
-                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats)
+                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats, stride)
     A, b, w, z, n_valid = kicp.build_linear_system_ref(src[0].vertex, src[0].normal, tgt[0].vertex,
                                                        tgt[0].normal, T, i.fx, i.fy, i.cx, i.cy, 0.05,
-                                                       cos_thr, kind, 0.01)
-    assert len(b) > 20000 and stats[29] == len(b) and stats[31] == n_valid
+                                                       cos_thr, kind, 0.01, stride)
+    assert len(b) > 20000 / stride**2 and stats[29] == len(b) and stats[31] == n_valid
     AtA, Atb = kicp.normal_equations_ref(A, b, w)
     H, g = kicp.unpack_normal_equations(stats)
     np.testing.assert_allclose(H, AtA, rtol=1e-9, atol=1e-9 * np.abs(AtA).max())
@@ -156,10 +156,12 @@ def test_robust_weights_reference():
 # ---------------------------------------------------------------------------------------------
 
 
-def test_noiseless_pairs_recovered(renders):
+@pytest.mark.parametrize("stride", [1, 2])
+def test_noiseless_pairs_recovered(renders, stride):
     tgt, srcs = renders
+    cfg = ICPConfig(finest_source_stride_px=stride)
     for k, (T_tgt_src, src) in enumerate(zip(MOTIONS, srcs, strict=True)):
-        res = register_frames(src[0], tgt[0], INTR)
+        res = register_frames(src[0], tgt[0], INTR, icp_cfg=cfg)
         t_err, r_err = se3.pose_error(res.T_target_source, T_tgt_src)
         assert t_err < 1e-3 and r_err < 0.05, (k, t_err, r_err, res.reason)
         assert res.converged and not res.degenerate and res.reason is None

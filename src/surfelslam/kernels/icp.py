@@ -73,7 +73,8 @@ def robust_weight_ref(r: np.ndarray, kind: int, scale: float) -> np.ndarray:
 
 @njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
-                                dist_thresh_m, cos_angle_thresh, robust_kind, robust_scale_m, out):
+                                dist_thresh_m, cos_angle_thresh, robust_kind, robust_scale_m, out,
+                                src_stride=1):
     """One association pass + accumulation of the weighted normal equations.
 
     Args:
@@ -84,6 +85,7 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
         dist_thresh_m: maximum ``|p' - q|``; cos_angle_thresh: minimum ``(R n_p) . n_q``.
         robust_kind: ``ROBUST_NONE | ROBUST_HUBER | ROBUST_TUKEY``; robust_scale_m: kernel scale (m).
         out: ``(N_STATS,)`` float64, receives the sums (layout in the module docstring).
+        src_stride: use only source pixels ``[::src_stride, ::src_stride]`` (1 = all).
     """
     H, W = src_vertex.shape[0], src_vertex.shape[1]
     Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
@@ -101,7 +103,9 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
         row0 = (c * H) // N_CHUNKS
         row1 = ((c + 1) * H) // N_CHUNKS
         for v in range(row0, row1):
-            for u in range(W):
+            if v % src_stride != 0:
+                continue
+            for u in range(0, W, src_stride):
                 pz0 = np.float64(src_vertex[v, u, 2])
                 if pz0 <= 0.0:
                     continue
@@ -224,15 +228,16 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
 
 
 def build_linear_system_ref(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
-                            dist_thresh_m, cos_angle_thresh, robust_kind=ROBUST_NONE, robust_scale_m=1.0):
+                            dist_thresh_m, cos_angle_thresh, robust_kind=ROBUST_NONE, robust_scale_m=1.0,
+                            src_stride=1):
     """Numpy reference: the explicit system of :func:`accumulate_normal_equations`.
 
     Returns:
         ``(A (N, 6), b (N,), w (N,), src_z (N,), n_valid_source)`` for the N inliers, in row-major
         source-pixel order; ``A^T diag(w) A`` and ``A^T diag(w) b`` are the normal equations.
     """
-    P0 = src_vertex.reshape(-1, 3).astype(np.float64)
-    N0 = src_normal.reshape(-1, 3).astype(np.float64)
+    P0 = src_vertex[::src_stride, ::src_stride].reshape(-1, 3).astype(np.float64)
+    N0 = src_normal[::src_stride, ::src_stride].reshape(-1, 3).astype(np.float64)
     ok = (P0[:, 2] > 0) & np.any(N0 != 0, axis=1)
     n_valid = int(ok.sum())
     P0, N0 = P0[ok], N0[ok]

@@ -52,6 +52,7 @@ def bilateral_filter(depth_m, min_depth_m, max_depth_m, spatial, range_lut, lut_
     H, W = depth_m.shape
     r = spatial.shape[0] // 2
     nlut = range_lut.shape[0]
+    inv_step = 1.0 / lut_step_m
     for v in prange(H):
         for u in range(W):
             z0 = np.float64(depth_m[v, u])
@@ -71,7 +72,7 @@ def bilateral_filter(depth_m, min_depth_m, max_depth_m, spatial, range_lut, lut_
                     z = np.float64(depth_m[vv, uu])
                     if not (z >= min_depth_m and z <= max_depth_m):
                         continue
-                    k = int(abs(z - z0) / lut_step_m)
+                    k = int(abs(z - z0) * inv_step)
                     if k >= nlut:
                         continue
                     w = spatial[dv + r, du + r] * range_lut[k]
@@ -92,7 +93,7 @@ def bilateral_filter_ref(depth_m, min_depth_m, max_depth_m, spatial, range_lut, 
     for dv in range(-r, r + 1):  # loops over the (2r+1)^2 window offsets, not over pixels
         for du in range(-r, r + 1):
             z = pad[r + dv : r + dv + H, r + du : r + du + W]
-            k = np.floor(np.abs(np.nan_to_num(z, nan=np.inf) - z0) / lut_step_m)
+            k = np.floor(np.abs(np.nan_to_num(z, nan=np.inf) - z0) * (1.0 / lut_step_m))
             ok = np.isfinite(z) & (k < len(range_lut))
             w = np.where(ok, spatial[dv + r, du + r] * range_lut[np.where(ok, k, 0).astype(np.int64)], 0.0)
             sw += w
@@ -186,11 +187,12 @@ def vertex_normals(vertex, max_depth_jump_m, out):
             norm = np.sqrt(nx * nx + ny * ny + nz * nz)
             if norm <= 0.0:
                 continue
+            inv = 1.0 / norm
             if nx * vertex[v, u, 0] + ny * vertex[v, u, 1] + nz * z > 0.0:
-                norm = -norm
-            out[v, u, 0] = nx / norm
-            out[v, u, 1] = ny / norm
-            out[v, u, 2] = nz / norm
+                inv = -inv
+            out[v, u, 0] = nx * inv
+            out[v, u, 1] = ny * inv
+            out[v, u, 2] = nz * inv
 
 
 def vertex_normals_ref(vertex, max_depth_jump_m):

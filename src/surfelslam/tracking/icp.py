@@ -51,6 +51,8 @@ class ICPConfig:
             depth) with a larger eigenvalue ratio marks the problem degenerate.
         max_translation_m, max_rotation_deg: a correction ``T T_init^-1`` larger than this is rejected
             as implausible.
+        finest_source_stride_px: at the finest level only source pixels ``[::s, ::s]`` are associated
+            (the target keeps its full resolution); 1 uses every pixel.
     """
 
     levels: int = 4
@@ -67,6 +69,7 @@ class ICPConfig:
     max_condition_number: float = 1e4
     max_translation_m: float = 0.5
     max_rotation_deg: float = 30.0
+    finest_source_stride_px: int = 2
 
     def __post_init__(self) -> None:
         if self.levels < 1:
@@ -89,6 +92,8 @@ class ICPConfig:
                               f"got {self.robust_kernel!r}")
         if not self.robust_scale_m > 0:
             raise ConfigError(f"icp: robust_scale_m must be > 0, got {self.robust_scale_m}")
+        if self.finest_source_stride_px < 1:
+            raise ConfigError(f"icp: finest_source_stride_px must be >= 1, got {self.finest_source_stride_px}")
         if not 0 <= self.min_inlier_fraction <= 1:
             raise ConfigError(f"icp: min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction}")
 
@@ -214,7 +219,8 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
         ti = tgt.intrinsics
         cos_thr = float(np.cos(np.radians(cfg.angle_thresh_deg[lvl])))
         # inlier count needed to take a step (coarse levels have 4x fewer pixels per level)
-        need = max(cfg.min_inliers / 4.0**lvl, _MIN_INLIERS_PER_STEP)
+        stride = cfg.finest_source_stride_px if lvl == 0 else 1
+        need = max(cfg.min_inliers / 4.0**lvl / stride**2, _MIN_INLIERS_PER_STEP)
         prev_mse = np.inf
         stop = "max_iterations"
         upd = np.inf
@@ -222,7 +228,7 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
         for _ in range(cfg.iterations[lvl]):
             kicp.accumulate_normal_equations(src.vertex, src.normal, tgt.vertex, tgt.normal, T,
                                              ti.fx, ti.fy, ti.cx, ti.cy, cfg.dist_thresh_m[lvl], cos_thr,
-                                             robust, cfg.robust_scale_m, stats)
+                                             robust, cfg.robust_scale_m, stats, stride)
             n_in = stats[29]
             if n_in < need:
                 stop = "too_few_inliers"
