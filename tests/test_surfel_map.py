@@ -144,8 +144,9 @@ def test_render_plane_depth_and_normal_at_known_pixels():
     m = _plane_map(z0)
     # camera translated and rotated about y: plane z = z0 in world
     T = make_T(so3_exp([0.0, 0.2, 0.0]), [0.1, 0.05, -0.3])
-    view = render(m, T, INTR)
+    view = render(m, T, INTR, RenderConfig(vertex="disc"))  # disc mode: the exact plane point on each ray
     assert view.valid.mean() > 0.99  # no holes
+    centre = render(m, T, INTR)  # centre mode (default): the surfel centres, on the plane too
     Tcw = invert(T)
     n_cam = Tcw[:3, :3] @ np.array([0.0, 0.0, -1.0])
     # expected: intersection of each pixel ray with the plane n_cam . x = n_cam . p0 (p0 a plane point in cam)
@@ -156,6 +157,8 @@ def test_render_plane_depth_and_normal_at_known_pixels():
         np.testing.assert_allclose(view.vertex_cam[v, u], t * d, atol=1e-5)
         np.testing.assert_allclose(view.normal_cam[v, u], n_cam, atol=1e-6)
         assert view.colour[v, u].tolist() == [77, 77, 77]
+        assert abs(n_cam @ (centre.vertex_cam[v, u] - p0)) < 1e-5  # centre lies on the plane
+        assert np.linalg.norm(centre.vertex_cam[v, u] - t * d) < 0.03  # ... within a surfel spacing of the ray
     # image row 0 sees world y > 0 side? with fy < 0, v = 0 is +y: check sign convention directly
     assert view.vertex_cam[0, 80, 1] > 0 and view.vertex_cam[119, 80, 1] < 0
 
@@ -202,12 +205,13 @@ def test_splat_fill_and_index_kernels_match_references():
 
     out = [np.empty((H, W, 3), np.float32), np.empty((H, W, 3), np.float32), np.empty((H, W, 3), np.uint8),
            np.empty((H, W), np.float32)]
-    kr.fill_view(index, depth, a["normal"], a["colour"], a["confidence"], R, INTR.fx, INTR.fy, INTR.cx, INTR.cy,
-                 *out)
-    ref = kr.fill_view_ref(index, depth, a["normal"], a["colour"], a["confidence"], R,
-                           INTR.fx, INTR.fy, INTR.cx, INTR.cy)
-    for o, r in zip(out, ref, strict=True):
-        np.testing.assert_allclose(o.astype(np.float64), r.astype(np.float64), atol=1e-5)
+    for use_centre in (True, False):
+        kr.fill_view(index, depth, a["position"], a["normal"], a["colour"], a["confidence"], R, t,
+                     INTR.fx, INTR.fy, INTR.cx, INTR.cy, use_centre, *out)
+        ref = kr.fill_view_ref(index, depth, a["position"], a["normal"], a["colour"], a["confidence"], R, t,
+                               INTR.fx, INTR.fy, INTR.cx, INTR.cy, use_centre)
+        for o, r in zip(out, ref, strict=True):
+            np.testing.assert_allclose(o.astype(np.float64), r.astype(np.float64), atol=1e-5)
 
     shape_s = (H * 4, W * 4)
     d4 = np.full(shape_s, np.inf)

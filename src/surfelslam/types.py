@@ -154,5 +154,24 @@ class Trajectory:
 
         write_tum(self, path)
 
+    def lookup(self, stamps: np.ndarray, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pose with the nearest timestamp for each query stamp.
+
+        Returns:
+            ``(T_world_cam (M, 4, 4), valid (M,) bool)``; a stamp farther than ``max_dt_s`` from every pose is
+            invalid and gets the identity.
+        """
+        stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        T = np.tile(np.eye(4), (len(stamps), 1, 1))
+        if len(self) == 0 or len(stamps) == 0:
+            return T, np.zeros(len(stamps), dtype=bool)
+        t = self.timestamps
+        idx = np.clip(np.searchsorted(t, stamps), 1, max(len(t) - 1, 1))
+        lo, hi = idx - 1, np.minimum(idx, len(t) - 1)
+        best = np.where(np.abs(t[lo] - stamps) <= np.abs(t[hi] - stamps), lo, hi)
+        valid = np.abs(t[best] - stamps) <= max_dt_s
+        T[valid] = self.T_world_cam[best[valid]]
+        return T, valid
+
     def subset(self, mask_or_index) -> Trajectory:
         return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])

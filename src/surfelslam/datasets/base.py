@@ -153,19 +153,10 @@ class RGBDSequence:
             ``(T_world_cam (N, 4, 4), valid (N,) bool)``: frames whose nearest ground-truth stamp is
             farther than ``max_dt_s`` are marked invalid (their pose is identity).
         """
-        n = len(self)
-        T = np.tile(np.eye(4), (n, 1, 1))
-        valid = np.zeros(n, dtype=bool)
-        if self.ground_truth is None or n == 0:
-            return T, valid
-        gt_t = self.ground_truth.timestamps
-        idx = np.clip(np.searchsorted(gt_t, self.timestamps), 1, max(len(gt_t) - 1, 1))
-        cand = np.stack([idx - 1, np.minimum(idx, len(gt_t) - 1)], axis=1)
-        dt = np.abs(gt_t[cand] - self.timestamps[:, None])
-        best = cand[np.arange(n), np.argmin(dt, axis=1)]
-        valid = np.min(dt, axis=1) <= max_dt_s
-        T[valid] = self.ground_truth.T_world_cam[best[valid]]
-        return T, valid
+        if self.ground_truth is None:
+            n = len(self)
+            return np.tile(np.eye(4), (n, 1, 1)), np.zeros(n, dtype=bool)
+        return self.ground_truth.lookup(self.timestamps, max_dt_s)
 
     def info(self) -> dict:
         """What was detected, for ``surfelslam info``."""

@@ -229,9 +229,13 @@ def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_
 
 # ---------------------------------------------------------------------------------------------------- fill
 @njit(cache=True, parallel=True)
-def fill_view(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy, vertex_out, normal_out, colour_out,
-              conf_out):
-    """Per pixel: camera-frame vertex (depth along the pixel ray), camera-frame normal, colour, confidence.
+def fill_view(index_buf, depth_buf, pos, nrm, col, conf, R, t, fx, fy, cx, cy, use_centre, vertex_out, normal_out,
+              colour_out, conf_out):
+    """Per pixel: camera-frame vertex, camera-frame normal, colour, confidence.
+
+    The vertex is the winning surfel's centre ``R p + t`` when ``use_centre`` (unbiased on curved surfaces:
+    a neighbour's tangent disc lies in front of a convex surface), else the disc point on the pixel ray
+    (``depth_buf`` along the ray).
 
     Rows are independent (parallel over rows, deterministic). Empty pixels (index -1) get zeros.
     ``colour_out`` uint8 ``(H, W, 3)`` is the rounded, clipped surfel colour.
@@ -248,10 +252,14 @@ def fill_view(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy, vertex_ou
                     colour_out[v, u, c] = 0
                 conf_out[v, u] = 0.0
                 continue
-            d = depth_buf[v, u]
-            vertex_out[v, u, 0] = d * (u - cx) / fx
-            vertex_out[v, u, 1] = d * dy
-            vertex_out[v, u, 2] = d
+            if use_centre:
+                for c in range(3):
+                    vertex_out[v, u, c] = R[c, 0] * pos[i, 0] + R[c, 1] * pos[i, 1] + R[c, 2] * pos[i, 2] + t[c]
+            else:
+                d = depth_buf[v, u]
+                vertex_out[v, u, 0] = d * (u - cx) / fx
+                vertex_out[v, u, 1] = d * dy
+                vertex_out[v, u, 2] = d
             for c in range(3):
                 normal_out[v, u, c] = R[c, 0] * nrm[i, 0] + R[c, 1] * nrm[i, 1] + R[c, 2] * nrm[i, 2]
                 x = int(col[i, c] + 0.5)  # colours are averages of uint8 values: within [0, 255]
@@ -259,14 +267,18 @@ def fill_view(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy, vertex_ou
             conf_out[v, u] = conf[i]
 
 
-def fill_view_ref(index_buf, depth_buf, nrm, col, conf, R, fx, fy, cx, cy):
+def fill_view_ref(index_buf, depth_buf, pos, nrm, col, conf, R, t, fx, fy, cx, cy, use_centre):
     """Numpy reference of :func:`fill_view`; returns ``(vertex, normal, colour, confidence)``."""
     H, W = index_buf.shape
     v, u = np.mgrid[0:H, 0:W].astype(np.float64)
     valid = index_buf >= 0
     i = np.where(valid, index_buf, 0)
-    d = np.where(valid, depth_buf, 0.0)
-    vertex = np.stack([d * (u - cx) / fx, d * ((v - cy) / fy), d], axis=-1).astype(np.float32)
+    if use_centre:
+        vertex = (pos[i].astype(np.float64) @ R.T + t).astype(np.float32)
+        vertex[~valid] = 0
+    else:
+        d = np.where(valid, depth_buf, 0.0)
+        vertex = np.stack([d * (u - cx) / fx, d * ((v - cy) / fy), d], axis=-1).astype(np.float32)
     n = nrm[i].astype(np.float64)
     normal = np.einsum("ij,hwj->hwi", R, n).astype(np.float32)
     normal[~valid] = 0

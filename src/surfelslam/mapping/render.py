@@ -33,6 +33,7 @@ class RenderConfig:
     min_confidence: float = 0.0
     young_age_frames: int = 10
     cull_backfaces: bool = True  # skip surfels whose normal faces away from the camera
+    vertex: str = "centre"  # "centre": the winning surfel's centre; "disc": its disc point on the pixel ray
 
     def __post_init__(self) -> None:
         if not 0 < self.min_depth_m < self.max_depth_m:
@@ -41,6 +42,8 @@ class RenderConfig:
             )
         if self.max_splat_radius_px < 0:
             raise ConfigError(f"render: max_splat_radius_px must be >= 0, got {self.max_splat_radius_px}")
+        if self.vertex not in ("centre", "disc"):
+            raise ConfigError(f"render: vertex must be 'centre' or 'disc', got {self.vertex!r}")
         if self.young_age_frames < 0:
             raise ConfigError(f"render: young_age_frames must be >= 0, got {self.young_age_frames}")
 
@@ -125,8 +128,9 @@ def render(
     normal = np.empty((H, W, 3), np.float32)
     colour = np.empty((H, W, 3), np.uint8)
     conf = np.empty((H, W), np.float32)
-    kr.fill_view(index, depth, arr["normal"], arr["colour"], arr["confidence"], R,
-                 float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), vertex, normal, colour, conf)
+    kr.fill_view(index, depth, arr["position"], arr["normal"], arr["colour"], arr["confidence"], R, t,
+                 float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy), cfg.vertex == "centre",
+                 vertex, normal, colour, conf)
     return RenderedView(index, vertex, normal, colour, conf, len(cand))
 
 

@@ -1,0 +1,216 @@
+"""``surfelslam run``: the whole pipeline on a sequence, writing trajectory, map, config, metrics and figures."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+from tqdm import tqdm
+
+from surfelslam.config import dumps_toml, load_toml
+from surfelslam.datasets import open_sequence
+from surfelslam.errors import ConfigError
+from surfelslam.io.atomic import write_text_atomic
+from surfelslam.io.prefetch import prefetch_frames
+from surfelslam.io.trajectory import TumAppender
+from surfelslam.pipeline import TRACKERS, SlamConfig, build_slam, poses_for_mapping
+from surfelslam.tools.common import (
+    DepthScaleOpt,
+    DownsampleOpt,
+    EndOpt,
+    IntrinsicsOpt,
+    SeqArg,
+    StartOpt,
+    StrideOpt,
+    console,
+    dataset_options,
+    handle_errors,
+)
+
+
+def load_config(path: Path | None) -> SlamConfig:
+    return SlamConfig() if path is None else load_toml(SlamConfig, path)
+
+
+def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str | None = None,
+                 progress: bool = True, figures: bool = True) -> dict:
+    """Run the pipeline on an opened sequence and write every output into ``out_dir``.
+
+    Returns the metrics dict (also written as ``metrics.json``).
+    """
+    if len(seq) == 0:
+        raise ConfigError(f"{seq.root}: the selection has no frames (check --start/--end/--stride)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out_dir / "config.toml", dumps_toml(cfg))
+
+    given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
+    slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given")
+    t_warm = time.perf_counter()
+    slam.warmup()
+    warmup_s = time.perf_counter() - t_warm
+
+    skipped: list[dict] = []
+    stage_ms: dict[str, list[float]] = {"read": []}
+    frame_ms: list[float] = []
+    n_done = 0
+    bar = tqdm(total=len(seq), unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
+    t_start = time.perf_counter()
+    try:
+        with TumAppender(out_dir / "trajectory.txt") as traj_out:
+            for item in prefetch_frames(seq, ahead=cfg.io.prefetch_frames):
+                t0 = time.perf_counter()
+                if item.error is not None:
+                    skipped.append({"position": item.position, "reason": str(item.error)})
+                    bar.update(1)
+                    continue
+                frame = item.frame
+                if given is not None:
+                    T_given = given.get(item.position)
+                    if T_given is None:
+                        skipped.append({"position": item.position, "reason": "no pose within max_dt"})
+                        bar.update(1)
+                        continue
+                    res = slam.process(frame, T_world_cam=T_given)
+                else:
+                    res = slam.process(frame)
+                traj_out.append(frame.timestamp, res.T_world_cam)
+                n_done += 1
+                stage_ms["read"].append(item.read_ms)
+                for k, v in res.timings_ms.items():
+                    stage_ms.setdefault(k, []).append(v)
+                frame_ms.append((time.perf_counter() - t0) * 1e3)
+                bar.update(1)
+                if n_done % 10 == 0:
+                    el = time.perf_counter() - t_start
+                    bar.set_postfix(fps=f"{n_done / max(el, 1e-9):.1f}", pts=f"{res.map_points:,}")
+    finally:
+        bar.close()
+    wall_s = time.perf_counter() - t_start
+    result = slam.finish()
+    if result.trajectory_override is not None:
+        # A back end (pose graph) corrected the poses: the written trajectory is the optimised one.
+        result.trajectory_override.write_tum(out_dir / "trajectory.txt")
+
+    metrics = {
+        "sequence": str(seq.root),
+        "layout": seq.layout,
+        "tracker": tracker if given is None else f"given:{poses}",
+        "frames": len(seq),
+        "frames_processed": n_done,
+        "frames_skipped": len(skipped),
+        "skipped": skipped,
+        "resolution": [seq.intrinsics.width, seq.intrinsics.height],
+        "downsample": seq.options.downsample,
+        "fps": n_done / wall_s if wall_s > 0 else 0.0,
+        "wall_s": wall_s,
+        "warmup_s": warmup_s,
+        "ms_per_frame": _stats(frame_ms),
+        "stage_ms": {k: _stats(v) for k, v in stage_ms.items()},
+        "map_points": result.map_points,
+        "compression_ratio": result.map_points / max(n_done * seq.intrinsics.width * seq.intrinsics.height, 1),
+        **result.metrics,
+    }
+    if seq.ground_truth is not None and n_done >= 3:
+        from surfelslam.eval.metrics import evaluate
+        from surfelslam.types import Trajectory
+
+        est = Trajectory.read_tum(out_dir / "trajectory.txt")
+        try:
+            metrics["eval"] = evaluate(est, seq.ground_truth)
+        except Exception as exc:  # noqa: BLE001 - evaluation problems must not lose the run's outputs
+            metrics["eval_error"] = str(exc)
+    write_text_atomic(out_dir / "metrics.json", json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    result.write_map(out_dir / "map.ply")
+    if figures:
+        _write_figures(out_dir, seq, result, metrics)
+    return metrics
+
+
+def _json_default(o):
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(o)}")
+
+
+def _stats(v: list[float]) -> dict:
+    if not v:
+        return {"mean": 0.0, "median": 0.0, "p95": 0.0}
+    a = np.asarray(v)
+    return {"mean": float(a.mean()), "median": float(np.median(a)), "p95": float(np.percentile(a, 95))}
+
+
+def _write_figures(out_dir: Path, seq, result, metrics: dict) -> None:
+    from surfelslam.types import Trajectory
+    from surfelslam.viz.map_figures import save_map_figures
+
+    est = Trajectory.read_tum(out_dir / "trajectory.txt")
+    if "eval" in metrics:
+        from surfelslam.eval.metrics import ate
+        from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory
+
+        a = ate(est, seq.ground_truth)
+        plot_trajectory(out_dir / "trajectory.png", a.est_aligned, a.gt,
+                        title=f"{metrics['tracker']}: ATE RMSE {a.rmse_m * 100:.2f} cm", loops=result.loop_stamps)
+        plot_errors(out_dir / "ate_errors.png", a)
+    cloud = result.map_arrays()
+    if cloud is not None and len(cloud["position"]):
+        save_map_figures(out_dir, cloud["position"], cloud["normal"], cloud["colour"], cloud["confidence"],
+                         cloud["first_seen"], est.T_world_cam[0], title=f"{metrics['tracker']} map")
+
+
+def print_summary(metrics: dict, out_dir: Path) -> None:
+    t = Table(title=f"surfelslam run -> {out_dir}", show_header=False)
+    t.add_row("frames", f"{metrics['frames_processed']} processed, {metrics['frames_skipped']} skipped")
+    t.add_row("tracking failures", str(metrics.get("tracking_failures", 0)))
+    t.add_row("FPS", f"{metrics['fps']:.1f}  (JIT warm-up {metrics['warmup_s']:.1f} s excluded)")
+    stages = "  ".join(f"{k} {v['mean']:.1f}" for k, v in metrics["stage_ms"].items())
+    t.add_row("ms per stage", stages)
+    t.add_row("map points", f"{metrics['map_points']:,}  (compression {metrics['compression_ratio'] * 100:.2f}%)")
+    if "eval" in metrics:
+        e = metrics["eval"]
+        t.add_row("ATE RMSE", f"{e['ate_rmse_m'] * 100:.2f} cm")
+        t.add_row("RPE / frame", f"{e['rpe_trans_rmse_m_per_frame'] * 1000:.2f} mm, "
+                                 f"{e['rpe_rot_rmse_deg_per_frame']:.3f} deg")
+    for k in ("loops_found", "loops_accepted"):
+        if k in metrics:
+            t.add_row(k.replace("_", " "), str(metrics[k]))
+    console.print(t)
+    for s in metrics["skipped"][:5]:
+        console.print(f"[yellow]skipped frame {s['position']}:[/] {s['reason']}", highlight=False)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("run")
+    @handle_errors
+    def run_cmd(
+        seq_path: SeqArg,
+        out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out/run"),
+        config: Annotated[Path | None, typer.Option("--config", help="TOML configuration file.")] = None,
+        tracker: Annotated[str, typer.Option("--tracker", help=f"One of {', '.join(TRACKERS)}.")] = "dense",
+        poses: Annotated[str | None, typer.Option(
+            "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")] = None,
+        figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")] = True,
+        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+        intrinsics: IntrinsicsOpt = None,
+        depth_scale: DepthScaleOpt = None,
+        start: StartOpt = 0,
+        end: EndOpt = None,
+        stride: StrideOpt = 1,
+        downsample: DownsampleOpt = 1,
+    ) -> None:
+        """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures."""
+        if tracker not in TRACKERS:
+            raise ConfigError(f"--tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
+        cfg = load_config(config)
+        seq = open_sequence(seq_path, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
+        metrics = run_sequence(seq, out, cfg, tracker, poses=poses, progress=progress, figures=figures)
+        print_summary(metrics, out)
