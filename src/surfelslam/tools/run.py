@@ -185,7 +185,7 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
             t.add_row(k.replace("_", " "), str(metrics[k]))
     console.print(t)
     for s in metrics["skipped"][:5]:
-        console.print(f"[yellow]skipped frame {s['position']}:[/] {s['reason']}", highlight=False)
+        console.print(f"[yellow]skipped frame {s['position']}:[/] {s['reason']}", highlight=False, soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:
