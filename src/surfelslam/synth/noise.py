@@ -10,6 +10,7 @@ so that any frame can be regenerated on its own.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -52,13 +53,20 @@ def axial_sigma_m(depth_m: np.ndarray, cfg: KinectNoiseConfig) -> np.ndarray:
     return cfg.axial_sigma_base_m + cfg.axial_sigma_quad_per_m * (depth_m - cfg.axial_sigma_offset_m) ** 2
 
 
+@functools.lru_cache(maxsize=8)
+def _unit_rays(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> np.ndarray:
+    """``(H, W, 3)`` float32 unit viewing rays (cached per camera; read-only)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    rays = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays.setflags(write=False)
+    return rays
+
+
 def ray_normal_cos(normal_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """``(H, W)`` ``|cos|`` of the angle between each pixel's viewing ray and the normal ``(H, W, 3)``."""
-    v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float32)
-    x = (u - intr.cx) / intr.fx
-    y = (v - intr.cy) / intr.fy
-    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
-    return np.abs(normal_cam[..., 0] * x + normal_cam[..., 1] * y + normal_cam[..., 2]) * inv
+    rays = _unit_rays(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+    return np.abs(np.einsum("hwc,hwc->hw", normal_cam, rays))
 
 
 def disparity_focal_px(intr: Intrinsics, cfg: KinectNoiseConfig) -> float:
@@ -111,8 +119,12 @@ def noisy_depth(
 
 def noisy_rgb(rgb: np.ndarray, cfg: KinectNoiseConfig, rng: np.random.Generator) -> np.ndarray:
     """``(H, W, 3)`` uint8 -> blurred, noisy ``(H, W, 3)`` uint8."""
-    img = rgb.astype(np.float32)
+    img = rgb
     if cfg.rgb_blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), cfg.rgb_blur_sigma_px, borderType=cv2.BORDER_REFLECT)
-    img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(cfg.rgb_noise_sigma)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    noise = rng.standard_normal(img.shape, dtype=np.float32)
+    noise *= np.float32(cfg.rgb_noise_sigma)
+    noise += img
+    noise += np.float32(0.5)
+    np.clip(noise, 0, 255, out=noise)
+    return noise.astype(np.uint8)

@@ -14,7 +14,9 @@ Timestamps are ``index / fps`` formatted ``%.6f``. The same arguments give byte-
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +37,8 @@ _UINT16_MAX = 65535
 _BASE_FOCAL_PX = 525.0  # default intrinsics at 640x480 (TUM / Kinect v1 defaults)
 _BASE_SIZE_PX = (640, 480)
 DEFAULT_FPS = 30.0
+_WRITER_THREADS = 2  # background PNG writers
+_MAX_QUEUED_FRAMES = 4  # frames waiting to be written (bounds memory)
 
 
 def default_intrinsics(width: int = 640, height: int = 480) -> Intrinsics:
@@ -139,15 +143,31 @@ def generate_sequence(
         from tqdm import tqdm
 
         bar = tqdm(total=n_frames, desc="synth", unit="frame")
+    # PNG encoding releases the GIL: write in background threads while the next frame renders.
+    # File contents do not depend on the order of completion.
+    pending: deque[Future] = deque()
+
+    def finish_one() -> None:
+        index = pending.popleft().result()
+        if bar is not None:
+            bar.update(1)
+        elif callable(progress):
+            progress(index)
+
+    def write_frame(frame: RGBDFrame) -> int:
+        name = names[frame.index]
+        write_png_rgb(out / "rgb" / f"{name}.png", frame.rgb)
+        write_png_depth(out / "depth" / f"{name}.png", depth_to_raw(frame.depth_m))
+        return frame.index
+
     try:
-        for frame in iter_frames(sc, traj, intr, noise_cfg, seed):
-            name = names[frame.index]
-            write_png_rgb(out / "rgb" / f"{name}.png", frame.rgb)
-            write_png_depth(out / "depth" / f"{name}.png", depth_to_raw(frame.depth_m))
-            if bar is not None:
-                bar.update(1)
-            elif callable(progress):
-                progress(frame.index)
+        with ThreadPoolExecutor(max_workers=_WRITER_THREADS) as pool:
+            for frame in iter_frames(sc, traj, intr, noise_cfg, seed):
+                pending.append(pool.submit(write_frame, frame))
+                while len(pending) > _MAX_QUEUED_FRAMES:
+                    finish_one()
+            while pending:
+                finish_one()
     finally:
         if bar is not None:
             bar.close()
