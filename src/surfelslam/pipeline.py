@@ -46,12 +46,15 @@ class TrackingConfig:
 
     Attributes:
         constant_velocity: predict each pose by repeating the last inter-frame motion (else: last pose).
+        frame_to_frame_init: first register the frame to the previous frame (from the prediction), then
+            refine against the model from there (costs one more ICP; helps under fast motion).
         max_failures_in_a_row_before_reset_velocity: after this many failed frames in a row the velocity is
             reset to zero (the prediction stops extrapolating).
     """
 
     constant_velocity: bool = True
     max_failures_in_a_row_before_reset_velocity: int = 3
+    frame_to_frame_init: bool = False
 
 
 @dataclass
@@ -171,6 +174,7 @@ class DenseSlam(_FusingMapper):
     def __init__(self, intr: Intrinsics, cfg: SlamConfig):
         super().__init__(intr, cfg)
         self.target = self.pre.new_pyramid()
+        self.previous = self.pre.new_pyramid()  # the last frame's pyramid (buffers swapped, not copied)
         self.T_world_cam: np.ndarray | None = None
         self.velocity = np.eye(4)  # T_prev_cur of the last good step
         self.failures = 0
@@ -197,18 +201,24 @@ class DenseSlam(_FusingMapper):
             self.T_world_cam = np.eye(4)
             self._fuse(frame, self.T_world_cam)
             t.lap("fuse")
+            self.source, self.previous = self.previous, self.source
             return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), True, True, None, t.ms,
                                self.map.n_alive)
         T_prev = self.T_world_cam
         T_pred = self.predict()
+        T_init = se3.orthonormalize(se3.invert(T_prev) @ T_pred)
         target = self.render_target(T_prev)
         t.lap("render")
-        res = icp(self.source, target, T_init=se3.invert(T_prev) @ T_pred, cfg=self.cfg.icp)
+        if self.cfg.tracking.frame_to_frame_init:
+            f2f = icp(self.source, self.previous, T_init=T_init, cfg=self.cfg.icp)
+            if icp_failure(f2f) is None:
+                T_init = f2f.T_target_source
+        res = icp(self.source, target, T_init=T_init, cfg=self.cfg.icp)
         t.lap("icp")
         failure = icp_failure(res)
         if failure is None:
-            T_new = T_prev @ res.T_target_source
-            self.velocity = res.T_target_source
+            self.velocity = se3.orthonormalize(res.T_target_source)
+            T_new = se3.orthonormalize(T_prev @ self.velocity)
             self.failures_in_a_row = 0
             self._fuse(frame, T_new)
             t.lap("fuse")
@@ -220,6 +230,7 @@ class DenseSlam(_FusingMapper):
             if self.failures_in_a_row >= self.cfg.tracking.max_failures_in_a_row_before_reset_velocity:
                 self.velocity = np.eye(4)
         self.T_world_cam = T_new
+        self.source, self.previous = self.previous, self.source
         return FrameResult(frame.index, frame.timestamp, T_new.copy(), failure is None, failure is None,
                            res.reason, t.ms, self.map.n_alive, res)
 

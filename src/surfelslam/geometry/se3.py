@@ -39,6 +39,23 @@ def invert(T: np.ndarray) -> np.ndarray:
     return make_T(Rt, -np.einsum("...ij,...j->...i", Rt, t))
 
 
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """Nearest rigid transform: the rotation block projected onto SO(3) (SVD), translation kept.
+
+    Products of many poses drift off SO(3) by rounding; :func:`invert` assumes ``R^T = R^-1``, so a
+    tracker that chains poses must re-project them, or the error compounds frame after frame.
+    """
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    T[:3, :3] = R
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
 def compose(*Ts: np.ndarray) -> np.ndarray:
     """``compose(A, B, C) = A @ B @ C``."""
     out = np.asarray(Ts[0], dtype=np.float64)
@@ -100,12 +117,7 @@ def small_angle_update(xi: np.ndarray) -> np.ndarray:
     This is the seeds' linearised increment; :func:`exp` is the exact one.
     """
     xi = np.asarray(xi, dtype=np.float64).reshape(6)
-    U, _, Vt = np.linalg.svd(np.eye(3) + skew(xi[:3]))
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return make_T(R, xi[3:])
+    return orthonormalize(make_T(np.eye(3) + skew(xi[:3]), xi[3:]))
 
 
 def rotation_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
