@@ -17,6 +17,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from surfelslam.kernels.render import candidates_in_camera_ref
+
 ASSOC_INVALID = -1
 ASSOC_COVERED = -2
 ASSOC_NEW = -3
@@ -93,18 +95,7 @@ def bucket_by_pixel(cand, m, pos, nrm, R, t, fx, fy, cx, cy, H, W, near, far, cu
 
 def bucket_by_pixel_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, H, W, near, far, cull_back):
     """Numpy reference of :func:`bucket_by_pixel`; returns ``(start (H*W+1,), order (n,))``."""
-    idx = cand[:m].astype(np.int64)
-    P = pos[idx].astype(np.float64)
-    N = nrm[idx].astype(np.float64)
-    px = R[0, 0] * P[:, 0] + R[0, 1] * P[:, 1] + R[0, 2] * P[:, 2] + t[0]
-    py = R[1, 0] * P[:, 0] + R[1, 1] * P[:, 1] + R[1, 2] * P[:, 2] + t[1]
-    pz = R[2, 0] * P[:, 0] + R[2, 1] * P[:, 1] + R[2, 2] * P[:, 2] + t[2]
-    ok = (pz >= near) & (pz <= far)
-    if cull_back:
-        nx = R[0, 0] * N[:, 0] + R[0, 1] * N[:, 1] + R[0, 2] * N[:, 2]
-        ny = R[1, 0] * N[:, 0] + R[1, 1] * N[:, 1] + R[1, 2] * N[:, 2]
-        nz = R[2, 0] * N[:, 0] + R[2, 1] * N[:, 1] + R[2, 2] * N[:, 2]
-        ok &= nx * px + ny * py + nz * pz < 0
+    idx, px, py, pz, ok = candidates_in_camera_ref(cand, m, pos, nrm, R, t, near, far, cull_back)
     pzs = np.where(ok, pz, 1.0)
     u = np.floor(fx * px / pzs + cx + 0.5).astype(np.int64)
     v = np.floor(fy * py / pzs + cy + 0.5).astype(np.int64)

@@ -219,6 +219,32 @@ def vertex_normals_ref(vertex, max_depth_jump_m):
 # ----------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def _block_sum(vertex, values, vo, uo, max_depth_diff_m):
+    """Sum of ``values`` over the 2x2 block ``(vo, uo)``'s valid points within ``max_depth_diff_m`` of the
+    block's nearest valid depth; returns ``(sx, sy, sz, count)`` (``count == 0``: no valid point)."""
+    zmin = np.inf
+    for dv in range(2):
+        for du in range(2):
+            z = vertex[2 * vo + dv, 2 * uo + du, 2]
+            if z > 0.0 and z < zmin:
+                zmin = z
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    cnt = 0
+    if zmin < np.inf:
+        for dv in range(2):
+            for du in range(2):
+                z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                if z > 0.0 and z - zmin <= max_depth_diff_m:
+                    sx += values[2 * vo + dv, 2 * uo + du, 0]
+                    sy += values[2 * vo + dv, 2 * uo + du, 1]
+                    sz += values[2 * vo + dv, 2 * uo + du, 2]
+                    cnt += 1
+    return sx, sy, sz, cnt
+
+
 @njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
 def downsample_vertex(vertex, max_depth_diff_m, out):
     """Halve a vertex map by averaging 2x2 blocks of camera-frame points.
@@ -234,25 +260,7 @@ def downsample_vertex(vertex, max_depth_diff_m, out):
     Ho, Wo = out.shape[0], out.shape[1]
     for vo in prange(Ho):
         for uo in range(Wo):
-            zmin = np.inf
-            for dv in range(2):
-                for du in range(2):
-                    z = vertex[2 * vo + dv, 2 * uo + du, 2]
-                    if z > 0.0 and z < zmin:
-                        zmin = z
-            sx = 0.0
-            sy = 0.0
-            sz = 0.0
-            cnt = 0
-            if zmin < np.inf:
-                for dv in range(2):
-                    for du in range(2):
-                        z = vertex[2 * vo + dv, 2 * uo + du, 2]
-                        if z > 0.0 and z - zmin <= max_depth_diff_m:
-                            sx += vertex[2 * vo + dv, 2 * uo + du, 0]
-                            sy += vertex[2 * vo + dv, 2 * uo + du, 1]
-                            sz += z
-                            cnt += 1
+            sx, sy, sz, cnt = _block_sum(vertex, vertex, vo, uo, max_depth_diff_m)
             if cnt > 0:
                 out[vo, uo, 0] = sx / cnt
                 out[vo, uo, 1] = sy / cnt
@@ -295,23 +303,7 @@ def downsample_normal(vertex, normal, max_depth_diff_m, out):
     Ho, Wo = out.shape[0], out.shape[1]
     for vo in prange(Ho):
         for uo in range(Wo):
-            zmin = np.inf
-            for dv in range(2):
-                for du in range(2):
-                    z = vertex[2 * vo + dv, 2 * uo + du, 2]
-                    if z > 0.0 and z < zmin:
-                        zmin = z
-            sx = 0.0
-            sy = 0.0
-            sz = 0.0
-            if zmin < np.inf:
-                for dv in range(2):
-                    for du in range(2):
-                        z = vertex[2 * vo + dv, 2 * uo + du, 2]
-                        if z > 0.0 and z - zmin <= max_depth_diff_m:
-                            sx += normal[2 * vo + dv, 2 * uo + du, 0]
-                            sy += normal[2 * vo + dv, 2 * uo + du, 1]
-                            sz += normal[2 * vo + dv, 2 * uo + du, 2]
+            sx, sy, sz, _ = _block_sum(vertex, normal, vo, uo, max_depth_diff_m)
             norm = np.sqrt(sx * sx + sy * sy + sz * sz)
             if norm > 0.0:
                 out[vo, uo, 0] = sx / norm

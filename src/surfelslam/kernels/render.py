@@ -320,12 +320,16 @@ def index_zbuffer(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far, cul
             index_buf[sv, su] = i
 
 
-def index_zbuffer_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far, cull_back, shape_s):
-    """Numpy reference of :func:`index_zbuffer`; returns ``(depth, index)`` of shape ``shape_s``."""
-    SH, SW = shape_s
+def candidates_in_camera_ref(cand, m, pos, nrm, R, t, near, far, cull_back):
+    """Numpy: the first ``m`` candidate surfels in the camera frame.
+
+    Returns ``(idx (m,) int64, px, py, pz (m,) float64, ok (m,) bool)``: ``ok`` is inside ``[near, far]`` and,
+    with ``cull_back``, facing the camera. Shared by the references of the index-map and bucket kernels.
+    """
     idx = cand[:m].astype(np.int64)
     P = pos[idx].astype(np.float64)
     N = nrm[idx].astype(np.float64)
+    # written out component by component: the same operation order as the kernels, so results match bitwise
     px = R[0, 0] * P[:, 0] + R[0, 1] * P[:, 1] + R[0, 2] * P[:, 2] + t[0]
     py = R[1, 0] * P[:, 0] + R[1, 1] * P[:, 1] + R[1, 2] * P[:, 2] + t[1]
     pz = R[2, 0] * P[:, 0] + R[2, 1] * P[:, 1] + R[2, 2] * P[:, 2] + t[2]
@@ -335,6 +339,13 @@ def index_zbuffer_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far,
         ny = R[1, 0] * N[:, 0] + R[1, 1] * N[:, 1] + R[1, 2] * N[:, 2]
         nz = R[2, 0] * N[:, 0] + R[2, 1] * N[:, 1] + R[2, 2] * N[:, 2]
         ok &= nx * px + ny * py + nz * pz < 0
+    return idx, px, py, pz, ok
+
+
+def index_zbuffer_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far, cull_back, shape_s):
+    """Numpy reference of :func:`index_zbuffer`; returns ``(depth, index)`` of shape ``shape_s``."""
+    SH, SW = shape_s
+    idx, px, py, pz, ok = candidates_in_camera_ref(cand, m, pos, nrm, R, t, near, far, cull_back)
     pzs = np.where(ok, pz, 1.0)
     su = np.floor((fx * px / pzs + cx + 0.5) * scale).astype(np.int64)
     sv = np.floor((fy * py / pzs + cy + 0.5) * scale).astype(np.int64)
