@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "eval",
     "run",
     "register",
+    "experiments",
 ]
 
 for _name in COMMAND_MODULES:
