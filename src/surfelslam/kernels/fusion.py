@@ -18,13 +18,14 @@ import numpy as np
 from numba import njit, prange
 
 from surfelslam.kernels.render import candidates_in_camera_ref
+from surfelslam.kernels.threads import dual_njit
 
 ASSOC_INVALID = -1
 ASSOC_COVERED = -2
 ASSOC_NEW = -3
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle):
     """Squared distance of surfel ``i`` to the measurement if it passes both tests, else -1."""
     dx = pos[i, 0] - qx
@@ -38,7 +39,7 @@ def _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle):
     return d2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bucket_by_pixel(cand, m, pos, nrm, R, t, fx, fy, cx, cy, H, W, near, far, cull_back, pix_scratch,
                     start_out, order_out):
     """Group candidate surfels by the input pixel their centre projects to (stable counting sort).
@@ -108,7 +109,7 @@ def bucket_by_pixel_ref(cand, m, pos, nrm, R, t, fx, fy, cx, cy, H, W, near, far
     return start, idx[k[srt]].astype(np.int32)
 
 
-@njit(cache=True, parallel=True)
+@dual_njit()
 def associate(vertex, normal, bstart, border, pos, nrm, conf, R, t, dist_m, cos_angle, min_depth, max_depth,
               cover_radius_px, assoc_out):
     """Pick, for every input pixel, the map surfel it updates.
@@ -225,7 +226,7 @@ def associate_ref(vertex, normal, bstart, border, pos, nrm, conf, R, t, dist_m, 
     return np.where(valid, assoc, ASSOC_INVALID).astype(np.int32).reshape(H, W)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _pixel_radius(x, y, z, n0, n1, n2, radius_per_depth, min_cos, max_radius):
     """Surfel radius (metres) for a measurement: ``radius_per_depth * z / max(|cos|, min_cos)``, clamped."""
     norm = math.sqrt(x * x + y * y + z * z)
@@ -234,7 +235,7 @@ def _pixel_radius(x, y, z, n0, n1, n2, radius_per_depth, min_cos, max_radius):
     return min(r, max_radius)
 
 
-@njit(cache=True, parallel=True)
+@dual_njit()
 def merge(assoc, vertex, normal, rgb, weight, R, t, frame, max_radius_ratio, radius_per_depth, min_cos,
           max_radius, pos, nrm, col, conf, rad, last_seen, hits):
     """Confidence-weighted update of the associated surfels (in place; rows of ``assoc >= 0``).
@@ -310,7 +311,7 @@ def merge_ref(assoc, vertex, normal, rgb, weight, R, t, frame, max_radius_ratio,
     return pos, nrm, col, conf, rad, last_seen, hits
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def add_new(assoc, vertex, normal, rgb, weight, R, t, frame, radius_per_depth, min_cos, max_radius, start,
             pos, nrm, col, conf, rad, first_seen, last_seen, hits, dead):
     """Append a surfel (world frame) for every ``assoc == ASSOC_NEW`` pixel, in raster order, at rows
@@ -357,7 +358,7 @@ def add_new_ref(assoc, vertex, normal, rgb, weight, R, t, radius_per_depth, min_
     return p @ R.T + t, n @ R.T, rgb[vv, uu].astype(np.float32), weight[vv, uu], rad
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def dormant_scan(first_seen, hits, dead, cursor, size, frame, max_age_frames, min_hits):
     """Seeds' dormant-surfel rule, incremental: rows from ``cursor`` on whose age ``frame - first_seen``
     exceeds ``max_age_frames`` are checked once; those with ``hits < min_hits`` are flagged dead.
@@ -384,7 +385,7 @@ def dormant_scan_ref(first_seen, hits, dead, cursor, size, frame, max_age_frames
     return stop, flag
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def stale_unstable(cand, m, conf, last_seen, dead, frame, max_age_frames, min_conf):
     """Keller's removal among the surfels in view: confidence below ``min_conf`` and not updated for more
     than ``max_age_frames`` frames -> flagged dead. Returns the number flagged."""

@@ -32,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from surfelslam.kernels.threads import dual_njit
+
 N_CHUNKS = 8
 
 # Only fused multiply-add contraction: no reassociation, so the per-chunk summation order (and the
@@ -45,7 +47,7 @@ ROBUST_TUKEY = 2
 ROBUST_KINDS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "tukey": ROBUST_TUKEY}
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _robust_weight(r, kind, scale):
     if kind == ROBUST_HUBER:
         a = abs(r)
@@ -71,7 +73,7 @@ def robust_weight_ref(r: np.ndarray, kind: int, scale: float) -> np.ndarray:
     return np.ones_like(r)
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
                                 dist_thresh_m, cos_angle_thresh, robust_kind, robust_scale_m, out,
                                 src_stride=1):
@@ -282,7 +284,7 @@ def unpack_normal_equations(stats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return H, stats[21:27].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gauss_newton_step(stats, T, T_out):
     """Cholesky solve of the accumulated normal equations and the update ``T_out = exp(xi) T``.
 
@@ -330,7 +332,7 @@ def gauss_newton_step(stats, T, T_out):
     return np.sqrt(np.sum(xi * xi))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def se3_exp_left_update(xi, T, T_out):
     """``T_out = exp(xi) @ T`` for a twist ``xi = (omega, v)`` (closed-form SE(3) exponential)."""
     wx, wy, wz = xi[0], xi[1], xi[2]

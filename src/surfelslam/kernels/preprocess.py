@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from surfelslam.kernels.threads import dual_njit
+
 # Only fused multiply-add contraction (no reassociation): results differ from the numpy references
 # by float rounding only.
 _FASTMATH = {"contract"}
@@ -40,7 +42,7 @@ def bilateral_tables(radius_px: int, sigma_px: float, sigma_depth_m: float, lut_
     return spatial, lut, step
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def bilateral_filter(depth_m, min_depth_m, max_depth_m, spatial, range_lut, lut_step_m, out):
     """Edge-preserving depth smoothing that ignores invalid pixels.
 
@@ -107,7 +109,7 @@ def bilateral_filter_ref(depth_m, min_depth_m, max_depth_m, spatial, range_lut, 
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def depth_to_vertex(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m, out):
     """Depth ``(H, W)`` -> vertex map ``out (H, W, 3)`` float32; depth outside the range gives 0.
 
@@ -142,7 +144,7 @@ def depth_to_vertex_ref(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m):
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def vertex_normals(vertex, max_depth_jump_m, out):
     """Normal map from central differences of a vertex map.
 
@@ -219,7 +221,7 @@ def vertex_normals_ref(vertex, max_depth_jump_m):
 # ----------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _block_sum(vertex, values, vo, uo, max_depth_diff_m):
     """Sum of ``values`` over the 2x2 block ``(vo, uo)``'s valid points within ``max_depth_diff_m`` of the
     block's nearest valid depth; returns ``(sx, sy, sz, count)`` (``count == 0``: no valid point)."""
@@ -245,7 +247,7 @@ def _block_sum(vertex, values, vo, uo, max_depth_diff_m):
     return sx, sy, sz, cnt
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def downsample_vertex(vertex, max_depth_diff_m, out):
     """Halve a vertex map by averaging 2x2 blocks of camera-frame points.
 
@@ -290,7 +292,7 @@ def downsample_vertex_ref(vertex, max_depth_diff_m):
     return np.where(cnt[..., None] > 0, s / np.maximum(cnt, 1)[..., None], 0.0).astype(np.float32)
 
 
-@njit(parallel=True, cache=True, fastmath=_FASTMATH, error_model="numpy")
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def downsample_normal(vertex, normal, max_depth_diff_m, out):
     """Halve a normal map with the same block selection as :func:`downsample_vertex`.
 

@@ -12,11 +12,13 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from surfelslam.kernels.threads import dual_njit
+
 _GRAZING_COS = 1e-3  # |n . ray| below this: the splat plane is edge-on, only the centre pixel is drawn
 
 
 # ---------------------------------------------------------------------------------------------------- culling
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far,
                 visible_out):
     """Frustum test of block boxes: ``visible_out[b] = 1`` unless all 8 corners lie outside one face.
@@ -77,7 +79,7 @@ def cull_blocks_ref(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umi
 
 
 # ---------------------------------------------------------------------------------------------------- splats
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
                   max_splat_px, near, far, cull_back, depth_buf, index_buf):
     """Z-buffer of surfel discs (camera-frame depth of the ray/disc intersection) into ``(H, W)`` buffers.
@@ -228,7 +230,7 @@ def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_
 
 
 # ---------------------------------------------------------------------------------------------------- fill
-@njit(cache=True, parallel=True)
+@dual_njit()
 def fill_view(index_buf, depth_buf, pos, nrm, col, conf, R, t, fx, fy, cx, cy, use_centre, vertex_out, normal_out,
               colour_out, conf_out):
     """Per pixel: camera-frame vertex, camera-frame normal, colour, confidence.
@@ -289,7 +291,7 @@ def fill_view_ref(index_buf, depth_buf, pos, nrm, col, conf, R, t, fx, fy, cx, c
 
 
 # ---------------------------------------------------------------------------------------------------- index map
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def index_zbuffer(cand, m, pos, nrm, R, t, fx, fy, cx, cy, scale, near, far, cull_back, depth_buf, index_buf):
     """Supersampled index map: each surfel centre lands in ONE cell of an ``(H*scale, W*scale)`` grid.
 

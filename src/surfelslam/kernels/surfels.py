@@ -9,7 +9,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def compact_rows(position, normal, colour, confidence, radius, first_seen, last_seen, hits, block_id, dead, size):
     """Stable in-place compaction of the first ``size`` rows, dropping rows with ``dead != 0``.
 
@@ -50,7 +50,7 @@ def compact_rows_ref(arrays, dead, size):
     return [a[:size][keep] for a in arrays]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def group_by_block(block_id, n, n_blocks, order_out, start_out, count_out):
     """Stable counting sort of surfels ``0..n-1`` by ``block_id``.
 
@@ -85,7 +85,7 @@ def group_by_block_ref(block_id, n, n_blocks):
     return order, start, count
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gather_candidates(visible, order, start, count, n_blocks_sorted, block_id, n_sorted, size, dead, out):
     """Surfel indices that may be in view: those of visible blocks (grouped part) + the visible tail.
 
