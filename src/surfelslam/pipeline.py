@@ -10,17 +10,41 @@ Dense frame-to-model SLAM (:class:`DenseSlam`), per frame:
    on failure the frame is not fused, it is counted, and the pose is the prediction.
 
 Mapping with given poses (:class:`GivenPoseMapper`) runs ``preprocess`` and ``fuse`` only.
+
+Sparse SLAM (:class:`OrbSlam`, tracker ``orb``) wraps :class:`surfelslam.backend.SparseSlam`: ORB/PnP
+odometry against the last keyframe, loop closure, pose graph; the map is the voxel-filtered keyframe cloud
+and the written trajectory is the optimised one.
+
+Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the sparse back end alongside:
+
+1. ``track``: ICP from the constant-velocity guess, as in dense SLAM, when the last step succeeded. When
+   ICP fails (:func:`icp_failure`), reports degeneracy, or the velocity is not trusted (the last frame
+   failed), the PnP pose of the frame against the last keyframe
+   (``SparseSlam.pose_guess_against_last_keyframe``) becomes the initial guess: the map is rendered at that
+   pose and ICP retried from it. After ``hybrid.relocalise_after_failures`` failed frames in a row,
+   ``SparseSlam.relocalise`` (all keyframes) gives the guess instead; on success fusing goes on.
+2. ``sparse``: every tracked frame goes to ``SparseSlam.process(frame, T_world_cam_dense=pose)``, so
+   keyframes carry dense poses and loop edges are verified by PnP between keyframes.
+3. ``correct``: when the pose graph moved keyframes (a loop was accepted), the dense state follows.
+   Choice made here: each frame is *anchored* to the keyframe that was current when it was processed
+   (the frame pose is kept as ``T_kf_cam`` relative to that keyframe's pose as the dense map knew it), and
+   each surfel to the anchor of the frame that created it (``first_seen`` -> anchor keyframe, a sorted
+   frame-index table looked up with ``searchsorted``). A keyframe moved from ``T_old`` to ``T_new`` moves
+   its surfels (positions and normals) by ``T_new inv(T_old)`` in one vectorised numpy step; the culling
+   index is rebuilt. Surfels seen again later keep their first anchor. The current pose is corrected the
+   same way, and the written trajectory is every frame's ``T_world_kf(final) T_kf_cam``.
 Library code: no printing, no file reading (``write_map`` is the one output hook the CLI calls).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from surfelslam.backend.sparse_slam import SparseSlam, SparseSlamConfig
 from surfelslam.errors import ConfigError, GroundTruthError
 from surfelslam.geometry import se3
 from surfelslam.mapping.fusion import FusionConfig, fuse
@@ -30,7 +54,7 @@ from surfelslam.tracking.icp import ICPConfig, ICPResult, icp
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_from_maps
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
-TRACKERS = ("dense",)
+TRACKERS = ("dense", "orb", "hybrid")
 
 
 @dataclass
@@ -65,6 +89,36 @@ class GivenPosesConfig:
 
 
 @dataclass
+class HybridConfig:
+    """Hybrid tracking policy (dense ICP + sparse back end).
+
+    Attributes:
+        pnp_retry: when ICP fails or is degenerate, retry ICP from the PnP pose against the last keyframe.
+        pnp_when_velocity_untrusted: when the previous frame failed, start ICP from the PnP pose instead of
+            the constant-velocity guess (falls back to the velocity guess when PnP is rejected).
+        relocalise_after_failures: failed frames in a row after which the frame is relocalised against all
+            keyframes (``SparseSlam.relocalise``) and ICP is started from that pose.
+        loop_correction: apply pose-graph corrections to the dense trajectory and the surfel map.
+        dense_odometry_sigma_m: sigma (m and rad) of the odometry edges between keyframes, which carry dense
+            (ICP) poses: far more precise than PnP, so they get this sigma instead of
+            ``sparse.graph.odometry_information`` (0 keeps the sparse setting).
+        min_correction_m: keyframe corrections smaller than this (translation, m; rotation counted as
+            ``min_correction_m`` per rad) leave the map untouched.
+    """
+
+    pnp_retry: bool = True
+    pnp_when_velocity_untrusted: bool = True
+    relocalise_after_failures: int = 5
+    loop_correction: bool = True
+    dense_odometry_sigma_m: float = 0.01
+    min_correction_m: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if self.relocalise_after_failures < 1:
+            raise ConfigError(f"hybrid: relocalise_after_failures must be >= 1, got {self.relocalise_after_failures}")
+
+
+@dataclass
 class SlamConfig:
     """Every setting of a run; saved as ``config.toml`` next to the outputs."""
 
@@ -76,6 +130,8 @@ class SlamConfig:
     map: MapConfig = field(default_factory=MapConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     given_poses: GivenPosesConfig = field(default_factory=GivenPosesConfig)
+    hybrid: HybridConfig = field(default_factory=HybridConfig)
+    sparse: SparseSlamConfig = field(default_factory=SparseSlamConfig)
 
     def __post_init__(self) -> None:
         if self.preprocess.pyramid_levels < self.icp.levels:
@@ -109,10 +165,17 @@ class SlamResult:
     surfel_map: SurfelMap | None = None
     trajectory_override: Trajectory | None = None
     loop_stamps: list[tuple[float, float]] | None = None
+    points_xyz: np.ndarray | None = None  # (M, 3) float32 world points (sparse map), when there is no surfel map
+    points_rgb: np.ndarray | None = None  # (M, 3) uint8
 
     def map_arrays(self) -> dict[str, np.ndarray] | None:
         if self.surfel_map is None:
-            return None
+            if self.points_xyz is None:
+                return None
+            n = len(self.points_xyz)
+            return {"position": self.points_xyz, "normal": np.zeros((n, 3), np.float32),
+                    "colour": self.points_rgb.astype(np.float32), "confidence": np.ones(n, np.float32),
+                    "first_seen": np.zeros(n, np.int32)}
         m = self.surfel_map
         return {"position": m.position, "normal": m.normal, "colour": m.colour,
                 "confidence": m.confidence, "first_seen": m.first_seen}
@@ -122,6 +185,10 @@ class SlamResult:
             from surfelslam.io.ply import write_ply
 
             write_ply(path, self.surfel_map)
+        elif self.points_xyz is not None:
+            from surfelslam.io.ply import write_points_ply
+
+            write_points_ply(path, self.points_xyz, self.points_rgb)
 
 
 class _Timer:
@@ -289,10 +356,232 @@ class GivenPoseMapper(_FusingMapper):
         return self._result({})
 
 
+def _sparse_metrics(sparse: SparseSlam, res) -> dict:
+    return {
+        "keyframes": int(len(res.keyframe_indices)),
+        "loops_found": len(res.loops_found),
+        "loops_accepted": len(res.loops_accepted),
+        "nearby_edges": int(res.n_nearby_edges),
+        "sparse_rejected": dict(res.rejected),
+    }
+
+
+def _loop_stamps(res, stamp_of_frame: dict[int, float]) -> list[tuple[float, float]]:
+    kf_frames = res.keyframe_indices
+    return [(stamp_of_frame[int(kf_frames[i])], stamp_of_frame[int(kf_frames[j])]) for i, j, _ in res.loops_accepted]
+
+
+class OrbSlam:
+    """Tracker ``orb``: :class:`SparseSlam` behind the pipeline interface (``process`` / ``finish`` / ``warmup``).
+
+    No surfel map: the map is the voxel-filtered keyframe cloud, and the trajectory written at the end is
+    the pose-graph-optimised one (``SlamResult.trajectory_override``).
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig):
+        self.intr = intr
+        self.cfg = cfg
+        self.sparse = SparseSlam(intr, cfg.sparse)
+        self._stamp_of_frame: dict[int, float] = {}
+        self.failures = 0
+        self.relocalisations = 0
+
+    def warmup(self) -> None:
+        """Nothing to compile (OpenCV and gtsam are precompiled)."""
+
+    def process(self, frame: RGBDFrame) -> FrameResult:
+        t = _Timer()
+        r = self.sparse.process(frame)
+        t.lap("orb")
+        self._stamp_of_frame[frame.index] = frame.timestamp
+        if not r.ok:
+            self.failures += 1
+        self.relocalisations += int(r.relocalised)
+        return FrameResult(frame.index, frame.timestamp, r.T_world_cam.copy(), r.ok or r.relocalised, False,
+                           r.reason, t.ms, self.sparse.n_keyframes)
+
+    def finish(self) -> SlamResult:
+        res = self.sparse.finish()
+        metrics = {"tracking_failures": self.failures,
+                   "tracking_failure_reasons": dict(res.rejected),
+                   "relocalisations": self.relocalisations,
+                   **_sparse_metrics(self.sparse, res)}
+        return SlamResult(len(res.map_xyz), metrics, None, trajectory_override=res.trajectory,
+                          loop_stamps=_loop_stamps(res, self._stamp_of_frame),
+                          points_xyz=res.map_xyz, points_rgb=res.map_rgb)
+
+
+class HybridSlam(DenseSlam):
+    """Tracker ``hybrid``: dense frame-to-model SLAM + PnP guesses, relocalisation and loop correction.
+
+    See the module docstring for the stages and the map-correction scheme.
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig):
+        super().__init__(intr, cfg)
+        sp = cfg.sparse
+        if cfg.hybrid.dense_odometry_sigma_m > 0:
+            sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
+        self.sparse = SparseSlam(intr, sp)
+        self._kf_used = np.zeros((0, 4, 4))  # keyframe poses as the dense map/trajectory currently assume
+        self._stamps: list[float] = []
+        self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
+        self._T_kf_cam: list[np.ndarray] = []
+        self._fused_frames: list[int] = []  # frame index of each fused frame (increasing)
+        self._fused_anchor: list[int] = []
+        self._stamp_of_frame: dict[int, float] = {}
+        self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
+                       "relocalisations_tracked": 0, "loop_corrections": 0}
+
+    def _icp_from(self, T_render: np.ndarray, T_init_rel: np.ndarray):
+        """ICP of the current source against the map rendered at ``T_render``; returns (res, failure, T)."""
+        target = self.render_target(T_render)
+        res = icp(self.source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp)
+        return res, icp_failure(res), se3.orthonormalize(T_render @ res.T_target_source)
+
+    def process(self, frame: RGBDFrame) -> FrameResult:
+        h = self.cfg.hybrid
+        t = _Timer()
+        self._preprocess(frame)
+        t.lap("preprocess")
+        self._stamp_of_frame[frame.index] = frame.timestamp
+        if self.T_world_cam is None:
+            T_new = np.eye(4)
+            self._fuse(frame, T_new)
+            t.lap("fuse")
+            self._after_tracking(frame, T_new, True, t)
+            self.source, self.previous = self.previous, self.source
+            return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), True, True, None, t.ms,
+                               self.map.n_alive)
+        T_prev = self.T_world_cam
+        T_pred = self.predict()
+        res = failure = T_new = None
+        guess = None
+        if self.failures_in_a_row >= h.relocalise_after_failures:
+            self.counts["relocalisations_tried"] += 1
+            found = self.sparse.relocalise(frame)
+            t.lap("relocalise")
+            if found is not None:
+                res, failure, T_new = self._icp_from(found[0], np.eye(4))
+                t.lap("icp")
+                if failure is None:
+                    self.counts["relocalisations_tracked"] += 1
+                    self.velocity = np.eye(4)
+                guess = found[0]
+        else:
+            trusted = self.failures_in_a_row == 0 or not h.pnp_when_velocity_untrusted
+            if trusted:
+                res, failure, T_new = self._icp_from(T_prev, se3.invert(T_prev) @ T_pred)
+                t.lap("icp")
+            if h.pnp_retry and (res is None or failure is not None or res.degenerate):
+                guess = self.sparse.pose_guess_against_last_keyframe(frame, T_pred)
+                t.lap("pnp")
+                if guess is None and res is None:  # untrusted velocity and no PnP: velocity after all
+                    res, failure, T_new = self._icp_from(T_prev, se3.invert(T_prev) @ T_pred)
+                    t.lap("icp")
+                elif guess is not None:
+                    self.counts["pnp_guesses_tried"] += 1
+                    r2, f2, T2 = self._icp_from(guess, np.eye(4))
+                    t.lap("icp")
+                    first_ok = res is not None and failure is None
+                    if f2 is None and (not r2.degenerate or not first_ok):
+                        res, failure, T_new = r2, f2, T2
+                        self.counts["pnp_guesses_tracked"] += 1
+                    elif res is None:
+                        res, failure, T_new = r2, f2, T2
+            elif res is None:
+                res, failure, T_new = self._icp_from(T_prev, se3.invert(T_prev) @ T_pred)
+                t.lap("icp")
+        tracked = res is not None and failure is None
+        if tracked:
+            if self.failures_in_a_row < h.relocalise_after_failures:
+                self.velocity = se3.orthonormalize(se3.invert(T_prev) @ T_new)
+            self.failures_in_a_row = 0
+            self._fuse(frame, T_new)
+            t.lap("fuse")
+        else:
+            failure = failure or "relocalisation_failed"
+            T_new = guess if guess is not None else T_pred
+            self.failures += 1
+            self.failures_in_a_row += 1
+            self.failure_reasons[failure] = self.failure_reasons.get(failure, 0) + 1
+            if self.failures_in_a_row >= self.cfg.tracking.max_failures_in_a_row_before_reset_velocity:
+                self.velocity = np.eye(4)
+        self._after_tracking(frame, T_new, tracked, t)
+        self.source, self.previous = self.previous, self.source
+        return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), tracked, tracked,
+                           None if res is None else res.reason if tracked else failure, t.ms, self.map.n_alive,
+                           res)
+
+    def _after_tracking(self, frame: RGBDFrame, T_new: np.ndarray, tracked: bool, t: _Timer) -> None:
+        """Feed the sparse back end, anchor the frame, apply pose-graph corrections to the dense state."""
+        if tracked:
+            sr = self.sparse.process(frame, T_world_cam_dense=T_new)
+            t.lap("sparse")
+            if sr.is_keyframe:
+                self._kf_used = np.concatenate([self._kf_used, T_new[None]], axis=0)
+        anchor = self.sparse.n_keyframes - 1
+        if tracked:
+            self._fused_frames.append(frame.index)
+            self._fused_anchor.append(anchor)
+        self._stamps.append(frame.timestamp)
+        self._anchor.append(anchor)
+        self._T_kf_cam.append(se3.invert(self._kf_used[anchor]) @ T_new)
+        self.T_world_cam = T_new
+        if tracked and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
+            self._correct(self.sparse.keyframe_poses())
+            t.lap("correct")
+
+    def _correct(self, kf_new: np.ndarray) -> None:
+        """Move the surfels and the current pose by each keyframe's correction ``T_new inv(T_old)``."""
+        C = kf_new @ np.stack([se3.invert(T) for T in self._kf_used])  # (K, 4, 4); K is small
+        dev = np.linalg.norm(C[:, :3, 3], axis=1) + np.linalg.norm(C[:, :3, :3] - np.eye(3), axis=(1, 2))
+        if dev.max() < self.cfg.hybrid.min_correction_m:
+            self._kf_used = kf_new.copy()
+            return
+        self.counts["loop_corrections"] += 1
+        m = self.map
+        n = m.size
+        if n:
+            frames = np.asarray(self._fused_frames, np.int64)
+            anchors = np.asarray(self._fused_anchor, np.int64)
+            row = np.clip(np.searchsorted(frames, m.first_seen), 0, len(frames) - 1)
+            a = anchors[row]
+            R = C[a, :3, :3].astype(np.float32)
+            tr = C[a, :3, 3].astype(np.float32)
+            m.position[:] = np.einsum("nij,nj->ni", R, m.position) + tr
+            m.normal[:] = np.einsum("nij,nj->ni", R, m.normal)
+            m._assign_blocks(0, n)  # positions moved: new culling blocks and a fresh grouping
+            m.rebuild_index()
+        self.T_world_cam = se3.orthonormalize(kf_new[self._anchor[-1]] @ self._T_kf_cam[-1])
+        self._kf_used = kf_new.copy()
+
+    def trajectory(self) -> Trajectory:
+        """Every frame's pose with the latest keyframe poses: ``T_world_kf T_kf_cam``."""
+        kf = self.sparse.keyframe_poses()
+        T = kf[np.asarray(self._anchor)] @ np.asarray(self._T_kf_cam)
+        return Trajectory(np.asarray(self._stamps), T)
+
+    def finish(self) -> SlamResult:
+        res = self.sparse.finish()
+        if self.cfg.hybrid.loop_correction and len(self._kf_used):
+            self._correct(res.keyframe_poses)
+        out = self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons,
+                            **self.counts, **_sparse_metrics(self.sparse, res)})
+        if self.cfg.hybrid.loop_correction:
+            out.trajectory_override = self.trajectory()
+        out.loop_stamps = _loop_stamps(res, self._stamp_of_frame)
+        return out
+
+
 def build_slam(intr: Intrinsics, cfg: SlamConfig, tracker: str):
     """The pipeline object for ``tracker`` (``dense`` ..., or ``given`` for mapping with given poses)."""
     if tracker == "dense":
         return DenseSlam(intr, cfg)
+    if tracker == "orb":
+        return OrbSlam(intr, cfg)
+    if tracker == "hybrid":
+        return HybridSlam(intr, cfg)
     if tracker == "given":
         return GivenPoseMapper(intr, cfg)
     raise ConfigError(f"unknown tracker {tracker!r}; known: {', '.join(TRACKERS)}")

@@ -32,6 +32,10 @@ from surfelslam.tools.common import (
     handle_errors,
 )
 
+TRACKER_HELP = ("dense: frame-to-model ICP; orb: sparse ORB/PnP odometry + loop-closing pose graph (map = "
+                "keyframe cloud); hybrid: dense ICP + PnP initial guesses, relocalisation and loop-corrected "
+                "trajectory and surfel map. One of " + ", ".join(TRACKERS) + ".")
+
 
 def load_config(path: Path | None) -> SlamConfig:
     return SlamConfig() if path is None else load_toml(SlamConfig, path)
@@ -195,7 +199,7 @@ def register(app: typer.Typer) -> None:
         seq_path: SeqArg,
         out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out/run"),
         config: Annotated[Path | None, typer.Option("--config", help="TOML configuration file.")] = None,
-        tracker: Annotated[str, typer.Option("--tracker", help=f"One of {', '.join(TRACKERS)}.")] = "dense",
+        tracker: Annotated[str, typer.Option("--tracker", help=TRACKER_HELP)] = "dense",
         poses: Annotated[str | None, typer.Option(
             "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")] = None,
         figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")] = True,
