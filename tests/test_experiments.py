@@ -171,3 +171,26 @@ def test_trajectories_without_ground_truth_say_so(tmp_path):
     for name in EXPECTED_TRACKERS:
         assert name in text
     assert not any(tmp_path.iterdir())  # nothing was run
+
+
+def test_sequence_without_ground_truth(tmp_path):
+    """A short selection without ground truth: pairs are scaled down, GT sections say so, nothing fails."""
+    from surfelslam.synth.writer import generate_sequence
+
+    seq_dir = generate_sequence(tmp_path / "seq", scene="room", style="handheld", n_frames=12, noise="kinect",
+                                seed=2, width=160, height=120)
+    (seq_dir / "groundtruth.txt").unlink()
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["experiments", str(seq_dir), "--out", str(out), "--frames", "3",
+                                 "--downsample", "1", "--no-progress"])
+    assert r.exit_code == 0, r.output
+    report = (out / "report.md").read_text()
+    for title in SECTION_TITLES:
+        assert title in report
+    res = json.loads((out / "results.json").read_text())
+    assert not res["has_ground_truth"]
+    assert all(0 <= s < t < 12 for s, t in res["pairs"]) and len(res["pairs"]) == 2
+    assert "This sequence has no ground truth: the error columns are n/a" in _section(report, 0)
+    assert _row(_section(report, 2), "ground-truth poses")[1].startswith("not available")
+    assert "Not available: this sequence has no ground truth" in _section(report, 5)
+    assert _row(_section(report, 4), "error vs GT (mm, deg)")[1] == "n/a (no ground truth)"
