@@ -1,7 +1,7 @@
 """Whole dense loop (preprocess, render, ICP, fuse) FPS and per-frame cost over a long sequence.
 
-Frames are generated in memory first (synthetic room, Kinect noise; the ``loop`` trajectory, one lap of
-``lap`` frames, repeated so that every later lap revisits the first one), then fed to
+Frames are generated in memory first (synthetic room, Kinect noise; by default the ``handheld`` orbit
+across the room, which keeps revisiting what it saw; or ``loop`` laps of ``lap`` frames, repeated), then fed to
 :class:`~surfelslam.pipeline.DenseSlam` with the timer running, so reading/decoding costs nothing here
 (``surfelslam run`` reads in a background thread). Reported per resolution: FPS of the loop, mean ms per
 stage, the mean per-frame cost of the first and of the last ``window`` frames and their ratio (flat cost:
@@ -34,20 +34,24 @@ from surfelslam.types import RGBDFrame, Trajectory
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def _frames(width: int, n_frames: int, lap: int, seed: int = 0) -> tuple[list[RGBDFrame], Trajectory]:
-    """``n_frames`` noisy frames of laps round the room (``lap`` frames per lap), and their true poses."""
+def _frames(width: int, n_frames: int, style: str, lap: int, seed: int = 0) -> tuple[list[RGBDFrame], Trajectory]:
+    """``n_frames`` noisy frames and their true poses: ``style`` ``handheld`` (an orbit across the room that
+    keeps coming back) or ``loop`` (laps round the room of ``lap`` frames, repeated)."""
     scene = make_scene("room")
     intr = default_intrinsics(width, width * 3 // 4)
-    one = make_trajectory("loop", lap, scene, seed=seed)
-    reps = -(-n_frames // lap)
-    T = np.concatenate([one.T_world_cam] * reps)[:n_frames]
-    traj = Trajectory(np.arange(n_frames) / 30.0, T)
+    if style == "loop":
+        one = make_trajectory("loop", lap, scene, seed=seed)
+        reps = -(-n_frames // lap)
+        T = np.concatenate([one.T_world_cam] * reps)[:n_frames]
+        traj = Trajectory(np.arange(n_frames) / 30.0, T)
+    else:
+        traj = make_trajectory(style, n_frames, scene, seed=seed)
     frames = list(iter_frames(scene, traj, intr, noise_config("kinect"), seed))
     return frames, traj
 
 
-def bench(width: int, n_frames: int, lap: int, window: int, plot: bool = True) -> dict:
-    frames, gt = _frames(width, n_frames, lap)
+def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: int = 250, plot: bool = True) -> dict:
+    frames, gt = _frames(width, n_frames, style, lap)
     intr = default_intrinsics(width, width * 3 // 4)
     cfg = SlamConfig()
     warm_up(cfg)
@@ -70,7 +74,8 @@ def bench(width: int, n_frames: int, lap: int, window: int, plot: bool = True) -
     w = min(window, len(frames) // 2)
     first, last = float(per_frame[1 : w + 1].mean()), float(per_frame[-w:].mean())
     row = {
-        "resolution": f"{intr.width}x{intr.height}", "frames": len(frames), "lap": lap,
+        "resolution": f"{intr.width}x{intr.height}", "frames": len(frames),
+        "style": style if style != "loop" else f"loop/{lap}",
         "fps": round(len(frames) / total_s, 2),
         **{f"{k}_ms": round(float(np.mean(v)), 2) for k, v in stages.items()},
         "first_ms": round(first, 2), "last_ms": round(last, 2), "last_over_first": round(last / first, 3),
@@ -100,7 +105,7 @@ def _plot(per_frame: np.ndarray, cands: np.ndarray, row: dict) -> None:
     ax2 = ax.twinx()
     ax2.plot(k, cands / 1e3, lw=1.0, color="C3", label="surfels in view (k)")
     ax2.set_ylabel("surfel candidates in view (thousands)")
-    ax.set_title(f"dense loop {row['resolution']}, {row['frames']} frames (laps of {row['lap']}): "
+    ax.set_title(f"dense loop {row['resolution']}, {row['frames']} frames ({row['style']}): "
                  f"last/first {row['last_over_first']:.2f}, {row['fps']:.1f} FPS")
     ax.legend(loc="upper left")
     ax2.legend(loc="upper right")
@@ -111,21 +116,22 @@ def _plot(per_frame: np.ndarray, cands: np.ndarray, row: dict) -> None:
 def run(quick: bool = False) -> list[dict]:
     """Rows for 320x240 (and 640x480 unless ``quick``)."""
     if quick:
-        return [bench(320, 150, 150, 30)]
-    return [bench(320, 1000, 250, 100), bench(640, 300, 150, 50)]
+        return [bench(320, 150, 30)]
+    return [bench(320, 1000, 100), bench(640, 300, 50)]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="150 frames at 320x240 only")
     ap.add_argument("--frames", type=int, default=None, help="one run of this many frames")
-    ap.add_argument("--lap", type=int, default=250, help="frames per lap round the room")
+    ap.add_argument("--style", default="handheld", help="handheld | slow | loop (laps repeated)")
+    ap.add_argument("--lap", type=int, default=250, help="frames per lap round the room (--style loop)")
     ap.add_argument("--width", type=int, default=320, help="image width (height = 3/4 of it)")
     ap.add_argument("--window", type=int, default=100, help="frames in the first/last windows")
     ap.add_argument("--parallel", action="store_true", help="parallel numba kernels")
     a = ap.parse_args()
     threads.set_parallel(a.parallel)
-    rows = [bench(a.width, a.frames, a.lap, a.window)] if a.frames else run(a.quick)
+    rows = [bench(a.width, a.frames, a.window, a.style, a.lap)] if a.frames else run(a.quick)
     cols = list(rows[0])
     print(" | ".join(cols))
     for r in rows:

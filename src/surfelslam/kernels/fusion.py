@@ -226,6 +226,58 @@ def associate_ref(vertex, normal, bstart, border, pos, nrm, conf, R, t, dist_m, 
     return np.where(valid, assoc, ASSOC_INVALID).astype(np.int32).reshape(H, W)
 
 
+@njit(cache=True, nogil=True)
+def flag_duplicates(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle, dead):
+    """Flag as dead the duplicates of each pixel's chosen surfel (a fused map stays at one surfel per pixel).
+
+    For every pixel with a chosen surfel ``b = assoc[v, u] >= 0``, each other surfel ``i`` of the pixel's
+    bucket (see :func:`bucket_by_pixel`) with ``|p_i - p_b| < dist_m``, ``n_i . n_b > cos_angle`` and
+    ``conf[i] <= conf[b]`` describes the same piece of surface: it is flagged (``dead[i] = 1``). Each surfel
+    lies in one bucket only, so the result does not depend on the pixel order. Returns the number flagged.
+    """
+    H, W = assoc.shape
+    dist2 = dist_m * dist_m
+    k = 0
+    for v in range(H):
+        for u in range(W):
+            b = assoc[v, u]
+            if b < 0:
+                continue
+            p = v * W + u
+            if bstart[p + 1] - bstart[p] < 2:
+                continue
+            for j in range(bstart[p], bstart[p + 1]):
+                i = border[j]
+                if i == b or dead[i] != 0 or conf[i] > conf[b]:
+                    continue
+                dx = pos[i, 0] - pos[b, 0]
+                dy = pos[i, 1] - pos[b, 1]
+                dz = pos[i, 2] - pos[b, 2]
+                if dx * dx + dy * dy + dz * dz >= dist2:
+                    continue
+                if nrm[i, 0] * nrm[b, 0] + nrm[i, 1] * nrm[b, 1] + nrm[i, 2] * nrm[b, 2] <= cos_angle:
+                    continue
+                dead[i] = 1
+                k += 1
+    return k
+
+
+def flag_duplicates_ref(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle, dead):
+    """Numpy reference of :func:`flag_duplicates`; returns the rows it would flag (sorted)."""
+    H, W = assoc.shape
+    counts = np.diff(bstart)
+    pair_pix = np.repeat(np.arange(H * W), counts)
+    rows = border[: bstart[-1]].astype(np.int64)
+    b = assoc.ravel()[pair_pix].astype(np.int64)
+    ok = (b >= 0) & (rows != b) & (dead[rows] == 0)
+    bb = np.where(ok, b, 0)
+    ok &= conf[rows] <= conf[bb]
+    d2 = ((pos[rows].astype(np.float64) - pos[bb].astype(np.float64)) ** 2).sum(-1)
+    dot = (nrm[rows].astype(np.float64) * nrm[bb].astype(np.float64)).sum(-1)
+    ok &= (d2 < dist_m**2) & (dot > cos_angle)
+    return np.sort(rows[ok])
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_radius(x, y, z, n0, n1, n2, radius_per_depth, min_cos, max_radius):
     """Surfel radius (metres) for a measurement: ``radius_per_depth * z / max(|cos|, min_cos)``, clamped."""

@@ -22,6 +22,11 @@ Per frame, at the frame's pose ``T_world_cam``:
    among the surfels in view: confidence below ``stable_min_confidence`` and not updated for more than
    ``unstable_max_age_frames`` frames. Removed surfels are flagged at once (skipped by rendering and
    fusion) and compacted when they exceed ``compact_dead_fraction`` of the map.
+6. duplicates (``remove_duplicates``): in a pixel whose measurement was merged into surfel ``b``, the other
+   surfels of the pixel's bucket within ``duplicate_dist_m`` of ``b``, with normals within
+   ``duplicate_angle_deg`` and no more confidence, are flagged dead. Without this rule revisits keep adding
+   near-copies (noise, small pose errors), the surfels in view grow with time and so does the per-frame
+   cost (``benchmarks/bench_pipeline.py``: 1.57x after 1000 hand-held frames without it).
 
 Weights: ``weight_mode = "keller"``: ``w = exp(-gamma^2 / (2 sigma^2))`` with ``gamma`` the pixel's distance
 from the principal point divided by the distance of the farthest image corner, ``sigma =
@@ -72,6 +77,9 @@ class FusionConfig:
     stable_min_confidence: float = 3.0
     compact_dead_fraction: float = 0.05
     cull_backfaces: bool = True
+    remove_duplicates: bool = True
+    duplicate_dist_m: float = 0.02
+    duplicate_angle_deg: float = 30.0
 
     def __post_init__(self) -> None:
         if self.weight_mode not in WEIGHT_MODES:
@@ -94,6 +102,8 @@ class FusionConfig:
             raise ConfigError(f"fusion: merge_max_radius_ratio must be >= 1, got {self.merge_max_radius_ratio}")
         if self.unstable_max_age_frames < 0 or self.stable_min_hits < 0:
             raise ConfigError("fusion: unstable_max_age_frames and stable_min_hits must be >= 0")
+        if self.duplicate_dist_m < 0 or not 0 < self.duplicate_angle_deg <= 180:
+            raise ConfigError("fusion: duplicate_dist_m must be >= 0 and duplicate_angle_deg in (0, 180]")
         if not 0 <= self.compact_dead_fraction < 1:
             raise ConfigError(f"fusion: compact_dead_fraction must be in [0, 1), got {self.compact_dead_fraction}")
 
@@ -104,7 +114,7 @@ class FusionStats:
 
     merged: int  # pixels merged into an existing surfel
     added: int  # new surfels
-    removed: int  # surfels flagged for removal this frame (dormant + stale)
+    removed: int  # surfels flagged for removal this frame (duplicates + dormant + stale)
     covered: int  # valid pixels neither merged nor added (a neighbouring surfel explains them)
     invalid: int  # pixels without a usable measurement (depth 0 / out of range / no normal)
     candidates: int  # surfels that passed block culling
@@ -199,6 +209,13 @@ def fuse(
         float(cfg.dist_diff_m), cos_angle, float(cfg.min_depth_m), float(cfg.max_depth_m),
         int(cfg.cover_radius_px), assoc,
     )
+    n_dup = 0
+    if cfg.remove_duplicates:
+        n_dup = int(kf.flag_duplicates(
+            assoc, bstart, border, arr["position"], arr["normal"], arr["confidence"], float(cfg.duplicate_dist_m),
+            math.cos(math.radians(cfg.duplicate_angle_deg)), arr["dead"],
+        ))
+        smap.add_dead_count(n_dup)
     kf.merge(
         assoc, vertex, normal, rgb, weight, R, t, frame, float(cfg.merge_max_radius_ratio), radius_per_depth,
         float(cfg.radius_min_cos), float(cfg.max_radius_m), arr["position"], arr["normal"], arr["colour"],
@@ -231,8 +248,9 @@ def fuse(
             cand, len(cand), arr["confidence"], arr["last_seen"], arr["dead"], frame,
             int(cfg.unstable_max_age_frames), float(cfg.stable_min_confidence),
         )
+        smap.add_dead_count(int(k1) + int(k2))
         removed = int(k1) + int(k2)
-        smap.add_dead_count(removed)
+    removed += n_dup
     compacted = 0
     if smap.n_dead > 0 and smap.n_dead >= cfg.compact_dead_fraction * smap.size:
         compacted = smap.compact()

@@ -98,14 +98,28 @@ def _world_to_cam(T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
+def _out_buffer(buf: np.ndarray | None, shape: tuple[int, ...], name: str) -> np.ndarray:
+    if buf is None:
+        return np.empty(shape, np.float32)
+    if buf.shape != shape or buf.dtype != np.float32 or not buf.flags.c_contiguous:
+        raise ValueError(f"render: {name} must be a C-contiguous float32 array of shape {shape}, "
+                         f"got {buf.dtype} {buf.shape}")
+    return buf
+
+
 def render(
-    smap: SurfelMap, T_world_cam: np.ndarray, intr: Intrinsics, cfg: RenderConfig | None = None
+    smap: SurfelMap, T_world_cam: np.ndarray, intr: Intrinsics, cfg: RenderConfig | None = None,
+    vertex_out: np.ndarray | None = None, normal_out: np.ndarray | None = None,
 ) -> RenderedView:
     """Splat the map into the camera at ``T_world_cam`` (camera-to-world, ``(4, 4)``).
 
     Each surfel covers the pixels whose rays meet its disc (footprint radius capped at
     ``cfg.max_splat_radius_px``; the nearest pixel of its centre is always covered); the nearest
     intersection wins. Returns camera-frame vertex and normal maps (see :class:`RenderedView`).
+
+    ``vertex_out`` / ``normal_out``: optional float32 ``(H, W, 3)`` buffers to write the vertex / normal maps
+    into (e.g. level 0 of an ICP target pyramid, which :func:`~surfelslam.tracking.preprocess.pyramid_from_maps`
+    then does not copy); the view refers to them.
     """
     cfg = cfg or RenderConfig()
     H, W = intr.height, intr.width
@@ -124,8 +138,8 @@ def render(
         float(cfg.max_splat_radius_px), float(cfg.min_depth_m), float(cfg.max_depth_m), bool(cfg.cull_backfaces),
         depth, index,
     )
-    vertex = np.empty((H, W, 3), np.float32)
-    normal = np.empty((H, W, 3), np.float32)
+    vertex = _out_buffer(vertex_out, (H, W, 3), "vertex_out")
+    normal = _out_buffer(normal_out, (H, W, 3), "normal_out")
     colour = np.empty((H, W, 3), np.uint8)
     conf = np.empty((H, W), np.float32)
     kr.fill_view(index, depth, arr["position"], arr["normal"], arr["colour"], arr["confidence"], R, t,

@@ -41,8 +41,10 @@ class ICPConfig:
         robust_kernel: ``none | huber | tukey``, applied to the point-to-plane residual.
         robust_scale_m: Huber threshold / Tukey cut-off (m).
         min_update_norm: a level stops when the twist norm ``|xi|`` (rad + m) falls below this.
-        min_relative_residual_change: a level stops when the weighted mean squared residual changes by
-            less than this fraction between iterations.
+        min_relative_residual_change: the finest level stops when the weighted mean squared residual changes
+            by less than this fraction between iterations.
+        coarse_min_relative_residual_change: the same rule at the coarser levels (they only need to bring
+            the estimate into the finest level's basin: a looser rule saves iterations there).
         min_inliers: minimum inlier count at the finest level (coarser levels need ``min_inliers / 4^l``,
             at least 6).
         min_inlier_fraction: minimum inliers / valid source points at the finest level (below it the
@@ -64,6 +66,7 @@ class ICPConfig:
     robust_scale_m: float = 0.02
     min_update_norm: float = 1e-4
     min_relative_residual_change: float = 1e-3
+    coarse_min_relative_residual_change: float = 1e-2
     min_inliers: int = 500
     min_inlier_fraction: float = 0.25
     max_condition_number: float = 1e4
@@ -221,6 +224,7 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
         # inlier count needed to take a step (coarse levels have 4x fewer pixels per level)
         stride = cfg.finest_source_stride_px if lvl == 0 else 1
         need = max(cfg.min_inliers / 4.0**lvl / stride**2, _MIN_INLIERS_PER_STEP)
+        rel_change = cfg.min_relative_residual_change if lvl == 0 else cfg.coarse_min_relative_residual_change
         prev_mse = np.inf
         stop = "max_iterations"
         upd = np.inf
@@ -256,7 +260,7 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
             if upd < cfg.min_update_norm:
                 stop = "update"
                 break
-            if abs(prev_mse - mse) <= cfg.min_relative_residual_change * mse:
+            if abs(prev_mse - mse) <= rel_change * mse:
                 stop = "residual"
                 break
             prev_mse = mse

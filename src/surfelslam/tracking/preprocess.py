@@ -205,7 +205,8 @@ def pyramid_from_maps(
         normal: ``(H, W, 3)`` unit normals (zeros where unknown).
         levels: number of levels; coarser levels block-average points and normals.
         cfg: only ``pyramid_max_depth_diff_m`` is used.
-        out: optional pre-allocated pyramid (from :meth:`FramePyramid.empty`); level 0 is copied into it.
+        out: optional pre-allocated pyramid (from :meth:`FramePyramid.empty`); level 0 is copied into it,
+            unless ``vertex`` / ``normal`` already are its level-0 buffers (rendered in place).
     """
     cfg = cfg or PreprocessConfig()
     if vertex.shape != (*intr.shape, 3) or normal.shape != vertex.shape:
@@ -218,8 +219,10 @@ def pyramid_from_maps(
         out = FramePyramid.empty(intr, levels)
     elif len(out) != levels or out.intrinsics != intr:
         raise ConfigError("preprocess: output pyramid does not match the maps' size/levels")
-    np.copyto(out[0].vertex, vertex, casting="same_kind")
-    np.copyto(out[0].normal, normal, casting="same_kind")
+    if vertex is not out[0].vertex:
+        np.copyto(out[0].vertex, vertex, casting="same_kind")
+    if normal is not out[0].normal:
+        np.copyto(out[0].normal, normal, casting="same_kind")
     for lvl in range(1, levels):
         thr = cfg.pyramid_max_depth_diff_m * 2.0 ** (lvl - 1)
         kp.downsample_vertex(out[lvl - 1].vertex, thr, out[lvl].vertex)
