@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -194,3 +195,26 @@ def test_sequence_without_ground_truth(tmp_path):
     assert _row(_section(report, 2), "ground-truth poses")[1].startswith("not available")
     assert "Not available: this sequence has no ground truth" in _section(report, 5)
     assert _row(_section(report, 4), "error vs GT (mm, deg)")[1] == "n/a (no ground truth)"
+
+
+def test_solver_section_reports_singular_systems():
+    """A single plane leaves rotation about its normal and in-plane translation unconstrained: solvers fail."""
+    from surfelslam.tools.experiments import section_solvers
+    from surfelslam.tracking.preprocess import FramePyramid, PyramidLevel
+    from surfelslam.types import Intrinsics
+
+    intr = Intrinsics(100.0, 100.0, 40.0, 30.0, 80, 60)
+    u, v = np.meshgrid(np.arange(80), np.arange(60))
+    vert = np.stack([(u - 40) / 50.0, (v - 30) / 50.0, np.full(u.shape, 2.0)], axis=-1).astype(np.float32)
+    normal = np.zeros_like(vert)
+    normal[..., 2] = -1.0
+    p = FramePyramid([PyramidLevel(vert, normal, intr)])
+    lines, r = section_solvers({(0, 1): (p, p)}, [(0, 1)])
+    text = "\n".join(lines)
+    assert r["n_rows"] == 80 * 60
+    assert _row(text, "cholesky")[1] == "failed (singular system)"
+    assert np.allclose(r["solutions"]["pinv"], 0.0)
+
+    empty = FramePyramid([PyramidLevel(np.zeros_like(vert), np.zeros_like(vert), intr)])
+    lines, r = section_solvers({(0, 1): (empty, empty)}, [(0, 1)])
+    assert r["n_rows"] == 0 and "Not available" in "\n".join(lines)

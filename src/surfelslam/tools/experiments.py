@@ -16,11 +16,13 @@ import json
 import math
 import time
 import timeit
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
+import scipy.linalg
 import typer
 
 from surfelslam.errors import ConfigError
@@ -222,12 +224,21 @@ def solver_comparison(src, tgt, gate_m: float = SOLVER_PAIR_GATE_M) -> dict:
     }
     sols, times = {}, {}
     for name, fn in calls.items():
-        sols[name] = np.asarray(fn(), np.float64)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)  # singular: reported as failed below
+            try:
+                x = np.asarray(fn(), np.float64)
+            except (np.linalg.LinAlgError, ValueError):  # singular system (too few or degenerate associations)
+                x = np.full(6, np.nan)
+        sols[name] = x
+        if not np.all(np.isfinite(x)):
+            times[name] = float("nan")
+            continue
         t = timeit.repeat(fn, number=SOLVER_TIMEIT_NUMBER, repeat=SOLVER_TIMEIT_REPEAT)
         times[name] = float(np.median(t)) / SOLVER_TIMEIT_NUMBER
     ref = sols["cholesky"]
-    names = list(sols)
-    pairwise = max((float(np.max(np.abs(sols[a] - sols[b]))) for a in names for b in names), default=0.0)
+    names = [k for k, v in sols.items() if np.all(np.isfinite(v))]
+    pairwise = max((float(np.max(np.abs(sols[a] - sols[b]))) for a in names for b in names), default=float("nan"))
     return {"n_rows": int(len(b)), "gate_m": gate_m,
             "solutions": {k: v.tolist() for k, v in sols.items()},
             "max_diff_vs_cholesky": {k: float(np.max(np.abs(v - ref))) for k, v in sols.items()},
@@ -242,6 +253,9 @@ def section_solvers(pyramids, pairs):
     s, t = pairs[0]
     src, tgt = pyramids[(s, t)]
     r = solver_comparison(src, tgt)
+    if r["n_rows"] < 6:
+        lines += [f"Not available: pair {s}->{t} has {r['n_rows']} associations at the identity (6 needed).", ""]
+        return lines, r
     lines.append(f"Pair {s}->{t}: the explicit point-to-plane system A (N x 6), b (N) at the identity "
                  f"(finest level, every pixel, {r['gate_m']} m gate, no angle gate, no robust weights; "
                  f"N = {r['n_rows']} rows, via `kernels.icp.build_linear_system_ref`), solved with "
@@ -250,10 +264,13 @@ def section_solvers(pyramids, pairs):
     lines += ["", "| solver | step xi = (omega, v) | max abs difference vs cholesky | median time per solve (µs) |",
               "|---|---|---|---|"]
     for name, x in r["solutions"].items():
+        if not np.all(np.isfinite(x)):
+            lines.append(f"| {name} | failed (singular system) | n/a | n/a |")
+            continue
         xs = ", ".join(f"{v:+.6f}" for v in x)
-        lines.append(f"| {name} | ({xs}) | {r['max_diff_vs_cholesky'][name]:.3e} | "
+        lines.append(f"| {name} | ({xs}) | {_fmt(r['max_diff_vs_cholesky'][name], '.3e')} | "
                      f"{1e6 * r['median_s'][name]:.1f} |")
-    lines += ["", f"Largest difference between any two solutions: {r['max_pairwise_diff']:.3e}.", ""]
+    lines += ["", f"Largest difference between any two solutions: {_fmt(r['max_pairwise_diff'], '.3e')}.", ""]
     return lines, r
 
 
