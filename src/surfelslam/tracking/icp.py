@@ -66,7 +66,7 @@ class ICPConfig:
     robust_scale_m: float = 0.02
     min_update_norm: float = 1e-4
     min_relative_residual_change: float = 1e-3
-    coarse_min_relative_residual_change: float = 1e-2
+    coarse_min_relative_residual_change: float = 3e-3
     min_inliers: int = 500
     min_inlier_fraction: float = 0.25
     max_condition_number: float = 1e4
