@@ -84,3 +84,44 @@ def test_render_into_pyramid_level0_without_copy():
     for la, lb in zip(a.levels, b.levels, strict=True):
         np.testing.assert_array_equal(la.vertex, lb.vertex)
         np.testing.assert_array_equal(la.normal, lb.normal)
+
+
+def test_fused_downsample_equals_separate_kernels():
+    from surfelslam.kernels import preprocess as kp
+
+    pyr = _plane_pyramid(1.5, 0.004)
+    v, n = pyr[0].vertex.copy(), pyr[0].normal.copy()
+    v[10:14, 20:30, 2] += 0.2  # a depth step: foreground/background selection inside blocks
+    v[5, 5] = 0.0
+    vo = np.empty((24, 32, 3), np.float32)
+    no = np.empty((24, 32, 3), np.float32)
+    kp.downsample_vertex_normal(v, n, 0.05, vo, no)
+    sep_v, sep_n = _sep(kp, v, n)
+    np.testing.assert_array_equal(vo, sep_v)
+    np.testing.assert_array_equal(no, sep_n)
+    np.testing.assert_allclose(vo, kp.downsample_vertex_ref(v, 0.05), atol=1e-6)
+    np.testing.assert_allclose(no, kp.downsample_normal_ref(v, n, 0.05), atol=1e-6)
+
+
+def _sep(kp, v, n):
+    vo = np.empty((24, 32, 3), np.float32)
+    no = np.empty((24, 32, 3), np.float32)
+    kp.downsample_vertex(v, 0.05, vo)
+    kp.downsample_normal(v, n, 0.05, no)
+    return vo, no
+
+
+def test_render_geometry_only_equals_full_render():
+    m = SurfelMap()
+    g = np.mgrid[-0.6:0.6:0.01, -0.45:0.45:0.01].reshape(2, -1).T
+    pos = np.c_[g, 1.0 + 0.3 * g[:, 0]]
+    nrm = np.tile([-0.3, 0.0, -1.0], (len(g), 1)) / np.hypot(0.3, 1.0)
+    m.append(pos, nrm, np.full((len(g), 3), 100.0), 1.0, 0.008, 0)
+    T = np.eye(4)
+    full = render(m, T, INTR)
+    geo = render(m, T, INTR, attributes=False)
+    assert geo.colour is None and geo.confidence is None
+    assert full.valid.mean() > 0.5
+    np.testing.assert_array_equal(geo.index, full.index)
+    np.testing.assert_array_equal(geo.vertex_cam, full.vertex_cam)
+    np.testing.assert_array_equal(geo.normal_cam, full.normal_cam)

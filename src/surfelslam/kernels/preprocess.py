@@ -326,3 +326,58 @@ def downsample_normal_ref(vertex, normal, max_depth_diff_m):
     s = np.sum(np.where(sel[..., None], nb, 0.0), axis=-2)
     norm = np.linalg.norm(s, axis=-1, keepdims=True)
     return np.where(norm > 0, s / np.where(norm > 0, norm, 1.0), 0.0).astype(np.float32)
+
+
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
+def downsample_vertex_normal(vertex, normal, max_depth_diff_m, vertex_out, normal_out):
+    """:func:`downsample_vertex` and :func:`downsample_normal` in one pass (the block selection is made once).
+
+    Args:
+        vertex, normal: ``(H, W, 3)`` float32. vertex_out, normal_out: ``(H // 2, W // 2, 3)`` float32.
+    The outputs are identical to those of the two separate kernels (references: their ``_ref``).
+    """
+    Ho, Wo = vertex_out.shape[0], vertex_out.shape[1]
+    for vo in prange(Ho):
+        for uo in range(Wo):
+            zmin = np.inf
+            for dv in range(2):
+                for du in range(2):
+                    z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                    if z > 0.0 and z < zmin:
+                        zmin = z
+            sx = 0.0
+            sy = 0.0
+            sz = 0.0
+            nx = 0.0
+            ny = 0.0
+            nz = 0.0
+            cnt = 0
+            if zmin < np.inf:
+                for dv in range(2):
+                    for du in range(2):
+                        z = vertex[2 * vo + dv, 2 * uo + du, 2]
+                        if z > 0.0 and z - zmin <= max_depth_diff_m:
+                            sx += vertex[2 * vo + dv, 2 * uo + du, 0]
+                            sy += vertex[2 * vo + dv, 2 * uo + du, 1]
+                            sz += vertex[2 * vo + dv, 2 * uo + du, 2]
+                            nx += normal[2 * vo + dv, 2 * uo + du, 0]
+                            ny += normal[2 * vo + dv, 2 * uo + du, 1]
+                            nz += normal[2 * vo + dv, 2 * uo + du, 2]
+                            cnt += 1
+            if cnt > 0:
+                vertex_out[vo, uo, 0] = sx / cnt
+                vertex_out[vo, uo, 1] = sy / cnt
+                vertex_out[vo, uo, 2] = sz / cnt
+            else:
+                vertex_out[vo, uo, 0] = 0.0
+                vertex_out[vo, uo, 1] = 0.0
+                vertex_out[vo, uo, 2] = 0.0
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if norm > 0.0:
+                normal_out[vo, uo, 0] = nx / norm
+                normal_out[vo, uo, 1] = ny / norm
+                normal_out[vo, uo, 2] = nz / norm
+            else:
+                normal_out[vo, uo, 0] = 0.0
+                normal_out[vo, uo, 1] = 0.0
+                normal_out[vo, uo, 2] = 0.0

@@ -269,6 +269,35 @@ def fill_view(index_buf, depth_buf, pos, nrm, col, conf, R, t, fx, fy, cx, cy, u
             conf_out[v, u] = conf[i]
 
 
+@dual_njit()
+def fill_geometry(index_buf, depth_buf, pos, nrm, R, t, fx, fy, cx, cy, use_centre, vertex_out, normal_out):
+    """The vertex and normal maps of :func:`fill_view` only (no colour / confidence): what ICP needs.
+
+    Outputs are identical to :func:`fill_view`'s ``vertex_out`` / ``normal_out`` (reference: the first two
+    results of :func:`fill_view_ref`).
+    """
+    H, W = index_buf.shape
+    for v in prange(H):
+        dy = (v - cy) / fy
+        for u in range(W):
+            i = index_buf[v, u]
+            if i < 0:
+                for c in range(3):
+                    vertex_out[v, u, c] = 0.0
+                    normal_out[v, u, c] = 0.0
+                continue
+            if use_centre:
+                for c in range(3):
+                    vertex_out[v, u, c] = R[c, 0] * pos[i, 0] + R[c, 1] * pos[i, 1] + R[c, 2] * pos[i, 2] + t[c]
+            else:
+                d = depth_buf[v, u]
+                vertex_out[v, u, 0] = d * (u - cx) / fx
+                vertex_out[v, u, 1] = d * dy
+                vertex_out[v, u, 2] = d
+            for c in range(3):
+                normal_out[v, u, c] = R[c, 0] * nrm[i, 0] + R[c, 1] * nrm[i, 1] + R[c, 2] * nrm[i, 2]
+
+
 def fill_view_ref(index_buf, depth_buf, pos, nrm, col, conf, R, t, fx, fy, cx, cy, use_centre):
     """Numpy reference of :func:`fill_view`; returns ``(vertex, normal, colour, confidence)``."""
     H, W = index_buf.shape

@@ -56,16 +56,16 @@ class RenderedView:
         index: int32 surfel row drawn at each pixel.
         vertex_cam: float32 ``(H, W, 3)`` metres, camera frame (point of the surfel disc on the pixel ray).
         normal_cam: float32 ``(H, W, 3)`` unit normals, camera frame.
-        colour: uint8 ``(H, W, 3)`` RGB.
-        confidence: float32 ``(H, W)``.
+        colour: uint8 ``(H, W, 3)`` RGB (``None`` when rendered with ``attributes=False``).
+        confidence: float32 ``(H, W)`` (``None`` when rendered with ``attributes=False``).
         n_candidates: surfels that passed block culling (the work done).
     """
 
     index: np.ndarray
     vertex_cam: np.ndarray
     normal_cam: np.ndarray
-    colour: np.ndarray
-    confidence: np.ndarray
+    colour: np.ndarray | None
+    confidence: np.ndarray | None
     n_candidates: int
 
     @property
@@ -109,7 +109,7 @@ def _out_buffer(buf: np.ndarray | None, shape: tuple[int, ...], name: str) -> np
 
 def render(
     smap: SurfelMap, T_world_cam: np.ndarray, intr: Intrinsics, cfg: RenderConfig | None = None,
-    vertex_out: np.ndarray | None = None, normal_out: np.ndarray | None = None,
+    vertex_out: np.ndarray | None = None, normal_out: np.ndarray | None = None, attributes: bool = True,
 ) -> RenderedView:
     """Splat the map into the camera at ``T_world_cam`` (camera-to-world, ``(4, 4)``).
 
@@ -119,7 +119,8 @@ def render(
 
     ``vertex_out`` / ``normal_out``: optional float32 ``(H, W, 3)`` buffers to write the vertex / normal maps
     into (e.g. level 0 of an ICP target pyramid, which :func:`~surfelslam.tracking.preprocess.pyramid_from_maps`
-    then does not copy); the view refers to them.
+    then does not copy); the view refers to them. ``attributes=False`` skips the colour and confidence
+    maps (``None`` in the view): tracking only needs the geometry.
     """
     cfg = cfg or RenderConfig()
     H, W = intr.height, intr.width
@@ -140,6 +141,10 @@ def render(
     )
     vertex = _out_buffer(vertex_out, (H, W, 3), "vertex_out")
     normal = _out_buffer(normal_out, (H, W, 3), "normal_out")
+    if not attributes:
+        kr.fill_geometry(index, depth, arr["position"], arr["normal"], R, t, float(intr.fx), float(intr.fy),
+                         float(intr.cx), float(intr.cy), cfg.vertex == "centre", vertex, normal)
+        return RenderedView(index, vertex, normal, None, None, len(cand))
     colour = np.empty((H, W, 3), np.uint8)
     conf = np.empty((H, W), np.float32)
     kr.fill_view(index, depth, arr["position"], arr["normal"], arr["colour"], arr["confidence"], R, t,

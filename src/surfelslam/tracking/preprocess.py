@@ -225,6 +225,5 @@ def pyramid_from_maps(
         np.copyto(out[0].normal, normal, casting="same_kind")
     for lvl in range(1, levels):
         thr = cfg.pyramid_max_depth_diff_m * 2.0 ** (lvl - 1)
-        kp.downsample_vertex(out[lvl - 1].vertex, thr, out[lvl].vertex)
-        kp.downsample_normal(out[lvl - 1].vertex, out[lvl - 1].normal, thr, out[lvl].normal)
+        kp.downsample_vertex_normal(out[lvl - 1].vertex, out[lvl - 1].normal, thr, out[lvl].vertex, out[lvl].normal)
     return out
