@@ -1,4 +1,8 @@
-"""``surfelslam register SEQ --source I --target J --out DIR``: pairwise projective point-to-plane ICP."""
+"""``surfelslam register SEQ --source I --target J --out DIR [--init identity|features]``: pairwise ICP.
+
+Projective point-to-plane ICP from the identity, or from a feature-based guess (ORB + PnP-RANSAC,
+:func:`surfelslam.tracking.features.feature_guess`) for pairs too far apart for ICP alone.
+"""
 
 from __future__ import annotations
 
@@ -23,6 +27,8 @@ from surfelslam.tools.common import (
     dataset_options,
     handle_errors,
 )
+
+INIT_MODES = ("identity", "features")
 
 
 def per_level(text: str | None, default: tuple, levels: int, name: str, cast=float,
@@ -69,6 +75,12 @@ def register(app: typer.Typer) -> None:
         iterations: Annotated[str | None, typer.Option(
             "--iterations", help="Max iterations: one value for all levels or a comma list, finest first.")] = None,
         solver: Annotated[str, typer.Option("--solver", help="cholesky | lu | qr | pinv")] = "cholesky",
+        init: Annotated[str, typer.Option(
+            "--init", help="ICP initial guess: identity, or features (ORB + PnP-RANSAC between the two frames; "
+                           "falls back to identity when a rejection rule fires).")] = "identity",
+        feature_max_norm: Annotated[float, typer.Option(
+            "--feature-max-norm", help="--init features: largest accepted PnP motion norm (m + rad); the "
+                                       "odometry default 0.3 is too small for pairs far apart.")] = 2.0,
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
@@ -78,6 +90,8 @@ def register(app: typer.Typer) -> None:
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
         from surfelslam.viz.registration import plot_registration
 
+        if init not in INIT_MODES:
+            raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
         sq = open_sequence(seq, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
         for name, idx in (("--source", source), ("--target", target)):
             if not 0 <= idx < len(sq):
@@ -99,7 +113,17 @@ def register(app: typer.Typer) -> None:
         f_src, f_tgt = sq[source], sq[target]
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
-        res = icp(p_src, p_tgt, None, cfg)
+        T_init = None
+        feat_info = None
+        if init == "features":
+            from surfelslam.tracking.features import FeatureConfig, feature_guess, with_max_motion_norm
+
+            fcfg = with_max_motion_norm(FeatureConfig(), feature_max_norm)
+            T_init, mres = feature_guess(f_src, f_tgt, sq.intrinsics, fcfg)
+            feat_info = {"ok": T_init is not None, "reason": mres.reason, "good_matches": mres.n_good,
+                         "inliers": mres.n_inliers,
+                         "T_target_source": None if T_init is None else T_init.tolist()}
+        res = icp(p_src, p_tgt, T_init, cfg)
         T = res.T_target_source
 
         result = {
@@ -116,6 +140,8 @@ def register(app: typer.Typer) -> None:
             "degenerate": res.degenerate,
             "condition_number": res.condition_number if np.isfinite(res.condition_number) else None,
             "reason": res.reason,
+            "init": init,
+            "features": feat_info,
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],
         }
@@ -126,6 +152,9 @@ def register(app: typer.Typer) -> None:
             t0, r0 = se3.pose_error(np.eye(4), T_gt)
             result["gt_error"] = {"trans_m": t_err, "rot_deg": r_err}
             result["gt_motion"] = {"trans_m": t0, "rot_deg": r0}
+            if T_init is not None:
+                ti, ri = se3.pose_error(T_init, T_gt)
+                result["init_gt_error"] = {"trans_m": ti, "rot_deg": ri}
 
         out.mkdir(parents=True, exist_ok=True)
         write_text_atomic(out / "registration.json", json.dumps(result, indent=2) + "\n")
@@ -136,6 +165,13 @@ def register(app: typer.Typer) -> None:
         plot_registration(se3.transform_points(T, src_pts.astype(np.float64)), tgt_pts, out / "after.png",
                           f"after ICP: {res.inliers} inliers, RMSE {1000 * res.rmse_m:.1f} mm")
 
+        if feat_info is not None:
+            if feat_info["ok"]:
+                console.print(f"feature guess: {feat_info['inliers']} PnP inliers of {feat_info['good_matches']} "
+                              "good matches", highlight=False)
+            else:
+                console.print(f"feature guess rejected ({feat_info['reason']}: {feat_info['good_matches']} good "
+                              f"matches, {feat_info['inliers']} inliers); ICP starts from identity", highlight=False)
         console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
                       f"({100 * res.inlier_fraction:.1f}%), RMSE {1000 * res.rmse_m:.2f} mm, "
                       f"iterations {res.iterations}, converged {res.converged}"
@@ -147,6 +183,10 @@ def register(app: typer.Typer) -> None:
         if "gt_error" in result:
             g = result["gt_error"]
             m = result["gt_motion"]
+            if "init_gt_error" in result:
+                gi = result["init_gt_error"]
+                console.print(f"initial guess GT error: {1000 * gi['trans_m']:.1f} mm, {gi['rot_deg']:.3f} deg",
+                              highlight=False)
             console.print(f"GT error: {1000 * g['trans_m']:.1f} mm, {g['rot_deg']:.3f} deg "
                           f"(GT motion {1000 * m['trans_m']:.1f} mm, {m['rot_deg']:.2f} deg)", highlight=False)
         else:
