@@ -23,16 +23,24 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
    (``SparseSlam.pose_guess_against_last_keyframe``) becomes the initial guess: the map is rendered at that
    pose and ICP retried from it. After ``hybrid.relocalise_after_failures`` failed frames in a row,
    ``SparseSlam.relocalise`` (all keyframes) gives the guess instead; on success fusing goes on.
+   With ``hybrid.pnp_check`` every ICP pose is also compared with the PnP pose; one that disagrees is
+   retried from the PnP pose and, if it still disagrees, the frame is not fused (ICP can slide along weakly
+   constrained geometry while reporting a well-conditioned system).
 2. ``sparse``: every tracked frame goes to ``SparseSlam.process(frame, T_world_cam_dense=pose)``, so
    keyframes carry dense poses and loop edges are verified by PnP between keyframes.
-3. ``correct``: when the pose graph moved keyframes (a loop was accepted), the dense state follows.
-   Choice made here: each frame is *anchored* to the keyframe that was current when it was processed
-   (the frame pose is kept as ``T_kf_cam`` relative to that keyframe's pose as the dense map knew it), and
-   each surfel to the anchor of the frame that created it (``first_seen`` -> anchor keyframe, a sorted
-   frame-index table looked up with ``searchsorted``). A keyframe moved from ``T_old`` to ``T_new`` moves
-   its surfels (positions and normals) by ``T_new inv(T_old)`` in one vectorised numpy step; the culling
-   index is rebuilt. Surfels seen again later keep their first anchor. The current pose is corrected the
-   same way, and the written trajectory is every frame's ``T_world_kf(final) T_kf_cam``.
+3. ``correct``: loop edges move keyframes in the pose graph; the dense state follows. Choice made here:
+   each frame is *anchored* to the last keyframe when it was processed, its pose kept as ``T_kf_cam``
+   relative to that keyframe's pose *in the dense frame* (``T_kf_dense``, the ICP pose it was created
+   with); each surfel is anchored to the anchor of the frame that created it (``first_seen`` -> anchor,
+   a sorted frame-index table looked up with ``searchsorted``; surfels merged later keep their first
+   anchor). A keyframe's correction is ``C_k = T_kf_graph inv(T_kf_dense)``. Dense poses are fed to the
+   graph as ``C_last T_world_cam``, so odometry edges are exactly the dense relative motion whatever the
+   pending correction. Corrections are applied to the surfels (positions and normals, one vectorised
+   numpy step over all surfels, culling index rebuilt) and to the current pose during the run only when a
+   keyframe moved by more than ``hybrid.live_correction_min_m`` (re-posing the live map for centimetre
+   corrections smears it); otherwise once, in ``finish``. The written trajectory is every frame's
+   ``T_kf_graph(final) T_kf_cam``.
+
 Library code: no printing, no file reading (``write_map`` is the one output hook the CLI calls).
 """
 
@@ -96,22 +104,30 @@ class HybridConfig:
         pnp_retry: when ICP fails or is degenerate, retry ICP from the PnP pose against the last keyframe.
         pnp_when_velocity_untrusted: when the previous frame failed, start ICP from the PnP pose instead of
             the constant-velocity guess (falls back to the velocity guess when PnP is rejected).
+        pnp_check: every frame, compare the ICP pose with the PnP pose against the last keyframe; when they
+            differ by more than ``pnp_check_max_m`` or ``pnp_check_max_deg``, ICP is retried from the PnP pose,
+            and a frame whose ICP still disagrees is not fused (ICP can slide along repetitive or weakly
+            constrained geometry while reporting a well-conditioned system). Costs one ORB extraction + PnP.
         relocalise_after_failures: failed frames in a row after which the frame is relocalised against all
             keyframes (``SparseSlam.relocalise``) and ICP is started from that pose.
         loop_correction: apply pose-graph corrections to the dense trajectory and the surfel map.
         dense_odometry_sigma_m: sigma (m and rad) of the odometry edges between keyframes, which carry dense
             (ICP) poses: far more precise than PnP, so they get this sigma instead of
             ``sparse.graph.odometry_information`` (0 keeps the sparse setting).
-        min_correction_m: keyframe corrections smaller than this (translation, m; rotation counted as
-            ``min_correction_m`` per rad) leave the map untouched.
+        live_correction_min_m: during the run, the dense map and pose follow a graph optimisation only when a
+            keyframe moved by more than this (m); smaller corrections are applied once, in ``finish``
+            (re-posing the live map for centimetre corrections smears it and costs more than it helps).
     """
 
     pnp_retry: bool = True
     pnp_when_velocity_untrusted: bool = True
     relocalise_after_failures: int = 5
+    pnp_check: bool = True
+    pnp_check_max_m: float = 0.05
+    pnp_check_max_deg: float = 5.0
     loop_correction: bool = True
     dense_odometry_sigma_m: float = 0.01
-    min_correction_m: float = 1e-4
+    live_correction_min_m: float = 0.03
 
     def __post_init__(self) -> None:
         if self.relocalise_after_failures < 1:
@@ -423,7 +439,7 @@ class HybridSlam(DenseSlam):
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         self.sparse = SparseSlam(intr, sp)
-        self._kf_used = np.zeros((0, 4, 4))  # keyframe poses as the dense map/trajectory currently assume
+        self._kf_dense = np.zeros((0, 4, 4))  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
         self._T_kf_cam: list[np.ndarray] = []
@@ -431,7 +447,8 @@ class HybridSlam(DenseSlam):
         self._fused_anchor: list[int] = []
         self._stamp_of_frame: dict[int, float] = {}
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
-                       "relocalisations_tracked": 0, "loop_corrections": 0}
+                       "relocalisations_tracked": 0, "map_corrections": 0,
+                       "pnp_disagreements": 0}
 
     def _icp_from(self, T_render: np.ndarray, T_init_rel: np.ndarray):
         """ICP of the current source against the map rendered at ``T_render``; returns (res, failure, T)."""
@@ -473,23 +490,27 @@ class HybridSlam(DenseSlam):
             if trusted:
                 res, failure, T_new = self._icp_from(T_prev, se3.invert(T_prev) @ T_pred)
                 t.lap("icp")
-            if h.pnp_retry and (res is None or failure is not None or res.degenerate):
+            bad = res is None or failure is not None or res.degenerate
+            if (h.pnp_retry and bad) or h.pnp_check:
                 guess = self.sparse.pose_guess_against_last_keyframe(frame, T_pred)
                 t.lap("pnp")
-                if guess is None and res is None:  # untrusted velocity and no PnP: velocity after all
-                    res, failure, T_new = self._icp_from(T_prev, se3.invert(T_prev) @ T_pred)
-                    t.lap("icp")
-                elif guess is not None:
-                    self.counts["pnp_guesses_tried"] += 1
-                    r2, f2, T2 = self._icp_from(guess, np.eye(4))
-                    t.lap("icp")
-                    first_ok = res is not None and failure is None
-                    if f2 is None and (not r2.degenerate or not first_ok):
-                        res, failure, T_new = r2, f2, T2
-                        self.counts["pnp_guesses_tracked"] += 1
-                    elif res is None:
-                        res, failure, T_new = r2, f2, T2
-            elif res is None:
+            first_ok = res is not None and failure is None
+            if first_ok and guess is not None and h.pnp_check and self._disagrees(T_new, guess):
+                first_ok = False
+                failure = "disagrees_with_pnp"
+                self.counts["pnp_disagreements"] += 1
+            if guess is not None and h.pnp_retry and (not first_ok or res.degenerate):
+                self.counts["pnp_guesses_tried"] += 1
+                r2, f2, T2 = self._icp_from(guess, np.eye(4))
+                t.lap("icp")
+                if f2 is None and h.pnp_check and self._disagrees(T2, guess):
+                    f2 = "disagrees_with_pnp"
+                if f2 is None and (not r2.degenerate or not first_ok):
+                    res, failure, T_new = r2, None, T2
+                    self.counts["pnp_guesses_tracked"] += 1
+                elif not first_ok:
+                    res, failure, T_new = r2, f2, T2
+            elif res is None:  # untrusted velocity and no PnP guess: the velocity guess after all
                 res, failure, T_new = self._icp_from(T_prev, se3.invert(T_prev) @ T_pred)
                 t.lap("icp")
         tracked = res is not None and failure is None
@@ -514,32 +535,37 @@ class HybridSlam(DenseSlam):
                            res)
 
     def _after_tracking(self, frame: RGBDFrame, T_new: np.ndarray, tracked: bool, t: _Timer) -> None:
-        """Feed the sparse back end, anchor the frame, apply pose-graph corrections to the dense state."""
+        """Feed the sparse back end, anchor the frame, apply large pose-graph corrections to the dense state."""
+        K = self.sparse.n_keyframes
+        sr = None
         if tracked:
-            sr = self.sparse.process(frame, T_world_cam_dense=T_new)
+            # the graph frame may differ from the dense frame by the last keyframe's pending correction:
+            # feed the pose in the graph frame, so the odometry edge is exactly the dense relative motion
+            T_feed = T_new if K == 0 else \
+                self.sparse.keyframe_poses()[K - 1] @ se3.invert(self._kf_dense[K - 1]) @ T_new
+            sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed))
             t.lap("sparse")
             if sr.is_keyframe:
-                self._kf_used = np.concatenate([self._kf_used, T_new[None]], axis=0)
+                self._kf_dense = np.concatenate([self._kf_dense, T_new[None]], axis=0)
         anchor = self.sparse.n_keyframes - 1
         if tracked:
             self._fused_frames.append(frame.index)
             self._fused_anchor.append(anchor)
         self._stamps.append(frame.timestamp)
         self._anchor.append(anchor)
-        self._T_kf_cam.append(se3.invert(self._kf_used[anchor]) @ T_new)
+        self._T_kf_cam.append(se3.invert(self._kf_dense[anchor]) @ T_new)
         self.T_world_cam = T_new
-        if tracked and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
-            self._correct(self.sparse.keyframe_poses())
-            t.lap("correct")
+        if sr is not None and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
+            kf = self.sparse.keyframe_poses()
+            C = kf @ np.stack([se3.invert(T) for T in self._kf_dense])
+            if np.linalg.norm(C[:, :3, 3], axis=1).max() > self.cfg.hybrid.live_correction_min_m:
+                self._correct(kf)
+                t.lap("correct")
 
     def _correct(self, kf_new: np.ndarray) -> None:
-        """Move the surfels and the current pose by each keyframe's correction ``T_new inv(T_old)``."""
-        C = kf_new @ np.stack([se3.invert(T) for T in self._kf_used])  # (K, 4, 4); K is small
-        dev = np.linalg.norm(C[:, :3, 3], axis=1) + np.linalg.norm(C[:, :3, :3] - np.eye(3), axis=(1, 2))
-        if dev.max() < self.cfg.hybrid.min_correction_m:
-            self._kf_used = kf_new.copy()
-            return
-        self.counts["loop_corrections"] += 1
+        """Move the surfels and the current pose by each keyframe's correction ``T_new inv(T_dense)``."""
+        C = kf_new @ np.stack([se3.invert(T) for T in self._kf_dense])  # (K, 4, 4); K is small
+        self.counts["map_corrections"] += 1
         m = self.map
         n = m.size
         if n:
@@ -554,7 +580,11 @@ class HybridSlam(DenseSlam):
             m._assign_blocks(0, n)  # positions moved: new culling blocks and a fresh grouping
             m.rebuild_index()
         self.T_world_cam = se3.orthonormalize(kf_new[self._anchor[-1]] @ self._T_kf_cam[-1])
-        self._kf_used = kf_new.copy()
+        self._kf_dense = kf_new.copy()
+
+    def _disagrees(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
+        dt, dr = se3.pose_error(T_a, T_b)
+        return dt > self.cfg.hybrid.pnp_check_max_m or dr > self.cfg.hybrid.pnp_check_max_deg
 
     def trajectory(self) -> Trajectory:
         """Every frame's pose with the latest keyframe poses: ``T_world_kf T_kf_cam``."""
@@ -564,7 +594,7 @@ class HybridSlam(DenseSlam):
 
     def finish(self) -> SlamResult:
         res = self.sparse.finish()
-        if self.cfg.hybrid.loop_correction and len(self._kf_used):
+        if self.cfg.hybrid.loop_correction and len(self._kf_dense):
             self._correct(res.keyframe_poses)
         out = self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons,
                             **self.counts, **_sparse_metrics(self.sparse, res)})
