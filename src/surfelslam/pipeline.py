@@ -479,6 +479,7 @@ class HybridSlam(DenseSlam):
             found = self.sparse.relocalise(frame)
             t.lap("relocalise")
             if found is not None:
+                found = (se3.orthonormalize(se3.invert(self._correction(found[1])) @ found[0]), found[1])
                 res, failure, T_new = self._icp_from(found[0], np.eye(4))
                 t.lap("icp")
                 if failure is None:
@@ -492,7 +493,7 @@ class HybridSlam(DenseSlam):
                 t.lap("icp")
             bad = res is None or failure is not None or res.degenerate
             if (h.pnp_retry and bad) or h.pnp_check:
-                guess = self.sparse.pose_guess_against_last_keyframe(frame, T_pred)
+                guess = self._pnp_guess(frame, T_pred)
                 t.lap("pnp")
             first_ok = res is not None and failure is None
             if first_ok and guess is not None and h.pnp_check and self._disagrees(T_new, guess):
@@ -541,8 +542,7 @@ class HybridSlam(DenseSlam):
         if tracked:
             # the graph frame may differ from the dense frame by the last keyframe's pending correction:
             # feed the pose in the graph frame, so the odometry edge is exactly the dense relative motion
-            T_feed = T_new if K == 0 else \
-                self.sparse.keyframe_poses()[K - 1] @ se3.invert(self._kf_dense[K - 1]) @ T_new
+            T_feed = T_new if K == 0 else self._correction(K - 1) @ T_new
             sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed))
             t.lap("sparse")
             if sr.is_keyframe:
@@ -581,6 +581,16 @@ class HybridSlam(DenseSlam):
             m.rebuild_index()
         self.T_world_cam = se3.orthonormalize(kf_new[self._anchor[-1]] @ self._T_kf_cam[-1])
         self._kf_dense = kf_new.copy()
+
+    def _correction(self, k: int) -> np.ndarray:
+        """``C_k = T_kf_graph inv(T_kf_dense)``: maps dense-frame poses near keyframe ``k`` into the graph frame."""
+        return self.sparse.keyframe_poses()[k] @ se3.invert(self._kf_dense[k])
+
+    def _pnp_guess(self, frame: RGBDFrame, T_pred: np.ndarray) -> np.ndarray | None:
+        """PnP pose against the last keyframe, in the dense frame (the graph frame may have moved)."""
+        C = self._correction(self.sparse.n_keyframes - 1)
+        g = self.sparse.pose_guess_against_last_keyframe(frame, C @ T_pred)
+        return None if g is None else se3.orthonormalize(se3.invert(C) @ g)
 
     def _disagrees(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
         dt, dr = se3.pose_error(T_a, T_b)
