@@ -1,0 +1,147 @@
+"""Trackers ``orb`` and ``hybrid`` against ``dense`` on short synthetic sequences (320x240, Kinect noise)."""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+
+import numpy as np
+import pytest
+
+from surfelslam.datasets import open_sequence
+from surfelslam.geometry import se3
+from surfelslam.pipeline import TRACKERS, HybridSlam, SlamConfig, build_slam
+from surfelslam.synth.scenes import make_scene
+from surfelslam.synth.trajectories import make_trajectory
+from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_frames, noise_config
+from surfelslam.tools.run import run_sequence
+
+INTR = default_intrinsics(320, 240)
+N_SLOW = 40
+
+
+@cache
+def _frames(style: str, n: int):
+    scene = make_scene("room")
+    traj = make_trajectory(style, n, scene)
+    gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam  # the first estimate is the identity
+    return list(iter_frames(scene, traj, INTR, noise_config("kinect"), 0)), gt
+
+
+def _run(tracker: str, frames, cfg: SlamConfig | None = None):
+    slam = build_slam(INTR, cfg or SlamConfig(), tracker)
+    live = np.stack([slam.process(f).T_world_cam for f in frames])
+    res = slam.finish()
+    est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
+    return est, res, slam
+
+
+def _ate_m(est: np.ndarray, gt: np.ndarray) -> float:
+    """RMS position error, first poses identical (no alignment)."""
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[: len(est), :3, 3]) ** 2, axis=1))))
+
+
+@cache
+def _slow_runs():
+    frames, gt = _frames("slow", N_SLOW)
+    return {t: _run(t, frames) for t in ("dense", "hybrid")}, gt
+
+
+def test_trackers_listed():
+    assert TRACKERS == ("dense", "orb", "hybrid")
+
+
+def test_orb_via_run_sequence_within_2x_of_dense(tmp_path):
+    root = generate_sequence(tmp_path / "seq", "room", "slow", N_SLOW, "kinect", 0, 320, 240)
+    seq = open_sequence(root)
+    m_dense = run_sequence(seq, tmp_path / "dense", SlamConfig(), "dense", progress=False, figures=False)
+    m_orb = run_sequence(seq, tmp_path / "orb", SlamConfig(), "orb", progress=False, figures=True)
+    ate_dense = m_dense["eval"]["ate_rmse_m"]
+    ate_orb = m_orb["eval"]["ate_rmse_m"]
+    assert ate_orb < 2.0 * ate_dense + 1e-3  # 1 mm slack: dense is ~3 mm here
+    assert m_orb["frames_processed"] == N_SLOW and m_orb["tracking_failures"] == 0
+    for k in ("loops_found", "loops_accepted", "keyframes", "sparse_rejected"):
+        assert k in m_orb
+    assert m_orb["keyframes"] >= 2 and m_orb["map_points"] > 1000
+    assert (tmp_path / "orb" / "map.ply").stat().st_size > 1000
+    assert (tmp_path / "orb" / "trajectory.png").exists()
+    assert json.loads((tmp_path / "orb" / "metrics.json").read_text())["tracker"] == "orb"
+    n_lines = [ln for ln in (tmp_path / "orb" / "trajectory.txt").read_text().splitlines()
+               if ln.strip() and not ln.startswith("#")]
+    assert len(n_lines) == N_SLOW
+
+
+def test_hybrid_no_worse_than_dense_on_slow_sequence():
+    runs, gt = _slow_runs()
+    ate_dense = _ate_m(runs["dense"][0], gt)
+    ate_hybrid = _ate_m(runs["hybrid"][0], gt)
+    assert ate_hybrid < ate_dense + 2e-3, (ate_hybrid, ate_dense)
+    res = runs["hybrid"][1]
+    assert res.metrics["keyframes"] >= 2 and res.metrics["tracking_failures"] == 0
+    assert res.map_points > 10000
+
+
+def test_hybrid_deterministic():
+    runs, _ = _slow_runs()
+    frames, _ = _frames("slow", N_SLOW)
+    again, _, _ = _run("hybrid", frames)
+    np.testing.assert_array_equal(runs["hybrid"][0], again)
+
+
+def test_hybrid_relocalises_after_a_two_second_gap():
+    frames, gt = _frames("slow", 130)
+    keep = list(range(0, 35)) + list(range(95, 130))  # 60 frames (2 s at 30 Hz) dropped
+    est, res, slam = _run("hybrid", [frames[i] for i in keep])
+    assert slam.counts["relocalisations_tracked"] + slam.counts["pnp_guesses_tracked"] >= 1
+    after = np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est[35:], keep[35:], strict=True)])
+    assert after[5:].max() < 0.03, after  # a few frames may be lost before relocalisation
+    # the frames after the gap are fused again
+    assert res.metrics["frames_fused"] >= len(keep) - 8
+
+
+@pytest.mark.parametrize("style", ["fast"])
+def test_hybrid_vs_dense_on_fast_sequence(style):
+    frames, gt = _frames(style, N_SLOW)
+    ate_dense = _ate_m(_run("dense", frames)[0], gt)
+    ate_hybrid = _ate_m(_run("hybrid", frames)[0], gt)
+    assert ate_hybrid < ate_dense + 2e-3, (ate_hybrid, ate_dense)
+
+
+def test_loop_found_reported_and_trajectory_closed():
+    """The revisit is recognised and reported. On these synthetic loops, dense ICP with PnP checks drifts
+    less than a centimetre, and the PnP loop edges do not reduce the ATE further (measured: 60 frames
+    1.07 cm with loops vs 0.72 cm without; 90 frames 0.68 vs 0.74; 150 frames 0.92 vs 3.40), so the
+    reduction is not asserted here; :func:`test_loop_correction_moves_map_and_trajectory` checks the
+    correction itself."""
+    frames, gt = _frames("loop", N_LOOP)
+    est, res, slam = _run("hybrid", frames)
+    m = res.metrics
+    assert m["loops_accepted"] >= 1 and m["loops_found"] >= m["loops_accepted"] and m["keyframes"] > 10
+    assert res.loop_stamps and all(a < b for a, b in res.loop_stamps)
+    assert res.trajectory_override is not None and len(res.trajectory_override) == N_LOOP
+    assert _ate_m(est, gt) < 0.02
+    assert isinstance(slam, HybridSlam) and res.surfel_map is not None
+
+
+def test_loop_correction_moves_map_and_trajectory():
+    """A graph correction ``D`` applied to every keyframe moves every surfel and frame pose by ``D``."""
+    frames, _ = _frames("slow", N_SLOW)
+    slam = HybridSlam(INTR, SlamConfig())
+    for f in frames[:12]:
+        slam.process(f)
+    before = slam.map.position.astype(np.float64).copy()
+    traj_before = slam.trajectory().T_world_cam
+    D = se3.exp(np.array([0.01, -0.02, 0.015, 0.05, -0.03, 0.02]))
+    kf_new = D[None] @ slam._kf_dense
+    slam.sparse._kf_pose_buf[: slam.sparse.n_keyframes] = kf_new  # as if the graph had moved them
+    slam._correct(kf_new)
+    moved = before @ D[:3, :3].T + D[:3, 3]
+    np.testing.assert_allclose(slam.map.position, moved, atol=2e-5)
+    np.testing.assert_allclose(slam.trajectory().T_world_cam, D[None] @ traj_before, atol=1e-9)
+    np.testing.assert_allclose(slam.T_world_cam, D @ traj_before[-1], atol=1e-9)
+    # the culling index follows: the map rendered at the moved pose is the map seen before
+    view = slam.render_target(slam.T_world_cam)
+    assert np.count_nonzero(view[0].vertex[..., 2] > 0) > 0.5 * INTR.width * INTR.height
+
+
+N_LOOP = 60
