@@ -45,7 +45,7 @@ class MapConfig:
     """Storage and culling-index settings of a :class:`SurfelMap`."""
 
     initial_capacity: int = 65536
-    block_size_m: float = 0.5  # edge of the cubic culling blocks
+    block_size_m: float = 0.25  # edge of the cubic culling blocks (0.5: 16% more candidates on revisits)
     block_margin_m: float = 0.1  # blocks' boxes are grown by this much in the frustum test
     index_max_tail: int = 131072  # rebuild the block grouping when this many surfels are ungrouped
 
