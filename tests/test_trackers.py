@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from functools import cache
 
 import numpy as np
@@ -82,10 +83,11 @@ def test_hybrid_no_worse_than_dense_on_slow_sequence():
 
 
 def test_hybrid_deterministic():
-    runs, _ = _slow_runs()
-    frames, _ = _frames("slow", N_SLOW)
-    again, _, _ = _run("hybrid", frames)
-    np.testing.assert_array_equal(runs["hybrid"][0], again)
+    frames, _ = _frames("fast", N_SLOW)
+    a, res_a, _ = _run("hybrid", frames[:15])
+    b, res_b, _ = _run("hybrid", frames[:15])
+    np.testing.assert_array_equal(a, b)
+    assert res_a.metrics["loops_accepted"] == res_b.metrics["loops_accepted"]
 
 
 def test_hybrid_relocalises_after_a_two_second_gap():
@@ -114,7 +116,9 @@ def test_loop_found_reported_and_trajectory_closed():
     reduction is not asserted here; :func:`test_loop_correction_moves_map_and_trajectory` checks the
     correction itself."""
     frames, gt = _frames("loop", N_LOOP)
-    est, res, slam = _run("hybrid", frames)
+    cfg = SlamConfig()
+    cheap = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
+    est, res, slam = _run("hybrid", frames, cheap)
     m = res.metrics
     assert m["loops_accepted"] >= 1 and m["loops_found"] >= m["loops_accepted"] and m["keyframes"] > 10
     assert res.loop_stamps and all(a < b for a, b in res.loop_stamps)
