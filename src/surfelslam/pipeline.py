@@ -126,7 +126,7 @@ class HybridConfig:
     pnp_check_max_m: float = 0.05
     pnp_check_max_deg: float = 5.0
     loop_correction: bool = True
-    dense_odometry_sigma_m: float = 0.01
+    dense_odometry_sigma_m: float = 0.002
     live_correction_min_m: float = 0.03
 
     def __post_init__(self) -> None:
