@@ -272,7 +272,10 @@ class DenseSlam(_FusingMapper):
         return self.T_world_cam @ self.velocity
 
     def render_target(self, T_world_cam: np.ndarray) -> FramePyramid:
-        view = render(self.map, T_world_cam, self.intr, self.cfg.render)
+        """The map rendered at ``T_world_cam`` straight into the target pyramid's level 0 (geometry only)."""
+        lvl0 = self.target[0]
+        view = render(self.map, T_world_cam, self.intr, self.cfg.render, vertex_out=lvl0.vertex,
+                      normal_out=lvl0.normal, attributes=False)
         return pyramid_from_maps(view.vertex_cam, view.normal_cam, self.intr, len(self.target),
                                  self.cfg.preprocess, out=self.target)
 
