@@ -20,6 +20,7 @@ sys.path.insert(0, str(HERE))
 import bench_fusion  # noqa: E402
 import bench_icp  # noqa: E402
 import bench_orb  # noqa: E402
+import bench_pipeline  # noqa: E402
 import open3d_slam  # noqa: E402
 from surfelslam.datasets import DatasetOptions, open_sequence  # noqa: E402
 from surfelslam.pipeline import SlamConfig  # noqa: E402
@@ -33,8 +34,8 @@ def pipeline_rows(quick: bool) -> list[dict]:
     """Whole dense loop (read, preprocess, render, ICP, fuse) on synthetic and shared sequences."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        n = 100 if quick else 300
-        for style in ("slow", "handheld", "fast"):
+        n = 60 if quick else 150
+        for style in ("slow", "handheld", "fast", "loop"):
             seq_dir = Path(tmp) / style
             generate_sequence(seq_dir, scene="room", style=style, n_frames=n, noise="kinect", seed=0)
             for ds in (2, 1):
@@ -55,7 +56,7 @@ def _run(name: str, path: Path, downsample: int, out: Path, end: int | None = No
         "failures": m.get("tracking_failures", 0), "warmup_s": round(m["warmup_s"], 1),
         **{f"{k}_ms": round(v["mean"], 1) for k, v in m["stage_ms"].items()},
     }
-    if open3d_slam.available():
+    if open3d_slam.available() and downsample == 2:  # Open3D runs ~1-3 FPS: side by side at 320x240 only
         o3 = open3d_slam.run_open3d_slam(seq)
         from surfelslam.eval.metrics import evaluate
 
@@ -83,6 +84,7 @@ def main() -> None:
         "ICP and preprocessing (ms)": bench_icp.run(args.quick),
         "Fusion and rendering (ms)": bench_fusion.run(args.quick),
         "ORB front end (ms)": bench_orb.run(args.quick),
+        "Per-frame cost over a long run (flat-cost check)": bench_pipeline.run(args.quick),
         "Whole dense pipeline": pipeline_rows(args.quick),
     }
     meta = {"date": datetime.date.today().isoformat(), "machine": f"{platform.machine()}, {platform.processor()}",
