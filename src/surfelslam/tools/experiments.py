@@ -26,6 +26,7 @@ import scipy.linalg
 import typer
 
 from surfelslam.errors import ConfigError
+from surfelslam.io.jsonio import json_default
 from surfelslam.tools.common import (
     DepthScaleOpt,
     DownsampleOpt,
@@ -541,18 +542,8 @@ def run_experiments(seq, seq_runs, out_dir: Path, cfg, opts: ExperimentOptions) 
     from surfelslam.io.atomic import write_text_atomic
 
     write_text_atomic(out_dir / "report.md", "\n".join(head + body).rstrip() + "\n")
-    write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2, default=_json_default) + "\n")
+    write_text_atomic(out_dir / "results.json", json.dumps(results, indent=2, default=json_default) + "\n")
     return results
-
-
-def _json_default(o):
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON-serialisable: {type(o)}")
 
 
 def parse_gaps(text: str) -> tuple[int, ...]:

@@ -16,6 +16,7 @@ from surfelslam.config import dumps_toml, load_toml
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
+from surfelslam.io.jsonio import json_default
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.trajectory import TumAppender
 from surfelslam.pipeline import TRACKERS, SlamConfig, build_slam, poses_for_mapping
@@ -128,21 +129,11 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
             metrics["eval"] = evaluate(est, seq.ground_truth)
         except Exception as exc:  # noqa: BLE001 - evaluation problems must not lose the run's outputs
             metrics["eval_error"] = str(exc)
-    write_text_atomic(out_dir / "metrics.json", json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    write_text_atomic(out_dir / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
     result.write_map(out_dir / "map.ply")
     if figures:
         _write_figures(out_dir, seq, result, metrics)
     return metrics
-
-
-def _json_default(o):
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON-serialisable: {type(o)}")
 
 
 def _stats(v: list[float]) -> dict:
