@@ -51,3 +51,23 @@ def test_orthonormalize_projects_onto_se3():
     assert np.allclose(Tn[:3, :3] @ Tn[:3, :3].T, np.eye(3), atol=1e-12)
     assert np.allclose(Tn[:3, 3], T[:3, 3])
     assert np.linalg.norm(Tn[:3, :3] - T[:3, :3]) < 3e-3
+
+
+def test_working_level_tracks_and_fuses_the_block_averaged_level():
+    """Input wider than the working width is tracked and fused at its 2x2 block-averaged level."""
+    from dataclasses import replace
+
+    from surfelslam.pipeline import working_level
+
+    base = SlamConfig()
+    cfg = replace(base, tracking=replace(base.tracking, max_width_px=160),
+                  fusion=replace(base.fusion, max_width_px=160))
+    est, err, slam = _track("none", n=30, cfg=cfg)
+    assert (slam.track_level, slam.fuse_level) == (1, 1)
+    assert slam.failures == 0
+    assert err.max() < 4e-3
+    # the map is made at 160x120: at most one new surfel per working-level pixel and frame, and far fewer
+    # than a single full-resolution frame's pixels would give
+    assert 0 < slam.map.n_alive < 160 * 120 * 2
+    assert [working_level(default_intrinsics(w, w * 3 // 4), 320) for w in (320, 640, 1280)] == [0, 1, 2]
+    assert working_level(default_intrinsics(640, 480), 0) == 0

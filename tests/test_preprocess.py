@@ -1,5 +1,7 @@
 """Depth preprocessing: kernels vs numpy references, normals, pyramid intrinsics and consistency."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -156,3 +158,37 @@ def test_bad_config_and_shapes():
         PreprocessConfig(pyramid_levels=0)
     with pytest.raises(ConfigError, match="depth image"):
         build_pyramid(np.zeros((10, 10), np.float32), INTR)
+
+
+def test_depth_downsample_kernel_matches_reference_and_keeps_depths_apart():
+    z = noisy_scene_depth(3)
+    out = np.empty((z.shape[0] // 2, z.shape[1] // 2), np.float32)
+    kp.downsample_depth(z, 0.1, 5.0, 0.05, out)
+    ref = kp.downsample_depth_ref(z, 0.1, 5.0, 0.05)
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=0)
+    # a block holding a near and a far surface keeps the near depth only; invalid pixels do not count
+    mixed = np.array([[1.0, 1.0], [1.5, 0.0]], np.float32)
+    one = np.empty((1, 1), np.float32)
+    kp.downsample_depth(mixed, 0.1, 5.0, 0.05, one)
+    assert one[0, 0] == pytest.approx(1.0)
+    kp.downsample_depth(np.zeros((2, 2), np.float32), 0.1, 5.0, 0.05, one)
+    assert one[0, 0] == 0.0
+
+
+def test_preprocess_from_a_coarser_first_level():
+    """first_level=1: level 1 is the block-averaged depth processed at level-1 intrinsics; coarser levels follow."""
+    z = noisy_scene_depth(4)
+    cfg = PreprocessConfig(pyramid_levels=3)
+    pre = Preprocessor(INTR, cfg)
+    pyr = pre.process(z, first_level=1)
+    half = kp.downsample_depth_ref(z, cfg.min_depth_m, cfg.max_depth_m, cfg.pyramid_max_depth_diff_m)
+    direct = Preprocessor(halve_intrinsics(INTR), replace(cfg, pyramid_levels=2,
+                                                          normal_max_depth_jump_m=2 * cfg.normal_max_depth_jump_m,
+                                                          pyramid_max_depth_diff_m=2 * cfg.pyramid_max_depth_diff_m))
+    ref = direct.process(half)
+    for lvl in (1, 2):
+        np.testing.assert_allclose(pyr[lvl].vertex, ref[lvl - 1].vertex, atol=1e-6)
+        np.testing.assert_allclose(pyr[lvl].normal, ref[lvl - 1].normal, atol=1e-5)
+    assert (pyr[1].vertex[..., 2] > 0).mean() > 0.8
+    with pytest.raises(ConfigError, match="first_level"):
+        pre.process(z, first_level=3)

@@ -2,12 +2,20 @@
 
 Dense frame-to-model SLAM (:class:`DenseSlam`), per frame:
 
-1. ``preprocess``: depth -> bilateral filter -> vertex/normal pyramid (source).
+1. ``preprocess``: depth -> (2x2 block averaging down to the working level) -> optional bilateral filter ->
+   vertex/normal pyramid (source).
 2. ``predict``: constant-velocity guess of the new pose.
 3. ``render``: the surfel map rendered at the previous pose -> vertex/normal pyramid (target).
 4. ``track``: coarse-to-fine projective point-to-plane ICP, source -> target, from the prediction.
 5. ``fuse``: on success, the frame is fused into the map at the tracked pose (merge, add, remove);
    on failure the frame is not fused, it is counted, and the pose is the prediction.
+
+Working resolution: tracking (render + ICP) and fusion run at the finest pyramid level that is at most
+``tracking.max_width_px`` / ``fusion.max_width_px`` wide (default 320 for both). 320x240 input is worked on
+as it is; 640x480 input is first block-averaged 2x2 (which also halves the depth noise), so its map has the
+density of a 320x240 map (one surfel per 2x2 input pixels; ~7 mm apart at 2 m, about Open3D's default
+5.9 mm voxel) and a frame costs about what a 320x240 frame costs. Set both to 0 to work at full resolution
+(a 4x denser map, about 4x the time).
 
 Mapping with given poses (:class:`GivenPoseMapper`) runs ``preprocess`` and ``fuse`` only.
 
@@ -50,6 +58,7 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from surfelslam.backend.sparse_slam import SparseSlam, SparseSlamConfig
@@ -82,11 +91,21 @@ class TrackingConfig:
             refine against the model from there (costs one more ICP; helps under fast motion).
         max_failures_in_a_row_before_reset_velocity: after this many failed frames in a row the velocity is
             reset to zero (the prediction stops extrapolating).
+        max_width_px: tracking (rendering the model and ICP) runs at the finest pyramid level of the input that
+            is at most this wide (pixels); fusion always uses the full resolution. 640x480 input is tracked
+            at its 2x2 block-averaged 320x240 level: the model is rendered at 320x240 (a quarter of the
+            splatting work) and ICP sees the same number of points as at 320x240 input. 0 = always track at
+            full resolution.
     """
 
     constant_velocity: bool = True
     max_failures_in_a_row_before_reset_velocity: int = 3
     frame_to_frame_init: bool = False
+    max_width_px: int = 320
+
+    def __post_init__(self) -> None:
+        if self.max_width_px < 0:
+            raise ConfigError(f"tracking: max_width_px must be >= 0, got {self.max_width_px}")
 
 
 @dataclass
@@ -221,10 +240,14 @@ class _Timer:
 class _FusingMapper:
     """What the dense pipelines share: preprocessing into reused buffers, and fusion into a surfel map."""
 
-    def __init__(self, intr: Intrinsics, cfg: SlamConfig):
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, min_levels: int = 1, track_level: int | None = None):
         self.intr = intr
         self.cfg = cfg
-        self.pre = Preprocessor(intr, cfg.preprocess)
+        self.fuse_level = working_level(intr, cfg.fusion.max_width_px)
+        levels = max(cfg.preprocess.pyramid_levels, min_levels, self.fuse_level + 1)
+        self.pre = Preprocessor(intr, replace(cfg.preprocess, pyramid_levels=levels))
+        # finer pyramid levels are never used, so never computed
+        self.first_level = self.fuse_level if track_level is None else min(self.fuse_level, track_level)
         self.source = self.pre.new_pyramid()
         self.map = SurfelMap(cfg.map)
         self.n_fused = 0
@@ -235,11 +258,12 @@ class _FusingMapper:
                 f"frame {frame.index}: depth is {frame.depth_m.shape[1]}x{frame.depth_m.shape[0]}, "
                 f"expected {self.intr.width}x{self.intr.height}"
             )
-        return self.pre.process(frame.depth_m, out=self.source)
+        return self.pre.process(frame.depth_m, out=self.source, first_level=self.first_level)
 
     def _fuse(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
-        lvl0 = self.source[0]
-        fuse(self.map, lvl0.vertex, lvl0.normal, frame.rgb, T_world_cam, self.intr, frame.index, self.cfg.fusion)
+        lvl = self.source[self.fuse_level]
+        rgb = frame.rgb if self.fuse_level == 0 else block_average_rgb(frame.rgb, self.fuse_level)
+        fuse(self.map, lvl.vertex, lvl.normal, rgb, T_world_cam, lvl.intrinsics, frame.index, self.cfg.fusion)
         self.n_fused += 1
 
     def warmup(self) -> None:
@@ -255,8 +279,10 @@ class DenseSlam(_FusingMapper):
     """Frame-to-model dense SLAM: track each frame against the map rendered at the previous pose, then fuse."""
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig):
-        super().__init__(intr, cfg)
-        self.target = self.pre.new_pyramid()
+        self.track_level = working_level(intr, cfg.tracking.max_width_px)
+        super().__init__(intr, cfg, min_levels=self.track_level + cfg.icp.levels, track_level=self.track_level)
+        track_intr = self.pre.level_intrinsics[self.track_level]
+        self.target = FramePyramid.empty(track_intr, len(self.pre.level_intrinsics) - self.track_level)
         self.previous = self.pre.new_pyramid()  # the last frame's pyramid (buffers swapped, not copied)
         self.T_world_cam: np.ndarray | None = None
         self.velocity = np.eye(4)  # T_prev_cur of the last good step
@@ -272,12 +298,18 @@ class DenseSlam(_FusingMapper):
         return self.T_world_cam @ self.velocity
 
     def render_target(self, T_world_cam: np.ndarray) -> FramePyramid:
-        """The map rendered at ``T_world_cam`` straight into the target pyramid's level 0 (geometry only)."""
+        """The map rendered at ``T_world_cam`` at the tracking resolution, straight into the target pyramid's
+        level 0 (geometry only)."""
         lvl0 = self.target[0]
-        view = render(self.map, T_world_cam, self.intr, self.cfg.render, vertex_out=lvl0.vertex,
+        view = render(self.map, T_world_cam, lvl0.intrinsics, self.cfg.render, vertex_out=lvl0.vertex,
                       normal_out=lvl0.normal, attributes=False)
-        return pyramid_from_maps(view.vertex_cam, view.normal_cam, self.intr, len(self.target),
+        return pyramid_from_maps(view.vertex_cam, view.normal_cam, lvl0.intrinsics, len(self.target),
                                  self.cfg.preprocess, out=self.target)
+
+    @property
+    def track_source(self) -> FramePyramid:
+        """The current frame's pyramid from the tracking level down (what ICP registers)."""
+        return FramePyramid(self.source.levels[self.track_level:])
 
     def process(self, frame: RGBDFrame) -> FrameResult:
         t = _Timer()
@@ -296,10 +328,11 @@ class DenseSlam(_FusingMapper):
         target = self.render_target(T_prev)
         t.lap("render")
         if self.cfg.tracking.frame_to_frame_init:
-            f2f = icp(self.source, self.previous, T_init=T_init, cfg=self.cfg.icp)
+            f2f = icp(self.track_source, FramePyramid(self.previous.levels[self.track_level:]), T_init=T_init,
+                      cfg=self.cfg.icp)
             if icp_failure(f2f) is None:
                 T_init = f2f.T_target_source
-        res = icp(self.source, target, T_init=T_init, cfg=self.cfg.icp)
+        res = icp(self.track_source, target, T_init=T_init, cfg=self.cfg.icp)
         t.lap("icp")
         failure = icp_failure(res)
         if failure is None:
@@ -322,6 +355,23 @@ class DenseSlam(_FusingMapper):
 
     def finish(self) -> SlamResult:
         return self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons})
+
+
+def working_level(intr: Intrinsics, max_width_px: int) -> int:
+    """The finest pyramid level (0 = input) whose width is at most ``max_width_px`` (0: always level 0)."""
+    level, width = 0, intr.width
+    while max_width_px > 0 and width > max_width_px and width // 2 >= 8:
+        level, width = level + 1, width // 2
+    return level
+
+
+def block_average_rgb(rgb: np.ndarray, levels: int) -> np.ndarray:
+    """``(H, W, 3)`` uint8 colour averaged over ``2^levels`` square blocks, matching the pyramid's geometry
+    (an odd last row / column is dropped at each halving)."""
+    for _ in range(levels):
+        h, w = rgb.shape[0] // 2, rgb.shape[1] // 2
+        rgb = cv2.resize(rgb[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
+    return rgb
 
 
 _WARMUP_INTRINSICS = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
@@ -456,7 +506,7 @@ class HybridSlam(DenseSlam):
     def _icp_from(self, T_render: np.ndarray, T_init_rel: np.ndarray):
         """ICP of the current source against the map rendered at ``T_render``; returns (res, failure, T)."""
         target = self.render_target(T_render)
-        res = icp(self.source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp)
+        res = icp(self.track_source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp)
         return res, icp_failure(res), se3.orthonormalize(T_render @ res.T_target_source)
 
     def process(self, frame: RGBDFrame) -> FrameResult:

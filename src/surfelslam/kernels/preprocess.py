@@ -273,6 +273,52 @@ def downsample_vertex(vertex, max_depth_diff_m, out):
                 out[vo, uo, 2] = 0.0
 
 
+@dual_njit(fastmath=_FASTMATH, error_model="numpy")
+def downsample_depth(depth_m, min_depth_m, max_depth_m, max_depth_diff_m, out):
+    """Halve a depth image by averaging 2x2 blocks, with the block selection of :func:`downsample_vertex`.
+
+    Output pixel ``(u', v')`` is the mean of the block's valid depths (in ``[min_depth_m, max_depth_m]``)
+    within ``max_depth_diff_m`` of the block's smallest valid depth; 0 when the block has none.
+    Back-projected with the halved intrinsics (:func:`surfelslam.tracking.preprocess.halve_intrinsics`) it
+    gives the block-centre point of a fronto-parallel surface.
+
+    Args:
+        depth_m: ``(H, W)`` float32 metres. out: ``(H // 2, W // 2)`` float32.
+    """
+    Ho, Wo = out.shape
+    for vo in prange(Ho):
+        for uo in range(Wo):
+            zmin = np.inf
+            for dv in range(2):
+                for du in range(2):
+                    z = depth_m[2 * vo + dv, 2 * uo + du]
+                    if z >= min_depth_m and z <= max_depth_m and z < zmin:
+                        zmin = z
+            s = 0.0
+            cnt = 0
+            if zmin < np.inf:
+                for dv in range(2):
+                    for du in range(2):
+                        z = depth_m[2 * vo + dv, 2 * uo + du]
+                        if z >= min_depth_m and z <= max_depth_m and z - zmin <= max_depth_diff_m:
+                            s += z
+                            cnt += 1
+            out[vo, uo] = s / cnt if cnt > 0 else 0.0
+
+
+def downsample_depth_ref(depth_m, min_depth_m, max_depth_m, max_depth_diff_m):
+    """Numpy reference of :func:`downsample_depth`; returns ``(H // 2, W // 2)`` float32."""
+    H, W = depth_m.shape[0] // 2 * 2, depth_m.shape[1] // 2 * 2
+    z = depth_m[:H, :W].astype(np.float64)
+    blocks = z.reshape(H // 2, 2, W // 2, 2).transpose(0, 2, 1, 3).reshape(H // 2, W // 2, 4)
+    valid = (blocks >= min_depth_m) & (blocks <= max_depth_m)
+    zmin = np.min(np.where(valid, blocks, np.inf), axis=-1, keepdims=True)
+    sel = valid & (blocks - zmin <= max_depth_diff_m)
+    cnt = sel.sum(axis=-1)
+    s = np.sum(np.where(sel, blocks, 0.0), axis=-1)
+    return np.where(cnt > 0, s / np.maximum(cnt, 1), 0.0).astype(np.float32)
+
+
 def _block_selection_ref(vertex, max_depth_diff_m):
     H, W = vertex.shape[0] // 2 * 2, vertex.shape[1] // 2 * 2
     V = vertex[:H, :W].astype(np.float64)

@@ -80,8 +80,11 @@ class FusionConfig:
     remove_duplicates: bool = True
     duplicate_dist_m: float = 0.02
     duplicate_angle_deg: float = 30.0
+    max_width_px: int = 320  # the pipeline fuses the finest pyramid level at most this wide (0 = full resolution)
 
     def __post_init__(self) -> None:
+        if self.max_width_px < 0:
+            raise ConfigError(f"fusion: max_width_px must be >= 0, got {self.max_width_px}")
         if self.weight_mode not in WEIGHT_MODES:
             raise ConfigError(f"fusion: weight_mode must be one of {WEIGHT_MODES}, got {self.weight_mode!r}")
         if self.dist_diff_m <= 0:

@@ -144,7 +144,8 @@ class Preprocessor:
         self.cfg = cfg or PreprocessConfig()
         self.intrinsics = intr
         self.level_intrinsics = pyramid_intrinsics(intr, self.cfg.pyramid_levels)
-        self._filtered = np.empty(intr.shape, np.float32)
+        self._filtered = [np.empty(li.shape, np.float32) for li in self.level_intrinsics]
+        self._halved = [np.empty(li.shape, np.float32) for li in self.level_intrinsics[1:]]
         c = self.cfg
         self._spatial, self._lut, self._lut_step = kp.bilateral_tables(
             c.bilateral_radius_px, c.bilateral_sigma_px, c.bilateral_sigma_depth_m
@@ -158,27 +159,46 @@ class Preprocessor:
 
         Returns an internal buffer that the next call overwrites.
         """
+        return self._filter(_check_depth(depth_m, self.intrinsics), 0)
+
+    def _filter(self, depth_m: np.ndarray, level: int) -> np.ndarray:
         c = self.cfg
-        depth_m = _check_depth(depth_m, self.intrinsics)
+        out = self._filtered[level]
         if c.bilateral:
             kp.bilateral_filter(depth_m, c.min_depth_m, c.max_depth_m, self._spatial, self._lut,
-                                self._lut_step, self._filtered)
+                                self._lut_step, out)
         else:
-            np.copyto(self._filtered, depth_m)
-            self._filtered[~((depth_m >= c.min_depth_m) & (depth_m <= c.max_depth_m))] = 0.0
-        return self._filtered
+            np.copyto(out, depth_m)
+            out[~((depth_m >= c.min_depth_m) & (depth_m <= c.max_depth_m))] = 0.0
+        return out
 
-    def process(self, depth_m: np.ndarray, out: FramePyramid | None = None) -> FramePyramid:
-        """Depth ``(H, W)`` float32 metres (0 = invalid) -> pyramid (written into ``out`` if given)."""
+    def process(self, depth_m: np.ndarray, out: FramePyramid | None = None, first_level: int = 0) -> FramePyramid:
+        """Depth ``(H, W)`` float32 metres (0 = invalid) -> pyramid (written into ``out`` if given).
+
+        ``first_level``: the finest level that is computed. With ``first_level = L > 0`` the depth image is
+        first halved ``L`` times by 2x2 block averaging (:func:`surfelslam.kernels.preprocess.downsample_depth`,
+        the same depth gate as the vertex pyramid), then filtered and back-projected at level ``L``; the maps
+        of the finer levels are left as they were. This is for a pipeline that tracks and fuses at a coarser
+        level than the input (e.g. 640x480 input worked on at 320x240): the filter, back-projection and
+        normals then cost what they cost at the working resolution.
+        """
         c = self.cfg
         pyr = out if out is not None else self.new_pyramid()
         if len(pyr) != c.pyramid_levels or pyr.intrinsics != self.intrinsics:
             raise ConfigError("preprocess: output pyramid does not match this preprocessor's size/levels")
-        depth = self.filter_depth(depth_m)
-        i0 = self.intrinsics
-        kp.depth_to_vertex(depth, i0.fx, i0.fy, i0.cx, i0.cy, c.min_depth_m, c.max_depth_m, pyr[0].vertex)
-        kp.vertex_normals(pyr[0].vertex, c.normal_max_depth_jump_m, pyr[0].normal)
-        for lvl in range(1, len(pyr)):
+        if not 0 <= first_level < len(pyr):
+            raise ConfigError(f"preprocess: first_level must be in [0, {len(pyr)}), got {first_level}")
+        depth = _check_depth(depth_m, self.intrinsics)
+        for lvl in range(first_level):
+            halved = self._halved[lvl]
+            kp.downsample_depth(depth, c.min_depth_m, c.max_depth_m, c.pyramid_max_depth_diff_m * 2.0 ** lvl, halved)
+            depth = halved
+        depth = self._filter(depth, first_level)
+        il = self.level_intrinsics[first_level]
+        top = pyr[first_level]
+        kp.depth_to_vertex(depth, il.fx, il.fy, il.cx, il.cy, c.min_depth_m, c.max_depth_m, top.vertex)
+        kp.vertex_normals(top.vertex, c.normal_max_depth_jump_m * 2.0 ** first_level, top.normal)
+        for lvl in range(first_level + 1, len(pyr)):
             scale = 2.0 ** (lvl - 1)
             kp.downsample_vertex(pyr[lvl - 1].vertex, c.pyramid_max_depth_diff_m * scale, pyr[lvl].vertex)
             kp.vertex_normals(pyr[lvl].vertex, c.normal_max_depth_jump_m * 2.0 * scale, pyr[lvl].normal)
