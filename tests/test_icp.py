@@ -72,8 +72,9 @@ def pair_pyramids(renders):
     return pre.process(kinect(srcs[4], 1)), pre.process(kinect(tgt, 2))
 
 
-@pytest.mark.parametrize("robust,stride", [("none", 1), ("huber", 1), ("tukey", 1), ("huber", 2)])
-def test_kernel_matches_reference(pair_pyramids, robust, stride):
+@pytest.mark.parametrize("robust,stride,depth_ref", [("none", 1, 0.0), ("huber", 1, 0.0), ("tukey", 1, 0.0),
+                                                     ("huber", 2, 0.0), ("huber", 1, 1.5), ("none", 2, 2.0)])
+def test_kernel_matches_reference(pair_pyramids, robust, stride, depth_ref):
     src, tgt = pair_pyramids
     T = MOTIONS[4] @ motion((1, 0, 0), 0.5, (1, 1, 0), 0.01)  # near, not at, the solution
     kind = kicp.ROBUST_KINDS[robust]
@@ -81,10 +82,10 @@ def test_kernel_matches_reference(pair_pyramids, robust, stride):
     cos_thr = np.cos(np.radians(30.0))
     stats = np.zeros(kicp.N_STATS)
     kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal, T,
-                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats, stride)
+                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats, stride, depth_ref)
     A, b, w, z, n_valid = kicp.build_linear_system_ref(src[0].vertex, src[0].normal, tgt[0].vertex,
                                                        tgt[0].normal, T, i.fx, i.fy, i.cx, i.cy, 0.05,
-                                                       cos_thr, kind, 0.01, stride)
+                                                       cos_thr, kind, 0.01, stride, depth_ref)
     assert len(b) > 20000 / stride**2 and stats[29] == len(b) and stats[31] == n_valid
     AtA, Atb = kicp.normal_equations_ref(A, b, w)
     H, g = kicp.unpack_normal_equations(stats)
@@ -93,8 +94,30 @@ def test_kernel_matches_reference(pair_pyramids, robust, stride):
     assert stats[27] == pytest.approx(np.sum(w * b * b), rel=1e-9)
     assert stats[28] == pytest.approx(np.sum(b * b), rel=1e-9)
     assert stats[30] == pytest.approx(np.sum(z), rel=1e-9)
-    if robust != "none":
+    if robust != "none" or depth_ref > 0:
         assert np.any(w < 1.0)
+    if depth_ref > 0:  # farther points weigh less
+        assert w.max() > 1.5 * w.min()
+
+
+def test_depth_weights_reference():
+    """w = huber(b / s) / s^2 with s = (q_z / z_ref)^2: a point at 3 m (s = 4) with a 4 cm residual is a Huber
+    inlier at scale 1 cm and weighs 1/16; at 1.5 m (s = 1) the same residual is down-weighted by Huber."""
+    V = np.zeros((3, 3, 3), np.float32)
+    N = np.zeros((3, 3, 3), np.float32)
+    V[1, 1] = (0.0, 0.0, 3.0)
+    N[1, 1] = (0.0, 0.0, -1.0)
+    for z, expected in ((3.0, 1.0 / 16.0), (1.5, 0.01 / 0.04)):
+        Vs, Vt = V.copy(), V.copy()
+        Vs[1, 1, 2] = z + 0.04
+        Vt[1, 1, 2] = z
+        _, b, w, _, _ = kicp.build_linear_system_ref(Vs, N, Vt, N, np.eye(4), 1.0, 1.0, 1.0, 1.0, 0.1, 0.9,
+                                                     kicp.ROBUST_HUBER, 0.01, 1, 1.5)
+        assert b == pytest.approx([-0.04], rel=1e-5) and w == pytest.approx([expected], rel=1e-5)
+        stats = np.zeros(kicp.N_STATS)
+        kicp.accumulate_normal_equations(Vs, N, Vt, N, np.eye(4), 1.0, 1.0, 1.0, 1.0, 0.1, 0.9,
+                                         kicp.ROBUST_HUBER, 0.01, stats, 1, 1.5)
+        assert stats[29] == 1 and stats[27] == pytest.approx(expected * 0.04**2, rel=1e-5)
 
 
 def test_kernel_is_deterministic_across_thread_counts(pair_pyramids):
@@ -230,6 +253,10 @@ def test_config_validation():
         ICPConfig(robust_kernel="cauchy")
     with pytest.raises(ConfigError):
         ICPConfig(dist_thresh_m=(0.1, -1.0, 0.4, 1.0))
+    with pytest.raises(ConfigError, match="finest_robust_scale_m"):
+        ICPConfig(finest_robust_scale_m=0.0)
+    with pytest.raises(ConfigError, match="depth_weight_ref_m"):
+        ICPConfig(depth_weight_ref_m=-1.0)
     pyr = build_pyramid(np.ones(INTR.shape, np.float32), INTR, PreprocessConfig(pyramid_levels=2))
     with pytest.raises(ConfigError, match="levels"):
         icp(pyr, pyr)
