@@ -4,10 +4,11 @@ Sequence: ../shared/data/7scenes_redkitchen_0000_0499 (real Kinect v1, 30 Hz, GT
 
 ``--table success`` (default): the issue's accuracy criterion. Pairs ``s -> s + gap`` for gaps 1, 5, 10, 20, 30
 from the starts 0, 20, ..., 460 (24 per gap), registered from the identity as ``surfelslam register`` does
-(defaults; ``--downsample 1`` = 640x480, the command's default, and 2 = 320x240). Per gap: pairs within
-1 cm & 1 deg of GT, median errors, and the same for ICP started AT the GT pose ("from GT": where the depth
-data's own optimum lies relative to the GT, i.e. the floor of any depth-only registration judged against this
-GT). ``previous`` is the setting before depth weighting (finest Huber 2 cm, 5 finest iterations).
+(:func:`pairwise_config`; ``--downsample 1`` = 640x480, the command's default, and 2 = 320x240). Per gap: pairs
+within 1 cm & 1 deg of GT, median errors, and the same for ICP started AT the GT pose ("from GT": where the
+depth data's own optimum lies relative to the GT, i.e. the floor of any depth-only registration judged against
+this GT). ``ICPConfig() (tracker)`` is the frame-to-model tracker's setting (shorter coarse levels);
+``previous`` the setting before depth weighting (finest Huber 2 cm, 5 finest iterations).
 
 ``--table seeds``: the seeds' experiment, pairs 10, 40 and 90 apart at 320x240, single level at 0.07 m (10 fixed
 iterations, no angle gate, no robust kernel) vs the coarse-to-fine defaults.
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.geometry import se3
-from surfelslam.tracking.icp import ICPConfig, icp
+from surfelslam.tracking.icp import ICPConfig, icp, pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
@@ -60,8 +61,8 @@ def success_rows(downsample: int, starts=SUCCESS_STARTS, gaps=SUCCESS_GAPS) -> l
     T_wc, valid = seq.gt_poses()
     pairs = [(s, s + g, g) for g in gaps for s in starts if s + g < len(seq) and valid[s] and valid[s + g]]
     pyr = _pyramids(seq, Preprocessor(seq.intrinsics, PreprocessConfig()), [i for p in pairs for i in p[:2]])
-    methods = (("defaults", ICPConfig(), False), ("defaults from GT", ICPConfig(), True),
-               ("previous", PREVIOUS_CFG, False))
+    methods = (("register defaults", pairwise_config(), False), ("register defaults from GT", pairwise_config(), True),
+               ("ICPConfig() (tracker)", ICPConfig(), False), ("previous", PREVIOUS_CFG, False))
     icp(pyr[pairs[0][0]], pyr[pairs[0][1]])  # JIT warm-up / cache load
     rows = []
     for s, t, gap in pairs:

@@ -113,6 +113,18 @@ class ICPConfig:
             raise ConfigError(f"icp: min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction}")
 
 
+def pairwise_config() -> ICPConfig:
+    """Settings of ``surfelslam register`` (one-off registration of frames up to ~1 s apart).
+
+    The :class:`ICPConfig` defaults with a wider basin of convergence: the coarse levels run longer (they stop at a
+    1e-4 relative residual change, up to 20/20/80 iterations) with a 5 cm Huber scale, so large motions (20-30 cm,
+    10-18 deg) are not frozen half-way by the robust kernel. On 7-Scenes pairs up to 30 frames apart this halves
+    the gross failures (> 5 cm: 12 -> 6 of 120 at 320x240). In frame-to-model tracking it costs about 2.5x the
+    iterations for no ATE gain, so the tracker keeps the :class:`ICPConfig` defaults.
+    """
+    return ICPConfig(iterations=(10, 20, 20, 80), robust_scale_m=0.05, coarse_min_relative_residual_change=1e-4)
+
+
 @dataclass
 class LevelInfo:
     """What happened at one pyramid level (statistics of its last linearisation)."""
