@@ -11,7 +11,7 @@ this GT). ``ICPConfig() (tracker)`` is the frame-to-model tracker's setting (sho
 ``previous`` the setting before depth weighting (finest Huber 2 cm, 5 finest iterations).
 
 ``--table seeds``: the seeds' experiment, pairs 10, 40 and 90 apart at 320x240, single level at 0.07 m (10 fixed
-iterations, no angle gate, no robust kernel) vs the coarse-to-fine defaults.
+iterations, no angle gate, no robust kernel) vs the register command's coarse-to-fine defaults.
 
 Usage: ``.venv/bin/python benchmarks/icp_pairs.py [--table success|seeds] [--downsample 1,2] [--starts ...]
 [--gaps ...]``.
@@ -99,7 +99,7 @@ def print_success(rows: list[dict], size: str) -> None:
 
 
 def seeds_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90)) -> list[dict]:
-    """The seeds' experiment at 320x240: single level at 0.07 m vs coarse-to-fine defaults."""
+    """The seeds' experiment at 320x240: single level at 0.07 m vs the register defaults (coarse-to-fine)."""
     seq = _open(2)
     T_wc, valid = seq.gt_poses()
     pairs = [(s, s + g, g) for g in gaps for s in starts if s + g < len(seq) and valid[s] and valid[s + g]]
@@ -108,7 +108,7 @@ def seeds_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90))
     for s, t, gap in pairs:
         T_gt = se3.invert(T_wc[t]) @ T_wc[s]
         m_t, m_r = se3.pose_error(np.eye(4), T_gt)
-        for name, cfg in (("seeds 1 level 0.07 m", SEEDS_CFG), ("default coarse-to-fine", ICPConfig())):
+        for name, cfg in (("seeds 1 level 0.07 m", SEEDS_CFG), ("register defaults", pairwise_config())):
             res = icp(pyr[s], pyr[t], None, cfg)
             e_t, e_r = se3.pose_error(res.T_target_source, T_gt)
             rows.append({"pair": f"{s}->{t}", "gap": gap, "motion_mm": 1000 * m_t, "motion_deg": m_r,
