@@ -101,13 +101,14 @@ def test_kernel_matches_reference(pair_pyramids, robust, stride, depth_ref):
 
 
 def test_depth_weights_reference():
-    """w = huber(b / s) / s^2 with s = (q_z / z_ref)^2: a point at 3 m (s = 4) with a 4 cm residual is a Huber
-    inlier at scale 1 cm and weighs 1/16; at 1.5 m (s = 1) the same residual is down-weighted by Huber."""
+    """w = huber(b / s) / s^2 with s = (p'_z / z_ref)^2: a source point at 3.04 m (s = 4.1) with a 4 cm residual is
+    a Huber inlier at scale 1 cm and weighs 1/s^2; at 1.54 m (s = 1.05) the same residual is down-weighted by
+    Huber as well."""
     V = np.zeros((3, 3, 3), np.float32)
     N = np.zeros((3, 3, 3), np.float32)
     V[1, 1] = (0.0, 0.0, 3.0)
     N[1, 1] = (0.0, 0.0, -1.0)
-    for z, expected in ((3.0, 1.0 / 16.0), (1.5, 0.01 / 0.04)):
+    for z, expected in ((3.0, (1.5 / 3.04) ** 4), (1.5, 0.01 / (0.04 / (1.54 / 1.5) ** 2) * (1.5 / 1.54) ** 4)):
         Vs, Vt = V.copy(), V.copy()
         Vs[1, 1, 2] = z + 0.04
         Vt[1, 1, 2] = z

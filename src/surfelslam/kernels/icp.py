@@ -13,7 +13,7 @@ The pair is an inlier when ``(u, v)`` is inside the image, ``q_z > 0``, ``n_q !=
     b_i = n_q^T (p' - q)                                        (signed point-to-plane residual, m)
 
 with robust weight ``w_i = rho'(b_i) / b_i`` (optionally depth-scaled: ``w_i = w(b_i / s_i) / s_i^2`` with
-``s_i = (q_z / depth_ref_m)^2``) to ``A^T W A`` and ``A^T W b``; the Gauss-Newton step solves
+``s_i = (p'_z / depth_ref_m)^2``) to ``A^T W A`` and ``A^T W b``; the Gauss-Newton step solves
 ``(A^T W A) xi = -A^T W b`` and updates ``T <- exp(xi) T``.
 
 Layout of the accumulated vector (``N_STATS`` float64 values):
@@ -90,8 +90,9 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
         out: ``(N_STATS,)`` float64, receives the sums (layout in the module docstring).
         src_stride: use only source pixels ``[::src_stride, ::src_stride]`` (1 = all).
         depth_ref_m: depth-dependent weighting (0 = off): the residual's noise scale is
-            ``s = (q_z / depth_ref_m)^2`` (Kinect axial noise grows with z^2), the robust weight is taken
-            of ``b / s`` and the pair's weight is divided by ``s^2``.
+            ``s = (p'_z / depth_ref_m)^2`` (Kinect axial noise grows with z^2; ``p'_z`` = depth of the
+            transformed source point in the target camera, within the distance gate of ``q_z``), the robust
+            weight is taken of ``b / s`` and the pair's weight is divided by ``s^2``.
     """
     H, W = src_vertex.shape[0], src_vertex.shape[1]
     Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
@@ -154,8 +155,7 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
                     continue
                 b = mx * dx + my * dy + mz * dz
                 if zref2 > 0.0:
-                    iq = 1.0 / qz
-                    isz = zref2 * iq * iq  # 1 / s with s = (q_z / depth_ref_m)^2
+                    isz = zref2 * iz * iz  # 1 / s with s = (p'_z / depth_ref_m)^2 (iz = 1 / p'_z, from above)
                     w = _robust_weight(b * isz, robust_kind, robust_scale_m) * (isz * isz)
                 else:
                     w = _robust_weight(b, robust_kind, robust_scale_m)
@@ -274,7 +274,7 @@ def build_linear_system_ref(src_vertex, src_normal, tgt_vertex, tgt_normal, T, f
     A = np.concatenate([np.cross(P, M), M], axis=1)
     b = np.sum(M * D, axis=1)
     if depth_ref_m > 0:
-        sz = (Q[keep, 2] / depth_ref_m) ** 2
+        sz = (P[:, 2] / depth_ref_m) ** 2
         w = robust_weight_ref(b / sz, robust_kind, robust_scale_m) / sz**2
     else:
         w = robust_weight_ref(b, robust_kind, robust_scale_m)

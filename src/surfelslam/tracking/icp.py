@@ -43,10 +43,11 @@ class ICPConfig:
         finest_robust_scale_m: the same at the finest level (m). It is smaller: once the coarse levels have
             aligned the frames, residuals beyond a few mm are mostly depth noise and edge pixels.
         depth_weight_ref_m: depth-dependent weighting at the finest level (0 = off). Kinect axial noise grows
-            with z^2, so each pair's residual is measured in units of ``s = (q_z / depth_weight_ref_m)^2``
-            (``q_z`` = target depth): the robust weight is taken of ``b / s`` (``finest_robust_scale_m`` holds
-            at this depth) and the pair's weight is divided by ``s^2`` (inverse noise variance). Coarse levels
-            stay unweighted: down-weighting far points there shrinks the basin of convergence for rotations.
+            with z^2, so each pair's residual is measured in units of ``s = (z / depth_weight_ref_m)^2``
+            (``z`` = depth of the transformed source point in the target camera): the robust weight is taken
+            of ``b / s`` (``finest_robust_scale_m`` holds at this depth) and the pair's weight is divided by
+            ``s^2`` (inverse noise variance). Coarse levels stay unweighted: down-weighting far points there
+            shrinks the basin of convergence for rotations.
         min_update_norm: a level stops when the twist norm ``|xi|`` (rad + m) falls below this.
         min_relative_residual_change: the finest level stops when the weighted mean squared residual changes
             by less than this fraction between iterations.
