@@ -294,8 +294,8 @@ def test_real_sevenscenes_pairs_with_defaults():
 @pytest.mark.shared
 def test_real_sevenscenes_success_rate_up_to_10_apart():
     """Pairs 1, 5 and 10 frames apart from 24 starts (320x240), from the identity with the register settings:
-    67 of 72 within 1 cm & 1 deg (61 with the tracker defaults, 58 before depth weighting; the misses sit at the
-    data's own optimum, 1-2 cm from the KinectFusion GT)."""
+    67 of 72 within 1 cm & 1 deg (58 before depth weighting; the misses sit at the data's own optimum, reached
+    from the GT pose as well, about 1 cm from the KinectFusion GT)."""
     from surfelslam.datasets import open_sequence
     from surfelslam.datasets.base import DatasetOptions
 
