@@ -35,7 +35,8 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scen
 SEEDS_CFG = ICPConfig(levels=1, iterations=(10,), dist_thresh_m=(0.07,), angle_thresh_deg=(180.0,),
                       robust_kernel="none", min_update_norm=0.0, min_relative_residual_change=0.0,
                       finest_source_stride_px=1, depth_weight_ref_m=0.0)
-PREVIOUS_CFG = replace(ICPConfig(), depth_weight_ref_m=0.0, finest_robust_scale_m=0.02, iterations=(5, 8, 10, 40))
+PREVIOUS_CFG = replace(ICPConfig(), depth_weight_ref_m=0.0, finest_robust_scale_m=0.02, iterations=(5, 8, 10, 40),
+                       min_update_norm=1e-4, min_relative_residual_change=1e-3)
 SUCCESS_M = 0.01  # the issue's criterion: < 1 cm and < 1 deg against GT
 SUCCESS_DEG = 1.0
 SUCCESS_STARTS = tuple(range(0, 461, 20))
