@@ -5,8 +5,8 @@ renders of the ``room`` scene (:mod:`surfelslam.synth`) 5 cm / 2 deg apart. Size
 and 640x480; numba with 1 thread and with 2 threads. Rows:
 
 * ``preprocess``: depth -> 4-level vertex/normal pyramid into pre-allocated buffers (bilateral on).
-* ``icp 3-level``: :func:`icp` with the first three levels of the defaults (iterations 5/8/10).
-* ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 5/8/10/40 iterations,
+* ``icp 3-level``: :func:`icp` with the first three levels of the defaults (iterations 10/8/10).
+* ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 10/8/10/40 iterations,
   finest-level source stride 2).
 * ``icp default stride 1``: the same with every finest-level source pixel.
 

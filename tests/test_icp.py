@@ -14,7 +14,7 @@ from surfelslam.kernels import icp as kicp
 from surfelslam.synth import make_scene, render
 from surfelslam.synth.noise import KinectNoiseConfig, noisy_depth
 from surfelslam.synth.trajectories import look_at
-from surfelslam.tracking.icp import ICPConfig, condition_number, icp, register_frames, solve
+from surfelslam.tracking.icp import ICPConfig, condition_number, icp, pairwise_config, register_frames, solve
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor, build_pyramid
 from surfelslam.types import Intrinsics
 
@@ -72,8 +72,9 @@ def pair_pyramids(renders):
     return pre.process(kinect(srcs[4], 1)), pre.process(kinect(tgt, 2))
 
 
-@pytest.mark.parametrize("robust,stride", [("none", 1), ("huber", 1), ("tukey", 1), ("huber", 2)])
-def test_kernel_matches_reference(pair_pyramids, robust, stride):
+@pytest.mark.parametrize("robust,stride,depth_ref", [("none", 1, 0.0), ("huber", 1, 0.0), ("tukey", 1, 0.0),
+                                                     ("huber", 2, 0.0), ("huber", 1, 1.5), ("none", 2, 2.0)])
+def test_kernel_matches_reference(pair_pyramids, robust, stride, depth_ref):
     src, tgt = pair_pyramids
     T = MOTIONS[4] @ motion((1, 0, 0), 0.5, (1, 1, 0), 0.01)  # near, not at, the solution
     kind = kicp.ROBUST_KINDS[robust]
@@ -81,10 +82,10 @@ def test_kernel_matches_reference(pair_pyramids, robust, stride):
     cos_thr = np.cos(np.radians(30.0))
     stats = np.zeros(kicp.N_STATS)
     kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal, T,
-                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats, stride)
+                                     i.fx, i.fy, i.cx, i.cy, 0.05, cos_thr, kind, 0.01, stats, stride, depth_ref)
     A, b, w, z, n_valid = kicp.build_linear_system_ref(src[0].vertex, src[0].normal, tgt[0].vertex,
                                                        tgt[0].normal, T, i.fx, i.fy, i.cx, i.cy, 0.05,
-                                                       cos_thr, kind, 0.01, stride)
+                                                       cos_thr, kind, 0.01, stride, depth_ref)
     assert len(b) > 20000 / stride**2 and stats[29] == len(b) and stats[31] == n_valid
     AtA, Atb = kicp.normal_equations_ref(A, b, w)
     H, g = kicp.unpack_normal_equations(stats)
@@ -93,8 +94,31 @@ def test_kernel_matches_reference(pair_pyramids, robust, stride):
     assert stats[27] == pytest.approx(np.sum(w * b * b), rel=1e-9)
     assert stats[28] == pytest.approx(np.sum(b * b), rel=1e-9)
     assert stats[30] == pytest.approx(np.sum(z), rel=1e-9)
-    if robust != "none":
+    if robust != "none" or depth_ref > 0:
         assert np.any(w < 1.0)
+    if depth_ref > 0:  # farther points weigh less
+        assert w.max() > 1.5 * w.min()
+
+
+def test_depth_weights_reference():
+    """w = huber(b / s) / s^2 with s = (p'_z / z_ref)^2: a source point at 3.04 m (s = 4.1) with a 4 cm residual is
+    a Huber inlier at scale 1 cm and weighs 1/s^2; at 1.54 m (s = 1.05) the same residual is down-weighted by
+    Huber as well."""
+    V = np.zeros((3, 3, 3), np.float32)
+    N = np.zeros((3, 3, 3), np.float32)
+    V[1, 1] = (0.0, 0.0, 3.0)
+    N[1, 1] = (0.0, 0.0, -1.0)
+    for z, expected in ((3.0, (1.5 / 3.04) ** 4), (1.5, 0.01 / (0.04 / (1.54 / 1.5) ** 2) * (1.5 / 1.54) ** 4)):
+        Vs, Vt = V.copy(), V.copy()
+        Vs[1, 1, 2] = z + 0.04
+        Vt[1, 1, 2] = z
+        _, b, w, _, _ = kicp.build_linear_system_ref(Vs, N, Vt, N, np.eye(4), 1.0, 1.0, 1.0, 1.0, 0.1, 0.9,
+                                                     kicp.ROBUST_HUBER, 0.01, 1, 1.5)
+        assert b == pytest.approx([-0.04], rel=1e-5) and w == pytest.approx([expected], rel=1e-5)
+        stats = np.zeros(kicp.N_STATS)
+        kicp.accumulate_normal_equations(Vs, N, Vt, N, np.eye(4), 1.0, 1.0, 1.0, 1.0, 0.1, 0.9,
+                                         kicp.ROBUST_HUBER, 0.01, stats, 1, 1.5)
+        assert stats[29] == 1 and stats[27] == pytest.approx(expected * 0.04**2, rel=1e-5)
 
 
 def test_kernel_is_deterministic_across_thread_counts(pair_pyramids):
@@ -230,6 +254,10 @@ def test_config_validation():
         ICPConfig(robust_kernel="cauchy")
     with pytest.raises(ConfigError):
         ICPConfig(dist_thresh_m=(0.1, -1.0, 0.4, 1.0))
+    with pytest.raises(ConfigError, match="finest_robust_scale_m"):
+        ICPConfig(finest_robust_scale_m=0.0)
+    with pytest.raises(ConfigError, match="depth_weight_ref_m"):
+        ICPConfig(depth_weight_ref_m=-1.0)
     pyr = build_pyramid(np.ones(INTR.shape, np.float32), INTR, PreprocessConfig(pyramid_levels=2))
     with pytest.raises(ConfigError, match="levels"):
         icp(pyr, pyr)
@@ -261,6 +289,49 @@ def test_real_sevenscenes_pairs_with_defaults():
         t_err, r_err = se3.pose_error(res.T_target_source, T_gt)
         assert t_err < 0.01 and r_err < 1.0, (s, t, t_err, r_err)
         assert res.converged, (s, t, res.reason)
+
+
+@pytest.mark.shared
+def test_real_sevenscenes_success_rate_up_to_10_apart():
+    """Pairs 1, 5 and 10 frames apart from 24 starts (320x240), from the identity with the register settings:
+    67 of 72 within 1 cm & 1 deg (58 before depth weighting; the misses sit at the data's own optimum, reached
+    from the GT pose as well, about 1 cm from the KinectFusion GT)."""
+    from surfelslam.datasets import open_sequence
+    from surfelslam.datasets.base import DatasetOptions
+
+    seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2))
+    T_wc, _ = seq.gt_poses()
+    pre = Preprocessor(seq.intrinsics, PreprocessConfig())
+    starts = range(0, 461, 20)
+    pyr = {i: pre.process(seq[i].depth_m) for i in sorted({s + g for s in starts for g in (0, 1, 5, 10)})}
+    cfg = pairwise_config()
+    ok = 0
+    for s in starts:
+        for g in (1, 5, 10):
+            res = icp(pyr[s], pyr[s + g], None, cfg)
+            t_err, r_err = se3.pose_error(res.T_target_source, se3.invert(T_wc[s + g]) @ T_wc[s])
+            ok += t_err < 0.01 and r_err < 1.0
+    assert ok >= 65, ok
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("s,t", [(460, 470), (340, 370), (420, 450)])
+def test_pairwise_config_converges_on_large_real_motions(s, t):
+    """14-24 cm / 4-11 deg apart: from the identity the register settings reach the same optimum as ICP started
+    at the GT pose (the tracker defaults stop 30-50 cm away on these pairs)."""
+    from surfelslam.datasets import open_sequence
+    from surfelslam.datasets.base import DatasetOptions
+
+    seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2))
+    T_wc, _ = seq.gt_poses()
+    pre = Preprocessor(seq.intrinsics, PreprocessConfig())
+    src, tgt = pre.process(seq[s].depth_m), pre.process(seq[t].depth_m)
+    T_gt = se3.invert(T_wc[t]) @ T_wc[s]
+    res = icp(src, tgt, None, pairwise_config())
+    optimum = icp(src, tgt, T_gt, pairwise_config())
+    t_err, r_err = se3.pose_error(res.T_target_source, optimum.T_target_source)
+    assert t_err < 0.005 and r_err < 0.2, (t_err, r_err)  # the cost is flat to a few mm along the walls
+    assert se3.pose_error(res.T_target_source, T_gt)[0] < 0.03
 
 
 # ---------------------------------------------------------------------------------------------

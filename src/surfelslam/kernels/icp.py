@@ -12,7 +12,8 @@ The pair is an inlier when ``(u, v)`` is inside the image, ``q_z > 0``, ``n_q !=
     A_i = n_q^T [-[p']x  I] = [ (p' x n_q)^T , n_q^T ]        (1 x 6, twist xi = (omega, t))
     b_i = n_q^T (p' - q)                                        (signed point-to-plane residual, m)
 
-with robust weight ``w_i = rho'(b_i) / b_i`` to ``A^T W A`` and ``A^T W b``; the Gauss-Newton step solves
+with robust weight ``w_i = rho'(b_i) / b_i`` (optionally depth-scaled: ``w_i = w(b_i / s_i) / s_i^2`` with
+``s_i = (p'_z / depth_ref_m)^2``) to ``A^T W A`` and ``A^T W b``; the Gauss-Newton step solves
 ``(A^T W A) xi = -A^T W b`` and updates ``T <- exp(xi) T``.
 
 Layout of the accumulated vector (``N_STATS`` float64 values):
@@ -76,7 +77,7 @@ def robust_weight_ref(r: np.ndarray, kind: int, scale: float) -> np.ndarray:
 @dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
                                 dist_thresh_m, cos_angle_thresh, robust_kind, robust_scale_m, out,
-                                src_stride=1):
+                                src_stride=1, depth_ref_m=0.0):
     """One association pass + accumulation of the weighted normal equations.
 
     Args:
@@ -88,6 +89,10 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
         robust_kind: ``ROBUST_NONE | ROBUST_HUBER | ROBUST_TUKEY``; robust_scale_m: kernel scale (m).
         out: ``(N_STATS,)`` float64, receives the sums (layout in the module docstring).
         src_stride: use only source pixels ``[::src_stride, ::src_stride]`` (1 = all).
+        depth_ref_m: depth-dependent weighting (0 = off): the residual's noise scale is
+            ``s = (p'_z / depth_ref_m)^2`` (Kinect axial noise grows with z^2; ``p'_z`` = depth of the
+            transformed source point in the target camera, within the distance gate of ``q_z``), the robust
+            weight is taken of ``b / s`` and the pair's weight is divided by ``s^2``.
     """
     H, W = src_vertex.shape[0], src_vertex.shape[1]
     Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
@@ -95,6 +100,7 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
     r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
     r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
     d2max = dist_thresh_m * dist_thresh_m
+    zref2 = depth_ref_m * depth_ref_m if depth_ref_m > 0.0 else 0.0
     partial = np.zeros((N_CHUNKS, N_STATS))
     for c in prange(N_CHUNKS):
         # scalar accumulators (kept in registers): s0..s20 AtA, s21..s26 Atb, then the counters
@@ -148,7 +154,11 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
                 if rnx * mx + rny * my + rnz * mz < cos_angle_thresh:
                     continue
                 b = mx * dx + my * dy + mz * dz
-                w = _robust_weight(b, robust_kind, robust_scale_m)
+                if zref2 > 0.0:
+                    isz = zref2 * iz * iz  # 1 / s with s = (p'_z / depth_ref_m)^2 (iz = 1 / p'_z, from above)
+                    w = _robust_weight(b * isz, robust_kind, robust_scale_m) * (isz * isz)
+                else:
+                    w = _robust_weight(b, robust_kind, robust_scale_m)
                 a0 = py * mz - pz * my
                 a1 = pz * mx - px * mz
                 a2 = px * my - py * mx
@@ -231,7 +241,7 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
 
 def build_linear_system_ref(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
                             dist_thresh_m, cos_angle_thresh, robust_kind=ROBUST_NONE, robust_scale_m=1.0,
-                            src_stride=1):
+                            src_stride=1, depth_ref_m=0.0):
     """Numpy reference: the explicit system of :func:`accumulate_normal_equations`.
 
     Returns:
@@ -263,7 +273,11 @@ def build_linear_system_ref(src_vertex, src_normal, tgt_vertex, tgt_normal, T, f
     P, M, D, z = P[keep], M[keep], D[keep], P0[keep, 2]
     A = np.concatenate([np.cross(P, M), M], axis=1)
     b = np.sum(M * D, axis=1)
-    w = robust_weight_ref(b, robust_kind, robust_scale_m)
+    if depth_ref_m > 0:
+        sz = (P[:, 2] / depth_ref_m) ** 2
+        w = robust_weight_ref(b / sz, robust_kind, robust_scale_m) / sz**2
+    else:
+        w = robust_weight_ref(b, robust_kind, robust_scale_m)
     return A, b, w, z, n_valid
 
 

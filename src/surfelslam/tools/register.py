@@ -86,7 +86,7 @@ def register(app: typer.Typer) -> None:
         from surfelslam.datasets import open_sequence
         from surfelslam.geometry import se3
         from surfelslam.io.atomic import write_text_atomic
-        from surfelslam.tracking.icp import ICPConfig, icp
+        from surfelslam.tracking.icp import icp, pairwise_config
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
         from surfelslam.viz.registration import plot_registration
 
@@ -96,7 +96,7 @@ def register(app: typer.Typer) -> None:
         for name, idx in (("--source", source), ("--target", target)):
             if not 0 <= idx < len(sq):
                 raise ConfigError(f"{name} {idx} is out of range: the selection has {len(sq)} frames")
-        d = ICPConfig()
+        d = pairwise_config()
         n_levels = d.levels if levels is None else levels
         if n_levels < 1:
             raise ConfigError(f"--levels must be >= 1, got {n_levels}")
