@@ -38,7 +38,7 @@ def shared_sequences(root: Path, min_frames: int) -> tuple[list[tuple[str, Path]
         try:
             seq = open_sequence(path, DatasetOptions())
         except SurfelSlamError as exc:
-            notes.append({"sequence": path.name, "frames": 0, "reason": f"not a sequence: {exc}"})
+            notes.append({"sequence": path.name, "frames": 0, "reason": f"not a sequence ({type(exc).__name__})"})
             continue
         if seq.ground_truth is None:
             notes.append({"sequence": path.name, "frames": len(seq), "reason": "no ground truth"})
@@ -124,3 +124,25 @@ def open3d_side_by_side(name: str, path: Path, downsample: int, n_frames: int, o
         "ours_cpu_s": ours.get("cpu_s"), "open3d_cpu_s": round(o3_cpu, 1),
     }
     return row
+
+
+def prefix_row(name: str, path: Path, downsample: int, run_dir: Path, n_frames: int) -> dict:
+    """Accuracy of the first ``n_frames`` poses of a dense run (the dense tracker is causal and deterministic:
+    these are the poses a run on those frames alone gives), to compare with trackers run on fewer frames.
+
+    FPS and timings are not measured for the prefix (``None``).
+    """
+    from surfelslam.eval.metrics import evaluate
+    from surfelslam.types import Trajectory
+
+    seq = open_sequence(path, DatasetOptions(downsample=downsample, end=n_frames))
+    est = Trajectory.read_tum(run_dir / "trajectory.txt").subset(slice(0, n_frames))
+    e = evaluate(est, seq.ground_truth)
+    m = json.loads((run_dir / "metrics.json").read_text())
+    return {
+        "sequence": name, "resolution": f"{seq.intrinsics.width}x{seq.intrinsics.height}", "frames": len(est),
+        "tracker": "dense", "ate_rmse_cm": _r(e["ate_rmse_m"], 100), "ate_max_cm": _r(e["ate_max_m"], 100),
+        "rpe_trans_mm_per_frame": _r(e["rpe_trans_rmse_m_per_frame"], 1000),
+        "rpe_rot_deg_per_frame": _r(e["rpe_rot_rmse_deg_per_frame"], 1, 3),
+        "failures": None, "fps": None, "from": f"first {len(est)} poses of the {m['frames_processed']}-frame run",
+    }

@@ -55,7 +55,7 @@ STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it
 TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 6.0}
 OPEN3D_S_PER_FRAME_GUESS = 0.5  # at 320x240 on 2 cores, until the first Open3D run measured it
-RESERVE_S = 15.0  # kept free at the end of the budget (writing results)
+RESERVE_S = 20.0  # kept free at the end of the budget (writing results)
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,11 @@ class Plan:
     synth_loop_run_frames: int | None = None  # run only the first frames of the lap (same speed, less time)
     open3d_frames_real: int = 100  # 0: no side by side on real sequences
     open3d_frames_synth: int = 60  # 0: none on synthetic ones
-    extra_trackers: tuple[tuple[str, int | None], ...] = (("orb", None), ("hybrid", 200))
+    # (tracker, sequence: "real" | "slow" | "loop" | "fast", max frames), in order of priority; each one runs
+    # only when its estimated time still fits in the budget
+    extra_runs: tuple[tuple[str, str, int | None], ...] = (
+        ("orb", "real", 200), ("hybrid", "real", 200), ("hybrid", "loop", None), ("orb", "loop", None),
+        ("hybrid", "slow", 200), ("orb", "slow", 200), ("hybrid", "fast", None), ("orb", "fast", None))
     min_frames: int = 30  # shorter real sequences are listed as too short to track
     fallback_frames: int = 150  # synthetic 640x480 stage sequence when there is no real sequence
     budget_s: float = 600.0  # optional runs are skipped when they would not fit (0: no limit)
@@ -84,7 +88,7 @@ class Plan:
 FULL = Plan("full")
 QUICK = Plan("quick", read_frames=10, orb_pairs=2, stage_runs=((2, 100), (1, 30)), sustained_frames=300,
              sustained_window=50, synth_slow_frames=90, synth_loop_run_frames=90, open3d_frames_real=20,
-             open3d_frames_synth=0, extra_trackers=(), fallback_frames=30, budget_s=150.0)
+             open3d_frames_synth=0, extra_runs=(), fallback_frames=30, budget_s=150.0)
 
 
 class Budget:
@@ -191,13 +195,18 @@ def stages(plan: Plan, name: str, path: Path, tmp: Path) -> tuple[list[dict], li
 
 
 def _section(results: dict, key: str, fn, *args):
-    """Run one section; an exception is recorded (and the bench goes on) instead of losing everything."""
+    """Run one section, timed (wall and CPU seconds into ``meta.section_seconds``); an exception is recorded
+    (and the bench goes on) instead of losing everything."""
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         return fn(*args)
     except Exception as exc:  # noqa: BLE001 - a benchmark reports every failure and carries on
         results["errors"].append({"section": key, "error": f"{type(exc).__name__}: {exc}",
                                   "traceback": traceback.format_exc(limit=4)})
         return None
+    finally:
+        results["meta"]["section_seconds"][key] = {"wall": round(time.perf_counter() - t0, 1),
+                                                   "cpu": round(time.process_time() - c0, 1)}
 
 
 def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -> dict:
@@ -210,7 +219,7 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
                  "time": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
                  "mode": plan.name, "machine": machine(), "python": platform.python_version(),
                  "numba": _version("numba"), "open3d": o3d_version, "git": git_state(),
-                 "parallel_kernels": threads.parallel_enabled(), "plan": asdict(plan)},
+                 "parallel_kernels": threads.parallel_enabled(), "plan": asdict(plan), "section_seconds": {}},
         "jit": None, "stages": [], "sustained": None, "accuracy": [], "not_tracked": [], "open3d": None,
         "skipped": budget.skipped, "errors": [],
     }
@@ -228,28 +237,30 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
 
     with tempfile.TemporaryDirectory(prefix="surfelslam_bench_") as tmp_name:
         tmp = Path(tmp_name)
-        # stage timings at both resolutions (the 320x240 run is also the real sequence's accuracy row)
+        dense_runs: dict[tuple[str, int], tuple[Path, int]] = {}  # (sequence, downsample) -> (run folder, frames)
+        # stage timings at both resolutions (the runs are also the stage sequence's accuracy rows)
         src_name, src_path, src_real = stage_source(plan, real, tmp)  # 7-Scenes here
         out = _section(res, "stages", stages, plan, src_name, src_path, tmp)
         if out is not None:
             res["stages"], acc = out
-            res["accuracy"] += acc  # the stage sequence's accuracy rows, at both resolutions
+            res["accuracy"] += acc
             dense_s_per_frame += [r["ms_per_frame"] / 1e3 for r in acc]
+            for (ds, _), r in zip(plan.stage_runs, acc, strict=True):
+                dense_runs[(src_name, ds)] = (tmp / f"stages_{ds}", r["frames"])
         # accuracy, dense tracker: the other real sequences at 320x240, then the synthetic ones
-        real_ds = {name: _downsample_to_320(path) for name, path in real}
-        for name, path in real:
-            if src_real and name == src_name:
-                continue
-            row = _section(res, f"accuracy {name}", timed_run, name, path, "dense", real_ds[name],
-                           tmp / f"acc_{path.name}")
-            res["accuracy"] += [row] if row else []
+        seqs = [("real", name, path, _downsample_to_320(path), None) for name, path in real]
         synth = _section(res, "synthetic sequences", bench_accuracy.synthetic_sequences, tmp / "synth",
                          plan.synth_width, plan.synth_slow_frames, plan.synth_loop_frames) or []
-        synth_end = {path: plan.synth_loop_run_frames if path.name == "loop" else None for _, path in synth}
-        for name, path in synth:
-            row = _section(res, f"accuracy {name}", timed_run, name, path, "dense", 1, tmp / f"acc_{path.name}",
-                           synth_end[path])
-            res["accuracy"] += [row] if row else []
+        seqs += [(path.name, name, path, 1, plan.synth_loop_run_frames if path.name == "loop" else None)
+                 for name, path in synth]  # keys "slow", "loop", "fast"
+        for _, name, path, ds, end in seqs:
+            if (name, ds) in dense_runs:
+                continue
+            run_dir = tmp / f"dense_{path.name}_{ds}"
+            row = _section(res, f"accuracy {name}", timed_run, name, path, "dense", ds, run_dir, end)
+            if row:
+                res["accuracy"].append(row)
+                dense_runs[(name, ds)] = (run_dir, row["frames"])
         # sustained throughput
         sus = _section(res, "sustained", bench_pipeline.bench, plan.sustained_width, plan.sustained_frames,
                        plan.sustained_window, "handheld", 400, 0, out_dir)
@@ -258,24 +269,34 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
             sus["plot"] = Path(sus["plot"]).name
             res["sustained"] = sus
         # Open3D side by side at 320x240, on the same first frames
-        res["open3d"] = _open3d(res, plan, budget, open3d, o3d_version, [(n, p, real_ds[n]) for n, p in real],
-                                synth, tmp)
-        # optional trackers, while the budget allows
-        seqs = [(n, p, real_ds[n], None) for n, p in real] + [(n, p, 1, synth_end[p]) for n, p in synth]
-        measured: dict[str, float] = {}
-        for tracker, max_frames in plan.extra_trackers:
-            for name, path, ds, end in seqs:
+        res["open3d"] = _open3d(res, plan, budget, open3d, o3d_version,
+                                [(name, path, ds) for key, name, path, ds, _ in seqs if key == "real"], synth, tmp)
+        # optional trackers in the plan's order of priority, while the budget allows
+        measured: dict[tuple[str, str], float] = {}  # (tracker, real|synthetic) -> s per frame
+        for tracker, key, max_frames in plan.extra_runs:
+            for k, name, path, ds, end in seqs:
+                if k != key:
+                    continue
                 caps = [e for e in (max_frames, end) if e is not None]
                 end = min(caps) if caps else None
                 n = len(open_sequence(path, DatasetOptions(downsample=ds, end=end)))
-                per = measured.get(tracker, TRACKER_COST_VS_DENSE.get(tracker, 5.0) * _mean(dense_s_per_frame, 0.05))
-                if not budget.fits(f"{tracker} on {name} ({n} frames)", n * per + 3.0):
+                kind = "real" if k == "real" else "synthetic"
+                per = _per_frame_estimate(measured, tracker, kind, _mean(dense_s_per_frame, 0.05))
+                if not budget.fits(f"{tracker} on {name} ({n} frames)", 1.25 * n * per + 3.0):
                     continue
                 row = _section(res, f"accuracy {tracker} {name}", timed_run, name, path, tracker, ds,
-                               tmp / f"{tracker}_{path.name}", end)
-                if row:
-                    res["accuracy"].append(row)
-                    measured[tracker] = row["wall_s"] / max(row["frames"], 1)
+                               tmp / f"{tracker}_{path.name}_{ds}", end)
+                if not row:
+                    continue
+                res["accuracy"].append(row)
+                measured[(tracker, kind)] = row["wall_s"] / max(row["frames"], 1)
+                dense = dense_runs.get((name, ds))
+                have = {(r["sequence"], r["resolution"], r["frames"])
+                        for r in res["accuracy"] if r["tracker"] == "dense"}
+                if dense and dense[1] > row["frames"] and (name, row["resolution"], row["frames"]) not in have:
+                    res["accuracy"].append(_section(res, f"prefix {name}", bench_accuracy.prefix_row, name, path,
+                                                    ds, dense[0], row["frames"]))
+        res["accuracy"] = [r for r in res["accuracy"] if r]
     res["meta"]["seconds"] = round(budget.elapsed(), 1)
     res["meta"]["cpu_seconds"] = round(time.process_time() - c_start, 1)
     write(res, out_dir)
@@ -311,6 +332,15 @@ def _open3d(res: dict, plan: Plan, budget: Budget, enabled: bool, version: str |
 def _downsample_to_320(path: Path) -> int:
     """The ``--downsample`` factor that brings a sequence to about 320 pixels wide (2 for 640x480 files)."""
     return max(1, open_sequence(path, DatasetOptions()).intrinsics.width // 320)
+
+
+def _per_frame_estimate(measured: dict, tracker: str, kind: str, dense_s: float) -> float:
+    """Seconds per frame of ``tracker`` on a ``kind`` sequence: measured, else measured on the other kind x 2
+    (ORB costs differ much between real and synthetic images), else a multiple of the dense tracker's."""
+    if (tracker, kind) in measured:
+        return measured[(tracker, kind)]
+    other = [v for (t, _), v in measured.items() if t == tracker]
+    return 2.0 * max(other) if other else TRACKER_COST_VS_DENSE.get(tracker, 5.0) * dense_s
 
 
 def _mean(v: list[float], default: float) -> float:
@@ -394,7 +424,12 @@ def to_markdown(res: dict) -> str:
                          "RPE deg/frame", "failures", "FPS"],
                         [[r["sequence"], r["resolution"], r["frames"], r["tracker"], _fmt(r["ate_rmse_cm"], 2),
                           _fmt(r["ate_max_cm"], 2), _fmt(r["rpe_trans_mm_per_frame"], 2),
-                          _fmt(r["rpe_rot_deg_per_frame"], 3), r["failures"], r["fps"]] for r in res["accuracy"]]))
+                          _fmt(r["rpe_rot_deg_per_frame"], 3), r["failures"], r["fps"]]
+                         for r in _grouped(res["accuracy"])]))
+        if any(r.get("from") for r in res["accuracy"]):
+            md += ["Dense rows without FPS: the first poses of the longer dense run on that sequence (the dense "
+                   "tracker is causal and deterministic, so a run on those frames alone gives the same poses), for "
+                   "comparison with the orb / hybrid rows over the same frames.", ""]
         lost = [f"{r['sequence']} {r['resolution']} {r['tracker']}: {r['eval_error']}" for r in res["accuracy"]
                 if r.get("eval_error")]
         if lost:
@@ -419,7 +454,24 @@ def to_markdown(res: dict) -> str:
         md += ["Skipped: " + "; ".join(f"{s['what']} ({s['reason']})" for s in res["skipped"]) + ".", ""]
     if res["errors"]:
         md += ["**Errors**: " + "; ".join(f"{e['section']}: {e['error']}" for e in res["errors"]) + ".", ""]
+    groups: dict[str, list[float]] = {}
+    for key, t in meta.get("section_seconds", {}).items():
+        g = groups.setdefault(key.split()[0], [0.0, 0.0])
+        g[0] += t["wall"]
+        g[1] += t["cpu"]
+    if groups:
+        md += ["Bench time by section (wall / CPU s): " + ", ".join(f"{k} {w:.0f} / {c:.0f}"
+                                                                    for k, (w, c) in groups.items()) + ".", ""]
     return "\n".join(md)
+
+
+def _grouped(rows: list[dict]) -> list[dict]:
+    """Accuracy rows grouped by sequence (first appearance), resolution, frames (most first), tracker."""
+    seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in rows))}
+    res_order = {k: i for i, k in enumerate(dict.fromkeys(r["resolution"] for r in rows))}
+    trk = {"dense": 0, "orb": 1, "hybrid": 2}
+    return sorted(rows, key=lambda r: (seq_order[r["sequence"]], res_order[r["resolution"]], -r["frames"],
+                                       trk.get(r["tracker"], 9)))
 
 
 def write(res: dict, out_dir: Path) -> None:

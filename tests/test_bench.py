@@ -25,7 +25,7 @@ import run_all  # noqa: E402
 TINY = run_all.Plan(
     "tiny", read_frames=2, orb_pairs=1, stage_runs=((2, None), (1, 8)), sustained_frames=30, sustained_width=80,
     sustained_window=5, synth_width=80, synth_slow_frames=24, synth_loop_frames=12, open3d_frames_real=0,
-    open3d_frames_synth=0, extra_trackers=(("orb", 6),), min_frames=8, budget_s=0.0,
+    open3d_frames_synth=0, extra_runs=(("orb", "real", 6), ("orb", "slow", 6)), min_frames=8, budget_s=0.0,
 )
 
 
@@ -75,7 +75,7 @@ def test_sustained(bench) -> None:
 
 def test_accuracy_and_notes(bench) -> None:
     res, _ = bench
-    rows = {(r["sequence"], r["resolution"], r["tracker"]): r for r in res["accuracy"]}
+    rows = {(r["sequence"], r["resolution"], r["tracker"]): r for r in res["accuracy"] if not r.get("from")}
     expected = {("tiny_real", "80x60", "dense"): 12, ("tiny_real", "160x120", "dense"): 8,
                 ("synthetic slow", "80x60", "dense"): 24, ("synthetic walking loop", "80x60", "dense"): 12,
                 ("synthetic fast (slow x3)", "80x60", "dense"): 8, ("tiny_real", "160x120", "orb"): 6,
@@ -90,6 +90,12 @@ def test_accuracy_and_notes(bench) -> None:
         assert math.isfinite(r["ate_rmse_cm"]) and r["ate_rmse_cm"] >= 0.0
         assert r["rpe_trans_mm_per_frame"] is not None and r["rpe_rot_deg_per_frame"] is not None
     assert rows[("tiny_real", "80x60", "dense")]["ate_rmse_cm"] < 2.0  # 12 slow frames: tracked
+    # trackers run on fewer frames than the dense row get a dense row over the same frames (its first poses)
+    prefix = [r for r in res["accuracy"] if r.get("from")]
+    assert {(r["sequence"], r["resolution"], r["frames"]) for r in prefix} == {("tiny_real", "160x120", 6),
+                                                                           ("synthetic slow", "80x60", 6)}
+    assert all(r["tracker"] == "dense" and r["fps"] is None and r["ate_rmse_cm"] is not None for r in prefix)
+    assert len(res["accuracy"]) == len(expected) + 2
     notes = {n["sequence"]: n for n in res["not_tracked"]}
     assert notes["short"]["frames"] == 4 and "too short" in notes["short"]["reason"]
     assert "not a sequence" in notes["junk"]["reason"]
