@@ -67,6 +67,7 @@ def test_sustained(bench) -> None:
     assert s["frames"] == 30 and s["resolution"] == "80x60" and s["window"] == 5
     assert s["last_over_first"] == pytest.approx(s["cpu_last_ms"] / s["cpu_first_ms"], rel=0.01)
     assert s["flat_cost_ok"] == (s["last_over_first"] <= 1.3)
+    assert s["flat_cost_verdict"].startswith("indicative")  # 30 frames: not the issue's 2000-frame criterion
     blocks = s["cpu_ms_per_block"]
     assert blocks["block_frames"] == 2 and len(blocks["mean"]) == 14  # 29 tracked frames in blocks of 2
     assert "series" not in s  # per-frame series stay out of the JSON
@@ -131,7 +132,7 @@ def test_markdown_flags_failures() -> None:
            "sustained": {"frames": 10, "resolution": "8x6", "window": 2, "flat_cost_max_ratio": 1.3, "fps": 1.0,
                          "cpu_ms_per_frame": 1.0, "cpu_first_ms": 1.0, "cpu_last_ms": 1.5, "last_over_first": 1.5,
                          "flat_cost_ok": False, "map_surfels_end": 5, "ate_cm": 1.0, "failures": 0, "per_lap": [],
-                         "trajectory": "t"},
+                         "trajectory": "t", "flat_cost_verdict": "issue 6 criterion"},
            "skipped": [{"what": "hybrid on x", "reason": "time budget"}],
            "errors": [{"section": "stages", "error": "ValueError: boom"}]}
     md = run_all.to_markdown(res)
