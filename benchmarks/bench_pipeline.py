@@ -14,7 +14,9 @@ Frames are rendered one at a time in memory, just before they are processed (gen
 nothing is stored, so 2,000 frames need no disk and little memory); only :meth:`DenseSlam.process` is timed.
 Reported: FPS of the loop (wall clock of ``process`` only), mean ms per stage, the mean per-frame CPU time
 (``time.process_time``, robust to other jobs) over the first and the last ``window`` frames and their ratio
-(flat cost: <= :data:`FLAT_COST_MAX_RATIO`), the same for the second lap's start (same views seen again),
+(flat cost: <= :data:`FLAT_COST_MAX_RATIO`); since the cost varies with the view, also the second orbit's
+start over the first's (``revisit_over_first``) and the last window over the same views in the first orbit
+(``last_over_same_views_first_orbit``), ratios of equal views that isolate the growth with the map;
 per orbit (lap) the mean CPU ms and the map size at its end, the density of the map in view (surfels projecting
 into the image per valid depth pixel, sampled every ``DENSITY_EVERY`` frames), the pose error vs the
 generator's trajectory, and a PNG of the per-frame cost against the frame index.
@@ -147,6 +149,11 @@ def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: 
         again = float(cpu[lap + 1 : lap + w + 1].mean())
         row["cpu_revisit_ms"] = round(again, 2)
         row["revisit_over_first"] = round(again / first, 3)
+    a = (n_frames - w) % lap
+    if n_frames >= lap + w and a >= 1 and a + w <= lap:  # the last window's views in the first orbit/lap
+        same = float(cpu[a : a + w].mean())  # (the cost varies with the view: this ratio is growth alone)
+        row["cpu_same_views_first_orbit_ms"] = round(same, 2)
+        row["last_over_same_views_first_orbit"] = round(last / same, 3)
     if plot_dir is not None:
         row["plot"] = str(_plot(row, plot_dir))
     return row

@@ -417,9 +417,14 @@ def to_markdown(res: dict) -> str:
                                                      " (indicative)"), s["map_surfels_end"], s["ate_cm"],
                           s["failures"]]]))
         laps = "; ".join(f"{p['lap']}: {p['cpu_ms']:.1f} ms, {p['map_surfels_end']:,} surfels" for p in s["per_lap"])
+        same = [f"{label} {s[k]:.2f}" for k, label in (
+            ("revisit_over_first", f"start of orbit 2 / first {s['window']}"),
+            ("last_over_same_views_first_orbit", f"last {s['window']} / the same views in orbit 1")) if k in s]
         md += [f"{s['trajectory']}; every frame rendered fresh (new pose and noise), generation not timed. "
                f"Per-frame cost is CPU time of `DenseSlam.process` (robust to other jobs); FPS is wall clock. "
-               f"Per orbit (mean CPU ms, map size at its end): {laps}. Plot: `{s.get('plot')}`.", ""]
+               f"Per orbit (mean CPU ms, map size at its end): {laps}. The cost varies with the view, so ratios "
+               f"of equal views isolate the growth with the map: {', '.join(same) or 'run too short'}. "
+               f"Plot: `{s.get('plot')}`.", ""]
     if res["accuracy"]:
         md += ["### Accuracy: ATE RMSE and RPE per frame against ground truth (`surfelslam run`)", ""]
         md.append(table(["sequence", "resolution", "frames", "tracker", "ATE RMSE cm", "ATE max cm", "RPE mm/frame",

@@ -148,3 +148,17 @@ def test_budget() -> None:
     assert not b.fits("b", 100.0 - run_all.RESERVE_S + 1.0)
     assert [s["what"] for s in b.skipped] == ["b"]
     assert run_all.Budget(0.0).fits("c", 1e9)  # 0 = no limit
+
+
+def test_sustained_equal_view_ratios() -> None:
+    """Laps of 15 frames (walking loop): the ratios of equal views use the right windows of the series."""
+    import bench_pipeline
+
+    row = bench_pipeline.bench(80, 40, 5, style="loop", lap=15, plot_dir=None)
+    cpu = row["series"]["cpu_ms"]
+    assert row["laps"] == 3 and [p["frames"] for p in row["per_lap"]] == [14, 15, 10]
+    assert row["cpu_revisit_ms"] == pytest.approx(cpu[16:21].mean(), abs=0.006)
+    a = (40 - 5) % 15  # the last 5 frames (35-39) are views 5-9 of a lap
+    assert a == 5 and row["cpu_same_views_first_orbit_ms"] == pytest.approx(cpu[5:10].mean(), abs=0.006)
+    assert row["last_over_same_views_first_orbit"] == pytest.approx(cpu[35:].mean() / cpu[5:10].mean(), rel=0.01)
+    assert "plot" not in row
