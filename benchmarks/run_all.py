@@ -107,6 +107,7 @@ class Budget:
             return True
         self.skipped.append({"what": what, "reason": f"time budget: needs ~{estimate_s:.0f} s, "
                              f"{max(self.seconds - self.elapsed(), 0):.0f} s of {self.seconds:.0f} s left"})
+        print(f"  skipped {what}: {self.skipped[-1]['reason']}", file=sys.stderr, flush=True)
         return False
 
 
@@ -197,12 +198,14 @@ def stages(plan: Plan, name: str, path: Path, tmp: Path) -> tuple[list[dict], li
 def _section(results: dict, key: str, fn, *args):
     """Run one section, timed (wall and CPU seconds into ``meta.section_seconds``); an exception is recorded
     (and the bench goes on) instead of losing everything."""
+    print(f"[{datetime.datetime.now():%H:%M:%S}] {key}", file=sys.stderr, flush=True)  # progress
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         return fn(*args)
     except Exception as exc:  # noqa: BLE001 - a benchmark reports every failure and carries on
         results["errors"].append({"section": key, "error": f"{type(exc).__name__}: {exc}",
                                   "traceback": traceback.format_exc(limit=4)})
+        print(f"  failed: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
         return None
     finally:
         results["meta"]["section_seconds"][key] = {"wall": round(time.perf_counter() - t0, 1),
