@@ -31,14 +31,19 @@ class Open3DSlamConfig:
 
 
 def available() -> bool:
+    return version() is not None
+
+
+def version() -> str | None:
+    """Open3D's version, or None when it cannot be imported."""
     try:
-        import open3d  # noqa: F401
+        import open3d
     except Exception:  # noqa: BLE001 - any import failure means "not available"
-        return False
-    return True
+        return None
+    return str(open3d.__version__)
 
 
-def run_open3d_slam(seq, cfg: Open3DSlamConfig | None = None, n_threads: int | None = None) -> dict:
+def run_open3d_slam(seq, cfg: Open3DSlamConfig | None = None) -> dict:
     """Run Open3D dense SLAM over ``seq``; returns ``{"trajectory", "fps", "wall_s", "frames", "failed"}``.
 
     Frame reading is excluded from the timing (as for our FPS): frames are decoded first.
@@ -47,6 +52,7 @@ def run_open3d_slam(seq, cfg: Open3DSlamConfig | None = None, n_threads: int | N
     import open3d.core as o3c
 
     cfg = cfg or Open3DSlamConfig()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its range-map warnings flood the log
     intr = seq.intrinsics
     device = o3c.Device("CPU:0")
     K = o3c.Tensor(intr.K, dtype=o3c.Dtype.Float64)

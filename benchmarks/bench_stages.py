@@ -1,0 +1,81 @@
+"""Per-frame stage timings that a dense run does not measure by itself: frame reading and the ORB front end.
+
+* ``read``: ``seq[i]`` of the dataset reader, synchronously (in ``surfelslam run`` it runs in a background
+  thread): decode of the colour and depth files, depth scaling and validation, downsampling. With
+  ``downsample`` 2 the reader decodes the full-size files and keeps every second pixel, so reading 320x240
+  costs about what reading 640x480 costs.
+* ``orb``: :func:`extract` per frame, and matching + PnP-RANSAC (``estimate_motion``) per pair of frames 5 apart,
+  with the ORB settings the ``orb``/``hybrid`` trackers use (``SlamConfig().sparse.features``).
+
+The other stages (preprocess, render, ICP, fuse) come from the ``metrics.json`` of a real dense run
+(:mod:`bench_accuracy`). Usage: ``.venv/bin/python benchmarks/bench_stages.py SEQUENCE [--downsample 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.datasets import DatasetOptions, open_sequence
+from surfelslam.pipeline import SlamConfig
+from surfelslam.tracking.features import estimate_motion, extract
+
+PAIR_GAP = 5  # frames between the two frames of an ORB pair
+
+
+def read_ms(path: Path, downsample: int, n_frames: int) -> dict:
+    """Mean and median ms of ``seq[i]`` over ``n_frames`` frames spread over the sequence (after one warm read)."""
+    seq = open_sequence(path, DatasetOptions(downsample=downsample))
+    idx = np.unique(np.linspace(0, len(seq) - 1, n_frames).astype(int))
+    seq[int(idx[0])]  # file system cache, decoder libraries
+    times = []
+    for i in idx:
+        t0 = time.perf_counter()
+        seq[int(i)]
+        times.append((time.perf_counter() - t0) * 1e3)
+    return {"read_ms": round(float(np.mean(times)), 2), "read_median_ms": round(float(np.median(times)), 2),
+            "read_frames": len(times), "resolution": f"{seq.intrinsics.width}x{seq.intrinsics.height}"}
+
+
+def _median_ms(fn, reps: int) -> float:
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(times))
+
+
+def orb_ms(path: Path, downsample: int, n_pairs: int, reps: int = 3) -> dict:
+    """ORB extract ms per frame and match + PnP ms per pair (medians), tracker settings."""
+    seq = open_sequence(path, DatasetOptions(downsample=downsample))
+    intr = seq.intrinsics
+    cfg = SlamConfig().sparse.features
+    gap = min(PAIR_GAP, len(seq) - 1)
+    idx = np.unique(np.linspace(0, len(seq) - 1 - gap, n_pairs).astype(int))
+    ext, mp, inl = [], [], []
+    for i in idx:
+        a, b = seq[int(i)], seq[int(i) + gap]
+        fa = extract(a.rgb, a.depth_m, intr, cfg)
+        fb = extract(b.rgb, b.depth_m, intr, cfg)
+        ext.append(_median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), reps))
+        mp.append(_median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), reps))  # matches, then PnP
+        inl.append(estimate_motion(fa, fb, intr, cfg).n_inliers)
+    return {"orb_extract_ms": round(float(np.median(ext)), 2), "orb_match_pnp_ms": round(float(np.median(mp)), 2),
+            "orb_features": cfg.n_features, "orb_pairs": len(idx), "orb_median_inliers": float(np.median(inl))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequence", type=Path)
+    ap.add_argument("--downsample", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=40)
+    a = ap.parse_args()
+    print({**read_ms(a.sequence, a.downsample, a.frames), **orb_ms(a.sequence, a.downsample, 5)})
+
+
+if __name__ == "__main__":
+    main()
