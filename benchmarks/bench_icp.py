@@ -16,13 +16,13 @@ Usage: ``.venv/bin/python benchmarks/bench_icp.py [--quick]``; ``run(quick)`` re
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import numba
 import numpy as np
 
+from bench_stages import _median_ms  # one timing helper for all benchmark scripts
 from surfelslam.tracking.icp import ICPConfig, icp
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.types import Intrinsics
@@ -53,15 +53,6 @@ def _depth_pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[np.nda
         step = se3.exp(np.array([0.0, np.radians(2.0), 0.0, 0.05, 0.0, 0.0]))
         pairs.append((render(scene, T_w_t @ step, intr).depth_m.copy(), render(scene, T_w_t, intr).depth_m.copy()))
     return intr, pairs, "synthetic"
-
-
-def _median_ms(fn, reps: int) -> float:
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(times))
 
 
 def run(quick: bool = False) -> list[dict]:

@@ -10,12 +10,12 @@ Usage: ``.venv/bin/python benchmarks/bench_orb.py [--quick]``; ``run(quick)`` re
 from __future__ import annotations
 
 import argparse
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from bench_stages import _median_ms  # one timing helper for all benchmark scripts
 from surfelslam.tracking.features import FeatureConfig, estimate_motion, extract, match
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -50,15 +50,6 @@ def _pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[RGBDFrame, R
         return seq.intrinsics, [(seq[i], seq[i + 5]) for i in idx], "7scenes"
     intr = full.scaled(downsample)
     return intr, _synthetic_pairs(intr, n), "synthetic"
-
-
-def _median_ms(fn, reps: int) -> float:
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(times))
 
 
 def _time_pairs(pairs, intr: Intrinsics, cfg: FeatureConfig):
