@@ -92,7 +92,7 @@ class TrackingConfig:
         max_failures_in_a_row_before_reset_velocity: after this many failed frames in a row the velocity is
             reset to zero (the prediction stops extrapolating).
         max_width_px: tracking (rendering the model and ICP) runs at the finest pyramid level of the input that
-            is at most this wide (pixels); fusion always uses the full resolution. 640x480 input is tracked
+            is at most this wide (pixels); fusion has its own ``FusionConfig.max_width_px``. 640x480 input is tracked
             at its 2x2 block-averaged 320x240 level: the model is rendered at 320x240 (a quarter of the
             splatting work) and ICP sees the same number of points as at 320x240 input. 0 = always track at
             full resolution.
@@ -309,7 +309,11 @@ class DenseSlam(_FusingMapper):
     @property
     def track_source(self) -> FramePyramid:
         """The current frame's pyramid from the tracking level down (what ICP registers)."""
-        return FramePyramid(self.source.levels[self.track_level:])
+        return self._at_track_level(self.source)
+
+    def _at_track_level(self, pyr: FramePyramid) -> FramePyramid:
+        """The levels of ``pyr`` from the tracking level down (views, no copy)."""
+        return FramePyramid(pyr.levels[self.track_level:])
 
     def process(self, frame: RGBDFrame) -> FrameResult:
         t = _Timer()
@@ -328,7 +332,7 @@ class DenseSlam(_FusingMapper):
         target = self.render_target(T_prev)
         t.lap("render")
         if self.cfg.tracking.frame_to_frame_init:
-            f2f = icp(self.track_source, FramePyramid(self.previous.levels[self.track_level:]), T_init=T_init,
+            f2f = icp(self.track_source, self._at_track_level(self.previous), T_init=T_init,
                       cfg=self.cfg.icp)
             if icp_failure(f2f) is None:
                 T_init = f2f.T_target_source
