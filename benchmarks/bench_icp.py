@@ -4,7 +4,7 @@ Frames: 7-Scenes redkitchen pairs (i, i+5) from ../shared/data when present, oth
 renders of the ``room`` scene (:mod:`surfelslam.synth`) 5 cm / 2 deg apart. Sizes 320x240 (downsample 2)
 and 640x480; numba with 1 thread and with 2 threads. Rows:
 
-* ``preprocess``: depth -> 4-level vertex/normal pyramid into pre-allocated buffers (bilateral on).
+* ``preprocess``: depth -> 4-level vertex/normal pyramid into pre-allocated buffers (default settings).
 * ``icp 3-level``: :func:`icp` with the first three levels of the defaults (iterations 10/8/10).
 * ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 10/8/10/40 iterations,
   finest-level source stride 2).
@@ -55,10 +55,10 @@ def _depth_pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[np.nda
     return intr, pairs, "synthetic"
 
 
-def run(quick: bool = False) -> list[dict]:
+def run(quick: bool = False, n_pairs: int | None = None, reps: int | None = None) -> list[dict]:
     """Rows ``{stage, size, threads, ms, iterations, frames}`` (median ms over pairs x repetitions)."""
-    n_pairs = 2 if quick else 4
-    reps = 3 if quick else 10
+    n_pairs = n_pairs or (2 if quick else 4)
+    reps = reps or (3 if quick else 10)
     rows: list[dict] = []
     old_threads = numba.get_num_threads()
     cfg4 = ICPConfig()

@@ -7,6 +7,8 @@ README) and ``pipeline_cost_<W>x<H>.png`` (per-frame cost against frame index). 
 * ``stages``: ms per frame at 320x240 and 640x480 on the first real sequence with ground truth (7-Scenes):
   read (:mod:`bench_stages`, the dataset reader), preprocess / render / ICP / fuse and the whole loop (from the
   ``metrics.json`` of a dense ``surfelslam run``), ORB extract and match + PnP (:mod:`bench_stages`).
+* ``icp``: one pairwise registration (:mod:`bench_icp`): preprocessing and pyramid ICP (3 levels, and the 4-level
+  default) at 320x240 and 640x480 on 1 and 2 threads, median ms after the JIT warm-up.
 * ``sustained``: the dense loop over 2,000 generated frames at 320x240 (:mod:`bench_pipeline`): FPS, per-frame
   cost of the first and last 100 frames and their ratio (flat cost: <= 1.3), plot.
 * ``accuracy``: ATE / RPE / FPS of ``surfelslam run`` (:mod:`bench_accuracy`) on every real sequence long enough
@@ -17,7 +19,7 @@ README) and ``pipeline_cost_<W>x<H>.png`` (per-frame cost against frame index). 
 
 ``--quick`` (about 1-2 minutes) runs the same sections on fewer frames. Usage:
 ``.venv/bin/python benchmarks/run_all.py [--quick] [--out DIR] [--budget-s S] [--no-open3d] [--shared DIR]``.
-Other tools here (not run by ``make bench``): ``bench_icp.py`` (ICP 1 vs 2 threads), ``bench_fusion.py``
+Other tools here (not run by ``make bench``): ``bench_fusion.py``
 (render/fuse on a growing corridor map), ``bench_orb.py``, ``icp_pairs.py``.
 """
 
@@ -40,6 +42,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import bench_accuracy  # noqa: E402
+import bench_icp  # noqa: E402
 import bench_pipeline  # noqa: E402
 import bench_stages  # noqa: E402
 import open3d_slam  # noqa: E402
@@ -65,6 +68,8 @@ class Plan:
     name: str
     read_frames: int = 40  # frames decoded per resolution for the read timing
     orb_pairs: int = 8  # frame pairs for the ORB timing
+    icp_pairs: int = 4  # frame pairs for the one-registration timing
+    icp_reps: int = 10  # timed repetitions per pair (median)
     stage_runs: tuple[tuple[int, int | None], ...] = ((2, None), (1, 150))  # (downsample, frames) dense runs
     sustained_frames: int = 2000
     sustained_width: int = 320
@@ -86,9 +91,9 @@ class Plan:
 
 
 FULL = Plan("full")
-QUICK = Plan("quick", read_frames=10, orb_pairs=2, stage_runs=((2, 100), (1, 30)), sustained_frames=300,
-             sustained_window=50, synth_slow_frames=90, synth_loop_run_frames=90, open3d_frames_real=20,
-             open3d_frames_synth=0, extra_runs=(), fallback_frames=30, budget_s=150.0)
+QUICK = Plan("quick", read_frames=10, orb_pairs=2, icp_pairs=2, icp_reps=3, stage_runs=((2, 100), (1, 30)),
+             sustained_frames=300, sustained_window=50, synth_slow_frames=90, synth_loop_run_frames=90,
+             open3d_frames_real=20, open3d_frames_synth=0, extra_runs=(), fallback_frames=30, budget_s=150.0)
 
 
 class Budget:
@@ -223,10 +228,11 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
                  "mode": plan.name, "machine": machine(), "python": platform.python_version(),
                  "numba": _version("numba"), "open3d": o3d_version, "git": git_state(),
                  "parallel_kernels": threads.parallel_enabled(), "plan": asdict(plan), "section_seconds": {}},
-        "jit": None, "stages": [], "sustained": None, "accuracy": [], "not_tracked": [], "open3d": None,
+        "jit": None, "stages": [], "icp": [], "sustained": None, "accuracy": [], "not_tracked": [], "open3d": None,
         "skipped": budget.skipped, "errors": [],
     }
     res["jit"] = _section(res, "jit", jit)
+    res["icp"] = _section(res, "icp", bench_icp.run, False, plan.icp_pairs, plan.icp_reps) or []
     real, res["not_tracked"] = bench_accuracy.shared_sequences(shared, plan.min_frames)
     dense_s_per_frame: list[float] = []
 
@@ -409,6 +415,14 @@ def to_markdown(res: dict) -> str:
                "(its `metrics.json`, `stage_ms`); FPS excludes the JIT warm-up. ORB: extraction per frame, matching + "
                f"PnP-RANSAC per frame pair, with the orb/hybrid trackers' settings ({s0['orb_features']} features).",
                ""]
+    if res.get("icp"):
+        md += ["### One registration (`surfelslam register`'s ICP), median ms after the JIT warm-up", ""]
+        md.append(table(["stage", "resolution", "threads", "ms", "iterations (mean)"],
+                        [[r["stage"], r["size"], r["threads"], r["ms"], r["iterations"] or "–"]
+                         for r in res["icp"]]))
+        md += [f"Frames: {res['icp'][0]['frames']} pairs {bench_icp.FRAME_GAP} frames apart. `icp 3-level`: the "
+               "first three levels of the default `ICPConfig`; `icp default`: all four levels (finest-level source "
+               "stride 2); preprocess: depth to the 4-level vertex/normal pyramid (default settings).", ""]
     s = res.get("sustained")
     if s:
         md += [f"### Sustained throughput: {s['frames']} synthetic frames at {s['resolution']}", ""]

@@ -23,7 +23,8 @@ sys.path.insert(0, str(BENCH))
 import run_all  # noqa: E402
 
 TINY = run_all.Plan(
-    "tiny", read_frames=2, orb_pairs=1, stage_runs=((2, None), (1, 8)), sustained_frames=30, sustained_width=80,
+    "tiny", read_frames=2, orb_pairs=1, icp_pairs=1, icp_reps=1,
+    stage_runs=((2, None), (1, 8)), sustained_frames=30, sustained_width=80,
     sustained_window=5, synth_width=80, synth_slow_frames=24, synth_loop_frames=12, open3d_frames_real=0,
     open3d_frames_synth=0, extra_runs=(("orb", "real", 6), ("orb", "slow", 6)), min_frames=8, budget_s=0.0,
 )
@@ -45,13 +46,16 @@ def bench(tmp_path_factory) -> tuple[dict, Path]:
 def test_json_sections(bench) -> None:
     res, out = bench
     on_disk = json.loads((out / "latest.json").read_text())
-    assert set(on_disk) == {"meta", "jit", "stages", "sustained", "accuracy", "not_tracked", "open3d", "skipped",
+    assert set(on_disk) == {"meta", "jit", "stages", "icp", "sustained", "accuracy", "not_tracked", "open3d", "skipped",
                             "errors"}
     assert on_disk["errors"] == [], on_disk["errors"]
     assert on_disk["meta"]["mode"] == "tiny" and on_disk["meta"]["machine"]["cores"] >= 1
     assert on_disk["jit"]["warmup_s"] >= 0.0 and "cache" in on_disk["jit"]
     # stage timings at both resolutions, every stage a positive number; the dense run's metrics.json has them
     assert [r["resolution"] for r in on_disk["stages"]] == ["80x60", "160x120"]
+    # one registration: preprocess and ICP timed at both sizes
+    icp_rows = {(r["stage"], r["size"]) for r in on_disk["icp"] if r["ms"] > 0.0}
+    assert {("preprocess", "320x240"), ("icp 3-level", "320x240"), ("icp default", "640x480")} <= icp_rows
     assert [r["frames"] for r in on_disk["stages"]] == [12, 8]
     for r in on_disk["stages"]:
         for k in ("read_ms", "preprocess_ms", "render_ms", "icp_ms", "fuse_ms", "loop_ms", "fps", "orb_extract_ms",
@@ -112,6 +116,7 @@ def test_markdown(bench) -> None:
     assert "| resolution | frames | read | preprocess | render | ICP | fuse | dense loop | FPS | ORB extract |" in md
     assert "\n| 80x60 | 12 |" in md and "\n| 160x120 | 8 |" in md
     assert "### Sustained throughput: 30 synthetic frames at 80x60" in md
+    assert "### One registration" in md and "\n| icp 3-level | 320x240 | 1 |" in md
     assert "| synthetic fast (slow x3) | 80x60 | 8 | dense |" in md
     assert "`short` (4 frames): too short to track" in md
     assert "Open3D side by side: disabled" in md
