@@ -14,7 +14,15 @@ from surfelslam.kernels import icp as kicp
 from surfelslam.synth import make_scene, render
 from surfelslam.synth.noise import KinectNoiseConfig, noisy_depth
 from surfelslam.synth.trajectories import look_at
-from surfelslam.tracking.icp import ICPConfig, condition_number, icp, pairwise_config, register_frames, solve
+from surfelslam.tracking.icp import (
+    ICPConfig,
+    condition_number,
+    icp,
+    pairwise_config,
+    register_frames,
+    remapped_step,
+    solve,
+)
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor, build_pyramid
 from surfelslam.types import Intrinsics
 
@@ -236,6 +244,50 @@ def test_single_plane_is_degenerate():
     assert res.degenerate and not res.converged
     assert res.condition_number > ICPConfig().max_condition_number
     assert "degenerate" in res.reason
+
+
+def test_remapped_step_drops_only_weak_directions():
+    rng = np.random.default_rng(5)
+    d = 2.0
+    s = np.array([1 / d] * 3 + [1.0] * 3)
+    V, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    Atb = rng.normal(size=6)
+    # scaled normal matrix S AtA S = V diag(lam) V^T: eigenvalue ratios 50 (kept) and 5000 (frozen at 1000)
+    lam_ok = np.array([1.0, 2.0, 5.0, 10.0, 30.0, 50.0])
+    AtA_ok = (V * lam_ok) @ V.T / s[:, None] / s[None, :]
+    xi, n = remapped_step(AtA_ok, Atb, d, 1000.0)
+    assert xi is None and n == 0  # nothing weak: the ordinary solve is used
+    lam = np.array([0.01, 2.0, 5.0, 10.0, 30.0, 50.0])
+    AtA = (V * lam) @ V.T / s[:, None] / s[None, :]
+    xi, n = remapped_step(AtA, Atb, d, 1000.0)
+    assert n == 1
+    xi_s = xi / s
+    assert abs(V[:, 0] @ xi_s) < 1e-12  # no step along the weak direction
+    # along the kept directions it is the Gauss-Newton step: V_k^T (S AtA S xi_s + S Atb) = 0
+    r = (AtA * s[:, None] * s[None, :]) @ xi_s + s * Atb
+    np.testing.assert_allclose(V[:, 1:].T @ r, 0.0, atol=1e-12)
+
+
+def test_weak_directions_keep_the_initial_guess_on_a_plane():
+    """A single plane constrains 3 of 6 DoF: with solution remapping, ICP corrects the offset along the normal
+    and leaves the in-plane offset of the initial guess exactly where it was (instead of sliding)."""
+    scene = make_scene("plane")
+    T_w_t = look_at(np.array([1.5, 0.0, 1.5]), np.array([0.0, 0.1, 1.4]))[0]
+    T_t_s = motion((0, 0, 1), 2, (0, 1, 0), 0.03)
+    rt = render(scene, T_w_t, INTR)
+    ds = render(scene, T_w_t @ T_t_s, INTR).depth_m.copy()
+    valid = rt.depth_m > 0
+    n = np.median(rt.normal_cam[valid], axis=0)
+    n /= np.linalg.norm(n)
+    t_in = np.cross(n, [0.0, 1.0, 0.0])
+    t_in /= np.linalg.norm(t_in)
+    T_init = se3.exp(np.concatenate([np.zeros(3), 0.01 * t_in + 0.01 * n])) @ T_t_s
+    cfg = replace(ICPConfig(), weak_direction_ratio=1000.0)
+    res = register_frames(ds, rt.depth_m.copy(), INTR, T_init=T_init, icp_cfg=cfg)
+    assert res.degenerate and all(li.frozen_directions == 3 for li in res.levels)
+    dT = res.T_target_source @ se3.invert(T_t_s)
+    np.testing.assert_allclose(dT[:3, 3], 0.01 * t_in, atol=5e-4)  # normal offset corrected, in-plane kept
+    assert se3.rotation_angle_deg(dT[:3, :3]) < 0.05
 
 
 def test_condition_number_scaling():
