@@ -266,6 +266,16 @@ def test_remapped_step_drops_only_weak_directions():
     # along the kept directions it is the Gauss-Newton step: V_k^T (S AtA S xi_s + S Atb) = 0
     r = (AtA * s[:, None] * s[None, :]) @ xi_s + s * Atb
     np.testing.assert_allclose(V[:, 1:].T @ r, 0.0, atol=1e-12)
+    # the numba kernel: same step, applied as T_out = exp(xi) T
+    stats = np.zeros(kicp.N_STATS)
+    stats[:21] = AtA[np.triu_indices(6)]
+    stats[21:27] = Atb
+    T = motion((1, 0, 0), 3, (0, 1, 0), 0.02)
+    T_out = np.empty((4, 4))
+    assert kicp.remapped_gauss_newton_step(stats, d, 1000.0, T, T_out) == (1, pytest.approx(np.linalg.norm(xi)))
+    np.testing.assert_allclose(T_out, se3.exp(xi) @ T, atol=1e-12)
+    stats[:21] = AtA_ok[np.triu_indices(6)]
+    assert kicp.remapped_gauss_newton_step(stats, d, 1000.0, T, T_out)[0] == 0
 
 
 def test_weak_directions_keep_the_initial_guess_on_a_plane():

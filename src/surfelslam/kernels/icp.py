@@ -369,3 +369,56 @@ def se3_exp_left_update(xi, T, T_out):
     E[:3, :3] = R
     E[:3, 3] = t
     T_out[:, :] = E @ T
+
+
+@njit(cache=True, nogil=True)
+def remapped_gauss_newton_step(stats, mean_depth_m, max_ratio, T, T_out):
+    """Solution remapping (numba twin of :func:`surfelslam.tracking.icp.remapped_step`) and the update.
+
+    Eigen-decomposes ``S AtA S`` (``S = diag(1/d, 1/d, 1/d, 1, 1, 1)``, ``d = mean_depth_m``); when some
+    eigenvalue is below the largest divided by ``max_ratio``, solves in the other directions only and sets
+    ``T_out = exp(xi) T``.
+
+    Returns:
+        ``(n_frozen, |xi|)``; ``n_frozen = 0`` means nothing is weak and ``T_out`` is untouched (the caller
+        takes the ordinary step).
+    """
+    H = np.empty((6, 6))
+    k = 0
+    for i in range(6):
+        for j in range(i, 6):
+            H[i, j] = stats[k]
+            H[j, i] = stats[k]
+            k += 1
+    d = max(mean_depth_m, 1e-6)
+    s = np.ones(6)
+    s[0] = 1.0 / d
+    s[1] = 1.0 / d
+    s[2] = 1.0 / d
+    for i in range(6):
+        for j in range(6):
+            H[i, j] *= s[i] * s[j]
+    lam, V = np.linalg.eigh(H)
+    if not lam[5] > 0.0:
+        return 0, 0.0
+    n_frozen = 0
+    for i in range(6):
+        if lam[i] * max_ratio < lam[5]:
+            n_frozen += 1
+    if n_frozen == 0:
+        return 0, 0.0
+    g = np.empty(6)
+    for i in range(6):
+        g[i] = s[i] * stats[21 + i]
+    xi = np.zeros(6)
+    for kk in range(n_frozen, 6):  # eigenvalues ascending: the frozen ones come first
+        c = 0.0
+        for i in range(6):
+            c += V[i, kk] * g[i]
+        c /= lam[kk]
+        for i in range(6):
+            xi[i] -= V[i, kk] * c
+    for i in range(6):
+        xi[i] *= s[i]
+    se3_exp_left_update(xi, T, T_out)
+    return n_frozen, np.sqrt(np.sum(xi * xi))

@@ -242,7 +242,7 @@ def remapped_step(AtA: np.ndarray, Atb: np.ndarray, mean_depth_m: float, max_rat
     n_frozen = int(6 - np.count_nonzero(keep))
     if n_frozen == 0:
         return None, 0
-    Vk = V[:, keep]
+    Vk = V[:, keep]  # the numba path (kernels.icp.remapped_gauss_newton_step) is tested equal to this
     xi_s = -(Vk @ ((Vk.T @ (s * Atb)) / lam[keep]))
     return s * xi_s, n_frozen
 
@@ -312,13 +312,12 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
             if n_in < need:
                 stop = "too_few_inliers"
                 break
-            xi = None
+            frozen = 0
             if cfg.weak_direction_ratio > 0:
-                AtA, Atb = kicp.unpack_normal_equations(stats)
-                xi, frozen = remapped_step(AtA, Atb, stats[30] / n_in, cfg.weak_direction_ratio)
-            if xi is not None:
-                T = se3.exp(xi) @ T
-                upd = float(np.linalg.norm(xi))
+                frozen, upd = kicp.remapped_gauss_newton_step(stats, stats[30] / n_in, cfg.weak_direction_ratio,
+                                                              T, T_next)
+            if frozen:
+                T, T_next = T_next, T
             elif cfg.solver == "cholesky":
                 upd = kicp.gauss_newton_step(stats, T, T_next)
                 if not upd >= 0.0:
