@@ -10,6 +10,7 @@ import pytest
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, pose_error, so3_exp
 from surfelslam.tracking.features import (
     FeatureConfig,
+    _keypoint_depth,
     bucket_keypoints,
     estimate_motion,
     extract,
@@ -106,6 +107,29 @@ def test_extract_spreads_keypoints_and_lifts_depth() -> None:
     assert f.valid.mean() > 0.95
     np.testing.assert_allclose(INTR.fx * p[:, 0] / p[:, 2] + INTR.cx, uv[:, 0], atol=1e-3)
     np.testing.assert_allclose(INTR.fy * p[:, 1] / p[:, 2] + INTR.cy, uv[:, 1], atol=1e-3)
+
+
+def test_plane_fit_depth_averages_noise_and_respects_edges() -> None:
+    h, w = 240, 320
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    inv_true = 0.5 + 0.0004 * (uu - 160) - 0.0003 * (vv - 120)  # a slanted plane, 1.3-3.6 m
+    depth = (1.0 / inv_true).astype(np.float32)
+    rng = np.random.default_rng(0)
+    uv = np.column_stack([rng.uniform(10, w - 10, 300), rng.uniform(10, h - 10, 300)]).astype(np.float32)
+    truth = 1.0 / (0.5 + 0.0004 * (uv[:, 0] - 160.0) - 0.0003 * (uv[:, 1] - 120.0))
+    plane_cfg, median_cfg = FeatureConfig(), FeatureConfig(depth_plane_radius_px=0)
+    # exact plane: the fit returns the depth at the sub-pixel keypoint (the 3x3 median is off by the slope)
+    np.testing.assert_allclose(_keypoint_depth(depth, uv, plane_cfg), truth, rtol=1e-6)  # float32 depth
+    # disparity-like noise and quantisation: several times closer to the truth than the 3x3 median
+    noisy = 1.0 / (np.round((inv_true + rng.normal(0, 0.002, inv_true.shape)) / 0.004) * 0.004)
+    noisy = noisy.astype(np.float32)
+    err_plane = np.sqrt(np.mean((_keypoint_depth(noisy, uv, plane_cfg) - truth) ** 2))
+    err_median = np.sqrt(np.mean((_keypoint_depth(noisy, uv, median_cfg) - truth) ** 2))
+    assert err_plane < 0.4 * err_median, (err_plane, err_median)
+    # a depth edge: foreground at 1 m on the left half; keypoints next to it keep their own side's depth
+    step = np.where(uu < 160, 1.0, 2.0).astype(np.float32)
+    near = np.array([[157.0, 100.0], [162.0, 100.0]], np.float32)
+    np.testing.assert_allclose(_keypoint_depth(step, near, plane_cfg), [1.0, 2.0], rtol=1e-9)
 
 
 def test_invalid_depth_gives_nan_points() -> None:

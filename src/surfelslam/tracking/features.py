@@ -53,6 +53,17 @@ class FeatureConfig:
         depth_median_3x3: lift keypoints with the median of the valid depths in their 3x3 pixel
             neighbourhood (robust at edges and for slightly misregistered colour/depth) instead of the
             nearest pixel's depth.
+        depth_plane_radius_px: then refine that depth by a least-squares plane fit over the
+            ``(2r+1)^2`` patch around the keypoint (0 = off). The fit is linear in inverse depth, which is
+            exactly linear in ``(u, v)`` over a plane and is the quantity a structured-light sensor measures
+            (disparity), so quantisation steps and noise average out over the patch. Only pixels within
+            ``depth_plane_gate`` of the median depth enter the fit (the patch never mixes a foreground edge
+            with the background); with fewer than ``depth_plane_min_pixels`` of them the median is kept.
+            Measured on the orb tracker (200 frames; ATE with radius 0 / 2 / 3): 7-Scenes 2.66 / 2.45 /
+            2.74 cm (its colour and depth are not registered, so wide patches blur), synthetic slow 320x240
+            0.93 / 0.70 / 0.78 cm, 640x480 0.48 / 0.41 / 0.43 cm.
+        depth_plane_gate: relative depth gate ``|z - z_median| <= gate * z_median`` of the plane fit.
+        depth_plane_min_pixels: fewest gated pixels for a plane fit.
         min_depth_m, max_depth_m: keypoints with depth outside this range get no 3D point.
         ransac_iterations: PnP-RANSAC iterations. The seeds use 100; at 10 % inlier ratio (wide
             baselines on real data) 100 EPnP samples often miss, so the default is 300.
@@ -80,6 +91,9 @@ class FeatureConfig:
     good_match_k: float = 4.0
     good_match_floor_bits: float = 10.0
     depth_median_3x3: bool = True
+    depth_plane_radius_px: int = 2
+    depth_plane_gate: float = 0.03
+    depth_plane_min_pixels: int = 12
     min_depth_m: float = 0.1
     max_depth_m: float = 6.0
     ransac_iterations: int = 300
@@ -99,6 +113,8 @@ class FeatureConfig:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
         if self.min_depth_m < 0 or self.max_depth_m <= self.min_depth_m:
             raise ValueError(f"need 0 <= min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}")
+        if self.depth_plane_radius_px < 0 or self.depth_plane_min_pixels < 3 or not self.depth_plane_gate > 0:
+            raise ValueError("need depth_plane_radius_px >= 0, depth_plane_min_pixels >= 3, depth_plane_gate > 0")
         if self.min_inliers < 4:
             raise ValueError(f"min_inliers must be >= 4 (PnP needs 4 points), got {self.min_inliers}")
 
@@ -247,9 +263,51 @@ def _keypoint_depth(depth_m: np.ndarray, uv: np.ndarray, cfg: FeatureConfig) -> 
             z = np.nanmedian(patch, axis=1)
         # the centre pixel must itself be valid: a keypoint on a hole has no reliable depth
         z[~centre_ok] = np.nan
+        if cfg.depth_plane_radius_px > 0:
+            z = _plane_fit_depth(depth_m, uv, ui, vi, z, cfg)
         return z
     z = depth_m[vi, ui].astype(np.float64)
     z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
+    return z
+
+
+def _plane_fit_depth(depth_m: np.ndarray, uv: np.ndarray, ui: np.ndarray, vi: np.ndarray, z0: np.ndarray,
+                     cfg: FeatureConfig) -> np.ndarray:
+    """Depth at each keypoint ``(N,)`` from a plane fit in inverse depth over its patch (see
+    :class:`FeatureConfig`); ``z0 (N,)`` is the median depth (NaN = no depth, kept NaN)."""
+    h, w = depth_m.shape
+    r = cfg.depth_plane_radius_px
+    offs = np.arange(-r, r + 1)
+    n = len(uv)
+    uu, vv = np.broadcast_arrays(ui[:, None, None] + offs[None, None, :], vi[:, None, None] + offs[None, :, None])
+    uu, vv = uu.reshape(n, -1), vv.reshape(n, -1)
+    inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+    patch = depth_m[np.clip(vv, 0, h - 1), np.clip(uu, 0, w - 1)].astype(np.float64)
+    du = uu - uv[:, 0:1].astype(np.float64)  # offsets from the sub-pixel keypoint
+    dv = vv - uv[:, 1:2].astype(np.float64)
+    ok = inside & (patch > 0) & (np.abs(patch - z0[:, None]) <= cfg.depth_plane_gate * z0[:, None])
+    wgt = ok.astype(np.float64)
+    inv = np.where(ok, 1.0 / np.where(patch > 0, patch, 1.0), 0.0)
+    # weighted least squares  1/z = a + b du + c dv  per keypoint: 3x3 normal equations, batched
+    M = np.empty((n, 3, 3))
+    M[:, 0, 0] = wgt.sum(1)
+    M[:, 0, 1] = M[:, 1, 0] = (wgt * du).sum(1)
+    M[:, 0, 2] = M[:, 2, 0] = (wgt * dv).sum(1)
+    M[:, 1, 1] = (wgt * du * du).sum(1)
+    M[:, 1, 2] = M[:, 2, 1] = (wgt * du * dv).sum(1)
+    M[:, 2, 2] = (wgt * dv * dv).sum(1)
+    rhs = np.stack([(inv).sum(1), (inv * du).sum(1), (inv * dv).sum(1)], axis=1)
+    fit = (M[:, 0, 0] >= cfg.depth_plane_min_pixels) & np.isfinite(z0)
+    z = z0.copy()
+    if fit.any():
+        Mf = M[fit]
+        det = np.linalg.det(Mf)
+        good = np.abs(det) > 1e-9 * np.maximum(Mf[:, 0, 0], 1.0) ** 3
+        idx = np.flatnonzero(fit)[good]
+        a = np.linalg.solve(Mf[good], rhs[fit][good][:, :, None])[:, 0, 0]
+        zf = np.where(a > 0, 1.0 / np.where(a > 0, a, 1.0), np.nan)
+        keep = np.isfinite(zf) & (np.abs(zf - z0[idx]) <= cfg.depth_plane_gate * z0[idx])
+        z[idx[keep]] = zf[keep]
     return z
 
 
