@@ -78,8 +78,8 @@ class Plan:
     synth_slow_frames: int = 300  # "fast" gets a third of these: the same path at 3x speed
     synth_loop_frames: int = 300  # one lap (the lap's length sets the walking speed)
     synth_loop_run_frames: int | None = None  # run only the first frames of the lap (same speed, less time)
-    open3d_frames_real: int = 100  # 0: no side by side on real sequences
-    open3d_frames_synth: int = 60  # 0: none on synthetic ones
+    open3d_frames_real: int = 200  # 0: no side by side on real sequences
+    open3d_frames_synth: int = 300  # 0: none on synthetic ones (whole sequences: slow 300, loop 300, fast 100)
     # (tracker, sequence: "real" | "slow" | "loop" | "fast", max frames), in order of priority; each one runs
     # only when its estimated time still fits in the budget
     extra_runs: tuple[tuple[str, str, int | None], ...] = (
