@@ -50,7 +50,7 @@ import surfelslam  # noqa: E402
 from surfelslam.datasets import DatasetOptions, open_sequence  # noqa: E402
 from surfelslam.io.jsonio import json_default  # noqa: E402
 from surfelslam.kernels import threads  # noqa: E402
-from surfelslam.pipeline import SlamConfig, warm_up  # noqa: E402
+from surfelslam.pipeline import SlamConfig, apply_compute, warm_up  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
 RESULTS = HERE / "results"
@@ -220,6 +220,7 @@ def _section(results: dict, key: str, fn, *args):
 def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -> dict:
     """Run every section of ``plan``; write ``latest.json``, ``latest.md`` and the plot into ``out_dir``."""
     budget = Budget(plan.budget_s)
+    apply_compute(SlamConfig().compute)  # the kernels every `surfelslam run` uses by default
     c_start = time.process_time()
     o3d_version = open3d_slam.version() if open3d and (plan.open3d_frames_real or plan.open3d_frames_synth) else None
     res: dict = {

@@ -2,11 +2,12 @@
 
 Every hot kernel written with ``prange`` is compiled twice (lazily, on first use): ``parallel=True`` and
 serial (``prange`` runs as ``range``). Both release the GIL (``nogil``), so a frame-reading thread keeps
-running while a kernel works. The serial twin is the default: on a 2-core machine with a prefetch thread
-(or other jobs) the OpenMP team of a parallel kernel waits for descheduled threads at every barrier and
-spins between regions; measured with ``surfelslam run`` on 7-Scenes 320x240 while other jobs ran, the
-loop reached 1.4 FPS with 2-thread parallel kernels and 7.4 FPS with 1 thread. :func:`set_parallel` switches all
-kernels at once (for an otherwise idle machine with spare cores).
+running while a kernel works. :func:`set_parallel` switches all kernels at once; the pipelines apply
+``SlamConfig.compute.parallel_kernels`` (parallel by default on 2+ cores). Idle OpenMP workers sleep
+(``OMP_WAIT_POLICY=PASSIVE``, below): before that, spinning workers starved the reader thread and other jobs
+(7-Scenes 320x240 under load: 1.4 FPS parallel vs 7.4 serial); with it, parallel kernels are faster even
+with both cores busy (``pipeline.ComputeConfig`` has the figures). This module's own default stays serial
+(library calls outside a pipeline, e.g. ``surfelslam register``).
 
 Results do not depend on the choice: the parallel kernels write disjoint outputs per row or reduce fixed
 chunks in a fixed order, which the serial twin reproduces exactly.

@@ -19,6 +19,7 @@ from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.trajectory import TumAppender
+from surfelslam.kernels.threads import parallel_enabled
 from surfelslam.pipeline import TRACKERS, SlamConfig, build_slam, poses_for_mapping
 from surfelslam.tools.common import (
     DepthScaleOpt,
@@ -114,6 +115,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
         "fps": n_done / wall_s if wall_s > 0 else 0.0,
         "wall_s": wall_s,
         "warmup_s": warmup_s,
+        "parallel_kernels": parallel_enabled(),
         "ms_per_frame": _stats(frame_ms),
         "stage_ms": {k: _stats(v) for k, v in stage_ms.items()},
         "map_points": result.map_points,
