@@ -21,7 +21,7 @@ per orbit (lap) the mean CPU ms and the map size at its end, the density of the 
 into the image per valid depth pixel, sampled every ``DENSITY_EVERY`` frames), the pose error vs the
 generator's trajectory, and a PNG of the per-frame cost against the frame index.
 
-Kernels as ``SlamConfig().compute`` says (parallel twins on 2+ cores); ``--serial`` forces the serial ones.
+Serial kernels, as ``SlamConfig().compute`` says, unless ``--parallel``.
 
 Usage: ``.venv/bin/python benchmarks/bench_pipeline.py [--frames 2000] [--style handheld|loop] [--width 320]``;
 ``bench(...)`` returns the row.
@@ -81,7 +81,7 @@ def trajectory(style: str, n_frames: int, lap: int, seed: int = 0) -> tuple[Traj
 
 
 def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: int = 400, seed: int = 0,
-          plot_dir: Path | None = RESULTS, remove_duplicates: bool = True, parallel: bool = True) -> dict:
+          plot_dir: Path | None = RESULTS, remove_duplicates: bool = True, parallel: bool | None = None) -> dict:
     """Run the dense loop over ``n_frames`` generated frames at ``width`` x ``3/4 width``; returns the row.
 
     The per-frame series are in ``row["series"]`` (CPU ms, wall ms, map surfels; density every
@@ -92,7 +92,8 @@ def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: 
     gt, lap, description = trajectory(style, n_frames, lap, seed)
     cfg = SlamConfig()
     cfg.fusion.remove_duplicates = remove_duplicates
-    cfg.compute.parallel_kernels = parallel
+    if parallel is not None:
+        cfg.compute.parallel_kernels = parallel
     warm_up(cfg)
     slam = DenseSlam(intr, cfg)
     wall = np.zeros(n_frames)
@@ -234,11 +235,11 @@ def main() -> None:
     ap.add_argument("--lap", type=int, default=400, help="frames per lap round the room (--style loop)")
     ap.add_argument("--width", type=int, default=320, help="image width (height = 3/4 of it)")
     ap.add_argument("--window", type=int, default=100, help="frames in the first/last windows")
-    ap.add_argument("--serial", action="store_true", help="serial numba kernels (default: parallel on 2+ cores)")
+    ap.add_argument("--parallel", action="store_true", help="parallel numba kernels (default: serial)")
     ap.add_argument("--keep-duplicates", action="store_true", help="fusion.remove_duplicates = False")
     a = ap.parse_args()
     row = summary(bench(a.width, a.frames, a.window, a.style, a.lap, remove_duplicates=not a.keep_duplicates,
-                        parallel=not a.serial))
+                        parallel=a.parallel or None))
     for k, v in row.items():
         print(f"{k}: {v}")
 

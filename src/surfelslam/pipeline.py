@@ -87,12 +87,14 @@ class ComputeConfig:
 
     Attributes:
         parallel_kernels: run the per-pixel kernels' ``parallel=True`` twins (bit-identical results, see
-            :mod:`surfelslam.kernels.threads`) when numba has at least 2 threads. Measured with
-            ``benchmarks/bench_pipeline.py`` (300 synthetic frames, 320x240, 2 cores): 41 FPS parallel vs 30-34
-            serial on an idle machine; with one core busy 33 vs 32; with both cores busy 22 vs 16.
+            :mod:`surfelslam.kernels.threads`) when numba has at least 2 threads. Off by default: on 2 cores
+            the background frame reader needs the second core. Measured on 2 cores: ``surfelslam run`` on
+            7-Scenes (200 frames, files decoded by the reader thread) 41 FPS serial vs 36-40 parallel;
+            frames generated in memory (``benchmarks/bench_pipeline.py``, nothing to read) 30-34 serial vs
+            41 parallel. Worth switching on with more cores, or when frames come from memory.
     """
 
-    parallel_kernels: bool = True
+    parallel_kernels: bool = False
 
 
 def apply_compute(cfg: ComputeConfig) -> None:
