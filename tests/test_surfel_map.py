@@ -238,3 +238,32 @@ def test_render_index_map_cell_of_known_surfel():
     assert (su, sv) == (int(np.floor((u + 0.5) * 4)), int(np.floor((v + 0.5) * 4)))
     assert (su // 4, sv // 4) == (10, 21)
     assert (im.index >= 0).sum() == 1
+
+
+def test_reorder_by_block_groups_checked_rows_and_keeps_the_rest():
+    m = _random_map(3000, seed=4, cfg=MapConfig(initial_capacity=8, block_size_m=0.5))
+    m.first_seen[:] = np.sort(m.first_seen)  # fusion order
+    m.mark_dead(np.arange(0, 3000, 7))
+    before = {name: getattr(m, name[1:]).copy() for name in ("_position", "_first_seen", "_block_id")}
+    dead_before = m._dead[: m.size].copy()
+    T = make_T(np.eye(3), np.zeros(3))
+    intr = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
+    seen_before = {tuple(p) for p in m.position[m.visible_candidates(T, intr, 0.1, 8.0)]}
+    n = 2000
+    m.reorder_by_block(n)
+    blocks = m._block_id[:n]
+    assert np.all(np.diff(blocks) >= 0)  # each block contiguous, blocks in id order
+    # a permutation of the first n rows (dead flags travel with their rows); the rest untouched
+    key = lambda pos, fs, dead: sorted(map(tuple, np.column_stack([pos, fs, dead]).tolist()))  # noqa: E731
+    assert key(m.position[:n], m.first_seen[:n], m._dead[:n]) == key(
+        before["_position"][:n], before["_first_seen"][:n], dead_before[:n])
+    np.testing.assert_array_equal(m.position[n:], before["_position"][n:])
+    np.testing.assert_array_equal(m.first_seen[n:], before["_first_seen"][n:])
+    # the culling index follows the moved rows: the same surfels are candidates
+    assert {tuple(p) for p in m.position[m.visible_candidates(T, intr, 0.1, 8.0)]} == seen_before
+    # maybe_reorder only acts once enough rows were checked by the dormant rule
+    m2 = _random_map(100, cfg=MapConfig(initial_capacity=8, reorder_every_rows=50))
+    m2.dormant_cursor = 40
+    assert not m2.maybe_reorder()
+    m2.dormant_cursor = 60
+    assert m2.maybe_reorder() and np.all(np.diff(m2._block_id[:60]) >= 0)

@@ -257,6 +257,7 @@ def fuse(
     compacted = 0
     if smap.n_dead > 0 and smap.n_dead >= cfg.compact_dead_fraction * smap.size:
         compacted = smap.compact()
+    smap.maybe_reorder()  # memory locality of the blocks (rows the dormant rule is done with)
     return FusionStats(
         merged=n_merged, added=int(added), removed=removed, covered=n_covered, invalid=n_invalid,
         candidates=len(cand), compacted=compacted, map_size=smap.n_alive,
