@@ -299,6 +299,16 @@ def unpack_normal_equations(stats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True)
+def _unpack_lower(stats, H):
+    """Upper triangle of ``A^T W A`` from ``stats`` into the lower triangle of ``H (6, 6)`` (column j, rows >= j)."""
+    k = 0
+    for i in range(6):
+        for j in range(i, 6):
+            H[j, i] = stats[k]
+            k += 1
+
+
+@njit(cache=True, nogil=True)
 def gauss_newton_step(stats, T, T_out):
     """Cholesky solve of the accumulated normal equations and the update ``T_out = exp(xi) T``.
 
@@ -311,11 +321,7 @@ def gauss_newton_step(stats, T, T_out):
     """
     # unpack the upper triangle and factorise A^T W A = L L^T (6x6, in place)
     L = np.zeros((6, 6))
-    k = 0
-    for i in range(6):
-        for j in range(i, 6):
-            L[j, i] = stats[k]
-            k += 1
+    _unpack_lower(stats, L)
     for j in range(6):
         d = L[j, j]
         for m in range(j):
@@ -373,7 +379,7 @@ def se3_exp_left_update(xi, T, T_out):
 
 @njit(cache=True, nogil=True)
 def remapped_gauss_newton_step(stats, mean_depth_m, max_ratio, T, T_out):
-    """Solution remapping (numba twin of :func:`surfelslam.tracking.icp.remapped_step`) and the update.
+    """Solution remapping (numpy reference: :func:`remapped_step_ref`) and the update.
 
     Eigen-decomposes ``S AtA S`` (``S = diag(1/d, 1/d, 1/d, 1, 1, 1)``, ``d = mean_depth_m``); when some
     eigenvalue is below the largest divided by ``max_ratio``, solves in the other directions only and sets
@@ -384,12 +390,10 @@ def remapped_gauss_newton_step(stats, mean_depth_m, max_ratio, T, T_out):
         takes the ordinary step).
     """
     H = np.empty((6, 6))
-    k = 0
+    _unpack_lower(stats, H)
     for i in range(6):
-        for j in range(i, 6):
-            H[i, j] = stats[k]
-            H[j, i] = stats[k]
-            k += 1
+        for j in range(i + 1, 6):
+            H[i, j] = H[j, i]
     d = max(mean_depth_m, 1e-6)
     s = np.ones(6)
     s[0] = 1.0 / d
@@ -422,3 +426,29 @@ def remapped_gauss_newton_step(stats, mean_depth_m, max_ratio, T, T_out):
         xi[i] *= s[i]
     se3_exp_left_update(xi, T, T_out)
     return n_frozen, np.sqrt(np.sum(xi * xi))
+
+
+def remapped_step_ref(AtA: np.ndarray, Atb: np.ndarray, mean_depth_m: float, max_ratio: float
+                      ) -> tuple[np.ndarray | None, int]:
+    """Numpy reference of :func:`remapped_gauss_newton_step`: the Gauss-Newton step restricted to the
+    well-constrained directions.
+
+    With ``S = diag(1/d, 1/d, 1/d, 1, 1, 1)`` (``d`` = mean depth) and ``S AtA S = V diag(lam) V^T``,
+    directions with ``lam_k < lam_max / max_ratio`` are dropped: ``xi = -S sum_{k kept} v_k v_k^T S Atb / lam_k``.
+
+    Returns:
+        ``(xi (6,), n_frozen)``; ``xi`` is ``None`` when no direction is weak (use the ordinary solve) or the
+        matrix has no positive eigenvalue.
+    """
+    d = max(mean_depth_m, 1e-6)
+    s = np.array([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
+    lam, V = np.linalg.eigh(AtA * s[:, None] * s[None, :])
+    if not lam[-1] > 0:
+        return None, 0
+    keep = lam * max_ratio >= lam[-1]
+    n_frozen = int(6 - np.count_nonzero(keep))
+    if n_frozen == 0:
+        return None, 0
+    Vk = V[:, keep]
+    xi_s = -(Vk @ ((Vk.T @ (s * Atb)) / lam[keep]))
+    return s * xi_s, n_frozen

@@ -296,7 +296,7 @@ def _plane_fit_depth(depth_m: np.ndarray, uv: np.ndarray, ui: np.ndarray, vi: np
     M[:, 1, 1] = (wgt * du * du).sum(1)
     M[:, 1, 2] = M[:, 2, 1] = (wgt * du * dv).sum(1)
     M[:, 2, 2] = (wgt * dv * dv).sum(1)
-    rhs = np.stack([(inv).sum(1), (inv * du).sum(1), (inv * dv).sum(1)], axis=1)
+    rhs = np.stack([inv.sum(1), (inv * du).sum(1), (inv * dv).sum(1)], axis=1)
     fit = (M[:, 0, 0] >= cfg.depth_plane_min_pixels) & np.isfinite(z0)
     z = z0.copy()
     if fit.any():

@@ -222,31 +222,6 @@ def _depth_scaling(mean_depth_m: float) -> np.ndarray:
     return np.array([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
 
 
-def remapped_step(AtA: np.ndarray, Atb: np.ndarray, mean_depth_m: float, max_ratio: float
-                  ) -> tuple[np.ndarray | None, int]:
-    """Gauss-Newton step restricted to the well-constrained directions (solution remapping).
-
-    With ``S = diag(1/d, 1/d, 1/d, 1, 1, 1)`` (``d`` = mean depth, as :func:`condition_number`) and the
-    eigen-decomposition ``S AtA S = V diag(lam) V^T``, directions with ``lam_k < lam_max / max_ratio`` are
-    dropped: ``xi = -S sum_{k kept} v_k v_k^T S Atb / lam_k``.
-
-    Returns:
-        ``(xi (6,), n_frozen)``; ``xi`` is ``None`` when no direction is weak (use the ordinary solve) or the
-        matrix has no positive eigenvalue.
-    """
-    s = _depth_scaling(mean_depth_m)
-    lam, V = np.linalg.eigh(AtA * s[:, None] * s[None, :])
-    if not lam[-1] > 0:
-        return None, 0
-    keep = lam * max_ratio >= lam[-1]
-    n_frozen = int(6 - np.count_nonzero(keep))
-    if n_frozen == 0:
-        return None, 0
-    Vk = V[:, keep]  # the numba path (kernels.icp.remapped_gauss_newton_step) is tested equal to this
-    xi_s = -(Vk @ ((Vk.T @ (s * Atb)) / lam[keep]))
-    return s * xi_s, n_frozen
-
-
 def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
     """Eigenvalue ratio of ``S AtA S`` with ``S = diag(1/d, 1/d, 1/d, 1, 1, 1)``, ``d`` = mean depth.
 
