@@ -10,10 +10,14 @@ once and fusion would merge perfectly. ``loop``: laps of the walking loop (``lap
 continuous jitter signal on top, so no lap repeats another's poses either (the dense tracker loses the walking
 loop in places where it faces a single wall, so ``handheld`` is the default).
 
-Frames are rendered one at a time in memory, just before they are processed (generation is not timed and
-nothing is stored, so 2,000 frames need no disk and little memory); only :meth:`DenseSlam.process` is timed.
-Reported: FPS of the loop (wall clock of ``process`` only), mean ms per stage, the mean per-frame CPU time
-(``time.process_time``, robust to other jobs) over the first and the last ``window`` frames and their ratio
+Frames are rendered in memory in chunks of :data:`CHUNK_FRAMES`, just before they are processed (generation is
+not timed and nothing is written, so 2,000 frames need no disk and a bounded memory). Each chunk then goes
+through the pipeline exactly as ``surfelslam run`` feeds it: a reader thread (``prefetch_frames``) that also
+runs :meth:`DenseSlam.prepare` (the depth pyramid) ahead, while the main thread runs :meth:`DenseSlam.process`.
+Reported: FPS of the loop (wall clock from one frame's hand-over to the next, the generation excluded), mean
+ms per stage, the mean per-frame CPU time (the main thread's ``time.thread_time`` in ``process`` plus the
+reader thread's CPU time preparing that frame: the frame's whole work, robust to other jobs) over the first
+and the last ``window`` frames and their ratio
 (flat cost: <= :data:`FLAT_COST_MAX_RATIO`); since the cost varies with the view, also the second orbit's
 start over the first's (``revisit_over_first``) and the last window over the same views in the first orbit
 (``last_over_same_views_first_orbit``), ratios of equal views that isolate the growth with the map;
@@ -38,6 +42,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from surfelslam.eval.metrics import ate
 from surfelslam.geometry import se3
+from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.kernels import fusion as kf
 from surfelslam.kernels import threads
 from surfelslam.pipeline import DenseSlam, SlamConfig, warm_up
@@ -47,6 +52,7 @@ from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_confi
 from surfelslam.types import RGBDFrame, Trajectory
 
 RESULTS = Path(__file__).resolve().parent / "results"
+CHUNK_FRAMES = 250  # frames generated in memory at a time (about 130 MB at 320x240)
 FLAT_COST_MAX_RATIO = 1.3  # issue 6: the last 100 frames may cost at most this many times the first 100
 FLAT_COST_FRAMES = 2000  # ... over this many frames; shorter runs (--quick) give an indicative ratio only
 DENSITY_EVERY = 10  # frames between two map-density samples (each costs a bucketing pass)
@@ -104,20 +110,26 @@ def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: 
     poses = np.zeros((n_frames, 4, 4))
     gen_cpu = 0.0
     frames = iter_frames(scene, gt, intr, noise_config("kinect"), seed)
-    for k in range(n_frames):
+    prepare = slam.prepare if cfg.io.prepare_in_reader else None
+    for c0 in range(0, n_frames, CHUNK_FRAMES):
         g0 = time.process_time()
-        f = next(frames)
-        c0, t0 = time.process_time(), time.perf_counter()
-        res = slam.process(f)
-        wall[k] = (time.perf_counter() - t0) * 1e3
-        cpu[k] = (time.process_time() - c0) * 1e3
-        gen_cpu += c0 - g0
-        poses[k] = res.T_world_cam
-        surfels[k] = slam.map.n_alive
-        for name, ms in res.timings_ms.items():
-            stages.setdefault(name, []).append(ms)
-        if k % DENSITY_EVERY == 0:
-            density[k] = _surfels_per_pixel(slam, res.T_world_cam, intr, cfg, f)
+        chunk = [next(frames) for _ in range(min(CHUNK_FRAMES, n_frames - c0))]
+        gen_cpu += time.process_time() - g0
+        t_prev = time.perf_counter()
+        for j, item in enumerate(prefetch_frames(chunk, ahead=cfg.io.prefetch_frames, prepare=prepare)):
+            k = c0 + j
+            c1 = time.thread_time()
+            res = slam.process(item.frame, prepared=item.prepared)
+            now = time.perf_counter()
+            wall[k] = (now - t_prev) * 1e3  # since the last frame was handed over: includes waiting for this one
+            cpu[k] = (time.thread_time() - c1) * 1e3 + (item.prepared.cpu_ms if item.prepared is not None else 0.0)
+            poses[k] = res.T_world_cam
+            surfels[k] = slam.map.n_alive
+            for name, ms in res.timings_ms.items():
+                stages.setdefault(name, []).append(ms)
+            if k % DENSITY_EVERY == 0:
+                density[k] = _surfels_per_pixel(slam, res.T_world_cam, intr, cfg, item.frame)
+            t_prev = time.perf_counter()
     est = Trajectory(gt.timestamps, poses)
     w = min(window, (n_frames - 1) // 2)
     first, last = float(cpu[1 : w + 1].mean()), float(cpu[-w:].mean())
@@ -144,6 +156,7 @@ def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: 
         "density_first": round(float(dens[:nd].mean()), 3), "density_last": round(float(dens[-nd:].mean()), 3),
         "map_surfels_end": int(surfels[-1]), "ate_cm": round(ate(est, gt).rmse_m * 100, 2),
         "failures": int(slam.failures), "parallel_kernels": threads.parallel_enabled(),
+        "prepare_in_reader": bool(prepare is not None),
         "remove_duplicates": remove_duplicates, "generation_cpu_s": round(gen_cpu, 1), "per_lap": laps,
         "series": {"cpu_ms": cpu, "wall_ms": wall, "map_surfels": surfels, "density": density},
     }

@@ -82,11 +82,11 @@ def test_killed_run_keeps_every_finished_frame(synth_seq, tmp_path, monkeypatch)
     calls = {"n": 0}
     real = pipeline.GivenPoseMapper.process
 
-    def dying(self, frame, T_world_cam):
+    def dying(self, frame, T_world_cam, prepared=None):
         if calls["n"] == 7:
             raise KeyboardInterrupt
         calls["n"] += 1
-        return real(self, frame, T_world_cam)
+        return real(self, frame, T_world_cam, prepared)
 
     monkeypatch.setattr(pipeline.GivenPoseMapper, "process", dying)
     seq = open_sequence(synth_seq)

@@ -155,3 +155,38 @@ def test_loop_correction_moves_map_and_trajectory():
 
 
 N_LOOP = 60
+
+
+@pytest.mark.parametrize("tracker", TRACKERS)
+def test_prepared_in_reader_thread_gives_the_same_poses(tracker):
+    """``prepare`` run ahead in the reader thread (as ``run`` does) changes nothing: bit-identical poses."""
+    from surfelslam.io.prefetch import prefetch_frames
+
+    frames, _ = _frames("fast", N_SLOW)
+    frames = frames[:12]
+    sync, _, _ = _run(tracker, frames)
+    slam = build_slam(INTR, SlamConfig(), tracker)
+    poses, prepared = [], 0
+    for item in prefetch_frames(frames, ahead=3, prepare=slam.prepare):
+        prepared += item.prepared is not None
+        poses.append(slam.process(item.frame, prepared=item.prepared).T_world_cam)
+    res = slam.finish()
+    ahead = np.stack(poses) if res.trajectory_override is None else res.trajectory_override.T_world_cam
+    assert prepared == len(frames)
+    np.testing.assert_array_equal(ahead, sync)
+    if tracker != "orb":  # the pool holds only what was in flight, then is reused
+        assert len(slam._pool) <= 3 + 2
+
+
+def test_a_wrong_size_frame_prepared_ahead_raises_the_pipelines_own_error():
+    from surfelslam.errors import ConfigError
+    from surfelslam.types import RGBDFrame
+
+    frames, _ = _frames("slow", N_SLOW)
+    f = frames[0]
+    bad = RGBDFrame(f.index, f.timestamp, f.rgb[:-2], f.depth_m[:-2])
+    slam = build_slam(INTR, SlamConfig(), "dense")
+    with pytest.raises(ConfigError, match="expected 320x240"):
+        slam.prepare(bad)
+    with pytest.raises(ConfigError, match="expected 320x240"):
+        slam.process(bad, prepared=None)

@@ -49,11 +49,19 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
    corrections smears it); otherwise once, in ``finish``. The written trajectory is every frame's
    ``T_kf_graph(final) T_kf_cam``.
 
+Work that depends on the frame alone (the ``preprocess`` stage, the fusion colour image and, for the
+trackers with a sparse part, ORB extraction) can be done ahead, in the reader thread: ``prepare(frame)``
+returns a :class:`PreparedFrame` that ``process(frame, prepared)`` then uses instead of doing it again. The
+results are the same either way (bit-identical trajectories); on 2 cores it overlaps that work with the
+map stages of the previous frame. ``prepare`` may run in one other thread while ``process`` runs (it has
+its own scratch buffers; pyramids come from a lock-protected pool).
+
 Library code: no printing, no file reading (``write_map`` is the one output hook the CLI calls).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -67,6 +75,7 @@ from surfelslam.geometry import se3
 from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
+from surfelslam.tracking.features import Features
 from surfelslam.tracking.icp import ICPConfig, ICPResult, icp
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_from_maps
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
@@ -76,9 +85,17 @@ TRACKERS = ("dense", "orb", "hybrid")
 
 @dataclass
 class IOConfig:
-    """Reading: ``prefetch_frames`` frames are decoded ahead in a background thread (0 = synchronous)."""
+    """Reading.
+
+    Attributes:
+        prefetch_frames: frames decoded ahead in a background thread (0 = synchronous).
+        prepare_in_reader: the reader thread also does the pipeline's frame-only work (``prepare``: depth
+            pyramid, fusion colour, ORB features), overlapping it with the previous frame's map stages.
+            Same results either way; needs ``prefetch_frames > 0``.
+    """
 
     prefetch_frames: int = 3
+    prepare_in_reader: bool = True
 
 
 @dataclass
@@ -218,6 +235,28 @@ class FrameResult:
 
 
 @dataclass
+class PreparedFrame:
+    """Per-frame work that needs the frame alone, done ahead of :meth:`process` (see the module docstring).
+
+    Attributes:
+        frame: the frame it was prepared from (``process`` checks it is given the same object).
+        pyramid: the source vertex/normal pyramid (a pool buffer, owned by the pipeline from then on), or
+            ``None`` for trackers without one.
+        rgb_fuse: ``(h, w, 3)`` uint8 colour at the fusion level, or ``None``.
+        features: ORB features of the frame (trackers with a sparse part), or ``None``.
+        timings_ms: wall ms per stage spent preparing (reported as that stage's time).
+        cpu_ms: CPU time of the preparing thread for this frame (ms).
+    """
+
+    frame: RGBDFrame
+    pyramid: FramePyramid | None = None
+    rgb_fuse: np.ndarray | None = None
+    features: Features | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    cpu_ms: float = 0.0
+
+
+@dataclass
 class SlamResult:
     """End of a run: the map and summary numbers (the per-frame poses were already streamed)."""
 
@@ -253,12 +292,16 @@ class SlamResult:
 
 
 class _Timer:
-    def __init__(self) -> None:
-        self.ms: dict[str, float] = {}
+    def __init__(self, prepared: PreparedFrame | None = None) -> None:
+        self.ms: dict[str, float] = {} if prepared is None else dict(prepared.timings_ms)
         self._t = time.perf_counter()
 
-    def lap(self, stage: str) -> None:
+    def lap(self, stage: str | None) -> None:
+        """Add the time since the last lap to ``stage`` (``None``: not counted)."""
         now = time.perf_counter()
+        if stage is None:
+            self._t = now
+            return
         self.ms[stage] = self.ms.get(stage, 0.0) + (now - self._t) * 1e3
         self._t = now
 
@@ -273,23 +316,74 @@ class _FusingMapper:
         self.fuse_level = working_level(intr, cfg.fusion.max_width_px)
         levels = max(cfg.preprocess.pyramid_levels, min_levels, self.fuse_level + 1)
         self.pre = Preprocessor(intr, replace(cfg.preprocess, pyramid_levels=levels))
+        self._pre_ahead: Preprocessor | None = None  # the preparing thread's own (scratch buffers)
+        self._pool: list[FramePyramid] = []  # free source pyramids (grows to what is in flight, then reused)
+        self._pool_lock = threading.Lock()
         # finer pyramid levels are never used, so never computed
         self.first_level = self.fuse_level if track_level is None else min(self.fuse_level, track_level)
-        self.source = self.pre.new_pyramid()
+        self.source = self._acquire()
+        self.previous: FramePyramid | None = None  # the last frame's pyramid (kept, not copied)
+        self._rgb_fuse: np.ndarray | None = None  # the prepared fusion colour of the current frame
         self.map = SurfelMap(cfg.map)
         self.n_fused = 0
 
-    def _preprocess(self, frame: RGBDFrame) -> FramePyramid:
+    def _acquire(self) -> FramePyramid:
+        with self._pool_lock:
+            if self._pool:
+                return self._pool.pop()
+        return self.pre.new_pyramid()
+
+    def _release(self, pyr: FramePyramid | None) -> None:
+        if pyr is not None:
+            with self._pool_lock:
+                self._pool.append(pyr)
+
+    def _check_size(self, frame: RGBDFrame) -> None:
         if frame.depth_m.shape != self.intr.shape:
             raise ConfigError(
                 f"frame {frame.index}: depth is {frame.depth_m.shape[1]}x{frame.depth_m.shape[0]}, "
                 f"expected {self.intr.width}x{self.intr.height}"
             )
+
+    def _fuse_rgb(self, frame: RGBDFrame) -> np.ndarray:
+        return frame.rgb if self.fuse_level == 0 else block_average_rgb(frame.rgb, self.fuse_level)
+
+    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
+        """The frame-only work of :meth:`process`, for another thread to do ahead (one such thread at a time).
+
+        Raises what :meth:`process` would raise for this frame (e.g. :class:`ConfigError` for a wrong size).
+        """
+        c0, t0 = time.thread_time(), time.perf_counter()
+        self._check_size(frame)
+        if self._pre_ahead is None:
+            self._pre_ahead = Preprocessor(self.intr, self.pre.cfg)
+        pyr = self._acquire()
+        self._pre_ahead.process(frame.depth_m, out=pyr, first_level=self.first_level)
+        rgb = self._fuse_rgb(frame)
+        ms = {"preprocess": (time.perf_counter() - t0) * 1e3}
+        return PreparedFrame(frame, pyr, rgb, None, ms, (time.thread_time() - c0) * 1e3)
+
+    def _preprocess(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FramePyramid:
+        """Make the frame's pyramid the current source (the prepared one, or computed here)."""
+        if prepared is not None and prepared.frame is frame and prepared.pyramid is not None:
+            self.source, prepared.pyramid = prepared.pyramid, None
+            self._rgb_fuse = prepared.rgb_fuse
+            return self.source
+        self._check_size(frame)
+        if self.source is self.previous or self.source is None:
+            self.source = self._acquire()
+        self._rgb_fuse = None
         return self.pre.process(frame.depth_m, out=self.source, first_level=self.first_level)
+
+    def _retire_source(self) -> None:
+        """End of a frame: its pyramid becomes ``previous``; the one before goes back to the pool."""
+        if self.previous is not self.source:
+            self._release(self.previous)
+        self.previous = self.source
 
     def _fuse(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
         lvl = self.source[self.fuse_level]
-        rgb = frame.rgb if self.fuse_level == 0 else block_average_rgb(frame.rgb, self.fuse_level)
+        rgb = self._rgb_fuse if self._rgb_fuse is not None else self._fuse_rgb(frame)
         fuse(self.map, lvl.vertex, lvl.normal, rgb, T_world_cam, lvl.intrinsics, frame.index, self.cfg.fusion)
         self.n_fused += 1
 
@@ -310,7 +404,6 @@ class DenseSlam(_FusingMapper):
         super().__init__(intr, cfg, min_levels=self.track_level + cfg.icp.levels, track_level=self.track_level)
         track_intr = self.pre.level_intrinsics[self.track_level]
         self.target = FramePyramid.empty(track_intr, len(self.pre.level_intrinsics) - self.track_level)
-        self.previous = self.pre.new_pyramid()  # the last frame's pyramid (buffers swapped, not copied)
         self.T_world_cam: np.ndarray | None = None
         self.velocity = np.eye(4)  # T_prev_cur of the last good step
         self.failures = 0
@@ -342,15 +435,16 @@ class DenseSlam(_FusingMapper):
         """The levels of ``pyr`` from the tracking level down (views, no copy)."""
         return FramePyramid(pyr.levels[self.track_level:])
 
-    def process(self, frame: RGBDFrame) -> FrameResult:
-        t = _Timer()
-        self._preprocess(frame)
-        t.lap("preprocess")
+    def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
+        """Track ``frame`` and fuse it; ``prepared``: optional :meth:`prepare` output for this frame."""
+        t = _Timer(prepared)
+        self._preprocess(frame, prepared)
+        t.lap("preprocess" if prepared is None else None)
         if self.T_world_cam is None:  # the first frame defines the world frame
             self.T_world_cam = np.eye(4)
             self._fuse(frame, self.T_world_cam)
             t.lap("fuse")
-            self.source, self.previous = self.previous, self.source
+            self._retire_source()
             return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), True, True, None, t.ms,
                                self.map.n_alive)
         T_prev = self.T_world_cam
@@ -380,7 +474,7 @@ class DenseSlam(_FusingMapper):
             if self.failures_in_a_row >= self.cfg.tracking.max_failures_in_a_row_before_reset_velocity:
                 self.velocity = np.eye(4)
         self.T_world_cam = T_new
-        self.source, self.previous = self.previous, self.source
+        self._retire_source()
         return FrameResult(frame.index, frame.timestamp, T_new.copy(), failure is None, failure is None,
                            res.reason, t.ms, self.map.n_alive, res)
 
@@ -443,12 +537,14 @@ def icp_failure(res: ICPResult) -> str | None:
 class GivenPoseMapper(_FusingMapper):
     """Fuse frames at given poses (ground truth or a trajectory file); no tracking."""
 
-    def process(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> FrameResult:
-        t = _Timer()
-        self._preprocess(frame)
-        t.lap("preprocess")
+    def process(self, frame: RGBDFrame, T_world_cam: np.ndarray, prepared: PreparedFrame | None = None
+                ) -> FrameResult:
+        t = _Timer(prepared)
+        self._preprocess(frame, prepared)
+        t.lap("preprocess" if prepared is None else None)
         self._fuse(frame, T_world_cam)
         t.lap("fuse")
+        self._retire_source()
         return FrameResult(frame.index, frame.timestamp, np.asarray(T_world_cam).copy(), True, True, None, t.ms,
                            self.map.n_alive)
 
@@ -489,9 +585,17 @@ class OrbSlam:
     def warmup(self) -> None:
         """Nothing to compile (OpenCV and gtsam are precompiled)."""
 
-    def process(self, frame: RGBDFrame) -> FrameResult:
-        t = _Timer()
-        r = self.sparse.process(frame)
+    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
+        """ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`)."""
+        c0, t0 = time.thread_time(), time.perf_counter()
+        feats = self.sparse.features(frame)
+        return PreparedFrame(frame, features=feats, timings_ms={"orb_extract": (time.perf_counter() - t0) * 1e3},
+                             cpu_ms=(time.thread_time() - c0) * 1e3)
+
+    def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
+        t = _Timer(prepared)
+        feats = prepared.features if prepared is not None and prepared.frame is frame else None
+        r = self.sparse.process(frame, feats=feats)
         t.lap("orb")
         self._stamp_of_frame[frame.index] = frame.timestamp
         if not r.ok:
@@ -530,9 +634,25 @@ class HybridSlam(DenseSlam):
         self._fused_frames: list[int] = []  # frame index of each fused frame (increasing)
         self._fused_anchor: list[int] = []
         self._stamp_of_frame: dict[int, float] = {}
+        self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "map_corrections": 0,
                        "pnp_disagreements": 0}
+
+    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
+        """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`)."""
+        p = super().prepare(frame)
+        c0, t0 = time.thread_time(), time.perf_counter()
+        p.features = self.sparse.features(frame)
+        p.timings_ms["orb_extract"] = (time.perf_counter() - t0) * 1e3
+        p.cpu_ms += (time.thread_time() - c0) * 1e3
+        return p
+
+    def _features(self, frame: RGBDFrame) -> Features:
+        """The current frame's ORB features: the prepared ones, else extracted once here."""
+        if self._feats is None:
+            self._feats = self.sparse.features(frame)
+        return self._feats
 
     def _icp_from(self, T_render: np.ndarray, T_init_rel: np.ndarray):
         """ICP of the current source against the map rendered at ``T_render``; returns (res, failure, T)."""
@@ -540,18 +660,19 @@ class HybridSlam(DenseSlam):
         res = icp(self.track_source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp)
         return res, icp_failure(res), se3.orthonormalize(T_render @ res.T_target_source)
 
-    def process(self, frame: RGBDFrame) -> FrameResult:
+    def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
         h = self.cfg.hybrid
-        t = _Timer()
-        self._preprocess(frame)
-        t.lap("preprocess")
+        t = _Timer(prepared)
+        self._feats = prepared.features if prepared is not None and prepared.frame is frame else None
+        self._preprocess(frame, prepared)
+        t.lap("preprocess" if prepared is None else None)
         self._stamp_of_frame[frame.index] = frame.timestamp
         if self.T_world_cam is None:
             T_new = np.eye(4)
             self._fuse(frame, T_new)
             t.lap("fuse")
             self._after_tracking(frame, T_new, True, t)
-            self.source, self.previous = self.previous, self.source
+            self._retire_source()
             return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), True, True, None, t.ms,
                                self.map.n_alive)
         T_prev = self.T_world_cam
@@ -560,7 +681,7 @@ class HybridSlam(DenseSlam):
         guess = None
         if self.failures_in_a_row >= h.relocalise_after_failures:
             self.counts["relocalisations_tried"] += 1
-            found = self.sparse.relocalise(frame)
+            found = self.sparse.relocalise(frame, feats=self._features(frame))
             t.lap("relocalise")
             if found is not None:
                 found = (se3.orthonormalize(se3.invert(self._correction(found[1])) @ found[0]), found[1])
@@ -614,7 +735,7 @@ class HybridSlam(DenseSlam):
             if self.failures_in_a_row >= self.cfg.tracking.max_failures_in_a_row_before_reset_velocity:
                 self.velocity = np.eye(4)
         self._after_tracking(frame, T_new, tracked, t)
-        self.source, self.previous = self.previous, self.source
+        self._retire_source()
         return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), tracked, tracked,
                            None if res is None else res.reason if tracked else failure, t.ms, self.map.n_alive,
                            res)
@@ -627,7 +748,8 @@ class HybridSlam(DenseSlam):
             # the graph frame may differ from the dense frame by the last keyframe's pending correction:
             # feed the pose in the graph frame, so the odometry edge is exactly the dense relative motion
             T_feed = T_new if K == 0 else self._correction(K - 1) @ T_new
-            sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed))
+            sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed),
+                                     feats=self._features(frame))
             t.lap("sparse")
             if sr.is_keyframe:
                 self._kf_dense = np.concatenate([self._kf_dense, T_new[None]], axis=0)
@@ -673,7 +795,7 @@ class HybridSlam(DenseSlam):
     def _pnp_guess(self, frame: RGBDFrame, T_pred: np.ndarray) -> np.ndarray | None:
         """PnP pose against the last keyframe, in the dense frame (the graph frame may have moved)."""
         C = self._correction(self.sparse.n_keyframes - 1)
-        g = self.sparse.pose_guess_against_last_keyframe(frame, C @ T_pred)
+        g = self.sparse.pose_guess_against_last_keyframe(frame, C @ T_pred, feats=self._features(frame))
         return None if g is None else se3.orthonormalize(se3.invert(C) @ g)
 
     def _disagrees(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:

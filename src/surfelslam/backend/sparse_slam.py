@@ -77,7 +77,7 @@ class SparseFrameResult:
         T_world_cam: ``(4, 4)`` current estimate of the frame's pose.
         is_keyframe: the frame became a keyframe.
         ok: odometry accepted (False: ``reason`` names the rejection rule).
-        n_inliers: PnP inliers against the reference keyframe.
+        n_inliers: PnP inliers against the reference keyframe (-1: not computed, a dense pose was given).
         loops_added: edges to older keyframes accepted for this keyframe (nearby edges excluded).
         relocalised: the pose came from :meth:`SparseSlam.relocalise`.
     """
@@ -184,16 +184,26 @@ class SparseSlam:
 
     # --- processing ----------------------------------------------------------------------------------
 
-    def process(self, frame: RGBDFrame, T_world_cam_dense: np.ndarray | None = None) -> SparseFrameResult:
+    def features(self, frame: RGBDFrame) -> Features:
+        """ORB features of ``frame`` with this SLAM's settings (thread-safe: no state is touched).
+
+        Pass them as ``feats`` to :meth:`process`, :meth:`relocalise` or
+        :meth:`pose_guess_against_last_keyframe` so a frame is extracted once (possibly ahead, in another thread).
+        """
+        return extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+
+    def process(self, frame: RGBDFrame, T_world_cam_dense: np.ndarray | None = None,
+                feats: Features | None = None) -> SparseFrameResult:
         """Track one frame; may add a keyframe, loop edges and re-optimise the graph.
 
         Args:
             frame: the next frame (any resolution matching ``intr``).
             T_world_cam_dense: optional pose from another tracker (hybrid mode). When given it is the
-                frame's pose and the odometry measurement of a new keyframe; PnP still runs for the
-                keyframe decision's statistics.
+                frame's pose and the odometry measurement of a new keyframe, and no PnP runs here (the
+                keyframe decision uses that pose; the hybrid tracker does its own PnP check).
+            feats: the frame's :meth:`features`, when already extracted.
         """
-        feats = extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+        feats = self.features(frame) if feats is None else feats
         if not self._kfs:
             T0 = self._T_world_first if T_world_cam_dense is None else np.asarray(T_world_cam_dense, np.float64)
             self._add_keyframe(frame, feats, T0, None, None)
@@ -203,9 +213,11 @@ class SparseSlam:
         T_pred = self._predict()
         T_world_kf = self._kf_poses[self._ref_kf]
         ref = self._kfs[self._ref_kf]
-        res = estimate_motion(ref.features, feats, self.intr, self.cfg.features,
-                              T_init_cur_ref=invert(T_pred) @ T_world_kf)
         relocalised = False
+        res = None
+        if T_world_cam_dense is None:
+            res = estimate_motion(ref.features, feats, self.intr, self.cfg.features,
+                                  T_init_cur_ref=invert(T_pred) @ T_world_kf)
         if T_world_cam_dense is not None:
             T_world_cam = np.asarray(T_world_cam_dense, np.float64)
             T_kf_cam = invert(T_world_kf) @ T_world_cam
@@ -241,7 +253,8 @@ class SparseSlam:
             self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
         else:
             self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
-        return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, res.n_inliers, loops_added)
+        return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
+                                 loops_added)
 
     def _record(self, timestamp: float, kf: int, T_kf_cam: np.ndarray, T_world_cam: np.ndarray | None) -> None:
         if T_world_cam is not None and self._timestamps:
@@ -308,18 +321,18 @@ class SparseSlam:
                 best = (self._kf_poses[k] @ invert(res.T_cur_ref), k, res)
         return best
 
-    def relocalise(self, frame: RGBDFrame) -> tuple[np.ndarray, int] | None:
+    def relocalise(self, frame: RGBDFrame, feats: Features | None = None) -> tuple[np.ndarray, int] | None:
         """Pose of ``frame`` found by retrieval over all keyframes + PnP verification.
 
         Returns:
             ``(T_world_cam (4, 4), kf_id)`` of the best-verified keyframe, or ``None``. State is unchanged.
         """
-        feats = extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+        feats = self.features(frame) if feats is None else feats
         best = self._relocalise_features(feats)
         return None if best is None else (best[0], best[1])
 
-    def pose_guess_against_last_keyframe(self, frame: RGBDFrame,
-                                         T_world_cam_pred: np.ndarray | None = None) -> np.ndarray | None:
+    def pose_guess_against_last_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
+                                         feats: Features | None = None) -> np.ndarray | None:
         """PnP pose ``T_world_cam`` of ``frame`` against the reference keyframe (an ICP initial guess).
 
         Args:
@@ -330,7 +343,7 @@ class SparseSlam:
         """
         if not self._kfs:
             return None
-        feats = extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+        feats = self.features(frame) if feats is None else feats
         T_world_kf = self._kf_poses[self._ref_kf]
         init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
         res = estimate_motion(self._kfs[self._ref_kf].features, feats, self.intr, self.cfg.features, init)

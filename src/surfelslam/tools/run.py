@@ -68,7 +68,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
     t_start = time.perf_counter()
     try:
         with TumAppender(out_dir / "trajectory.txt") as traj_out:
-            for item in prefetch_frames(seq, ahead=cfg.io.prefetch_frames):
+            prepare = slam.prepare if cfg.io.prepare_in_reader else None
+            for item in prefetch_frames(seq, ahead=cfg.io.prefetch_frames, prepare=prepare):
                 t0 = time.perf_counter()
                 if item.error is not None:
                     skipped.append({"position": item.position, "reason": str(item.error)})
@@ -81,9 +82,9 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
                         skipped.append({"position": item.position, "reason": "no pose within max_dt"})
                         bar.update(1)
                         continue
-                    res = slam.process(frame, T_world_cam=T_given)
+                    res = slam.process(frame, T_world_cam=T_given, prepared=item.prepared)
                 else:
-                    res = slam.process(frame)
+                    res = slam.process(frame, prepared=item.prepared)
                 traj_out.append(frame.timestamp, res.T_world_cam)
                 n_done += 1
                 stage_ms["read"].append(item.read_ms)
@@ -116,6 +117,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
         "wall_s": wall_s,
         "warmup_s": warmup_s,
         "parallel_kernels": parallel_enabled(),
+        "prepare_in_reader": bool(cfg.io.prepare_in_reader and cfg.io.prefetch_frames > 0),
         "ms_per_frame": _stats(frame_ms),
         "stage_ms": {k: _stats(v) for k, v in stage_ms.items()},
         "map_points": result.map_points,
