@@ -16,6 +16,8 @@ from surfelslam.tracking.features import (
     extract,
     feature_guess,
     match,
+    refine_rgbd,
+    track_subpixel,
 )
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -184,6 +186,46 @@ def test_pnp_recovers_known_pose(intr: Intrinsics) -> None:
     # with an initial guess the answer is the same
     res2 = estimate_motion(a, b, intr, CFG, T_init_cur_ref=T_gt_b_a)
     assert pose_error(res2.T_cur_ref, T_gt_b_a)[0] < 0.02
+
+
+@pytest.mark.parametrize("intr", [INTR, INTR_NEG], ids=["fy_pos", "fy_neg"])
+def test_lk_tracking_and_rgbd_refinement_tighten_the_pose(intr: Intrinsics) -> None:
+    """ORB keypoints are re-detected at about +-0.5 px in each image; tracking the reference pixel by LK
+    and the joint reprojection + depth refinement take the error of an exact-data pair well below plain PnP."""
+    T_a, T_b, fa, fb = _pair(intr)
+    T_gt = invert(T_b) @ T_a
+    plain = replace(CFG, lk_refine=False, rgbd_refine_iterations=0)
+    a, b = extract(fa.rgb, fa.depth_m, intr, CFG), extract(fb.rgb, fb.depth_m, intr, CFG)
+    errs = {}
+    for name, cfg in (("plain", plain), ("default", CFG)):
+        res = estimate_motion(a, b, intr, cfg)
+        assert res.ok
+        errs[name] = pose_error(res.T_cur_ref, T_gt)
+    assert errs["default"][0] < 0.7 * errs["plain"][0] and errs["default"][0] < 3.5e-3, errs
+    assert errs["default"][1] < 0.7 * errs["plain"][1], errs
+    # at the true pose, the tracked points reproject far closer than the ORB keypoints
+    pairs = match(a, b, CFG).pairs
+    pairs = pairs[a.valid[pairs[:, 0]]]
+    X = a.points_cam[pairs[:, 0]].astype(np.float64) @ T_gt[:3, :3].T + T_gt[:3, 3]
+    proj = np.column_stack([intr.fx * X[:, 0] / X[:, 2] + intr.cx, intr.fy * X[:, 1] / X[:, 2] + intr.cy])
+    e_orb = np.linalg.norm(b.keypoints_uv[pairs[:, 1]] - proj, axis=1)
+    e_lk = np.linalg.norm(track_subpixel(a, b, pairs, CFG) - proj, axis=1)
+    assert np.median(e_lk) < 0.3 < 0.5 < np.median(e_orb), (np.median(e_lk), np.median(e_orb))
+
+
+def test_rgbd_refinement_recovers_a_known_pose_from_exact_correspondences() -> None:
+    rng = np.random.default_rng(3)
+    P = rng.uniform([-1.5, -1.0, 1.0], [1.5, 1.0, 4.0], size=(300, 3))
+    T_true = make_T(so3_exp([0.02, -0.05, 0.01]), [0.04, -0.02, 0.03])
+    X = P @ T_true[:3, :3].T + T_true[:3, 3]
+    for intr in (INTR, INTR_NEG):
+        uv = np.column_stack([intr.fx * X[:, 0] / X[:, 2] + intr.cx, intr.fy * X[:, 1] / X[:, 2] + intr.cy])
+        inv_z = 1.0 / X[:, 2]
+        inv_z[::3] = np.nan  # points without a current depth: reprojection only
+        T0 = make_T(so3_exp([0.021, -0.048, 0.012]), [0.045, -0.017, 0.026])
+        T = refine_rgbd(T0, P, uv, inv_z, intr, replace(CFG, rgbd_refine_iterations=10))
+        dt, dr = pose_error(T, T_true)
+        assert dt < 1e-6 and dr < 1e-5, (dt, dr)
 
 
 def test_feature_guess_direction() -> None:

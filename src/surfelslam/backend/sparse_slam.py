@@ -269,7 +269,9 @@ class SparseSlam:
         kf_id = self._graph.add_node(T_world_cam)
         xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
         self._append_kf_pose(T_world_cam)
-        self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, feats, xyz, rgb))
+        # a keyframe is only ever the reference side of a pair: it keeps its grey image (sub-pixel tracking)
+        # but not the depth image (only the current side's depth is used)
+        self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
         self._ref_kf = kf_id
         if prev_kf is not None and T_prev_new is not None:
             self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry"))

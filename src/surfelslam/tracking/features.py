@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -76,6 +77,28 @@ class FeatureConfig:
         min_inliers: fewer PnP inliers -> ``too_few_inliers`` (seeds: 5).
         max_motion_norm: motion norm ``||t|| + min(||r||, 2 pi - ||r||)`` (m + rad) above this ->
             ``motion_too_large`` (seeds: 0.3).
+        lk_refine: before PnP, move each good match's current-image point to where pyramidal Lucas-Kanade
+            tracks the *reference* keypoint's patch (starting from the matched ORB keypoint). ORB detects
+            each keypoint anew in every image, at FAST/pyramid-grid positions, so the two keypoints of a
+            match are not the same surface point to within about a pixel; the 3D point comes from the
+            reference pixel, so that jitter becomes PnP noise. The tracked point is the reference pixel
+            itself, to sub-pixel accuracy. Needs both images' grey levels (``Features.grey``); skipped
+            where one is missing.
+        lk_window_px: Lucas-Kanade window (square, pixels).
+        lk_levels: Lucas-Kanade pyramid levels above the image (0 = the image only).
+        lk_max_shift_px: a tracked point farther than this from its ORB keypoint is not used (the ORB
+            keypoint is kept): LK slid to another corner, or the match itself is wrong.
+        rgbd_refine_iterations: after PnP, Gauss-Newton iterations of a joint RGB-D refinement on the
+            inliers (0 = off): reprojection residuals plus inverse-depth residuals against the *current*
+            frame's depth at the tracked points. Reprojection alone leaves a lateral translation nearly
+            interchangeable with a small rotation (measured on exact synthetic data, 6 frames apart: 2.2 mm
+            and 0.04 deg errors with residuals of 0.15 px); the current depth separates them.
+        rgbd_pixel_sigma_px: reprojection noise (px) of the joint refinement.
+        rgbd_inverse_depth_sigma: inverse-depth noise (1/m) of the joint refinement. A structured-light
+            sensor's depth noise grows with ``z^2``, so its inverse-depth noise is about constant:
+            ``sigma_z(z) = rgbd_inverse_depth_sigma * z^2`` (0.003: 3 mm at 1 m, 12 mm at 2 m, before the
+            plane fit averages it).
+        rgbd_huber: Huber threshold on the normalised residuals of the joint refinement.
     """
 
     n_features: int = 1000
@@ -103,6 +126,14 @@ class FeatureConfig:
     min_good_matches: int = 10
     min_inliers: int = 5
     max_motion_norm: float = 0.3
+    lk_refine: bool = True
+    lk_window_px: int = 11
+    lk_levels: int = 1
+    lk_max_shift_px: float = 2.0
+    rgbd_refine_iterations: int = 5
+    rgbd_pixel_sigma_px: float = 0.5
+    rgbd_inverse_depth_sigma: float = 0.003
+    rgbd_huber: float = 2.0
 
     def __post_init__(self) -> None:
         if self.matching not in MATCHING_MODES:
@@ -117,6 +148,8 @@ class FeatureConfig:
             raise ValueError("need depth_plane_radius_px >= 0, depth_plane_min_pixels >= 3, depth_plane_gate > 0")
         if self.min_inliers < 4:
             raise ValueError(f"min_inliers must be >= 4 (PnP needs 4 points), got {self.min_inliers}")
+        if self.lk_window_px < 3 or self.lk_levels < 0 or not self.lk_max_shift_px > 0:
+            raise ValueError("need lk_window_px >= 3, lk_levels >= 0, lk_max_shift_px > 0")
 
 
 @dataclass
@@ -129,6 +162,8 @@ class Features:
         points_cam: ``(N, 3)`` float32 camera-frame points (metres); NaN where depth is invalid.
         valid: ``(N,)`` bool, True where ``points_cam`` is finite.
         response: ``(N,)`` float32 detector response (for diagnostics).
+        grey: ``(H, W)`` uint8 image the keypoints come from (for sub-pixel tracking), or ``None``.
+        depth_m: ``(H, W)`` float32 depth of that image (a reference, not a copy), or ``None``.
     """
 
     keypoints_uv: np.ndarray
@@ -136,6 +171,8 @@ class Features:
     points_cam: np.ndarray
     valid: np.ndarray
     response: np.ndarray
+    grey: np.ndarray | None = None
+    depth_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints_uv)
@@ -330,7 +367,7 @@ def extract(rgb: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, cfg: Feature
         empty2 = np.zeros((0, 2), np.float32)
         return Features(
             empty2, np.zeros((0, _DESCRIPTOR_BYTES), np.uint8), np.zeros((0, 3), np.float32),
-            np.zeros(0, bool), np.zeros(0, np.float32),
+            np.zeros(0, bool), np.zeros(0, np.float32), grey, depth_m,
         )
     uv = np.array([kp.pt for kp in kps], dtype=np.float32).reshape(-1, 2)
     response = np.array([kp.response for kp in kps], dtype=np.float32)
@@ -340,7 +377,7 @@ def extract(rgb: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, cfg: Feature
     x = (uv[:, 0] - intr.cx) / intr.fx * z
     y = (uv[:, 1] - intr.cy) / intr.fy * z
     pts = np.column_stack([x, y, z]).astype(np.float32)
-    return Features(uv, desc, pts, np.isfinite(z), response)
+    return Features(uv, desc, pts, np.isfinite(z), response, grey, depth_m)
 
 
 def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
@@ -386,6 +423,92 @@ def _image_points_cv(uv: np.ndarray, intr: Intrinsics, sign: float) -> np.ndarra
     return pts
 
 
+def track_subpixel(ref: Features, cur: Features, pairs: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
+    """Current-image points of the matches ``pairs (M, 2)``: LK-tracked reference keypoints (see
+    ``FeatureConfig.lk_refine``) where tracking succeeds within ``lk_max_shift_px`` of the ORB keypoint,
+    the ORB keypoints elsewhere; ``(M, 2)`` float32."""
+    uv = cur.keypoints_uv[pairs[:, 1]].astype(np.float32)
+    if not cfg.lk_refine or ref.grey is None or cur.grey is None or len(pairs) == 0 \
+            or ref.grey.shape != cur.grey.shape:
+        return uv
+    p0 = np.ascontiguousarray(ref.keypoints_uv[pairs[:, 0]], np.float32).reshape(-1, 1, 2)
+    p1 = np.ascontiguousarray(uv).reshape(-1, 1, 2).copy()
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    p1, status, _ = cv2.calcOpticalFlowPyrLK(
+        ref.grey, cur.grey, p0, p1, winSize=(cfg.lk_window_px, cfg.lk_window_px), maxLevel=cfg.lk_levels,
+        criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    p1 = p1.reshape(-1, 2)
+    ok = status.reshape(-1).astype(bool) & np.all(np.isfinite(p1), axis=1)
+    ok &= np.linalg.norm(p1 - uv, axis=1) <= cfg.lk_max_shift_px
+    uv[ok] = p1[ok]
+    return uv
+
+
+def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, inv_depth_cur: np.ndarray,
+                intr: Intrinsics, cfg: FeatureConfig) -> np.ndarray:
+    """Joint reprojection + inverse-depth refinement of ``T_cur_ref`` (see ``FeatureConfig.rgbd_refine_iterations``).
+
+    Args:
+        T_cur_ref: ``(4, 4)`` initial pose (PnP).
+        pts_ref: ``(N, 3)`` reference-camera points; uv_cur: ``(N, 2)`` their pixels in the current image.
+        inv_depth_cur: ``(N,)`` measured inverse depth (1/m) at ``uv_cur``; NaN = none (reprojection only).
+
+    Returns:
+        ``(4, 4)`` refined ``T_cur_ref`` (Gauss-Newton with Huber weights, left-multiplied SE(3) updates).
+    """
+    T = np.asarray(T_cur_ref, np.float64).copy()
+    P = np.asarray(pts_ref, np.float64)
+    uv = np.asarray(uv_cur, np.float64)
+    w_inv = np.isfinite(inv_depth_cur)
+    q = np.where(w_inv, inv_depth_cur, 0.0)
+    fx, fy = intr.fx, intr.fy
+    sp, si, k = cfg.rgbd_pixel_sigma_px, cfg.rgbd_inverse_depth_sigma, cfg.rgbd_huber
+    n = len(P)
+    si_model = si
+    for _ in range(cfg.rgbd_refine_iterations):
+        X = P @ T[:3, :3].T + T[:3, 3]
+        z = X[:, 2]
+        if np.any(z <= 0):
+            break
+        if w_inv.sum() >= 6:  # the data's own inverse-depth spread at this pose, when it exceeds the model
+            d = (1.0 / z - q)[w_inv]
+            si = max(si_model, 1.4826 * float(np.median(np.abs(d - np.median(d)))))
+        iz = 1.0 / z
+        # d(point)/d(xi) for a left update exp(xi) T, xi = (omega, v): dX = -[X]x omega + v
+        J_X = np.zeros((n, 3, 6))
+        J_X[:, 0, 1], J_X[:, 0, 2] = X[:, 2], -X[:, 1]
+        J_X[:, 1, 0], J_X[:, 1, 2] = -X[:, 2], X[:, 0]
+        J_X[:, 2, 0], J_X[:, 2, 1] = X[:, 1], -X[:, 0]
+        J_X[:, 0, 3] = J_X[:, 1, 4] = J_X[:, 2, 5] = 1.0
+        # projection u = fx x/z + cx, v = fy y/z + cy; inverse depth 1/z
+        J_u = np.zeros((n, 3, 3))
+        J_u[:, 0, 0] = fx * iz
+        J_u[:, 0, 2] = -fx * X[:, 0] * iz * iz
+        J_u[:, 1, 1] = fy * iz
+        J_u[:, 1, 2] = -fy * X[:, 1] * iz * iz
+        J_u[:, 2, 2] = -iz * iz
+        J = J_u @ J_X  # (n, 3, 6)
+        r = np.empty((n, 3))
+        r[:, 0] = (fx * X[:, 0] * iz + intr.cx - uv[:, 0]) / sp
+        r[:, 1] = (fy * X[:, 1] * iz + intr.cy - uv[:, 1]) / sp
+        r[:, 2] = np.where(w_inv, (iz - q) / si, 0.0)
+        J[:, :2] /= sp
+        J[:, 2] = np.where(w_inv[:, None], J[:, 2] / si, 0.0)
+        a = np.abs(r)
+        w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+        H = np.einsum("nri,nr,nrj->ij", J, w, J)
+        g = np.einsum("nri,nr,nr->i", J, w, r)
+        try:
+            xi = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        T = se3_exp(xi) @ T
+        if np.linalg.norm(xi) < 1e-9:
+            break
+    return T
+
+
 def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionResult:
     return MotionResult(
         np.eye(4), False, reason, n_raw, n_good, 0, np.zeros(3), np.zeros(3),
@@ -417,7 +540,8 @@ def estimate_motion(
         return _failed(m.n_raw, n_good, "too_few_matches", pairs)
     obj = ref.points_cam[pairs[:, 0]].astype(np.float64)
     K, sign = _cv_camera(intr)
-    img = _image_points_cv(cur.keypoints_uv[pairs[:, 1]], intr, sign)
+    uv_cur = track_subpixel(ref, cur, pairs, cfg)
+    img = _image_points_cv(uv_cur, intr, sign)
     use_guess = T_init_cur_ref is not None
     if use_guess:
         rvec0 = so3_log(T_init_cur_ref[:3, :3]).reshape(3, 1).copy()
@@ -448,6 +572,10 @@ def estimate_motion(
     rvec = np.asarray(rvec, np.float64).reshape(3)
     tvec = np.asarray(tvec, np.float64).reshape(3)
     T = make_T(so3_exp(rvec), tvec)
+    if cfg.rgbd_refine_iterations > 0 and cur.depth_m is not None and np.all(np.isfinite(T)):
+        z_cur = _keypoint_depth(cur.depth_m, uv_cur[mask], cfg)
+        T = refine_rgbd(T, obj[mask], uv_cur[mask], 1.0 / z_cur, intr, cfg)
+        rvec, tvec = so3_log(T[:3, :3]).reshape(3), T[:3, 3].copy()
     res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs)
     if not np.all(np.isfinite(T)):
         res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
