@@ -412,8 +412,10 @@ def to_markdown(res: dict) -> str:
         md += ["read: the dataset reader decoding the colour and depth files (mean of "
                f"{s0['read_frames']} frames, synchronous); `surfelslam run` reads in a background thread ({bg}). "
                "At 320x240 (`--downsample 2`) the reader decodes the full 640x480 files, then keeps every second "
-               "pixel. preprocess / render / ICP / fuse / dense loop: means over the frames of a `surfelslam run` "
-               "(its `metrics.json`, `stage_ms`); FPS excludes the JIT warm-up. ORB: extraction per frame, matching + "
+               "pixel. preprocess / render / ICP / fuse: means over the frames of a `surfelslam run` (its "
+               "`metrics.json`, `stage_ms`); preprocess runs in the reader thread, ahead of the frame "
+               "(`io.prepare_in_reader`), so the dense loop (the main thread's time per frame) is render + ICP + fuse; "
+               "FPS (wall clock of the whole run) excludes the JIT warm-up. ORB: extraction per frame, matching + "
                f"PnP-RANSAC per frame pair, with the orb/hybrid trackers' settings ({s0['orb_features']} features).",
                ""]
     if res.get("icp"):
@@ -440,7 +442,9 @@ def to_markdown(res: dict) -> str:
             ("revisit_over_first", f"start of orbit 2 / first {s['window']}"),
             ("last_over_same_views_first_orbit", f"last {s['window']} / the same views in orbit 1")) if k in s]
         md += [f"{s['trajectory']}; every frame rendered fresh (new pose and noise), generation not timed. "
-               f"Per-frame cost is CPU time of `DenseSlam.process` (robust to other jobs); FPS is wall clock. "
+               f"Frames are fed as `surfelslam run` feeds them (reader thread running `DenseSlam.prepare`, main thread "
+               f"`DenseSlam.process`). Per-frame cost is the frame's CPU time in both threads (robust to other "
+               f"jobs); FPS is wall clock. "
                f"Per orbit (mean CPU ms, map size at its end): {laps}. The cost varies with the view, so ratios "
                f"of equal views isolate the growth with the map: {', '.join(same) or 'run too short'}. "
                f"Plot: `{s.get('plot')}`.", ""]
