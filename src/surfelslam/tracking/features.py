@@ -18,7 +18,6 @@ which describes exactly the same projection of the same 3D points, so the pose i
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, replace
 
 import cv2
@@ -295,9 +294,11 @@ def _keypoint_depth(depth_m: np.ndarray, uv: np.ndarray, cfg: FeatureConfig) -> 
         ok = (patch >= cfg.min_depth_m) & (patch <= cfg.max_depth_m)
         patch[~ok] = np.nan
         centre_ok = ok[:, 4]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows -> NaN, handled below
-            z = np.nanmedian(patch, axis=1)
+        # rows without any valid depth stay NaN (no all-NaN median: its warning, and warnings.catch_warnings is
+        # not thread-safe while the reader thread extracts features)
+        z = np.full(len(uv), np.nan)
+        some = ok.any(axis=1)
+        z[some] = np.nanmedian(patch[some], axis=1)
         # the centre pixel must itself be valid: a keypoint on a hole has no reliable depth
         z[~centre_ok] = np.nan
         if cfg.depth_plane_radius_px > 0:
