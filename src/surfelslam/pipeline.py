@@ -256,6 +256,11 @@ class PreparedFrame:
     cpu_ms: float = 0.0
 
 
+def _prepared_for(frame: RGBDFrame, prepared: PreparedFrame | None) -> PreparedFrame | None:
+    """``prepared`` when it was made from this very frame, else ``None`` (the work is then done in ``process``)."""
+    return prepared if prepared is not None and prepared.frame is frame else None
+
+
 @dataclass
 class SlamResult:
     """End of a run: the map and summary numbers (the per-frame poses were already streamed)."""
@@ -365,12 +370,13 @@ class _FusingMapper:
 
     def _preprocess(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FramePyramid:
         """Make the frame's pyramid the current source (the prepared one, or computed here)."""
-        if prepared is not None and prepared.frame is frame and prepared.pyramid is not None:
+        prepared = _prepared_for(frame, prepared)
+        if prepared is not None and prepared.pyramid is not None:
             self.source, prepared.pyramid = prepared.pyramid, None
             self._rgb_fuse = prepared.rgb_fuse
             return self.source
         self._check_size(frame)
-        if self.source is self.previous or self.source is None:
+        if self.source is self.previous:
             self.source = self._acquire()
         self._rgb_fuse = None
         return self.pre.process(frame.depth_m, out=self.source, first_level=self.first_level)
@@ -594,7 +600,8 @@ class OrbSlam:
 
     def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
         t = _Timer(prepared)
-        feats = prepared.features if prepared is not None and prepared.frame is frame else None
+        p = _prepared_for(frame, prepared)
+        feats = None if p is None else p.features
         r = self.sparse.process(frame, feats=feats)
         t.lap("orb")
         self._stamp_of_frame[frame.index] = frame.timestamp
@@ -663,7 +670,8 @@ class HybridSlam(DenseSlam):
     def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
         h = self.cfg.hybrid
         t = _Timer(prepared)
-        self._feats = prepared.features if prepared is not None and prepared.frame is frame else None
+        p = _prepared_for(frame, prepared)
+        self._feats = None if p is None else p.features
         self._preprocess(frame, prepared)
         t.lap("preprocess" if prepared is None else None)
         self._stamp_of_frame[frame.index] = frame.timestamp

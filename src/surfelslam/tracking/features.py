@@ -30,6 +30,11 @@ from surfelslam.types import Intrinsics, RGBDFrame
 MATCHING_MODES = ("crosscheck", "ratio")
 REJECT_REASONS = ("too_few_matches", "too_few_inliers", "motion_too_large", "pnp_failed")
 _DESCRIPTOR_BYTES = 32
+_LK_MAX_ITERATIONS = 30  # Lucas-Kanade stops after this many iterations per level ...
+_LK_EPSILON_PX = 0.01  # ... or when its update is below this (pixels)
+_MAD_TO_SIGMA = 1.4826  # median absolute deviation -> standard deviation of a Gaussian
+_MIN_POINTS_FOR_SPREAD = 6  # fewest depth residuals to estimate their spread from the data
+_RGBD_CONVERGED_UPDATE = 1e-9  # twist norm (rad + m) below which the RGB-D refinement stops
 
 
 @dataclass(frozen=True)
@@ -434,7 +439,7 @@ def track_subpixel(ref: Features, cur: Features, pairs: np.ndarray, cfg: Feature
         return uv
     p0 = np.ascontiguousarray(ref.keypoints_uv[pairs[:, 0]], np.float32).reshape(-1, 1, 2)
     p1 = np.ascontiguousarray(uv).reshape(-1, 1, 2).copy()
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, _LK_MAX_ITERATIONS, _LK_EPSILON_PX)
     p1, status, _ = cv2.calcOpticalFlowPyrLK(
         ref.grey, cur.grey, p0, p1, winSize=(cfg.lk_window_px, cfg.lk_window_px), maxLevel=cfg.lk_levels,
         criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
@@ -472,9 +477,9 @@ def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, 
         z = X[:, 2]
         if np.any(z <= 0):
             break
-        if w_inv.sum() >= 6:  # the data's own inverse-depth spread at this pose, when it exceeds the model
+        if w_inv.sum() >= _MIN_POINTS_FOR_SPREAD:  # the data's own inverse-depth spread, when it exceeds the model
             d = (1.0 / z - q)[w_inv]
-            si = max(si_model, 1.4826 * float(np.median(np.abs(d - np.median(d)))))
+            si = max(si_model, _MAD_TO_SIGMA * float(np.median(np.abs(d - np.median(d)))))
         iz = 1.0 / z
         # d(point)/d(xi) for a left update exp(xi) T, xi = (omega, v): dX = -[X]x omega + v
         J_X = np.zeros((n, 3, 6))
@@ -505,7 +510,7 @@ def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, 
         except np.linalg.LinAlgError:
             break
         T = se3_exp(xi) @ T
-        if np.linalg.norm(xi) < 1e-9:
+        if np.linalg.norm(xi) < _RGBD_CONVERGED_UPDATE:
             break
     return T
 
