@@ -37,6 +37,23 @@ from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 REJECTED_POSE_MODES = ("constant_velocity", "last")
 
 
+@dataclass
+class KeyframeMatch:
+    """A frame registered to a keyframe by PnP (:meth:`SparseSlam.match_reference_keyframe`).
+
+    Attributes:
+        T_world_cam: ``(4, 4)`` the frame's pose (graph world frame).
+        kf_id: the keyframe matched.
+        points_world: ``(M, 3)`` float64 the PnP inliers' keyframe points (from the keyframe's depth), world frame.
+        uv_cur: ``(M, 2)`` float64 their pixels in the frame (full resolution, sub-pixel tracked).
+    """
+
+    T_world_cam: np.ndarray
+    kf_id: int
+    points_world: np.ndarray
+    uv_cur: np.ndarray
+
+
 @dataclass(frozen=True)
 class SparseSlamConfig:
     """Sparse SLAM settings.
@@ -343,13 +360,31 @@ class SparseSlam:
         Returns:
             ``(4, 4)`` or ``None`` when a rejection rule fired. State is unchanged.
         """
+        m = self.match_reference_keyframe(frame, T_world_cam_pred, feats)
+        return None if m is None else m.T_world_cam
+
+    def match_reference_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
+                                 feats: Features | None = None) -> KeyframeMatch | None:
+        """PnP pose of ``frame`` against the reference keyframe, with the inlier correspondences.
+
+        Returns:
+            :class:`KeyframeMatch` (poses and points in the graph's world frame), or ``None`` when there is no
+            keyframe yet or a rejection rule fired. State is unchanged.
+        """
         if not self._kfs:
             return None
         feats = self.features(frame) if feats is None else feats
-        T_world_kf = self._kf_poses[self._ref_kf]
+        kf = self._ref_kf
+        T_world_kf = self._kf_poses[kf]
         init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
-        res = estimate_motion(self._kfs[self._ref_kf].features, feats, self.intr, self.cfg.features, init)
-        return T_world_kf @ invert(res.T_cur_ref) if res.ok else None
+        ref = self._kfs[kf].features
+        res = estimate_motion(ref, feats, self.intr, self.cfg.features, init)
+        if not res.ok or res.uv_cur is None:
+            return None
+        inl = res.inlier_mask
+        pts_kf = ref.points_cam[res.pairs[inl, 0]].astype(np.float64)
+        return KeyframeMatch(T_world_kf @ invert(res.T_cur_ref), kf, transform_points(T_world_kf, pts_kf),
+                             res.uv_cur[inl].astype(np.float64))
 
     # --- results -------------------------------------------------------------------------------------
 

@@ -79,6 +79,9 @@ class RGBDSequence:
     """
 
     layout: str = "base"
+    #: whether colour pixel (u, v) and depth pixel (u, v) see the same ray (one camera, or depth registered to
+    #: colour); False for layouts whose colour and depth come from separate, uncalibrated cameras (7-Scenes)
+    colour_registered: bool = True
     #: where the intrinsics / depth scale came from (an option, a metadata file, or the layout default)
     intrinsics_source: str = "unknown"
     depth_scale_source: str = "unknown"

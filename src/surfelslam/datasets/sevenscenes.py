@@ -99,6 +99,7 @@ class SevenScenesSequence(RGBDSequence):
     """Microsoft 7-Scenes (Kinect v1, millimetre depth)."""
 
     layout = "7scenes"
+    colour_registered = False  # 7-Scenes colour and depth come from separate, uncalibrated Kinect cameras
     expects = (
         "seq-XX/frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}, or the TUM layout in a folder named "
         "7scenes / 7-scenes; depth in mm"

@@ -452,3 +452,108 @@ def remapped_step_ref(AtA: np.ndarray, Atb: np.ndarray, mean_depth_m: float, max
     Vk = V[:, keep]
     xi_s = -(Vk @ ((Vk.T @ (s * Atb)) / lam[keep]))
     return s * xi_s, n_frozen
+
+
+@njit(cache=True, nogil=True, fastmath=_FASTMATH)
+def accumulate_reprojection(pts_target, uv_source, T, fx, fy, cx, cy, sigma_px, huber, weight, out):
+    """Add sparse reprojection terms to the normal equations ``out`` (layout above), in place.
+
+    Each point ``X_t = pts_target[i]`` (target camera frame, m) is observed at pixel ``uv_source[i]`` in the
+    source image. With ``T = T_target_source`` and the left update ``T <- exp(xi) T``, the source point is
+    ``X_s = R^T (X_t - t)`` and ``dX_s/dxi = R^T [[X_t]x  -I]``; the residual ``e = (pi(X_s) - uv) / sigma_px``
+    (2,) gets the Huber weight ``h = min(1, huber / |e|)`` of its norm. The term adds
+    ``weight h J^T J`` to ``[0:21]``, ``weight h J^T e`` to ``[21:27]`` and ``weight h |e|^2`` to ``[27]``
+    (``J = de/dxi``, 2 x 6); inlier counts ``[28:32]`` are left to the dense pairs. Points with
+    ``X_s_z <= 0`` are skipped. ``weight`` converts one squared unit residual into the units of ``out``.
+
+    Args:
+        pts_target: ``(M, 3)`` float64; uv_source: ``(M, 2)`` float64 pixels of the camera ``fx, fy, cx, cy``.
+        T: ``(4, 4)`` float64. out: ``(N_STATS,)`` float64.
+    """
+    r00, r01, r02 = T[0, 0], T[0, 1], T[0, 2]
+    r10, r11, r12 = T[1, 0], T[1, 1], T[1, 2]
+    r20, r21, r22 = T[2, 0], T[2, 1], T[2, 2]
+    t0, t1, t2 = T[0, 3], T[1, 3], T[2, 3]
+    isig = 1.0 / sigma_px
+    J = np.empty((2, 6))
+    for i in range(pts_target.shape[0]):
+        X, Y, Z = pts_target[i, 0], pts_target[i, 1], pts_target[i, 2]
+        dx, dy, dz = X - t0, Y - t1, Z - t2
+        # X_s = R^T (X_t - t)
+        xs = r00 * dx + r10 * dy + r20 * dz
+        ys = r01 * dx + r11 * dy + r21 * dz
+        zs = r02 * dx + r12 * dy + r22 * dz
+        if zs <= 0.0:
+            continue
+        iz = 1.0 / zs
+        e0 = (fx * xs * iz + cx - uv_source[i, 0]) * isig
+        e1 = (fy * ys * iz + cy - uv_source[i, 1]) * isig
+        en = np.sqrt(e0 * e0 + e1 * e1)
+        h = 1.0 if en <= huber else huber / en
+        w = weight * h
+        # projection rows (scaled by 1 / sigma): P = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] / sigma
+        p00 = fx * iz * isig
+        p02 = -fx * xs * iz * iz * isig
+        p11 = fy * iz * isig
+        p12 = -fy * ys * iz * iz * isig
+        # M = P R^T (2 x 3)
+        m00 = p00 * r00 + p02 * r02
+        m01 = p00 * r10 + p02 * r12
+        m02 = p00 * r20 + p02 * r22
+        m10 = p11 * r01 + p12 * r02
+        m11 = p11 * r11 + p12 * r12
+        m12 = p11 * r21 + p12 * r22
+        # J = M [[X_t]x  -I], [X_t]x = [[0, -Z, Y], [Z, 0, -X], [-Y, X, 0]]
+        J[0, 0] = m01 * Z - m02 * Y
+        J[0, 1] = -m00 * Z + m02 * X
+        J[0, 2] = m00 * Y - m01 * X
+        J[0, 3] = -m00
+        J[0, 4] = -m01
+        J[0, 5] = -m02
+        J[1, 0] = m11 * Z - m12 * Y
+        J[1, 1] = -m10 * Z + m12 * X
+        J[1, 2] = m10 * Y - m11 * X
+        J[1, 3] = -m10
+        J[1, 4] = -m11
+        J[1, 5] = -m12
+        k = 0
+        for a in range(6):
+            ja0 = w * J[0, a]
+            ja1 = w * J[1, a]
+            for b in range(a, 6):
+                out[k] += ja0 * J[0, b] + ja1 * J[1, b]
+                k += 1
+            out[21 + a] += ja0 * e0 + ja1 * e1
+        out[27] += w * (e0 * e0 + e1 * e1)
+
+
+def reprojection_system_ref(pts_target: np.ndarray, uv_source: np.ndarray, T: np.ndarray, fx: float, fy: float,
+                            cx: float, cy: float, sigma_px: float, huber: float):
+    """Numpy reference of :func:`accumulate_reprojection`, by numerical differentiation of the residual.
+
+    Returns:
+        ``(J (M, 2, 6), e (M, 2), h (M,))`` for the points in front of the source camera (others get zero rows):
+        residuals in units of ``sigma_px``, their Jacobians for the left update ``exp(xi) T`` and Huber weights.
+    """
+    from surfelslam.geometry.se3 import exp as se3_exp
+    from surfelslam.geometry.se3 import invert
+
+    def residual(Tc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Xs = pts_target @ invert(Tc)[:3, :3].T + invert(Tc)[:3, 3]
+        front = Xs[:, 2] > 0
+        z = np.where(front, Xs[:, 2], 1.0)
+        e = np.column_stack([fx * Xs[:, 0] / z + cx - uv_source[:, 0], fy * Xs[:, 1] / z + cy - uv_source[:, 1]])
+        return np.where(front[:, None], e / sigma_px, 0.0), front
+
+    e, front = residual(T)
+    J = np.zeros((len(e), 2, 6))
+    step = 1e-7
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = step
+        J[:, :, k] = (residual(se3_exp(d) @ T)[0] - residual(se3_exp(-d) @ T)[0]) / (2 * step)
+    J[~front] = 0.0
+    en = np.linalg.norm(e, axis=1)
+    h = np.where(en <= huber, 1.0, huber / np.maximum(en, 1e-300))
+    h[~front] = 0.0
+    return J, e, h

@@ -216,6 +216,8 @@ class MotionResult:
         rvec, tvec: ``(3,)`` OpenCV pose (the same transform as ``T_cur_ref``).
         inlier_mask: ``(n_good,)`` bool over ``pairs``.
         pairs: ``(n_good, 2)`` the good matches used for PnP (ref, cur).
+        uv_cur: ``(n_good, 2)`` float32 current-image pixels of ``pairs`` (sub-pixel tracked where LK succeeded),
+            or ``None`` when matching stopped before PnP.
     """
 
     T_cur_ref: np.ndarray
@@ -228,6 +230,7 @@ class MotionResult:
     tvec: np.ndarray
     inlier_mask: np.ndarray
     pairs: np.ndarray
+    uv_cur: np.ndarray | None = None
 
     @property
     def motion_norm(self) -> float:
@@ -582,7 +585,7 @@ def estimate_motion(
         z_cur = _keypoint_depth(cur.depth_m, uv_cur[mask], cfg)
         T = refine_rgbd(T, obj[mask], uv_cur[mask], 1.0 / z_cur, intr, cfg)
         rvec, tvec = so3_log(T[:3, :3]).reshape(3), T[:3, 3].copy()
-    res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs)
+    res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs, uv_cur)
     if not np.all(np.isfinite(T)):
         res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
     elif motion_norm(T) > cfg.max_motion_norm:

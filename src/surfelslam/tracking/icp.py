@@ -144,6 +144,34 @@ def pairwise_config() -> ICPConfig:
 
 
 @dataclass
+class ReprojectionTerm:
+    """Sparse point-to-pixel terms added to every ICP iteration (joint dense + feature tracking).
+
+    Attributes:
+        points_target: ``(M, 3)`` float64 points in the target camera frame (m), e.g. a keyframe's PnP inliers.
+        uv_source: ``(M, 2)`` float64 their observed pixels in the source image, camera ``intrinsics``.
+        intrinsics: the camera of ``uv_source`` (any resolution: only the projection is used).
+        sigma_px: pixel noise; residuals are measured in units of it.
+        huber: Huber threshold on the residual norm, in units of ``sigma_px``.
+        weight: cost of one unit residual in the units of the point-to-plane cost (m^2): ``w sigma_ref^2``
+            makes a feature residual of ``sigma_px`` weigh as much as one point-to-plane pair at ``sigma_ref``.
+    """
+
+    points_target: np.ndarray
+    uv_source: np.ndarray
+    intrinsics: Intrinsics
+    sigma_px: float
+    huber: float
+    weight: float
+
+    def add_to(self, stats: np.ndarray, T: np.ndarray) -> None:
+        """Add the terms at the estimate ``T`` (``T_target_source``) to the accumulated vector ``stats``."""
+        k = self.intrinsics
+        kicp.accumulate_reprojection(self.points_target, self.uv_source, T, k.fx, k.fy, k.cx, k.cy,
+                                     self.sigma_px, self.huber, self.weight, stats)
+
+
+@dataclass
 class LevelInfo:
     """What happened at one pyramid level (statistics of its last linearisation)."""
 
@@ -236,7 +264,7 @@ def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
 
 
 def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = None,
-        cfg: ICPConfig | None = None) -> ICPResult:
+        cfg: ICPConfig | None = None, reprojection: ReprojectionTerm | None = None) -> ICPResult:
     """Estimate ``T_target_source`` by coarse-to-fine projective point-to-plane ICP.
 
     Args:
@@ -244,6 +272,9 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
         target: pyramid in the target camera frame (a frame, or a model rendered at the target pose).
         T_init: ``(4, 4)`` initial ``T_target_source`` (identity when ``None``).
         cfg: settings (defaults: :class:`ICPConfig`).
+        reprojection: optional sparse terms minimised jointly with the point-to-plane cost at every level
+            (they also enter the convergence test, the weak-direction analysis and the condition number: a
+            textured wall constrained by features is not degenerate for the joint system).
 
     Returns:
         :class:`ICPResult`; on failure ``converged`` is False, ``reason`` says why and
@@ -283,6 +314,8 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
             kicp.accumulate_normal_equations(src.vertex, src.normal, tgt.vertex, tgt.normal, T,
                                              ti.fx, ti.fy, ti.cx, ti.cy, cfg.dist_thresh_m[lvl], cos_thr,
                                              robust, scale, stats, stride, depth_ref)
+            if reprojection is not None:
+                reprojection.add_to(stats, T)
             n_in = stats[29]
             if n_in < need:
                 stop = "too_few_inliers"
