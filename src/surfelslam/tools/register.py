@@ -31,6 +31,9 @@ from surfelslam.tools.common import (
 INIT_MODES = ("identity", "features")
 
 
+REGISTER_FEATURE_MAX_NORM = 2.0  # m + rad: --init features accepts PnP motions up to this (pairs far apart)
+
+
 def per_level(text: str | None, default: tuple, levels: int, name: str, cast=float,
               coarser_factor: float = 2.0) -> tuple:
     """Parse ``"a"`` (finest level; coarser levels multiplied by ``coarser_factor`` per level) or
@@ -80,7 +83,8 @@ def register(app: typer.Typer) -> None:
                            "falls back to identity when a rejection rule fires).")] = "identity",
         feature_max_norm: Annotated[float, typer.Option(
             "--feature-max-norm", help="--init features: largest accepted PnP motion norm (m + rad); the "
-                                       "odometry default 0.3 is too small for pairs far apart.")] = 2.0,
+                                       "odometry default 0.3 is too small for pairs far apart.")
+        ] = REGISTER_FEATURE_MAX_NORM,
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
