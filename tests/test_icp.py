@@ -503,4 +503,8 @@ def test_register_command_on_redwood(tmp_path):
     assert np.array(out["T_target_source"]).shape == (4, 4)
     assert out["converged"] and out["inliers"] > 10000
     assert out["gt_error"]["trans_m"] < 0.01 and out["gt_error"]["rot_deg"] < 0.5
+    agree = out["depth_agreement"]
+    assert set(agree) == {"estimate", "ground_truth"}
+    assert agree["estimate"]["median_abs_dz_m"] < 0.01 and agree["estimate"]["overlap_fraction"] > 0.5
+    assert "depth agreement" in res.output
     assert (tmp_path / "before.png").stat().st_size > 1000 and (tmp_path / "after.png").stat().st_size > 1000

@@ -149,9 +149,19 @@ def register(app: typer.Typer) -> None:
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],
         }
+        from surfelslam.eval.depth_agreement import depth_agreement
+
+        def agreement(T_pose: np.ndarray) -> dict:
+            a = vars(depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, T_pose)).copy()
+            a["median_abs_dz_m"] = a["median_abs_dz_m"] if np.isfinite(a["median_abs_dz_m"]) else None
+            return a
+
+        agree = {"estimate": agreement(T)}
+        result["depth_agreement"] = agree
         T_wc, valid = sq.gt_poses()
         if valid[source] and valid[target]:
             T_gt = se3.invert(T_wc[target]) @ T_wc[source]
+            agree["ground_truth"] = agreement(T_gt)
             t_err, r_err = se3.pose_error(T, T_gt)
             t0, r0 = se3.pose_error(np.eye(4), T_gt)
             result["gt_error"] = {"trans_m": t_err, "rot_deg": r_err}
@@ -195,5 +205,12 @@ def register(app: typer.Typer) -> None:
                           f"(GT motion {1000 * m['trans_m']:.1f} mm, {m['rot_deg']:.2f} deg)", highlight=False)
         else:
             console.print("no ground truth for these frames", highlight=False)
+        text = ", ".join(f"{name.replace('_', ' ')} pose "
+                         + ("no overlap" if a["median_abs_dz_m"] is None else
+                            f"{1000 * a['median_abs_dz_m']:.1f} mm over {100 * a['overlap_fraction']:.0f}% "
+                            "of the source")
+                         for name, a in agree.items())
+        console.print(f"depth agreement (median |dz| where the moved source meets target depth): {text}",
+                      highlight=False)
         console.print(f"wrote {out / 'registration.json'}, {out / 'before.png'}, {out / 'after.png'}",
                       highlight=False)
