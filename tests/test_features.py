@@ -313,3 +313,47 @@ def test_7scenes_low_overlap_pair_rejected() -> None:
     fb, _ = _load_7scenes(100)
     T, res = feature_guess(fb, fa, SEVEN_INTR, FeatureConfig())
     assert T is None and not res.ok
+
+
+def test_hamming_kernel_matches_reference_and_opencv():
+    """The numba nearest-two search equals the bit-unpacking reference exactly, and OpenCV's brute-force
+    Hamming matcher in distances (indices too, where the nearest is unique)."""
+    import cv2
+
+    from surfelslam.kernels import hamming
+
+    rng = np.random.default_rng(4)
+    q = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    t = rng.integers(0, 256, (257, 32), dtype=np.uint8)
+    t[5] = q[7]  # an exact match
+    d1, d2, idx = hamming.nearest_two_words(hamming.as_words(q), hamming.as_words(t))
+    r1, r2, ridx = hamming.nearest_two_ref(q, t)
+    np.testing.assert_array_equal(d1, r1)
+    np.testing.assert_array_equal(d2, r2)
+    np.testing.assert_array_equal(idx, ridx)
+    assert d1[7] == 0 and idx[7] == 5
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(q, t, k=2)
+    np.testing.assert_array_equal(d1, [m[0].distance for m in knn])
+    np.testing.assert_array_equal(d2, [m[1].distance for m in knn])
+    unique = d2 > d1
+    np.testing.assert_array_equal(idx[unique], np.array([m[0].trainIdx for m in knn])[unique])
+    # degenerate sizes
+    one = hamming.nearest_two_words(hamming.as_words(q[:3]), hamming.as_words(t[:1]))
+    assert np.all(one[1] == hamming.NO_MATCH) and np.all(one[2] == 0)
+    none = hamming.nearest_two_words(hamming.as_words(q[:3]), hamming.as_words(t[:0]))
+    assert np.all(none[0] == hamming.NO_MATCH) and np.all(none[2] == -1)
+    with pytest.raises(ValueError, match="multiple of 8"):
+        hamming.as_words(q[:, :5])
+
+
+def test_match_crosscheck_equals_opencv_crosscheck():
+    """``match`` (numba brute force) keeps the same mutual nearest neighbours as OpenCV's cross-checking matcher."""
+    import cv2
+
+    _, _, fa, fb = _pair()
+    a, b = extract(fa.rgb, fa.depth_m, INTR, CFG), extract(fb.rgb, fb.depth_m, INTR, CFG)
+    raw = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(a.descriptors, b.descriptors)
+    cv_pairs = {(m.queryIdx, m.trainIdx) for m in raw}
+    m = match(a, b, replace(CFG, matching="crosscheck"))
+    assert m.n_raw == len(raw)
+    assert {tuple(p) for p in m.pairs} <= cv_pairs and m.n_good > 50

@@ -2,8 +2,9 @@
 
 Every keyframe's ORB descriptors are appended to one database (grown by doubling). A query frame
 matches each of its descriptors to its two nearest database descriptors (exact Hamming kNN,
-OpenCV brute force); a match passing the ratio test and a distance bound casts one vote for the
-keyframe that owns the nearest descriptor. Keyframes are ranked by votes (ties: lower id first).
+numba brute force, :mod:`surfelslam.kernels.hamming`); a match passing the ratio test and a distance
+bound casts one vote for the keyframe that owns the nearest descriptor. Keyframes are ranked by votes
+(ties: lower id first).
 
 Keyframes are stored in id order, so restricting a query to "keyframes older than k" is a prefix
 of the database: recent keyframes (which trivially look alike) are excluded without copying.
@@ -14,8 +15,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
+
+from surfelslam.kernels import hamming
 
 _DESCRIPTOR_BYTES = 32
 _INITIAL_CAPACITY = 4096
@@ -100,12 +102,9 @@ class DescriptorIndex:
         if end < 2:
             return []
         db = self._desc[:end]
-        knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(np.ascontiguousarray(descriptors, np.uint8), db, k=2)
-        rows = np.array(
-            [(m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2], dtype=np.float64
-        ).reshape(-1, 3)
-        good = (rows[:, 1] < self.cfg.max_hamming_bits) & (rows[:, 1] < self.cfg.ratio * rows[:, 2])
-        owners = self._owner[rows[good, 0].astype(np.int64)]
+        d1, d2, idx = hamming.nearest_two_words(hamming.as_words(descriptors), hamming.as_words(db))
+        good = (d1 < self.cfg.max_hamming_bits) & (d1 < self.cfg.ratio * d2)
+        owners = self._owner[idx[good]]
         votes = np.bincount(owners, minlength=k_max)
         order = np.lexsort((np.arange(k_max), -votes))
         return [(int(k), int(votes[k])) for k in order[:n_results] if votes[k] >= self.cfg.min_votes]

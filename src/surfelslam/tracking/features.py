@@ -25,6 +25,7 @@ import numpy as np
 
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
+from surfelslam.kernels import hamming
 from surfelslam.types import Intrinsics, RGBDFrame
 
 MATCHING_MODES = ("crosscheck", "ratio")
@@ -398,22 +399,22 @@ def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
     empty = MatchResult(np.zeros((0, 2), np.int64), np.zeros(0, np.float32), 0, 0, 0.0, 0.0)
     if len(ref) == 0 or len(cur) == 0:
         return empty
+    ref_w, cur_w = hamming.as_words(ref.descriptors), hamming.as_words(cur.descriptors)
+    d12, d12_second, j12 = hamming.nearest_two_words(ref_w, cur_w)  # brute force, numba (see kernels.hamming)
     if cfg.matching == "crosscheck":
-        raw = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(ref.descriptors, cur.descriptors)
+        _, _, i21 = hamming.nearest_two_words(cur_w, ref_w)
+        keep = i21[j12] == np.arange(len(ref))  # mutual nearest neighbours
     else:
-        knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(ref.descriptors, cur.descriptors, k=2)
-        raw = [m[0] for m in knn if len(m) == 2 and m[0].distance < cfg.ratio * m[1].distance]
-    if not raw:
+        keep = (d12_second != hamming.NO_MATCH) & (d12 < cfg.ratio * d12_second)
+    if not keep.any():
         return empty
-    arr = np.array([(m.queryIdx, m.trainIdx, m.distance) for m in raw], dtype=np.float64)
-    order = np.argsort(arr[:, 0], kind="stable")
-    arr = arr[order]
-    d = arr[:, 2]
+    q = np.nonzero(keep)[0]  # ordered by ref index
+    d = d12[q].astype(np.float64)
     min_d, max_d = float(d.min()), float(d.max())
     thresh = cfg.good_match_k * max(min_d, cfg.good_match_floor_bits)
     good = d < thresh
-    pairs = arr[good, :2].astype(np.int64)
-    return MatchResult(pairs, d[good].astype(np.float32), len(arr), int(good.sum()), min_d, max_d)
+    pairs = np.column_stack([q[good], j12[q[good]]]).astype(np.int64)
+    return MatchResult(pairs, d[good].astype(np.float32), len(q), int(good.sum()), min_d, max_d)
 
 
 def _cv_camera(intr: Intrinsics) -> tuple[np.ndarray, float]:
