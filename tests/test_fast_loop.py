@@ -125,3 +125,24 @@ def test_render_geometry_only_equals_full_render():
     np.testing.assert_array_equal(geo.index, full.index)
     np.testing.assert_array_equal(geo.vertex_cam, full.vertex_cam)
     np.testing.assert_array_equal(geo.normal_cam, full.normal_cam)
+
+
+def test_concurrent_launch_guard(monkeypatch):
+    """Serial kernels may always run in two threads; parallel ones only on the OpenMP / TBB threading layers."""
+    import numba
+
+    from surfelslam.kernels import threads
+
+    assert threads.concurrent_launch_safe() is True or threads.parallel_enabled()
+    monkeypatch.setitem(threads._STATE, "parallel", True)
+    for layer, ok in (("omp", True), ("tbb", True), ("workqueue", False)):
+        monkeypatch.setattr(numba, "threading_layer", lambda layer=layer: layer)
+        assert threads.concurrent_launch_safe() is ok
+
+    def unknown():
+        raise ValueError("Threading layer is not initialized.")
+
+    monkeypatch.setattr(numba, "threading_layer", unknown)
+    assert threads.concurrent_launch_safe() is False
+    monkeypatch.setitem(threads._STATE, "parallel", False)
+    assert threads.concurrent_launch_safe() is True

@@ -37,6 +37,25 @@ def parallel_enabled() -> bool:
     return _STATE["parallel"]
 
 
+# numba threading layers that accept parallel kernels launched from two Python threads at once
+_CONCURRENT_LAYERS = ("omp", "tbb")
+
+
+def concurrent_launch_safe() -> bool:
+    """Whether kernels may run in two Python threads at once (the reader thread preparing frames while the main
+    thread tracks): always with the serial twins; with the parallel ones only on the OpenMP or TBB threading
+    layer (numba's fallback ``workqueue`` layer does not support concurrent parallel launches). Call after a
+    parallel kernel has run (the layer is chosen then); before that it answers False when parallel is on."""
+    if not _STATE["parallel"]:
+        return True
+    import numba
+
+    try:
+        return numba.threading_layer() in _CONCURRENT_LAYERS
+    except ValueError:  # no parallel kernel has run yet: the layer is unknown
+        return False
+
+
 def _renamed(f, suffix: str):
     """A copy of ``f`` with its own name: numba's on-disk cache keys by qualified name, not by flags."""
     g = types.FunctionType(f.__code__, f.__globals__, f.__name__ + suffix, f.__defaults__, f.__closure__)

@@ -19,7 +19,7 @@ from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.trajectory import TumAppender
-from surfelslam.kernels.threads import parallel_enabled
+from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.pipeline import TRACKERS, SlamConfig, build_slam, poses_for_mapping
 from surfelslam.tools.common import (
     DepthScaleOpt,
@@ -60,6 +60,9 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
     t_warm = time.perf_counter()
     slam.warmup()
     warmup_s = time.perf_counter() - t_warm
+    # the warm-up ran the kernels, so numba's threading layer is known: with parallel kernels on a layer that
+    # cannot launch from two threads at once, frames are prepared in the main thread (same results, slower)
+    prepare_in_reader = cfg.io.prepare_in_reader and concurrent_launch_safe()
 
     skipped: list[dict] = []
     stage_ms: dict[str, list[float]] = {"read": []}
@@ -69,7 +72,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
     t_start = time.perf_counter()
     try:
         with TumAppender(out_dir / "trajectory.txt") as traj_out:
-            prepare = slam.prepare if cfg.io.prepare_in_reader else None
+            prepare = slam.prepare if prepare_in_reader else None
             for item in prefetch_frames(seq, ahead=cfg.io.prefetch_frames, prepare=prepare):
                 t0 = time.perf_counter()
                 if item.error is not None:
@@ -118,7 +121,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
         "wall_s": wall_s,
         "warmup_s": warmup_s,
         "parallel_kernels": parallel_enabled(),
-        "prepare_in_reader": bool(cfg.io.prepare_in_reader and cfg.io.prefetch_frames > 0),
+        "prepare_in_reader": bool(prepare_in_reader and cfg.io.prefetch_frames > 0),
         "ms_per_frame": _stats(frame_ms),
         "stage_ms": {k: _stats(v) for k, v in stage_ms.items()},
         "map_points": result.map_points,
