@@ -216,3 +216,19 @@ def test_a_wrong_size_frame_prepared_ahead_raises_the_pipelines_own_error():
         slam.prepare(bad)
     with pytest.raises(ConfigError, match="expected 320x240"):
         slam.process(bad, prepared=None)
+
+
+def test_background_loop_checks_keep_poses_rigid_and_close_to_inline():
+    """Loop checks in the background thread are applied one keyframe later: keyframe poses stay rigid (no
+    compounding of rounding through re-based poses) and the trajectory stays close to the inline one."""
+    frames, gt = _frames("loop", N_LOOP)
+    runs = {}
+    for background in (True, False):
+        cfg = SlamConfig()
+        cfg = replace(cfg, sparse=replace(cfg.sparse, background_loop_checks=background))
+        est, res, slam = _run("hybrid", frames, cfg)
+        kf = slam.sparse.keyframe_poses()
+        R = kf[:, :3, :3]
+        assert np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() < 1e-9
+        runs[background] = _ate_m(est, gt)
+    assert runs[True] < 0.02 and abs(runs[True] - runs[False]) < 3e-3, runs

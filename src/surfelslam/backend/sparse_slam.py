@@ -21,6 +21,7 @@ stretches of the trajectory rigidly with their keyframe.
 from __future__ import annotations
 
 from collections import Counter
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,7 +30,7 @@ from surfelslam.backend.keyframes import Keyframe, MapConfig, keyframe_cloud
 from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
 from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
-from surfelslam.geometry.se3 import invert, motion_norm, transform_points
+from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
 from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, estimate_motion, extract
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
@@ -68,6 +69,11 @@ class SparseSlamConfig:
         loop: loop-candidate selection and verification.
         graph: pose-graph weights and solver.
         map: keyframe clouds and the final voxel-filtered map.
+        background_loop_checks: verify a new keyframe's loop candidates in a background thread while the next
+            frames are tracked. The results are applied (edges added, graph optimised) when the next keyframe is
+            inserted, before a relocalisation, and in :meth:`SparseSlam.finish`, so they land at the same point
+            of the stream every run: results are deterministic either way, and a loop corrects the poses one
+            keyframe later than with ``False``.
     """
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -78,6 +84,7 @@ class SparseSlamConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    background_loop_checks: bool = True
 
     def __post_init__(self) -> None:
         if self.rejected_pose not in REJECTED_POSE_MODES:
@@ -165,6 +172,9 @@ class SparseSlam:
         self.loops_accepted: list[tuple[int, int, int]] = []
         self.n_nearby_edges = 0
         self.rejected: Counter[str] = Counter()
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
+        self._unreported_loops = 0  # loops applied since the last frame result
 
     # --- state -------------------------------------------------------------------------------------
 
@@ -263,13 +273,13 @@ class SparseSlam:
 
         self._n_failures = 0
         is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
-        loops_added = 0
         if is_kf:
-            loops_added = self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam)
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam)
             T_world_cam = self._kf_poses[-1]
             self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
         else:
             self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+        loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
                                  loops_added)
 
@@ -281,8 +291,15 @@ class SparseSlam:
         self._T_kf_cam.append(np.asarray(T_kf_cam, np.float64).copy())
 
     def _add_keyframe(self, frame: RGBDFrame, feats: Features, T_world_cam: np.ndarray,
-                      prev_kf: int | None, T_prev_new: np.ndarray | None) -> int:
-        """Add a keyframe, its odometry edge and verified loop edges; returns the loops accepted."""
+                      prev_kf: int | None, T_prev_new: np.ndarray | None) -> None:
+        """Add a keyframe and its odometry edge, and start its loop checks (the previous keyframe's are applied
+        first: they may move ``prev_kf``, and the new keyframe is placed by its odometry from there)."""
+        if prev_kf is not None:
+            T_prev_before = self._kf_poses[prev_kf].copy()
+        self._collect_loop_checks()
+        if prev_kf is not None and not np.array_equal(self._kf_poses[prev_kf], T_prev_before):
+            # the graph moved the previous keyframe: keep the new one's pose relative to it
+            T_world_cam = orthonormalize(self._kf_poses[prev_kf] @ invert(T_prev_before) @ T_world_cam)
         kf_id = self._graph.add_node(T_world_cam)
         xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
         self._append_kf_pose(T_world_cam)
@@ -292,22 +309,38 @@ class SparseSlam:
         self._ref_kf = kf_id
         if prev_kf is not None and T_prev_new is not None:
             self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry"))
-        n_loops = 0
-        if prev_kf is not None:
-            n_loops = self._check_loops(kf_id, feats)
-            if n_loops > 0:
-                self._optimise()
-        self._index.add(self._query_descriptors(feats))
-        return n_loops
+        if prev_kf is None:
+            self._index.add(self._query_descriptors(feats))
+            return
+        if self.cfg.background_loop_checks:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
+            self._pending = self._pool.submit(self._check_loops, kf_id, feats)
+        else:
+            self._apply_loop_checks(*self._check_loops(kf_id, feats))
 
     def _query_descriptors(self, feats: Features) -> np.ndarray:
         n_max = self.cfg.loop.retrieval.max_descriptors_per_keyframe
         return select_descriptors(feats.descriptors, feats.response, feats.valid, n_max)
 
-    def _check_loops(self, kf_id: int, feats: Features) -> int:
-        n_loops = 0
-        for cand in loop_candidates(kf_id, self._query_descriptors(feats), self._index, self._rng, self.cfg.loop):
+    def _check_loops(self, kf_id: int, feats: Features) -> tuple[int, list]:
+        """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
+
+        Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
+        the only user of the index and the candidate generator between two :meth:`_collect_loop_checks`.
+        """
+        q = self._query_descriptors(feats)
+        checked = []
+        for cand in loop_candidates(kf_id, q, self._index, self._rng, self.cfg.loop):
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self.intr, self.cfg.features, self.cfg.loop)
+            checked.append((cand, res))
+        self._index.add(q)
+        return kf_id, checked
+
+    def _apply_loop_checks(self, kf_id: int, checked: list) -> None:
+        """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older keyframe."""
+        n_loops = 0
+        for cand, res in checked:
             far = cand.source != "nearby"
             if far and res.reason != "too_few_matches" and res.n_inliers >= self.cfg.features.min_inliers \
                     and res.reason != "motion_too_large":
@@ -320,7 +353,15 @@ class SparseSlam:
                 n_loops += 1
             else:
                 self.n_nearby_edges += 1
-        return n_loops
+        if n_loops > 0:
+            self._optimise()
+        self._unreported_loops += n_loops
+
+    def _collect_loop_checks(self) -> None:
+        """Wait for the background loop checks of the last keyframe, if any, and apply them."""
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            self._apply_loop_checks(*pending.result())
 
     def _optimise(self) -> None:
         self._kf_pose_buf[: len(self._kfs)] = self._graph.optimise()
@@ -328,6 +369,7 @@ class SparseSlam:
     # --- queries for the dense pipeline ---------------------------------------------------------------
 
     def _relocalise_features(self, feats: Features) -> tuple[np.ndarray, int, MotionResult] | None:
+        self._collect_loop_checks()  # the retrieval index must hold every keyframe
         cands = [k for k, _ in self._index.query(self._query_descriptors(feats), self.cfg.loop.n_retrieved)]
         last = self.n_keyframes - 1
         if last >= 0 and last not in cands:
@@ -412,6 +454,10 @@ class SparseSlam:
 
     def finish(self) -> SparseSlamResult:
         """Optimise the graph once more and return trajectory, keyframes, loops and the map."""
+        self._collect_loop_checks()
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
         if self.n_keyframes > 1:
             self._optimise()
         xyz, rgb = self.map_points()
