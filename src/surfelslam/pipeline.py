@@ -25,18 +25,21 @@ and the written trajectory is the optimised one.
 
 Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the sparse back end alongside:
 
-1. ``track``: ICP from the constant-velocity guess, as in dense SLAM, when the last step succeeded. When
-   ICP fails (:func:`icp_failure`), reports degeneracy, or the velocity is not trusted (the last frame
-   failed), the PnP pose of the frame against the last keyframe
-   (``SparseSlam.pose_guess_against_last_keyframe``) becomes the initial guess: the map is rendered at that
-   pose and ICP retried from it. After ``hybrid.relocalise_after_failures`` failed frames in a row,
+1. ``match``: the frame is matched to the reference keyframe by PnP (``SparseSlam.match_reference_keyframe``):
+   a pose and its inliers (keyframe points, sub-pixel pixels in the frame).
+2. ``track``: ICP from the constant-velocity guess, as in dense SLAM, when the last step succeeded, jointly
+   with the inliers' reprojection terms (``hybrid.joint_features``; off by default where colour and depth are
+   not registered). When ICP fails (:func:`icp_failure`), reports degeneracy, or the velocity is not trusted
+   (the last frame failed), the PnP pose becomes the initial guess: the map is rendered at that pose and ICP
+   retried from it. After ``hybrid.relocalise_after_failures`` failed frames in a row,
    ``SparseSlam.relocalise`` (all keyframes) gives the guess instead; on success fusing goes on.
    With ``hybrid.pnp_check`` every ICP pose is also compared with the PnP pose; one that disagrees is
    retried from the PnP pose and, if it still disagrees, the frame is not fused (ICP can slide along weakly
    constrained geometry while reporting a well-conditioned system).
-2. ``sparse``: every tracked frame goes to ``SparseSlam.process(frame, T_world_cam_dense=pose)``, so
-   keyframes carry dense poses and loop edges are verified by PnP between keyframes.
-3. ``correct``: loop edges move keyframes in the pose graph; the dense state follows. Choice made here:
+3. ``sparse``: every tracked frame goes to ``SparseSlam.process(frame, T_world_cam_dense=pose)``, so
+   keyframes carry dense poses and loop edges are verified by PnP between keyframes (in a background thread,
+   applied at the next keyframe: ``sparse.background_loop_checks``).
+4. ``correct``: loop edges move keyframes in the pose graph; the dense state follows. Choice made here:
    each frame is *anchored* to the last keyframe when it was processed, its pose kept as ``T_kf_cam``
    relative to that keyframe's pose *in the dense frame* (``T_kf_dense``, the ICP pose it was created
    with); each surfel is anchored to the anchor of the frame that created it (``first_seen`` -> anchor,
@@ -75,7 +78,7 @@ from surfelslam.geometry import se3
 from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
-from surfelslam.tracking.features import Features
+from surfelslam.tracking.features import Features, robust_sigma
 from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_from_maps
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
@@ -535,7 +538,6 @@ def block_average_rgb(rgb: np.ndarray, levels: int) -> np.ndarray:
 
 
 _MIN_POINTS_FOR_SPREAD = 10  # fewer PnP inliers: no spread estimate (the configured sigma holds)
-_MAD_TO_SIGMA = 1.4826  # median absolute deviation -> standard deviation (Gaussian)
 
 _WARMUP_INTRINSICS = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
 
@@ -724,7 +726,7 @@ class HybridSlam(DenseSlam):
         k = self.intr
         e = np.concatenate([k.fx * X[ok, 0] / z[ok] + k.cx - match.uv_cur[ok, 0],
                             k.fy * X[ok, 1] / z[ok] + k.cy - match.uv_cur[ok, 1]])
-        return _MAD_TO_SIGMA * float(np.median(np.abs(e - np.median(e))))
+        return robust_sigma(e)
 
     def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
         h = self.cfg.hybrid

@@ -455,6 +455,12 @@ def track_subpixel(ref: Features, cur: Features, pairs: np.ndarray, cfg: Feature
     return uv
 
 
+def robust_sigma(values: np.ndarray) -> float:
+    """Standard deviation of ``values (N,)`` estimated from their median absolute deviation (outlier-proof)."""
+    v = np.asarray(values, np.float64)
+    return _MAD_TO_SIGMA * float(np.median(np.abs(v - np.median(v))))
+
+
 def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, inv_depth_cur: np.ndarray,
                 intr: Intrinsics, cfg: FeatureConfig) -> np.ndarray:
     """Joint reprojection + inverse-depth refinement of ``T_cur_ref`` (see ``FeatureConfig.rgbd_refine_iterations``).
@@ -483,7 +489,7 @@ def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, 
             break
         if w_inv.sum() >= _MIN_POINTS_FOR_SPREAD:  # the data's own inverse-depth spread, when it exceeds the model
             d = (1.0 / z - q)[w_inv]
-            si = max(si_model, _MAD_TO_SIGMA * float(np.median(np.abs(d - np.median(d)))))
+            si = max(si_model, robust_sigma(d))
         iz = 1.0 / z
         # d(point)/d(xi) for a left update exp(xi) T, xi = (omega, v): dX = -[X]x omega + v
         J_X = np.zeros((n, 3, 6))
