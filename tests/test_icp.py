@@ -508,3 +508,26 @@ def test_register_command_on_redwood(tmp_path):
     assert agree["estimate"]["median_abs_dz_m"] < 0.01 and agree["estimate"]["overlap_fraction"] > 0.5
     assert "depth agreement" in res.output
     assert (tmp_path / "before.png").stat().st_size > 1000 and (tmp_path / "after.png").stat().st_size > 1000
+
+
+def test_register_init_auto_keeps_the_pose_the_depth_prefers(tmp_path):
+    """Synthetic handheld frames 90 apart (about 1 m and 54 deg): ICP from the identity lands far away, the ORB +
+    PnP start converges; ``--init auto`` runs both and keeps the one with the better depth agreement."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from surfelslam.synth.writer import generate_sequence
+
+    seq = generate_sequence(tmp_path / "seq", "room", "handheld", 191, "kinect", 0, 320, 240)
+    out = {}
+    for init in ("identity", "auto"):
+        res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "100", "--target", "190",
+                                                  "--init", init, "--out", str(tmp_path / init)])
+        assert res.exit_code == 0, res.output
+        out[init] = json.loads((tmp_path / init / "registration.json").read_text())
+    assert out["identity"]["gt_error"]["trans_m"] > 0.2 and out["identity"]["init_used"] == "identity"
+    assert out["auto"]["init_used"] == "features"
+    assert out["auto"]["gt_error"]["trans_m"] < 0.01 and out["auto"]["gt_error"]["rot_deg"] < 0.5
+    agree = out["auto"]["depth_agreement"]
+    assert agree["estimate"]["median_abs_dz_m"] < out["identity"]["depth_agreement"]["estimate"]["median_abs_dz_m"]

@@ -28,7 +28,7 @@ from surfelslam.tools.common import (
     handle_errors,
 )
 
-INIT_MODES = ("identity", "features")
+INIT_MODES = ("identity", "features", "auto")
 
 
 REGISTER_FEATURE_MAX_NORM = 2.0  # m + rad: --init features accepts PnP motions up to this (pairs far apart)
@@ -79,8 +79,9 @@ def register(app: typer.Typer) -> None:
             "--iterations", help="Max iterations: one value for all levels or a comma list, finest first.")] = None,
         solver: Annotated[str, typer.Option("--solver", help="cholesky | lu | qr | pinv")] = "cholesky",
         init: Annotated[str, typer.Option(
-            "--init", help="ICP initial guess: identity, or features (ORB + PnP-RANSAC between the two frames; "
-                           "falls back to identity when a rejection rule fires).")] = "identity",
+            "--init", help="ICP initial guess: identity; features (ORB + PnP-RANSAC between the two frames, "
+                           "identity when a rejection rule fires); auto (ICP from both, keeping the pose whose "
+                           "depth agreement is better).")] = "identity",
         feature_max_norm: Annotated[float, typer.Option(
             "--feature-max-norm", help="--init features: largest accepted PnP motion norm (m + rad); the "
                                        "odometry default 0.3 is too small for pairs far apart.")
@@ -119,7 +120,7 @@ def register(app: typer.Typer) -> None:
         p_tgt = pre.process(f_tgt.depth_m)
         T_init = None
         feat_info = None
-        if init == "features":
+        if init in ("features", "auto"):
             from surfelslam.tracking.features import FeatureConfig, feature_guess, with_max_motion_norm
 
             fcfg = with_max_motion_norm(FeatureConfig(), feature_max_norm)
@@ -127,7 +128,19 @@ def register(app: typer.Typer) -> None:
             feat_info = {"ok": T_init is not None, "reason": mres.reason, "good_matches": mres.n_good,
                          "inliers": mres.n_inliers,
                          "T_target_source": None if T_init is None else T_init.tolist()}
-        res = icp(p_src, p_tgt, T_init, cfg)
+        from surfelslam.eval.depth_agreement import depth_agreement
+
+        init_used = "features" if init == "features" and T_init is not None else "identity"
+        res = icp(p_src, p_tgt, T_init if init_used == "features" else None, cfg)
+        if init == "auto" and T_init is not None:
+            # both starts; keep the pose the two depth images agree with better (no ground truth needed)
+            res_f = icp(p_src, p_tgt, T_init, cfg)
+            dz = [depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, r.T_target_source).median_abs_dz_m
+                  for r in (res, res_f)]
+            if np.isfinite(dz[1]) and not dz[0] <= dz[1]:
+                res, init_used = res_f, "features"
+        if init_used == "identity":
+            T_init = None
         T = res.T_target_source
 
         result = {
@@ -145,6 +158,7 @@ def register(app: typer.Typer) -> None:
             "condition_number": res.condition_number if np.isfinite(res.condition_number) else None,
             "reason": res.reason,
             "init": init,
+            "init_used": init_used,
             "features": feat_info,
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],
