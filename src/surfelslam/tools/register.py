@@ -81,7 +81,7 @@ def register(app: typer.Typer) -> None:
         init: Annotated[str, typer.Option(
             "--init", help="ICP initial guess: identity; features (ORB + PnP-RANSAC between the two frames, "
                            "identity when a rejection rule fires); auto (ICP from both, keeping the pose whose "
-                           "depth agreement is better).")] = "identity",
+                           "depth agreement is better; the default).")] = "auto",
         feature_max_norm: Annotated[float, typer.Option(
             "--feature-max-norm", help="--init features: largest accepted PnP motion norm (m + rad); the "
                                        "odometry default 0.3 is too small for pairs far apart.")
