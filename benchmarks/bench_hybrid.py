@@ -34,11 +34,10 @@ from surfelslam.synth.render import render
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, generate_sequence, make_frame, noise_config
-from surfelslam.tools.register import REGISTER_FEATURE_MAX_NORM
 from surfelslam.tools.run import run_sequence
-from surfelslam.tracking.features import FeatureConfig, feature_guess, with_max_motion_norm
-from surfelslam.tracking.icp import icp, pairwise_config
+from surfelslam.tracking.icp import pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+from surfelslam.tracking.registration import register_pair
 from surfelslam.types import RGBDFrame
 
 WIDTH, HEIGHT = 320, 240
@@ -112,7 +111,6 @@ def wide_pairs(tmp: Path, starts) -> list[dict]:
     gt = seq.ground_truth
     cfg = pairwise_config()
     pre = Preprocessor(seq.intrinsics, PreprocessConfig(pyramid_levels=cfg.levels))
-    fcfg = with_max_motion_norm(FeatureConfig(), REGISTER_FEATURE_MAX_NORM)  # as `register --init features`
     rows = []
     for s in starts:
         t = s + PAIR_GAP
@@ -121,13 +119,13 @@ def wide_pairs(tmp: Path, starts) -> list[dict]:
         p_src, p_tgt = pre.process(src.depth_m), pre.process(tgt.depth_m)
         row = {"pair": f"{s}->{t}", "motion_m": round(float(np.linalg.norm(T_gt[:3, 3])), 2),
                "motion_deg": round(se3.rotation_angle_deg(T_gt[:3, :3]), 1)}
-        for name, T0 in (("identity", None), ("features", feature_guess(src, tgt, seq.intrinsics, fcfg)[0])):
-            if name == "features" and T0 is None:
-                row["features"] = "no guess"
+        for init in ("identity", "features"):  # as `register --init identity / features`
+            reg = register_pair(src, tgt, p_src, p_tgt, seq.intrinsics, cfg, init)
+            if reg.init_used != init:
+                row[init] = "no guess"
                 continue
-            res = icp(p_src, p_tgt, T0, cfg)
-            dt, dr = se3.pose_error(res.T_target_source, T_gt)
-            row[name] = f"{100 * dt:.2f} cm / {dr:.2f} deg"
+            dt, dr = se3.pose_error(reg.icp.T_target_source, T_gt)
+            row[init] = f"{100 * dt:.2f} cm / {dr:.2f} deg"
         rows.append(row)
     return rows
 

@@ -33,10 +33,9 @@ import numpy as np
 
 from surfelslam.eval.depth_agreement import depth_agreement
 from surfelslam.geometry import se3
-from surfelslam.tools.register import REGISTER_FEATURE_MAX_NORM
-from surfelslam.tracking.features import FeatureConfig, feature_guess, with_max_motion_norm
 from surfelslam.tracking.icp import ICPConfig, icp, pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+from surfelslam.tracking.registration import register_pair
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
 
@@ -95,16 +94,9 @@ def success_rows(downsample: int, starts=SUCCESS_STARTS, gaps=SUCCESS_GAPS) -> l
 
 def _auto_row(seq, pyr, s: int, t: int, gap: int, T_gt: np.ndarray) -> dict:
     """``register --init auto`` (the command's default): ICP from the identity and from the ORB + PnP guess, the
-    pose with the better depth agreement kept."""
-    src, tgt, k = seq[s], seq[t], seq.intrinsics
+    pose with the better depth agreement kept (:func:`surfelslam.tracking.registration.register_pair`)."""
     t0 = time.thread_time()
-    res = icp(pyr[s], pyr[t], None, pairwise_config())
-    guess, _ = feature_guess(src, tgt, k, with_max_motion_norm(FeatureConfig(), REGISTER_FEATURE_MAX_NORM))
-    if guess is not None:
-        res_f = icp(pyr[s], pyr[t], guess, pairwise_config())
-        dz = [depth_agreement(src.depth_m, tgt.depth_m, k, r.T_target_source).median_abs_dz_m for r in (res, res_f)]
-        if np.isfinite(dz[1]) and not dz[0] <= dz[1]:
-            res = res_f
+    res = register_pair(seq[s], seq[t], pyr[s], pyr[t], seq.intrinsics, pairwise_config(), "auto").icp
     ms = 1000 * (time.thread_time() - t0)
     e_t, e_r = se3.pose_error(res.T_target_source, T_gt)
     return {"pair": (s, t), "gap": gap, "method": "register --init auto (default)", "err_mm": 1000 * e_t,

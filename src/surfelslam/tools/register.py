@@ -28,11 +28,6 @@ from surfelslam.tools.common import (
     handle_errors,
 )
 
-INIT_MODES = ("identity", "features", "auto")
-
-
-REGISTER_FEATURE_MAX_NORM = 2.0  # m + rad: --init features accepts PnP motions up to this (pairs far apart)
-
 
 def per_level(text: str | None, default: tuple, levels: int, name: str, cast=float,
               coarser_factor: float = 2.0) -> tuple:
@@ -82,17 +77,19 @@ def register(app: typer.Typer) -> None:
             "--init", help="ICP initial guess: identity; features (ORB + PnP-RANSAC between the two frames, "
                            "identity when a rejection rule fires); auto (ICP from both, keeping the pose whose "
                            "depth agreement is better; the default).")] = "auto",
-        feature_max_norm: Annotated[float, typer.Option(
-            "--feature-max-norm", help="--init features: largest accepted PnP motion norm (m + rad); the "
-                                       "odometry default 0.3 is too small for pairs far apart.")
-        ] = REGISTER_FEATURE_MAX_NORM,
+        feature_max_norm: Annotated[float | None, typer.Option(
+            "--feature-max-norm", help="--init features / auto: largest accepted PnP motion norm (m + rad; "
+                                       "default 2.0); the odometry default 0.3 is too small for pairs far "
+                                       "apart.")] = None,
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
+        from surfelslam.eval.depth_agreement import depth_agreement
         from surfelslam.geometry import se3
         from surfelslam.io.atomic import write_text_atomic
-        from surfelslam.tracking.icp import icp, pairwise_config
+        from surfelslam.tracking.icp import pairwise_config
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+        from surfelslam.tracking.registration import FEATURE_MAX_NORM, INIT_MODES, register_pair
         from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
@@ -118,29 +115,16 @@ def register(app: typer.Typer) -> None:
         f_src, f_tgt = sq[source], sq[target]
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
-        T_init = None
+        reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
+                            FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm)
+        res, init_used = reg.icp, reg.init_used
         feat_info = None
-        if init in ("features", "auto"):
-            from surfelslam.tracking.features import FeatureConfig, feature_guess, with_max_motion_norm
-
-            fcfg = with_max_motion_norm(FeatureConfig(), feature_max_norm)
-            T_init, mres = feature_guess(f_src, f_tgt, sq.intrinsics, fcfg)
-            feat_info = {"ok": T_init is not None, "reason": mres.reason, "good_matches": mres.n_good,
+        if reg.motion is not None:
+            mres = reg.motion
+            feat_info = {"ok": reg.guess is not None, "reason": mres.reason, "good_matches": mres.n_good,
                          "inliers": mres.n_inliers,
-                         "T_target_source": None if T_init is None else T_init.tolist()}
-        from surfelslam.eval.depth_agreement import depth_agreement
-
-        init_used = "features" if init == "features" and T_init is not None else "identity"
-        res = icp(p_src, p_tgt, T_init if init_used == "features" else None, cfg)
-        if init == "auto" and T_init is not None:
-            # both starts; keep the pose the two depth images agree with better (no ground truth needed)
-            res_f = icp(p_src, p_tgt, T_init, cfg)
-            dz = [depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, r.T_target_source).median_abs_dz_m
-                  for r in (res, res_f)]
-            if np.isfinite(dz[1]) and not dz[0] <= dz[1]:
-                res, init_used = res_f, "features"
-        if init_used == "identity":
-            T_init = None
+                         "T_target_source": None if reg.guess is None else reg.guess.tolist()}
+        T_init = reg.guess if init_used == "features" else None
         T = res.T_target_source
 
         result = {
@@ -163,8 +147,6 @@ def register(app: typer.Typer) -> None:
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],
         }
-        from surfelslam.eval.depth_agreement import depth_agreement
-
         def agreement(T_pose: np.ndarray) -> dict:
             a = vars(depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, T_pose)).copy()
             a["median_abs_dz_m"] = a["median_abs_dz_m"] if np.isfinite(a["median_abs_dz_m"]) else None

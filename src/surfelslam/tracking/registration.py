@@ -1,0 +1,64 @@
+"""Pairwise registration of two RGB-D frames with a choice of ICP start (what ``surfelslam register`` runs).
+
+Starts (``INIT_MODES``):
+
+* ``identity``: ICP from the identity;
+* ``features``: ICP from the ORB + PnP-RANSAC guess between the two frames (identity when a rejection rule fires);
+* ``auto``: ICP from both, keeping the pose the two depth images agree with better
+  (:func:`surfelslam.eval.depth_agreement.depth_agreement`: lower median ``|dz|``; no ground truth involved).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from surfelslam.errors import ConfigError
+from surfelslam.eval.depth_agreement import depth_agreement
+from surfelslam.tracking.features import FeatureConfig, MotionResult, feature_guess, with_max_motion_norm
+from surfelslam.tracking.icp import ICPConfig, ICPResult, icp
+from surfelslam.tracking.preprocess import FramePyramid
+from surfelslam.types import Intrinsics, RGBDFrame
+
+INIT_MODES = ("identity", "features", "auto")
+FEATURE_MAX_NORM = 2.0  # m + rad: the PnP guess accepts motions up to this (pairs far apart; odometry uses 0.3)
+
+
+@dataclass
+class PairRegistration:
+    """Outcome of :func:`register_pair`.
+
+    Attributes:
+        icp: the kept ICP result (``icp.T_target_source`` is the pose).
+        init_used: ``"identity"`` or ``"features"``: the start of the kept result.
+        guess: ``(4, 4)`` feature guess ``T_target_source`` when one was computed and accepted, else ``None``.
+        motion: the PnP outcome when features were tried, else ``None``.
+    """
+
+    icp: ICPResult
+    init_used: str
+    guess: np.ndarray | None
+    motion: MotionResult | None
+
+
+def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: FramePyramid, intr: Intrinsics,
+                  icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM
+                  ) -> PairRegistration:
+    """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``) from the start ``init``."""
+    if init not in INIT_MODES:
+        raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
+    guess = motion = None
+    if init != "identity":
+        fcfg = with_max_motion_norm(FeatureConfig(), feature_max_norm)
+        guess, motion = feature_guess(src, tgt, intr, fcfg)
+    if init == "features" and guess is not None:
+        return PairRegistration(icp(p_src, p_tgt, guess, icp_cfg), "features", guess, motion)
+    res = icp(p_src, p_tgt, None, icp_cfg)
+    if init == "auto" and guess is not None:
+        res_f = icp(p_src, p_tgt, guess, icp_cfg)
+        dz_id, dz_f = (depth_agreement(src.depth_m, tgt.depth_m, intr, r.T_target_source).median_abs_dz_m
+                       for r in (res, res_f))
+        if np.isfinite(dz_f) and not dz_id <= dz_f:
+            return PairRegistration(res_f, "features", guess, motion)
+    return PairRegistration(res, "identity", guess, motion)
