@@ -66,7 +66,7 @@ def _pyramids(seq, pre: Preprocessor, frames) -> dict:
 def success_rows(downsample: int, starts=SUCCESS_STARTS, gaps=SUCCESS_GAPS) -> list[dict]:
     """One row per (pair, method): errors (mm, deg) vs GT, converged, CPU ms of the ICP call."""
     seq = _open(downsample)
-    T_wc, valid = seq.gt_poses()
+    T_wc, valid = seq.gt_poses(at_depth_time=True)  # as register does
     pairs = [(s, s + g, g) for g in gaps for s in starts if s + g < len(seq) and valid[s] and valid[s + g]]
     pyr = _pyramids(seq, Preprocessor(seq.intrinsics, PreprocessConfig()), [i for p in pairs for i in p[:2]])
     methods = (("register --init identity", pairwise_config(), False),
@@ -145,7 +145,7 @@ def print_success(rows: list[dict], size: str) -> None:
 def seeds_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90)) -> list[dict]:
     """The seeds' experiment at 320x240: single level at 0.07 m vs the register ICP settings (coarse-to-fine)."""
     seq = _open(2)
-    T_wc, valid = seq.gt_poses()
+    T_wc, valid = seq.gt_poses(at_depth_time=True)  # as register does
     pairs = [(s, s + g, g) for g in gaps for s in starts if s + g < len(seq) and valid[s] and valid[s + g]]
     pyr = _pyramids(seq, Preprocessor(seq.intrinsics, PreprocessConfig()), [i for p in pairs for i in p[:2]])
     rows = []

@@ -413,3 +413,45 @@ def test_check_depth_scale():
 def test_intrinsics_downsample_consistency():
     intr = Intrinsics(481.2, -480.0, 319.5, 239.5, 640, 480).scaled(2)
     assert intr.as_tuple() == (240.6, -240.0, 159.75, 119.75) and intr.shape == (240, 320)
+
+
+def test_trajectory_interpolate_slerp_and_gaps():
+    from surfelslam.geometry import se3
+    from surfelslam.types import Trajectory
+
+    R_b = se3.so3_exp(np.array([0.0, 0.0, np.radians(20.0)]))
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[1, :3, :3], T[1, :3, 3] = R_b, [0.1, 0.0, 0.0]
+    T[2, :3, 3] = [5.0, 0.0, 0.0]
+    traj = Trajectory(np.array([0.0, 0.01, 1.0]), T)
+    Ti, ok = traj.interpolate(np.array([0.0025, 0.5, 0.985, 2.0, 1.01]), max_gap_s=0.05, max_dt_s=0.02)
+    # a quarter of the way: 2.5 cm and 5 degrees about z
+    assert ok[0] and np.allclose(Ti[0, :3, 3], [0.025, 0, 0])
+    assert np.isclose(se3.rotation_angle_deg(Ti[0, :3, :3]), 5.0) and Ti[0, 1, 0] > 0
+    # inside a 0.99 s gap: no pose within 20 ms -> invalid; near its end: the nearest pose, not an interpolation
+    assert not ok[1] and np.allclose(Ti[1], np.eye(4))
+    assert ok[2] and np.allclose(Ti[2], T[2])
+    assert not ok[3] and ok[4] and np.allclose(Ti[4], T[2])  # beyond the end: nearest within 20 ms only
+
+
+def test_gt_at_depth_time_uses_depth_stamps(tmp_path):
+    """TUM colour and depth stamps differ: the depth-time GT is interpolated at the depth stamp."""
+    root = make_tum(tmp_path / "seq", n=4, dt_s=0.03)
+    t_rgb = 100.0 + 0.03 * np.arange(4)
+    # depth captured 12 ms after colour; GT (1 cm per 30 ms along x) interpolates to +4 mm
+    (root / "depth.txt").write_text("".join(f"{t + 0.012:.6f} depth/{t:.6f}.png\n" for t in t_rgb))
+    seq = open_sequence(root)
+    assert np.allclose(seq.depth_timestamps - seq.timestamps, 0.012)
+    T_frame, ok_frame = seq.gt_poses()
+    T_depth, ok_depth = seq.gt_poses(at_depth_time=True)
+    assert ok_frame.all() and ok_depth[:3].all()
+    assert np.allclose(T_frame[:, 0, 3], 0.01 * np.arange(4))
+    assert np.allclose(T_depth[:3, 0, 3], 0.01 * np.arange(3) + 0.004)
+    # the last depth stamp is beyond the ground truth's end: the nearest pose (12 ms away)
+    assert ok_depth[3] and np.isclose(T_depth[3, 0, 3], 0.03)
+    # associations.txt keeps both stamps too (TUM associate.py order: rgb first)
+    rows = [ln.split() for ln in (root / "rgb.txt").read_text().splitlines()[1:]]
+    (root / "associations.txt").write_text("".join(
+        f"{t} {f} {float(t) + 0.012:.6f} {f.replace('rgb', 'depth')}\n" for t, f in rows))
+    (root / "depth.txt").unlink()
+    assert np.allclose(open_sequence(root).depth_timestamps - t_rgb, 0.012)

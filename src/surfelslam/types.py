@@ -173,5 +173,36 @@ class Trajectory:
         T[valid] = self.T_world_cam[best[valid]]
         return T, valid
 
+    def interpolate(self, stamps: np.ndarray, max_gap_s: float, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pose at each query stamp, interpolated between the two poses that bracket it.
+
+        Translation is interpolated linearly and rotation along the geodesic (SLERP) when the bracketing
+        poses are at most ``max_gap_s`` apart; otherwise (a gap in the trajectory, or a stamp outside it) the
+        nearest pose is used if it is within ``max_dt_s`` (:meth:`lookup`).
+
+        Returns:
+            ``(T_world_cam (M, 4, 4), valid (M,) bool)``, invalid rows are the identity.
+        """
+        from surfelslam.geometry.se3 import so3_exp, so3_log
+
+        stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        T, valid = self.lookup(stamps, max_dt_s)
+        t = self.timestamps
+        if len(t) < 2:
+            return T, valid
+        hi = np.searchsorted(t, stamps, side="right")
+        for k in np.nonzero((hi > 0) & (hi < len(t)))[0]:
+            a, b = hi[k] - 1, hi[k]
+            gap = t[b] - t[a]
+            if not 0 < gap <= max_gap_s:
+                continue
+            s = (stamps[k] - t[a]) / gap
+            Ta, Tb = self.T_world_cam[a], self.T_world_cam[b]
+            Ti = np.eye(4)
+            Ti[:3, :3] = Ta[:3, :3] @ so3_exp(s * so3_log(Ta[:3, :3].T @ Tb[:3, :3]))
+            Ti[:3, 3] = (1 - s) * Ta[:3, 3] + s * Tb[:3, 3]
+            T[k], valid[k] = Ti, True
+        return T, valid
+
     def subset(self, mask_or_index) -> Trajectory:
         return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])

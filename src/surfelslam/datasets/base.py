@@ -14,6 +14,10 @@ import numpy as np
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
+#: Largest gap (s) between two ground-truth poses that :meth:`RGBDSequence.gt_poses` interpolates across
+#: (TUM motion capture runs at 100 Hz; a longer gap is a dropout, where the nearest pose is used instead).
+GT_INTERPOLATION_MAX_GAP_S = 0.05
+
 
 @dataclass(frozen=True)
 class DatasetOptions:
@@ -55,11 +59,16 @@ class DatasetOptions:
 
 @dataclass(frozen=True)
 class FrameEntry:
-    """One frame's files before loading: timestamps in seconds, absolute paths."""
+    """One frame's files before loading: timestamps in seconds, absolute paths.
+
+    ``timestamp`` is the frame's (the colour image's) stamp; ``depth_timestamp`` the depth image's when the
+    layout records a separate one (TUM: colour and depth are captured up to 20 ms apart), else ``None``.
+    """
 
     timestamp: float
     rgb_path: Path
     depth_path: Path
+    depth_timestamp: float | None = None
 
 
 class RGBDSequence:
@@ -114,6 +123,13 @@ class RGBDSequence:
         """``(N,)`` float64 timestamps of the selected frames."""
         return np.array([e.timestamp for e in self.entries], dtype=np.float64)
 
+    @property
+    def depth_timestamps(self) -> np.ndarray:
+        """``(N,)`` float64 capture stamps of the selected frames' depth images (the frame stamp when the
+        layout has no separate depth stamp)."""
+        return np.array([e.timestamp if e.depth_timestamp is None else e.depth_timestamp for e in self.entries],
+                        dtype=np.float64)
+
     def __getitem__(self, i: int) -> RGBDFrame:
         if not -len(self) <= i < len(self):
             raise IndexError(f"frame {i} out of range for a sequence of {len(self)} frames")
@@ -149,16 +165,27 @@ class RGBDSequence:
         for i in range(len(self)):
             yield self[i]
 
-    def gt_poses(self, max_dt_s: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    def gt_poses(self, max_dt_s: float = 0.02, at_depth_time: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Ground-truth pose for each selected frame.
 
+        Args:
+            max_dt_s: a frame whose nearest ground-truth stamp is farther than this has no ground truth.
+            at_depth_time: False (trajectory evaluation, the TUM tools' convention): the pose with the nearest
+                stamp to the frame stamp. True (depth-only registration): the pose at the *depth* image's
+                capture stamp, interpolated between the bracketing ground-truth poses when they are at most
+                :data:`GT_INTERPOLATION_MAX_GAP_S` apart. On TUM, colour and depth stamps differ by up to 20 ms
+                and ground truth is sampled at 100 Hz: at 0.5 m/s the frame-stamp pose is up to 1 cm from
+                where the depth camera was.
+
         Returns:
-            ``(T_world_cam (N, 4, 4), valid (N,) bool)``: frames whose nearest ground-truth stamp is
-            farther than ``max_dt_s`` are marked invalid (their pose is identity).
+            ``(T_world_cam (N, 4, 4), valid (N,) bool)``: frames without ground truth are marked invalid
+            (their pose is identity).
         """
         if self.ground_truth is None:
             n = len(self)
             return np.tile(np.eye(4), (n, 1, 1)), np.zeros(n, dtype=bool)
+        if at_depth_time:
+            return self.ground_truth.interpolate(self.depth_timestamps, GT_INTERPOLATION_MAX_GAP_S, max_dt_s)
         return self.ground_truth.lookup(self.timestamps, max_dt_s)
 
     def info(self) -> dict:

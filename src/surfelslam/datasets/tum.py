@@ -138,23 +138,25 @@ def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> list[F
             f"no rgb/depth pair within {max_dt_s} s between {RGB_INDEX} ({len(t_rgb)} lines) and "
             f"{DEPTH_INDEX} ({len(t_depth)} lines); the nearest gap found is {gap:.6g} s",
         )
-    return [FrameEntry(float(t_rgb[a]), rgb_paths[a], depth_paths[b]) for a, b in zip(ia, ib, strict=True)]
+    return [FrameEntry(float(t_rgb[a]), rgb_paths[a], depth_paths[b], float(t_depth[b]))
+            for a, b in zip(ia, ib, strict=True)]
 
 
 def _read_associations(path: Path, root: Path) -> list[FrameEntry]:
     """``associations.txt``: ``t_rgb rgb_file t_depth depth_file`` per line (TUM associate.py order)."""
     rows = read_index(path, min_columns=4)
     t = np.array([_timestamp(path, n, p[0]) for n, p in rows], dtype=np.float64)
-    for n, p in rows:
-        _timestamp(path, n, p[2])
+    t_depth = np.array([_timestamp(path, n, p[2]) for n, p in rows], dtype=np.float64)
     order = _sorted_unique(path, t, np.array([n for n, _ in rows]))
     entries = []
     for k in order:
         _, p = rows[k]
         rgb, depth = p[1], p[3]
+        t_d = float(t_depth[k])
         if "depth" in Path(rgb).parts[0] and "rgb" in Path(depth).parts[0]:
             rgb, depth = depth, rgb  # some tools write the depth pair first
-        entries.append(FrameEntry(float(t[k]), root / rgb, root / depth))
+            t_d = float(t[k])
+        entries.append(FrameEntry(float(t[k]), root / rgb, root / depth, t_d))
     return entries
 
 

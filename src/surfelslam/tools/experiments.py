@@ -150,7 +150,7 @@ def section_icp_pairs(seq, out_dir: Path, pairs, scaled: bool, opts: ExperimentO
                  "finest level, hence fewer inliers). Residual = "
                  "point-to-plane RMS over the inliers at the end (mean squared residual in brackets).")
     lines.append("")
-    T_wc, valid = seq.gt_poses()
+    T_wc, valid = seq.gt_poses(at_depth_time=True)  # ICP registers depth: GT at the depth capture time
     if not valid.any():
         lines += ["This sequence has no ground truth: the error columns are n/a.", ""]
     pre = Preprocessor(seq.intrinsics, PreprocessConfig())

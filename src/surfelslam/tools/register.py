@@ -132,6 +132,8 @@ def register(app: typer.Typer) -> None:
             "target": target,
             "source_timestamp": f_src.timestamp,
             "target_timestamp": f_tgt.timestamp,
+            "source_depth_timestamp": float(sq.depth_timestamps[source]),
+            "target_depth_timestamp": float(sq.depth_timestamps[target]),
             "T_target_source": T.tolist(),
             "inliers": res.inliers,
             "inlier_fraction": res.inlier_fraction,
@@ -154,7 +156,8 @@ def register(app: typer.Typer) -> None:
 
         agree = {"estimate": agreement(T)}
         result["depth_agreement"] = agree
-        T_wc, valid = sq.gt_poses()
+        # the depth camera's ground-truth pose at its own capture time: ICP registers the depth images
+        T_wc, valid = sq.gt_poses(at_depth_time=True)
         if valid[source] and valid[target]:
             T_gt = se3.invert(T_wc[target]) @ T_wc[source]
             agree["ground_truth"] = agreement(T_gt)
