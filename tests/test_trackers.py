@@ -232,3 +232,21 @@ def test_background_loop_checks_keep_poses_rigid_and_close_to_inline():
         assert np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() < 1e-9
         runs[background] = _ate_m(est, gt)
     assert runs[True] < 0.02 and abs(runs[True] - runs[False]) < 3e-3, runs
+
+
+def test_a_discarded_prepared_frame_returns_its_pyramid_to_the_pool():
+    """``run --poses`` skips frames without a pose after they were prepared: their pyramids are reused, so
+    skipping many frames does not grow memory."""
+    frames, gt = _frames("slow", N_SLOW)
+    slam = build_slam(INTR, SlamConfig(), "given")
+    pyramids = []  # kept alive, so distinct buffers have distinct ids
+    for k, f in enumerate(frames[:10]):
+        prep = slam.prepare(f)
+        if all(prep.pyramid is not p for p in pyramids):
+            pyramids.append(prep.pyramid)
+        if k % 2:
+            slam.discard(prep)
+            assert prep.pyramid is None
+        else:
+            slam.process(f, T_world_cam=gt[k], prepared=prep)
+    assert len(pyramids) <= 3  # the current, the previous and one in flight: buffers are reused

@@ -400,6 +400,12 @@ class _FusingMapper:
         ms = {"preprocess": (time.perf_counter() - t0) * 1e3}
         return PreparedFrame(frame, pyr, rgb, None, ms, (time.thread_time() - c0) * 1e3)
 
+    def discard(self, prepared: PreparedFrame | None) -> None:
+        """A prepared frame that will not be processed (skipped): its pyramid goes back to the pool."""
+        if prepared is not None and prepared.pyramid is not None:
+            self._release(prepared.pyramid)
+            prepared.pyramid = None
+
     def _preprocess(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FramePyramid:
         """Make the frame's pyramid the current source (the prepared one, or computed here)."""
         prepared = _prepared_for(frame, prepared)

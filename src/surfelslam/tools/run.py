@@ -83,6 +83,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
                 if given is not None:
                     T_given = given.get(item.position)
                     if T_given is None:
+                        slam.discard(item.prepared)  # its pyramid back to the pool
                         skipped.append({"position": item.position, "reason": "no pose within max_dt"})
                         bar.update(1)
                         continue
