@@ -79,7 +79,14 @@ from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
 from surfelslam.tracking.features import Features, robust_sigma
-from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp
+from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp, photometric_term
+from surfelslam.tracking.photometric import (
+    PHOTOMETRIC_MODES,
+    IntensityPyramid,
+    PhotometricTerm,
+    intensity_from_rgb,
+    intensity_pyramid,
+)
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_from_maps
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
@@ -141,16 +148,26 @@ class TrackingConfig:
             at its 2x2 block-averaged 320x240 level: the model is rendered at 320x240 (a quarter of the
             splatting work) and ICP sees the same number of points as at 320x240 input. 0 = always track at
             full resolution.
+        photometric: ``auto | on | off``. On: ICP minimises the intensity difference between each frame pixel
+            and the model's rendered colour jointly with the point-to-plane distances (ElasticFusion's joint
+            ICP + RGB tracking; :mod:`surfelslam.tracking.photometric`, weights in ``icp.photometric_*``).
+            Texture then holds the pose along directions the geometry leaves weak, where ICP slides.
+            ``auto``: on unless colour and depth are not registered (``RGBDSequence.colour_registered``,
+            e.g. 7-Scenes, where a depth pixel's colour belongs to another ray).
     """
 
     constant_velocity: bool = True
     max_failures_in_a_row_before_reset_velocity: int = 3
     frame_to_frame_init: bool = False
     max_width_px: int = 320
+    photometric: str = "auto"
 
     def __post_init__(self) -> None:
         if self.max_width_px < 0:
             raise ConfigError(f"tracking: max_width_px must be >= 0, got {self.max_width_px}")
+        if self.photometric not in PHOTOMETRIC_MODES:
+            raise ConfigError(f"tracking: photometric must be one of {', '.join(PHOTOMETRIC_MODES)}, "
+                              f"got {self.photometric!r}")
 
 
 @dataclass
@@ -278,6 +295,7 @@ class PreparedFrame:
         features: ORB features of the frame (trackers with a sparse part), or ``None``.
         timings_ms: wall ms per stage spent preparing (reported as that stage's time).
         cpu_ms: CPU time of the preparing thread for this frame (ms).
+        intensity: the frame's intensity pyramid at the tracking level (photometric tracking), or ``None``.
     """
 
     frame: RGBDFrame
@@ -286,6 +304,7 @@ class PreparedFrame:
     features: Features | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     cpu_ms: float = 0.0
+    intensity: IntensityPyramid | None = None
 
 
 def _prepared_for(frame: RGBDFrame, prepared: PreparedFrame | None) -> PreparedFrame | None:
@@ -441,9 +460,16 @@ class _FusingMapper:
 
 
 class DenseSlam(_FusingMapper):
-    """Frame-to-model dense SLAM: track each frame against the map rendered at the previous pose, then fuse."""
+    """Frame-to-model dense SLAM: track each frame against the map rendered at the previous pose, then fuse.
 
-    def __init__(self, intr: Intrinsics, cfg: SlamConfig):
+    ``colour_registered``: the sequence's colour and depth pixels see the same rays (``tracking.photometric``).
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True):
+        mode = cfg.tracking.photometric
+        self.photometric = cfg.icp.photometric_weight > 0 and (mode == "on" or (mode == "auto" and colour_registered))
+        self._src_intensity: IntensityPyramid | None = None
+        self._tgt_intensity: IntensityPyramid | None = None
         self.track_level = working_level(intr, cfg.tracking.max_width_px)
         super().__init__(intr, cfg, min_levels=self.track_level + cfg.icp.levels, track_level=self.track_level)
         track_intr = self.pre.level_intrinsics[self.track_level]
@@ -463,12 +489,44 @@ class DenseSlam(_FusingMapper):
 
     def render_target(self, T_world_cam: np.ndarray) -> FramePyramid:
         """The map rendered at ``T_world_cam`` at the tracking resolution, straight into the target pyramid's
-        level 0 (geometry only)."""
+        level 0 (geometry, and the intensity pyramid of the rendered colour when tracking photometrically)."""
         lvl0 = self.target[0]
         view = render(self.map, T_world_cam, lvl0.intrinsics, self.cfg.render, vertex_out=lvl0.vertex,
-                      normal_out=lvl0.normal, attributes=False)
+                      normal_out=lvl0.normal, attributes=self.photometric)
+        if self.photometric:
+            self._tgt_intensity = intensity_pyramid(intensity_from_rgb(view.colour, view.valid), self.cfg.icp.levels,
+                                                    gradients=True)
         return pyramid_from_maps(view.vertex_cam, view.normal_cam, lvl0.intrinsics, len(self.target),
                                  self.cfg.preprocess, out=self.target)
+
+    def source_intensity(self, frame: RGBDFrame) -> IntensityPyramid:
+        """The frame's intensity pyramid on the tracking levels' grid (2x2 block means down to the tracking
+        level, then ``icp.levels`` levels)."""
+        pyr = intensity_pyramid(intensity_from_rgb(frame.rgb), self.track_level + self.cfg.icp.levels,
+                                gradients=False)
+        return IntensityPyramid(pyr.intensity[self.track_level:])
+
+    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
+        """Preprocessing (and the intensity pyramid when tracking photometrically), for another thread."""
+        p = super().prepare(frame)
+        if self.photometric:
+            t0 = time.perf_counter()
+            p.intensity = self.source_intensity(frame)
+            p.timings_ms["preprocess"] += (time.perf_counter() - t0) * 1e3
+        return p
+
+    def _set_source_intensity(self, frame: RGBDFrame, prepared: PreparedFrame | None) -> None:
+        if not self.photometric:
+            return
+        p = _prepared_for(frame, prepared)
+        self._src_intensity = p.intensity if p is not None and p.intensity is not None else \
+            self.source_intensity(frame)
+
+    def photometric_term(self) -> PhotometricTerm | None:
+        """The joint photometric term of the current source against the last rendered target (or ``None``)."""
+        if not self.photometric or self._src_intensity is None or self._tgt_intensity is None:
+            return None
+        return photometric_term(self._src_intensity, self._tgt_intensity, self.cfg.icp)
 
     @property
     def track_source(self) -> FramePyramid:
@@ -483,6 +541,7 @@ class DenseSlam(_FusingMapper):
         """Track ``frame`` and fuse it; ``prepared``: optional :meth:`prepare` output for this frame."""
         t = _Timer(prepared)
         self._preprocess(frame, prepared)
+        self._set_source_intensity(frame, prepared)
         t.lap("preprocess" if prepared is None else None)
         if self.T_world_cam is None:  # the first frame defines the world frame
             self.T_world_cam = np.eye(4)
@@ -501,7 +560,7 @@ class DenseSlam(_FusingMapper):
                       cfg=self.cfg.icp)
             if icp_failure(f2f) is None:
                 T_init = f2f.T_target_source
-        res = icp(self.track_source, target, T_init=T_init, cfg=self.cfg.icp)
+        res = icp(self.track_source, target, T_init=T_init, cfg=self.cfg.icp, photometric=self.photometric_term())
         t.lap("icp")
         failure = icp_failure(res)
         if failure is None:
@@ -566,7 +625,8 @@ def icp_failure(res: ICPResult) -> str | None:
     """Category of a tracking failure, or ``None`` when the result can be used.
 
     Running out of iterations at the finest level is *not* a failure (the estimate is still refined);
-    too few inliers, an unsolvable or degenerate system, and implausible motion are.
+    too few inliers (count or fraction of the valid source points), an unsolvable or degenerate system, and
+    implausible motion are.
     """
     if res.converged:
         return None
@@ -575,6 +635,8 @@ def icp_failure(res: ICPResult) -> str | None:
     stop = res.levels[-1].stop if res.levels else "solver"
     if stop in ("too_few_inliers", "solver"):
         return stop
+    if res.reason and res.reason.startswith("too few inliers"):  # the finest level's inlier fraction rule
+        return "too_few_inliers"
     if res.reason and res.reason.startswith("implausible"):
         return "implausible_motion"
     return None
@@ -669,7 +731,7 @@ class HybridSlam(DenseSlam):
     """
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True):
-        super().__init__(intr, cfg)
+        super().__init__(intr, cfg, colour_registered)
         mode = cfg.hybrid.joint_features
         self.joint = mode == "on" or (mode == "auto" and colour_registered)
         sp = cfg.sparse
@@ -709,7 +771,7 @@ class HybridSlam(DenseSlam):
         target = self.render_target(T_render)
         term = self._reprojection_term(T_render, match)
         res = icp(self.track_source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp,
-                  reprojection=term)
+                  reprojection=term, photometric=self.photometric_term())
         return res, icp_failure(res), se3.orthonormalize(T_render @ res.T_target_source)
 
     def _reprojection_term(self, T_render: np.ndarray, match: KeyframeMatch | None) -> ReprojectionTerm | None:
@@ -740,6 +802,7 @@ class HybridSlam(DenseSlam):
         p = _prepared_for(frame, prepared)
         self._feats = None if p is None else p.features
         self._preprocess(frame, prepared)
+        self._set_source_intensity(frame, prepared)
         t.lap("preprocess" if prepared is None else None)
         self._stamp_of_frame[frame.index] = frame.timestamp
         if self.T_world_cam is None:
@@ -910,7 +973,7 @@ def build_slam(intr: Intrinsics, cfg: SlamConfig, tracker: str, colour_registere
 
     ``colour_registered``: the sequence's colour and depth pixels see the same rays (see ``HybridConfig``)."""
     if tracker == "dense":
-        return DenseSlam(intr, cfg)
+        return DenseSlam(intr, cfg, colour_registered)
     if tracker == "orb":
         return OrbSlam(intr, cfg)
     if tracker == "hybrid":

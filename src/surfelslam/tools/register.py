@@ -77,6 +77,9 @@ def register(app: typer.Typer) -> None:
             "--init", help="ICP initial guess: identity; features (ORB + PnP-RANSAC between the two frames, "
                            "identity when a rejection rule fires); auto (ICP from both, keeping the pose whose "
                            "depth agreement is better; the default).")] = "auto",
+        photometric: Annotated[str, typer.Option(
+            "--photometric", help="Joint geometric + photometric ICP: auto (on when colour and depth are "
+                                  "registered, e.g. TUM, ICL-NUIM; off for 7-Scenes), on, off.")] = "auto",
         feature_max_norm: Annotated[float | None, typer.Option(
             "--feature-max-norm", help="--init features / auto: largest accepted PnP motion norm (m + rad; "
                                        "default 2.0); the odometry default 0.3 is too small for pairs far "
@@ -88,12 +91,15 @@ def register(app: typer.Typer) -> None:
         from surfelslam.geometry import se3
         from surfelslam.io.atomic import write_text_atomic
         from surfelslam.tracking.icp import pairwise_config
+        from surfelslam.tracking.photometric import PHOTOMETRIC_MODES
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
         from surfelslam.tracking.registration import FEATURE_MAX_NORM, INIT_MODES, register_pair
         from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
             raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
+        if photometric not in PHOTOMETRIC_MODES:
+            raise ConfigError(f"--photometric must be one of {', '.join(PHOTOMETRIC_MODES)}, got {photometric!r}")
         sq = open_sequence(seq, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
         for name, idx in (("--source", source), ("--target", target)):
             if not 0 <= idx < len(sq):
@@ -115,8 +121,9 @@ def register(app: typer.Typer) -> None:
         f_src, f_tgt = sq[source], sq[target]
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
+        use_photometric = photometric == "on" or (photometric == "auto" and getattr(sq, "colour_registered", True))
         reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
-                            FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm)
+                            FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric)
         res, init_used = reg.icp, reg.init_used
         feat_info = None
         if reg.motion is not None:
@@ -145,6 +152,7 @@ def register(app: typer.Typer) -> None:
             "reason": res.reason,
             "init": init,
             "init_used": init_used,
+            "photometric": use_photometric,
             "features": feat_info,
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],

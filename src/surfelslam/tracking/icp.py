@@ -20,6 +20,7 @@ import scipy.linalg
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.kernels import icp as kicp
+from surfelslam.tracking.photometric import IntensityPyramid, PhotometricTerm
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor
 from surfelslam.types import Intrinsics
 
@@ -73,6 +74,13 @@ class ICPConfig:
             as implausible.
         finest_source_stride_px: at the finest level only source pixels ``[::s, ::s]`` are associated
             (the target keeps its full resolution); 1 uses every pixel.
+        photometric_weight: joint photometric term (:mod:`surfelslam.tracking.photometric`, used when the caller
+            passes one): an intensity residual of ``photometric_sigma`` costs as much as this many
+            point-to-plane pairs with a residual of the level's robust scale.
+        photometric_sigma: intensity noise, [0, 1] intensity scale (the residual unit).
+        photometric_huber: Huber threshold of the intensity residual, in units of ``photometric_sigma``.
+        photometric_brightness_offset: re-estimate a global brightness offset between the two views at every
+            iteration (auto-exposure).
     """
 
     levels: int = 4
@@ -94,6 +102,10 @@ class ICPConfig:
     finest_source_stride_px: int = 2
     finest_robust_scale_m: float = 0.005
     depth_weight_ref_m: float = 1.5
+    photometric_weight: float = 0.1
+    photometric_sigma: float = 0.02
+    photometric_huber: float = 2.0
+    photometric_brightness_offset: bool = True
 
     def __post_init__(self) -> None:
         if self.levels < 1:
@@ -123,6 +135,11 @@ class ICPConfig:
             raise ConfigError(f"icp: finest_source_stride_px must be >= 1, got {self.finest_source_stride_px}")
         if not self.weak_direction_ratio >= 0:
             raise ConfigError(f"icp: weak_direction_ratio must be >= 0 (0 = off), got {self.weak_direction_ratio}")
+        if not self.photometric_weight >= 0:
+            raise ConfigError(f"icp: photometric_weight must be >= 0, got {self.photometric_weight}")
+        for name in ("photometric_sigma", "photometric_huber"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"icp: {name} must be > 0, got {getattr(self, name)}")
         if not 0 <= self.min_inlier_fraction <= 1:
             raise ConfigError(f"icp: min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction}")
 
@@ -264,7 +281,8 @@ def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
 
 
 def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = None,
-        cfg: ICPConfig | None = None, reprojection: ReprojectionTerm | None = None) -> ICPResult:
+        cfg: ICPConfig | None = None, reprojection: ReprojectionTerm | None = None,
+        photometric: PhotometricTerm | None = None) -> ICPResult:
     """Estimate ``T_target_source`` by coarse-to-fine projective point-to-plane ICP.
 
     Args:
@@ -275,6 +293,8 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
         reprojection: optional sparse terms minimised jointly with the point-to-plane cost at every level
             (they also enter the convergence test, the weak-direction analysis and the condition number: a
             textured wall constrained by features is not degenerate for the joint system).
+        photometric: optional dense intensity term (:func:`photometric_term`), minimised jointly at every level,
+            with the same roles in the convergence test, the weak directions and the condition number.
 
     Returns:
         :class:`ICPResult`; on failure ``converged`` is False, ``reason`` says why and
@@ -316,6 +336,9 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
                                              robust, scale, stats, stride, depth_ref)
             if reprojection is not None:
                 reprojection.add_to(stats, T)
+            if photometric is not None:
+                photometric.add_to(stats, T, lvl, src.vertex, tgt.vertex, ti.fx, ti.fy, ti.cx, ti.cy,
+                                   cfg.dist_thresh_m[lvl], scale, stride)
             n_in = stats[29]
             if n_in < need:
                 stop = "too_few_inliers"
@@ -392,6 +415,12 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
         levels=infos,
         reason=reason,
     )
+
+
+def photometric_term(source: IntensityPyramid, target: IntensityPyramid, cfg: ICPConfig) -> PhotometricTerm:
+    """The joint photometric term of one registration with ``cfg``'s settings (a fresh brightness offset)."""
+    return PhotometricTerm(source, target, cfg.photometric_sigma, cfg.photometric_huber, cfg.photometric_weight,
+                           cfg.photometric_brightness_offset)
 
 
 def register_frames(src_depth_m: np.ndarray, tgt_depth_m: np.ndarray, intr: Intrinsics,

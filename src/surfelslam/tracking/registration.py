@@ -6,6 +6,9 @@ Starts (``INIT_MODES``):
 * ``features``: ICP from the ORB + PnP-RANSAC guess between the two frames (identity when a rejection rule fires);
 * ``auto``: ICP from both, keeping the pose the two depth images agree with better
   (:func:`surfelslam.eval.depth_agreement.depth_agreement`: lower median ``|dz|``; no ground truth involved).
+
+With ``photometric=True`` every ICP run also minimises the intensity differences
+(:mod:`surfelslam.tracking.photometric`); for colour registered to depth only.
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ import numpy as np
 from surfelslam.errors import ConfigError
 from surfelslam.eval.depth_agreement import depth_agreement
 from surfelslam.tracking.features import FeatureConfig, MotionResult, feature_guess, with_max_motion_norm
-from surfelslam.tracking.icp import ICPConfig, ICPResult, icp
+from surfelslam.tracking.icp import ICPConfig, ICPResult, icp, photometric_term
+from surfelslam.tracking.photometric import intensity_from_rgb, intensity_pyramid
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -43,20 +47,30 @@ class PairRegistration:
 
 
 def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: FramePyramid, intr: Intrinsics,
-                  icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM
-                  ) -> PairRegistration:
-    """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``) from the start ``init``."""
+                  icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM,
+                  photometric: bool = False) -> PairRegistration:
+    """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``, level 0 at the frames' resolution)
+    from the start ``init``; ``photometric``: joint geometric + photometric ICP."""
     if init not in INIT_MODES:
         raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
+    i_src = i_tgt = None
+    if photometric and icp_cfg.photometric_weight > 0:
+        i_src = intensity_pyramid(intensity_from_rgb(src.rgb), icp_cfg.levels, gradients=False)
+        i_tgt = intensity_pyramid(intensity_from_rgb(tgt.rgb), icp_cfg.levels, gradients=True)
+
+    def run(T_init: np.ndarray | None) -> ICPResult:
+        term = None if i_src is None else photometric_term(i_src, i_tgt, icp_cfg)
+        return icp(p_src, p_tgt, T_init, icp_cfg, photometric=term)
+
     guess = motion = None
     if init != "identity":
         fcfg = with_max_motion_norm(FeatureConfig(), feature_max_norm)
         guess, motion = feature_guess(src, tgt, intr, fcfg)
     if init == "features" and guess is not None:
-        return PairRegistration(icp(p_src, p_tgt, guess, icp_cfg), "features", guess, motion)
-    res = icp(p_src, p_tgt, None, icp_cfg)
+        return PairRegistration(run(guess), "features", guess, motion)
+    res = run(None)
     if init == "auto" and guess is not None:
-        res_f = icp(p_src, p_tgt, guess, icp_cfg)
+        res_f = run(guess)
         dz_id, dz_f = (depth_agreement(src.depth_m, tgt.depth_m, intr, r.T_target_source).median_abs_dz_m
                        for r in (res, res_f))
         if np.isfinite(dz_f) and not dz_id <= dz_f:
