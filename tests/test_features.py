@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, pose_error, so3_exp
+from surfelslam.geometry.se3 import log as se3_log
 from surfelslam.tracking.features import (
     FeatureConfig,
     _keypoint_depth,
@@ -226,6 +227,31 @@ def test_rgbd_refinement_recovers_a_known_pose_from_exact_correspondences() -> N
         T = refine_rgbd(T0, P, uv, inv_z, intr, replace(CFG, rgbd_refine_iterations=10))
         dt, dr = pose_error(T, T_true)
         assert dt < 1e-6 and dr < 1e-5, (dt, dr)
+
+
+def test_rgbd_refinement_information_is_the_inverse_covariance_of_the_pose() -> None:
+    """Monte Carlo: pixel and inverse-depth noise at the configured sigmas; the spread of the refined poses
+    matches the inverse of the returned information matrix (left perturbation, (omega, v))."""
+    rng = np.random.default_rng(11)
+    P = rng.uniform([-1.5, -1.0, 1.0], [1.5, 1.0, 4.0], size=(200, 3))
+    T_true = make_T(so3_exp([0.02, -0.05, 0.01]), [0.04, -0.02, 0.03])
+    X = P @ T_true[:3, :3].T + T_true[:3, 3]
+    cfg = replace(CFG, rgbd_refine_iterations=5, rgbd_huber=100.0)  # Gaussian noise: no Huber down-weighting
+    uv0 = np.column_stack([INTR.fx * X[:, 0] / X[:, 2] + INTR.cx, INTR.fy * X[:, 1] / X[:, 2] + INTR.cy])
+    xis, infos = [], []
+    for _ in range(300):
+        uv = uv0 + rng.normal(0.0, cfg.rgbd_pixel_sigma_px, uv0.shape)
+        inv_z = 1.0 / X[:, 2] + rng.normal(0.0, cfg.rgbd_inverse_depth_sigma, len(X))
+        T, info = refine_rgbd(T_true, P, uv, inv_z, INTR, cfg, with_information=True)
+        xis.append(se3_log(T @ invert(T_true)))
+        infos.append(info)
+    cov_mc = np.cov(np.array(xis).T)
+    cov_model = np.linalg.inv(np.mean(infos, axis=0))
+    ratio = np.diag(cov_mc) / np.diag(cov_model)
+    assert np.all((ratio > 0.75) & (ratio < 1.33)), ratio
+    # and not just the diagonal: the correlation structure (rotation-translation coupling) agrees too
+    corr = lambda c: c / np.sqrt(np.outer(np.diag(c), np.diag(c)))  # noqa: E731
+    assert np.abs(corr(cov_mc) - corr(cov_model)).max() < 0.15
 
 
 def test_feature_guess_direction() -> None:

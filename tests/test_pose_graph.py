@@ -88,3 +88,24 @@ def test_incremental_graph_matches_batch() -> None:
     assert g.last_error_after < g.last_error_before
     with pytest.raises(ValueError):
         g.add_edge(PoseEdge(0, 99, np.eye(4)))
+
+
+def test_estimated_information_weighs_each_axis_by_its_own_certainty() -> None:
+    """Two conflicting measurements of node 1: the optimum is their information-weighted mean, per axis
+    (translation-only disagreement, diagonal information: exact); the isotropic mode takes the plain mean."""
+    t_a, t_b = np.array([1.0, 0.0, 0.0]), np.array([1.1, 0.2, -0.1])
+    info_a = np.diag([1e4, 1e4, 1e4, 400.0, 100.0, 50.0])  # (omega, v): a is sure about x
+    info_b = np.diag([1e4, 1e4, 1e4, 100.0, 400.0, 50.0])  # b about y; z equal
+    edges = [PoseEdge(0, 1, make_T(np.eye(3), t_a), information_matrix=info_a),
+             PoseEdge(0, 1, make_T(np.eye(3), t_b), information_matrix=info_b)]
+    init = np.array([np.eye(4), make_T(np.eye(3), t_a)])
+    est_cfg = PoseGraphConfig(estimated_robust_kernel="none")
+    t = optimise(init, edges, est_cfg)[1][:3, 3]
+    wa, wb = np.diag(info_a)[3:], np.diag(info_b)[3:]
+    np.testing.assert_allclose(t, (wa * t_a + wb * t_b) / (wa + wb), atol=1e-6)
+    t_iso = optimise(init, edges, PoseGraphConfig(edge_information="isotropic"))[1][:3, 3]
+    np.testing.assert_allclose(t_iso, 0.5 * (t_a + t_b), atol=1e-6)
+    with pytest.raises(ValueError):
+        PoseEdge(0, 1, np.eye(4), information_matrix=np.eye(3))
+    with pytest.raises(ValueError):
+        PoseGraphConfig(edge_information="learned")

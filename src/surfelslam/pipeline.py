@@ -734,7 +734,9 @@ class HybridSlam(DenseSlam):
         super().__init__(intr, cfg, colour_registered)
         mode = cfg.hybrid.joint_features
         self.joint = mode == "on" or (mode == "auto" and colour_registered)
-        sp = cfg.sparse
+        # dense odometry edges carry no estimated information: every edge weighs isotropically here, so the
+        # PnP loop edges' Hessians never outweigh the (more accurate) dense odometry by their scale alone
+        sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information="isotropic"))
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         self.sparse = SparseSlam(intr, sp)

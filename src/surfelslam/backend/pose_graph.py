@@ -16,6 +16,7 @@ import gtsam
 import numpy as np
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
+EDGE_INFORMATION_MODES = ("isotropic", "estimated")
 EDGE_KINDS = ("odometry", "loop")
 
 
@@ -24,6 +25,20 @@ class PoseGraphConfig:
     """Pose-graph weights and solver settings.
 
     Attributes:
+        edge_information: ``"isotropic"``: every edge weighs ``odometry_information`` / ``loop_information``
+            (the seeds). ``"estimated"``: an edge carrying its own ``(6, 6)`` information matrix (the Gauss-Newton
+            Hessian of the RGB-D refinement of its PnP pose: more and better-spread inliers weigh more, and
+            rotation and translation weigh by what the points actually constrain) uses it, scaled by
+            ``estimated_information_scale``; edges without one fall back to the isotropic weights.
+        estimated_information_scale: factor on estimated information matrices (< 1: the Hessian assumes
+            independent residuals, so it is over-confident).
+        estimated_robust_kernel: m-estimator on every edge weighted by an estimated information (odometry too:
+            real data have systematic errors, colour/depth misregistration, that the Hessian does not model, so
+            whitened errors of correct edges reach several units); ``"huber"``, ``"cauchy"`` or ``"none"``.
+        estimated_robust_scale: its scale in whitened units. Measured on the orb tracker (ATE; isotropic /
+            estimated with Cauchy 1 / Huber 3 / no kernel): 7-Scenes frames 0-299 at 320x240 3.01 / 4.70 / 2.90 /
+            2.72 cm; synthetic 320x240 slow 0.37 / 0.31 / 0.38 / 0.39, walking loop 0.55 / 0.35 / 0.21 / 0.22,
+            fast 0.53 / 0.30 / 0.33 / 0.35 cm.
         odometry_information: isotropic information (1 / sigma^2, sigma in m and rad) of odometry edges.
         loop_information: the same for loop edges.
         prior_sigma: sigma (m and rad) of the prior anchoring the first keyframe.
@@ -34,6 +49,10 @@ class PoseGraphConfig:
         relative_error_tol: LM stops when the relative error decrease is below this.
     """
 
+    edge_information: str = "estimated"
+    estimated_information_scale: float = 1.0
+    estimated_robust_kernel: str = "huber"
+    estimated_robust_scale: float = 3.0
     odometry_information: float = 100.0
     loop_information: float = 100.0
     prior_sigma: float = 1e-6
@@ -44,12 +63,17 @@ class PoseGraphConfig:
     relative_error_tol: float = 1e-6
 
     def __post_init__(self) -> None:
-        if self.robust_kernel not in ROBUST_KERNELS:
-            raise ValueError(f"robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}")
+        if self.edge_information not in EDGE_INFORMATION_MODES:
+            raise ValueError(f"edge_information must be one of {EDGE_INFORMATION_MODES}, got {self.edge_information!r}")
+        if not self.estimated_information_scale > 0:
+            raise ValueError(f"estimated_information_scale must be positive, got {self.estimated_information_scale}")
+        for name in ("robust_kernel", "estimated_robust_kernel"):
+            if getattr(self, name) not in ROBUST_KERNELS:
+                raise ValueError(f"{name} must be one of {ROBUST_KERNELS}, got {getattr(self, name)!r}")
         if self.odometry_information <= 0 or self.loop_information <= 0 or self.prior_sigma <= 0:
             raise ValueError("edge information and prior_sigma must be positive")
-        if self.robust_scale_sigma <= 0:
-            raise ValueError(f"robust_scale_sigma must be positive, got {self.robust_scale_sigma}")
+        if self.robust_scale_sigma <= 0 or self.estimated_robust_scale <= 0:
+            raise ValueError("robust_scale_sigma and estimated_robust_scale must be positive")
 
 
 @dataclass(frozen=True)
@@ -61,6 +85,8 @@ class PoseEdge:
         T_i_j: ``(4, 4)`` pose of node ``j`` in the frame of node ``i`` (maps j-points into i).
         kind: ``"odometry"`` or ``"loop"``.
         information: isotropic information overriding the config's (``None``: use the config).
+        information_matrix: ``(6, 6)`` estimated information of ``T_i_j`` for a perturbation in gtsam's tangent
+            ``(omega, v)`` (used in the ``"estimated"`` mode; ``None``: isotropic).
     """
 
     i: int
@@ -68,24 +94,34 @@ class PoseEdge:
     T_i_j: np.ndarray
     kind: str = "odometry"
     information: float | None = None
+    information_matrix: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in EDGE_KINDS:
             raise ValueError(f"edge kind must be one of {EDGE_KINDS}, got {self.kind!r}")
+        if self.information_matrix is not None and np.shape(self.information_matrix) != (6, 6):
+            raise ValueError(f"information_matrix must be (6, 6), got {np.shape(self.information_matrix)}")
 
 
 def _noise(edge: PoseEdge, cfg: PoseGraphConfig):
+    if cfg.edge_information == "estimated" and edge.information_matrix is not None:
+        info_matrix = 0.5 * (edge.information_matrix + edge.information_matrix.T) * cfg.estimated_information_scale
+        gauss = gtsam.noiseModel.Gaussian.Information(np.asarray(info_matrix, np.float64))
+        return _robust(gauss, cfg.estimated_robust_kernel, cfg.estimated_robust_scale)
     info = edge.information
     if info is None:
         info = cfg.loop_information if edge.kind == "loop" else cfg.odometry_information
     gauss = gtsam.noiseModel.Isotropic.Sigma(6, float(1.0 / np.sqrt(info)))
-    robust = edge.kind == "loop" or cfg.robust_odometry
-    if not robust or cfg.robust_kernel == "none":
+    if edge.kind == "loop" or cfg.robust_odometry:
+        return _robust(gauss, cfg.robust_kernel, cfg.robust_scale_sigma)
+    return gauss
+
+
+def _robust(gauss, kernel: str, scale: float):
+    """``gauss`` wrapped in the m-estimator ``kernel`` (scale in whitened units), or ``gauss`` for ``"none"``."""
+    if kernel == "none":
         return gauss
-    if cfg.robust_kernel == "huber":
-        est = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_scale_sigma)
-    else:
-        est = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_scale_sigma)
+    est = (gtsam.noiseModel.mEstimator.Huber if kernel == "huber" else gtsam.noiseModel.mEstimator.Cauchy).Create(scale)
     return gtsam.noiseModel.Robust.Create(est, gauss)
 
 

@@ -274,7 +274,8 @@ class SparseSlam:
         self._n_failures = 0
         is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
         if is_kf:
-            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam)
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam,
+                               None if res is None else res.information)
             T_world_cam = self._kf_poses[-1]
             self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
         else:
@@ -291,9 +292,13 @@ class SparseSlam:
         self._T_kf_cam.append(np.asarray(T_kf_cam, np.float64).copy())
 
     def _add_keyframe(self, frame: RGBDFrame, feats: Features, T_world_cam: np.ndarray,
-                      prev_kf: int | None, T_prev_new: np.ndarray | None) -> None:
+                      prev_kf: int | None, T_prev_new: np.ndarray | None,
+                      information: np.ndarray | None = None) -> None:
         """Add a keyframe and its odometry edge, and start its loop checks (the previous keyframe's are applied
-        first: they may move ``prev_kf``, and the new keyframe is placed by its odometry from there)."""
+        first: they may move ``prev_kf``, and the new keyframe is placed by its odometry from there).
+
+        ``information``: ``(6, 6)`` of the odometry measurement (the PnP's, see ``MotionResult.information``), or
+        ``None`` (a dense pose: isotropic weight)."""
         if prev_kf is not None:
             T_prev_before = self._kf_poses[prev_kf].copy()
         self._collect_loop_checks()
@@ -308,7 +313,7 @@ class SparseSlam:
         self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
         self._ref_kf = kf_id
         if prev_kf is not None and T_prev_new is not None:
-            self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry"))
+            self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry", information_matrix=information))
         if prev_kf is None:
             self._index.add(self._query_descriptors(feats))
             return
@@ -347,7 +352,9 @@ class SparseSlam:
                 self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
             if not res.ok:
                 continue
-            self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop"))
+            # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
+            self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop",
+                                          information_matrix=res.information))
             if far:
                 self.loops_accepted.append((cand.kf_id, kf_id, res.n_inliers))
                 n_loops += 1

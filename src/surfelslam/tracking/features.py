@@ -219,6 +219,8 @@ class MotionResult:
         pairs: ``(n_good, 2)`` the good matches used for PnP (ref, cur).
         uv_cur: ``(n_good, 2)`` float32 current-image pixels of ``pairs`` (sub-pixel tracked where LK succeeded),
             or ``None`` when matching stopped before PnP.
+        information: ``(6, 6)`` information matrix of ``T_cur_ref`` from the joint RGB-D refinement, for a left
+            perturbation ``exp(xi) T_cur_ref`` with ``xi = (omega, v)`` (rad, m); ``None`` without that refinement.
     """
 
     T_cur_ref: np.ndarray
@@ -232,6 +234,7 @@ class MotionResult:
     inlier_mask: np.ndarray
     pairs: np.ndarray
     uv_cur: np.ndarray | None = None
+    information: np.ndarray | None = None
 
     @property
     def motion_norm(self) -> float:
@@ -461,60 +464,83 @@ def robust_sigma(values: np.ndarray) -> float:
     return _MAD_TO_SIGMA * float(np.median(np.abs(v - np.median(v))))
 
 
+def _rgbd_system(T: np.ndarray, P: np.ndarray, uv: np.ndarray, q: np.ndarray, w_inv: np.ndarray, si: float,
+                 intr: Intrinsics, cfg: FeatureConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """Huber-weighted normal equations ``(H (6, 6), g (6,))`` of the joint refinement at ``T`` (left update
+    ``exp(xi) T``, ``xi = (omega, v)``; residuals normalised by their sigmas); ``None`` if a point is behind."""
+    X = P @ T[:3, :3].T + T[:3, 3]
+    z = X[:, 2]
+    if np.any(z <= 0):
+        return None
+    n = len(P)
+    fx, fy = intr.fx, intr.fy
+    sp, k = cfg.rgbd_pixel_sigma_px, cfg.rgbd_huber
+    iz = 1.0 / z
+    # d(point)/d(xi) for a left update exp(xi) T: dX = -[X]x omega + v
+    J_X = np.zeros((n, 3, 6))
+    J_X[:, 0, 1], J_X[:, 0, 2] = X[:, 2], -X[:, 1]
+    J_X[:, 1, 0], J_X[:, 1, 2] = -X[:, 2], X[:, 0]
+    J_X[:, 2, 0], J_X[:, 2, 1] = X[:, 1], -X[:, 0]
+    J_X[:, 0, 3] = J_X[:, 1, 4] = J_X[:, 2, 5] = 1.0
+    # projection u = fx x/z + cx, v = fy y/z + cy; inverse depth 1/z
+    J_u = np.zeros((n, 3, 3))
+    J_u[:, 0, 0] = fx * iz
+    J_u[:, 0, 2] = -fx * X[:, 0] * iz * iz
+    J_u[:, 1, 1] = fy * iz
+    J_u[:, 1, 2] = -fy * X[:, 1] * iz * iz
+    J_u[:, 2, 2] = -iz * iz
+    J = J_u @ J_X  # (n, 3, 6)
+    r = np.empty((n, 3))
+    r[:, 0] = (fx * X[:, 0] * iz + intr.cx - uv[:, 0]) / sp
+    r[:, 1] = (fy * X[:, 1] * iz + intr.cy - uv[:, 1]) / sp
+    r[:, 2] = np.where(w_inv, (iz - q) / si, 0.0)
+    J[:, :2] /= sp
+    J[:, 2] = np.where(w_inv[:, None], J[:, 2] / si, 0.0)
+    a = np.abs(r)
+    w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+    H = np.einsum("nri,nr,nrj->ij", J, w, J)
+    g = np.einsum("nri,nr,nr->i", J, w, r)
+    return H, g
+
+
 def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, inv_depth_cur: np.ndarray,
-                intr: Intrinsics, cfg: FeatureConfig) -> np.ndarray:
+                intr: Intrinsics, cfg: FeatureConfig, with_information: bool = False):
     """Joint reprojection + inverse-depth refinement of ``T_cur_ref`` (see ``FeatureConfig.rgbd_refine_iterations``).
 
     Args:
         T_cur_ref: ``(4, 4)`` initial pose (PnP).
         pts_ref: ``(N, 3)`` reference-camera points; uv_cur: ``(N, 2)`` their pixels in the current image.
         inv_depth_cur: ``(N,)`` measured inverse depth (1/m) at ``uv_cur``; NaN = none (reprojection only).
+        with_information: also return the information matrix of the result.
 
     Returns:
-        ``(4, 4)`` refined ``T_cur_ref`` (Gauss-Newton with Huber weights, left-multiplied SE(3) updates).
+        ``(4, 4)`` refined ``T_cur_ref`` (Gauss-Newton with Huber weights, left-multiplied SE(3) updates); with
+        ``with_information``, ``(T, information)`` where ``information (6, 6)`` is the Gauss-Newton Hessian at
+        ``T`` in normalised residual units, for a left perturbation ``exp(xi) T``, ``xi = (omega, v)``
+        (``None`` when it cannot be formed): the inverse covariance of the pose under the residual sigmas.
     """
     T = np.asarray(T_cur_ref, np.float64).copy()
     P = np.asarray(pts_ref, np.float64)
     uv = np.asarray(uv_cur, np.float64)
     w_inv = np.isfinite(inv_depth_cur)
     q = np.where(w_inv, inv_depth_cur, 0.0)
-    fx, fy = intr.fx, intr.fy
-    sp, si, k = cfg.rgbd_pixel_sigma_px, cfg.rgbd_inverse_depth_sigma, cfg.rgbd_huber
-    n = len(P)
-    si_model = si
+    si_model = si = cfg.rgbd_inverse_depth_sigma
+
+    def spread(T: np.ndarray) -> float:
+        """The data's own inverse-depth spread, when it exceeds the model (``si_model``)."""
+        if w_inv.sum() < _MIN_POINTS_FOR_SPREAD:
+            return si_model
+        z = P[w_inv] @ T[2, :3] + T[2, 3]
+        return max(si_model, robust_sigma(1.0 / z - q[w_inv]))
+
     for _ in range(cfg.rgbd_refine_iterations):
-        X = P @ T[:3, :3].T + T[:3, 3]
-        z = X[:, 2]
-        if np.any(z <= 0):
+        if np.any(P @ T[2, :3] + T[2, 3] <= 0):
             break
-        if w_inv.sum() >= _MIN_POINTS_FOR_SPREAD:  # the data's own inverse-depth spread, when it exceeds the model
-            d = (1.0 / z - q)[w_inv]
-            si = max(si_model, robust_sigma(d))
-        iz = 1.0 / z
-        # d(point)/d(xi) for a left update exp(xi) T, xi = (omega, v): dX = -[X]x omega + v
-        J_X = np.zeros((n, 3, 6))
-        J_X[:, 0, 1], J_X[:, 0, 2] = X[:, 2], -X[:, 1]
-        J_X[:, 1, 0], J_X[:, 1, 2] = -X[:, 2], X[:, 0]
-        J_X[:, 2, 0], J_X[:, 2, 1] = X[:, 1], -X[:, 0]
-        J_X[:, 0, 3] = J_X[:, 1, 4] = J_X[:, 2, 5] = 1.0
-        # projection u = fx x/z + cx, v = fy y/z + cy; inverse depth 1/z
-        J_u = np.zeros((n, 3, 3))
-        J_u[:, 0, 0] = fx * iz
-        J_u[:, 0, 2] = -fx * X[:, 0] * iz * iz
-        J_u[:, 1, 1] = fy * iz
-        J_u[:, 1, 2] = -fy * X[:, 1] * iz * iz
-        J_u[:, 2, 2] = -iz * iz
-        J = J_u @ J_X  # (n, 3, 6)
-        r = np.empty((n, 3))
-        r[:, 0] = (fx * X[:, 0] * iz + intr.cx - uv[:, 0]) / sp
-        r[:, 1] = (fy * X[:, 1] * iz + intr.cy - uv[:, 1]) / sp
-        r[:, 2] = np.where(w_inv, (iz - q) / si, 0.0)
-        J[:, :2] /= sp
-        J[:, 2] = np.where(w_inv[:, None], J[:, 2] / si, 0.0)
-        a = np.abs(r)
-        w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-        H = np.einsum("nri,nr,nrj->ij", J, w, J)
-        g = np.einsum("nri,nr,nr->i", J, w, r)
+        si = spread(T)
+        system = _rgbd_system(T, P, uv, q, w_inv, si, intr, cfg)
+        if system is None:
+            break
+        H, g = system
         try:
             xi = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -522,7 +548,11 @@ def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, 
         T = se3_exp(xi) @ T
         if np.linalg.norm(xi) < _RGBD_CONVERGED_UPDATE:
             break
-    return T
+    if not with_information:
+        return T
+    system = _rgbd_system(T, P, uv, q, w_inv, spread(T), intr, cfg) if np.all(np.isfinite(T)) else None
+    info = None if system is None or not np.all(np.isfinite(system[0])) else system[0]
+    return T, info
 
 
 def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionResult:
@@ -588,11 +618,12 @@ def estimate_motion(
     rvec = np.asarray(rvec, np.float64).reshape(3)
     tvec = np.asarray(tvec, np.float64).reshape(3)
     T = make_T(so3_exp(rvec), tvec)
+    information = None
     if cfg.rgbd_refine_iterations > 0 and cur.depth_m is not None and np.all(np.isfinite(T)):
         z_cur = _keypoint_depth(cur.depth_m, uv_cur[mask], cfg)
-        T = refine_rgbd(T, obj[mask], uv_cur[mask], 1.0 / z_cur, intr, cfg)
+        T, information = refine_rgbd(T, obj[mask], uv_cur[mask], 1.0 / z_cur, intr, cfg, with_information=True)
         rvec, tvec = so3_log(T[:3, :3]).reshape(3), T[:3, 3].copy()
-    res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs, uv_cur)
+    res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs, uv_cur, information)
     if not np.all(np.isfinite(T)):
         res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
     elif motion_norm(T) > cfg.max_motion_norm:
