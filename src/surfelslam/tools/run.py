@@ -184,6 +184,8 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
         t.add_row("ATE RMSE", f"{e['ate_rmse_m'] * 100:.2f} cm")
         t.add_row("RPE / frame", f"{e['rpe_trans_rmse_m_per_frame'] * 1000:.2f} mm, "
                                  f"{e['rpe_rot_rmse_deg_per_frame']:.3f} deg")
+    elif "eval_error" in metrics:
+        t.add_row("ATE", f"not computed: {metrics['eval_error']}")
     for k in ("loops_found", "loops_accepted"):
         if k in metrics:
             t.add_row(k.replace("_", " "), str(metrics[k]))
