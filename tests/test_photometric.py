@@ -161,6 +161,9 @@ def test_photometric_settings_and_switches():
     assert not DenseSlam(INTR, off_cfg).photometric and not DenseSlam(INTR, zero_w).photometric
     assert HybridSlam(INTR, SlamConfig()).photometric
     assert not HybridSlam(INTR, SlamConfig(), colour_registered=False).photometric
+    # metrics.json says which it was
+    assert DenseSlam(INTR, on_cfg).finish().metrics["photometric"] is True
+    assert DenseSlam(INTR, off_cfg).finish().metrics["photometric"] is False
 
 
 def test_source_intensity_is_on_the_tracking_levels_grid():

@@ -582,7 +582,8 @@ class DenseSlam(_FusingMapper):
                            res.reason, t.ms, self.map.n_alive, res)
 
     def finish(self) -> SlamResult:
-        return self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons})
+        return self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons,
+                             "photometric": self.photometric})
 
 
 def working_level(intr: Intrinsics, max_width_px: int) -> int:
@@ -963,7 +964,8 @@ class HybridSlam(DenseSlam):
         if self.cfg.hybrid.loop_correction and len(self._kf_dense):
             self._correct(res.keyframe_poses)
         out = self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons,
-                            "joint_features": self.joint, **self.counts, **_sparse_metrics(self.sparse, res)})
+                            "photometric": self.photometric, "joint_features": self.joint, **self.counts,
+                            **_sparse_metrics(self.sparse, res)})
         if self.cfg.hybrid.loop_correction:
             out.trajectory_override = self.trajectory()
         out.loop_stamps = _loop_stamps(res, self._stamp_of_frame)
