@@ -84,6 +84,7 @@ from surfelslam.tracking.photometric import (
     PHOTOMETRIC_MODES,
     IntensityPyramid,
     PhotometricTerm,
+    colour_switch,
     intensity_from_rgb,
     intensity_pyramid,
 )
@@ -467,7 +468,7 @@ class DenseSlam(_FusingMapper):
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True):
         mode = cfg.tracking.photometric
-        self.photometric = cfg.icp.photometric_weight > 0 and (mode == "on" or (mode == "auto" and colour_registered))
+        self.photometric = cfg.icp.photometric_weight > 0 and colour_switch(mode, colour_registered)
         self._src_intensity: IntensityPyramid | None = None
         self._tgt_intensity: IntensityPyramid | None = None
         self.track_level = working_level(intr, cfg.tracking.max_width_px)
@@ -734,7 +735,7 @@ class HybridSlam(DenseSlam):
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True):
         super().__init__(intr, cfg, colour_registered)
         mode = cfg.hybrid.joint_features
-        self.joint = mode == "on" or (mode == "auto" and colour_registered)
+        self.joint = colour_switch(mode, colour_registered)
         # dense odometry edges carry no estimated information: every edge weighs isotropically here, so the
         # PnP loop edges' Hessians never outweigh the (more accurate) dense odometry by their scale alone
         sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information="isotropic"))

@@ -35,6 +35,7 @@ from surfelslam.kernels.threads import dual_njit
 
 _FASTMATH = {"contract"}
 N_AUX = 3
+_N_SYSTEM = 28  # the accumulator entries this term adds to: AtA (21), Atb (6), cost (1)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -194,7 +195,7 @@ def accumulate_photometric(src_vertex, src_intensity, tgt_vertex, tgt_igg, T, fx
         s = 0.0
         for c in range(N_CHUNKS):
             s += partial[c, k]
-        if k < 28:
+        if k < _N_SYSTEM:
             out[k] += s
         elif k >= N_STATS:
             aux[k - N_STATS] = s

@@ -91,7 +91,7 @@ def register(app: typer.Typer) -> None:
         from surfelslam.geometry import se3
         from surfelslam.io.atomic import write_text_atomic
         from surfelslam.tracking.icp import pairwise_config
-        from surfelslam.tracking.photometric import PHOTOMETRIC_MODES
+        from surfelslam.tracking.photometric import PHOTOMETRIC_MODES, colour_switch
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
         from surfelslam.tracking.registration import FEATURE_MAX_NORM, INIT_MODES, register_pair
         from surfelslam.viz.registration import plot_registration
@@ -121,7 +121,7 @@ def register(app: typer.Typer) -> None:
         f_src, f_tgt = sq[source], sq[target]
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
-        use_photometric = photometric == "on" or (photometric == "auto" and getattr(sq, "colour_registered", True))
+        use_photometric = colour_switch(photometric, sq.colour_registered)
         reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
                             FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric)
         res, init_used = reg.icp, reg.init_used

@@ -21,6 +21,13 @@ from surfelslam.kernels import photometric as kph
 PHOTOMETRIC_MODES = ("auto", "on", "off")
 
 
+def colour_switch(mode: str, colour_registered: bool) -> bool:
+    """An ``auto | on | off`` switch of a colour-based term: ``auto`` is on only where colour is registered to
+    depth (``RGBDSequence.colour_registered``; with separate cameras a depth pixel's colour belongs to another
+    ray)."""
+    return mode == "on" or (mode == "auto" and colour_registered)
+
+
 @dataclass
 class IntensityPyramid:
     """Intensity ``(H_l, W_l)`` float32 in [0, 1] (NaN = invalid) per level, finest first, on the depth pyramid's
