@@ -90,6 +90,7 @@ def verify_edge(
         feat_cfg,
         max_motion_norm=cfg.max_norm_loop,
         min_good_matches=max(feat_cfg.min_good_matches, cfg.min_loop_inliers),
+        min_inliers=max(feat_cfg.min_inliers, cfg.min_loop_inliers),  # also lets the 3D consensus stop early
     )
     res = estimate_motion(ref, cur, intr, loop_feat_cfg)
     if res.ok and (

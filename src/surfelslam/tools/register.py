@@ -84,16 +84,20 @@ def register(app: typer.Typer) -> None:
             "--feature-max-norm", help="--init features / auto: largest accepted PnP motion norm (m + rad; "
                                        "default 2.0); the odometry default 0.3 is too small for pairs far "
                                        "apart.")] = None,
+        features: Annotated[int | None, typer.Option(
+            "--features", help="--init features / auto: ORB keypoints per image (default 2000, twice the "
+                               "odometry's: pairs far apart share little of the view).")] = None,
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
         from surfelslam.eval.depth_agreement import depth_agreement
         from surfelslam.geometry import se3
         from surfelslam.io.atomic import write_text_atomic
+        from surfelslam.tracking.features import FeatureConfig
         from surfelslam.tracking.icp import pairwise_config
         from surfelslam.tracking.photometric import PHOTOMETRIC_MODES, colour_switch
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
-        from surfelslam.tracking.registration import FEATURE_MAX_NORM, INIT_MODES, register_pair
+        from surfelslam.tracking.registration import FEATURE_MAX_NORM, INIT_MODES, PAIR_FEATURES, register_pair
         from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
@@ -122,13 +126,18 @@ def register(app: typer.Typer) -> None:
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
         use_photometric = colour_switch(photometric, sq.colour_registered)
+        n_features = PAIR_FEATURES if features is None else features
+        if n_features < 1:
+            raise ConfigError(f"--features must be >= 1, got {n_features}")
         reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
-                            FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric)
+                            FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric,
+                            FeatureConfig(n_features=n_features))
         res, init_used = reg.icp, reg.init_used
         feat_info = None
         if reg.motion is not None:
             mres = reg.motion
-            feat_info = {"ok": reg.guess is not None, "reason": mres.reason, "good_matches": mres.n_good,
+            feat_info = {"ok": reg.guess is not None, "reason": mres.reason, "n_features": n_features,
+                         "good_matches": mres.n_good,
                          "inliers": mres.n_inliers,
                          "T_target_source": None if reg.guess is None else reg.guess.tolist()}
         T_init = reg.guess if init_used == "features" else None

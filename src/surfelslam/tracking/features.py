@@ -26,6 +26,7 @@ import numpy as np
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
 from surfelslam.kernels import hamming
+from surfelslam.tracking.consensus import rigid_consensus
 from surfelslam.types import Intrinsics, RGBDFrame
 
 MATCHING_MODES = ("crosscheck", "ratio")
@@ -104,6 +105,16 @@ class FeatureConfig:
             ``sigma_z(z) = rgbd_inverse_depth_sigma * z^2`` (0.003: 3 mm at 1 m, 12 mm at 2 m, before the
             plane fit averages it).
         rgbd_huber: Huber threshold on the normalised residuals of the joint refinement.
+        consensus_fallback: when PnP-RANSAC fails, or keeps fewer than ``consensus_below_fraction`` of the good
+            matches, also try the rigid 3D consensus of :mod:`surfelslam.tracking.consensus` (matches whose two
+            ends both have depth and keep their pairwise distances) and keep whichever hypothesis has more
+            reprojection inliers. RANSAC's 5-point samples rarely come out clean below about 25 % inliers (frames
+            far apart, loops, relocalisation); the consensus does not sample.
+        consensus_below_fraction: PnP inlier fraction under which the consensus is also tried.
+        consensus_abs_tol_m, consensus_rel_tol: two matches are consistent when their distances in the two
+            frames differ by at most ``abs + rel * distance`` (Kinect depth noise is about 1 cm at 2 m, plus the
+            keypoint's position on the surface).
+        consensus_seeds: consistent sets grown (from the best-connected matches); the largest is kept.
     """
 
     n_features: int = 1000
@@ -139,6 +150,11 @@ class FeatureConfig:
     rgbd_pixel_sigma_px: float = 0.5
     rgbd_inverse_depth_sigma: float = 0.003
     rgbd_huber: float = 2.0
+    consensus_fallback: bool = True
+    consensus_below_fraction: float = 0.5
+    consensus_abs_tol_m: float = 0.03
+    consensus_rel_tol: float = 0.05
+    consensus_seeds: int = 10
 
     def __post_init__(self) -> None:
         if self.matching not in MATCHING_MODES:
@@ -155,6 +171,9 @@ class FeatureConfig:
             raise ValueError(f"min_inliers must be >= 4 (PnP needs 4 points), got {self.min_inliers}")
         if self.lk_window_px < 3 or self.lk_levels < 0 or not self.lk_max_shift_px > 0:
             raise ValueError("need lk_window_px >= 3, lk_levels >= 0, lk_max_shift_px > 0")
+        if not (0.0 <= self.consensus_below_fraction <= 1.0 and self.consensus_abs_tol_m >= 0
+                and self.consensus_rel_tol >= 0 and self.consensus_seeds >= 1):
+            raise ValueError("need 0 <= consensus_below_fraction <= 1, consensus tolerances >= 0, consensus_seeds >= 1")
 
 
 @dataclass
@@ -562,6 +581,60 @@ def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionRe
     )
 
 
+def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarray, tvec0: np.ndarray,
+                use_guess: bool, cfg: FeatureConfig):
+    """OpenCV PnP-RANSAC: ``(inlier mask (N,), rvec (3, 1), tvec (3, 1), None)`` or ``(None, _, _, reason)``."""
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj, img, K, None, rvec0, tvec0, use_guess,
+            cfg.ransac_iterations, cfg.reprojection_error_px, cfg.ransac_confidence,
+            flags=cv2.SOLVEPNP_ITERATIVE if use_guess else cv2.SOLVEPNP_EPNP,
+        )
+    except cv2.error:
+        return None, None, None, "pnp_failed"
+    if not ok or inl is None:
+        return None, None, None, "too_few_inliers" if ok else "pnp_failed"
+    mask = np.zeros(len(obj), bool)
+    mask[inl.reshape(-1)] = True
+    return mask, rvec, tvec, None
+
+
+def _reprojection_inliers(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+                          cfg: FeatureConfig) -> np.ndarray:
+    """``(N,)`` bool: points in front of the camera that reproject within ``reprojection_error_px``."""
+    R = so3_exp(np.asarray(rvec, np.float64).reshape(3))
+    X = obj @ R.T + np.asarray(tvec, np.float64).reshape(3)
+    z = X[:, 2]
+    front = z > 0
+    zs = np.where(front, z, 1.0)
+    u = K[0, 0] * X[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * X[:, 1] / zs + K[1, 2]
+    return front & (np.hypot(u - img[:, 0], v - img[:, 1]) < cfg.reprojection_error_px)
+
+
+def _consensus_hypothesis(obj: np.ndarray, pts_cur: np.ndarray, img: np.ndarray, K: np.ndarray,
+                          cfg: FeatureConfig):
+    """Pose from the rigid 3D consensus (see ``FeatureConfig.consensus_fallback``), refined by Levenberg-Marquardt
+    on the consensus members' pixels and then on its reprojection inliers: ``(mask (N,), rvec (3, 1),
+    tvec (3, 1))``, or ``None``.
+
+    ``obj``: ``(N, 3)`` reference points; ``pts_cur``: ``(N, 3)`` current-camera points of the same matches (NaN
+    without depth); ``img``, ``K``: current pixels and camera in OpenCV's convention (rows mirrored when
+    ``fy < 0``, which leaves the pose unchanged; see the module notes)."""
+    T, members = rigid_consensus(obj, pts_cur, cfg.consensus_abs_tol_m, cfg.consensus_rel_tol, cfg.consensus_seeds,
+                                 cfg.min_inliers)
+    if T is None or len(members) < cfg.min_inliers:
+        return None
+    rvec, tvec = so3_log(T[:3, :3]).reshape(3, 1).copy(), T[:3, 3].reshape(3, 1).copy()
+    # the 3D fit carries the depth noise of both frames; the members' pixels pin the pose down in the image
+    rvec, tvec = cv2.solvePnPRefineLM(obj[members], img[members], K, None, rvec, tvec)
+    mask = _reprojection_inliers(obj, img, K, rvec, tvec, cfg)
+    if mask.sum() >= cfg.min_inliers:
+        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], K, None, rvec, tvec)
+        mask = _reprojection_inliers(obj, img, K, rvec, tvec, cfg)
+    return mask, rvec, tvec
+
+
 def estimate_motion(
     ref: Features,
     cur: Features,
@@ -595,22 +668,16 @@ def estimate_motion(
     else:
         rvec0 = np.zeros((3, 1))
         tvec0 = np.zeros((3, 1))
-    try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, K, None, rvec0, tvec0, use_guess,
-            cfg.ransac_iterations, cfg.reprojection_error_px, cfg.ransac_confidence,
-            flags=cv2.SOLVEPNP_ITERATIVE if use_guess else cv2.SOLVEPNP_EPNP,
-        )
-    except cv2.error:
-        return _failed(m.n_raw, n_good, "pnp_failed", pairs)
-    if not ok or inl is None:
-        return _failed(m.n_raw, n_good, "too_few_inliers" if ok else "pnp_failed", pairs)
-    inl = inl.reshape(-1)
-    mask = np.zeros(n_good, bool)
-    mask[inl] = True
-    if len(inl) < cfg.min_inliers:
+    mask, rvec, tvec, reason = _pnp_ransac(obj, img, K, rvec0, tvec0, use_guess, cfg)
+    if cfg.consensus_fallback and (mask is None or mask.sum() < cfg.consensus_below_fraction * n_good):
+        alt = _consensus_hypothesis(obj, cur.points_cam[pairs[:, 1]], img, K, cfg)
+        if alt is not None and alt[0].sum() > (0 if mask is None else mask.sum()):
+            mask, rvec, tvec = alt
+    if mask is None:
+        return _failed(m.n_raw, n_good, reason, pairs)
+    if mask.sum() < cfg.min_inliers:
         res = _failed(m.n_raw, n_good, "too_few_inliers", pairs)
-        res.n_inliers = len(inl)
+        res.n_inliers = int(mask.sum())
         res.inlier_mask = mask
         return res
     if cfg.refine:

@@ -27,6 +27,9 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 INIT_MODES = ("identity", "features", "auto")
 FEATURE_MAX_NORM = 2.0  # m + rad: the PnP guess accepts motions up to this (pairs far apart; odometry uses 0.3)
+#: ORB keypoints per image for a pair's guess. Pairs far apart share a small part of the view, so twice the
+#: odometry's 1000: on 7-Scenes pairs 90 frames apart at 640x480 the correct matches go from 0-32 to 11-77.
+PAIR_FEATURES = 2000
 
 
 @dataclass
@@ -48,9 +51,11 @@ class PairRegistration:
 
 def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: FramePyramid, intr: Intrinsics,
                   icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM,
-                  photometric: bool = False) -> PairRegistration:
+                  photometric: bool = False, feature_cfg: FeatureConfig | None = None) -> PairRegistration:
     """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``, level 0 at the frames' resolution)
-    from the start ``init``; ``photometric``: joint geometric + photometric ICP."""
+    from the start ``init``; ``photometric``: joint geometric + photometric ICP; ``feature_cfg``: the ORB / PnP
+    settings of the guess (default :class:`FeatureConfig` with ``PAIR_FEATURES`` keypoints), whose motion bound
+    becomes ``feature_max_norm``."""
     if init not in INIT_MODES:
         raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
     i_src = i_tgt = None
@@ -64,7 +69,8 @@ def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: Fr
 
     guess = motion = None
     if init != "identity":
-        fcfg = with_max_motion_norm(FeatureConfig(), feature_max_norm)
+        fcfg = FeatureConfig(n_features=PAIR_FEATURES) if feature_cfg is None else feature_cfg
+        fcfg = with_max_motion_norm(fcfg, feature_max_norm)
         guess, motion = feature_guess(src, tgt, intr, fcfg)
     if init == "features" and guess is not None:
         return PairRegistration(run(guess), "features", guess, motion)
