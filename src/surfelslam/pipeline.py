@@ -178,7 +178,7 @@ class GivenPosesConfig:
     max_dt_s: float = 0.02
 
 
-JOINT_MODES = ("auto", "on", "off")
+JOINT_MODES = PHOTOMETRIC_MODES  # the same auto | on | off colour switch (tracking.photometric.colour_switch)
 
 
 @dataclass
