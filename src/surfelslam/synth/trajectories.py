@@ -12,6 +12,9 @@ world z up). Styles:
   the last frame is one step before the start, so the loop closes.
 
 For a ``"wall"`` scene (``plane``) the camera keeps facing the wall and sways / circles in front of it.
+
+:func:`replay_motion` replays a *recorded* camera motion instead (a dataset's ground truth: real hand-held motion,
+optionally sped up), placed in the scene's free space.
 """
 
 from __future__ import annotations
@@ -27,6 +30,9 @@ from surfelslam.synth.scenes import Scene
 from surfelslam.types import Trajectory
 
 STYLES = ["slow", "fast", "handheld", "loop"]
+REPLAY_HEADINGS = 8  # headings (evenly spaced) tried for a replayed motion in a "room" scene
+_REPLAY_MAX_GAP_S = 0.1  # a recorded motion may not have a gap longer than this (s) where it is replayed
+_REPLAY_MAX_DT_S = 0.02  # sample times may lie this far (s) past the first / last recorded stamp
 
 
 @dataclass(frozen=True)
@@ -165,3 +171,76 @@ def make_trajectory(
         for i in range(n_frames):  # per pose (not per pixel): a 4x4 product each
             T[i] = T[i] @ se3_exp(xi[i])
     return Trajectory(k / fps, T)
+
+
+def replay_motion(
+    recorded: Trajectory, n_frames: int, scene: Scene, fps: float = 30.0, speed: float = 1.0,
+    start_s: float = 0.0, clearance_m: float = 0.35, seed: int = 0,
+) -> Trajectory:
+    """A recorded camera motion replayed in ``scene`` (``n_frames`` poses at ``fps``, timestamps ``index / fps``).
+
+    Frame ``k`` takes the recorded pose at ``t_first + start_s + k * speed / fps`` (translation interpolated
+    linearly, rotation along the geodesic), relative to the pose at frame 0, and applies it to an anchor: a
+    level camera at the scene's eye height, looking along a heading, the path's bounding box centred on the
+    scene's free-space centre (``Scene.view``). ``speed`` 3 is the same motion at 3x speed. Headings are tried in
+    turn (a ``"room"`` scene: :data:`REPLAY_HEADINGS` directions starting from one chosen by ``seed``; a ``"wall"``
+    scene: facing the wall only) and the first whose whole path stays ``clearance_m`` from every surface is used.
+
+    Args:
+        recorded: the motion, e.g. a dataset's ``groundtruth.txt`` (any world frame: only relative motion is used).
+
+    Raises:
+        ConfigError: bad arguments, a recording too short for ``n_frames`` at ``speed`` or with a gap, or a path
+        that fits the scene under no heading (the message gives its extent).
+    """
+    if n_frames < 1:
+        raise ConfigError(f"number of frames must be >= 1, got {n_frames}")
+    if fps <= 0 or speed <= 0 or start_s < 0 or clearance_m < 0:
+        raise ConfigError(f"need fps > 0, speed > 0, start >= 0, clearance >= 0; got {fps}, {speed}, {start_s}, "
+                          f"{clearance_m}")
+    t = recorded.timestamps
+    if len(t) < 2:
+        raise ConfigError(f"a recorded motion needs at least 2 poses, got {len(t)}")
+    stamps = t[0] + start_s + np.arange(n_frames) * speed / fps
+    if stamps[-1] > t[-1] + _REPLAY_MAX_DT_S:
+        raise ConfigError(
+            f"the recorded motion lasts {t[-1] - t[0]:.2f} s; {n_frames} frames at {fps:g} fps and {speed:g}x speed "
+            f"from {start_s:g} s need {stamps[-1] - t[0]:.2f} s"
+        )
+    T_rec, valid = recorded.interpolate(stamps, _REPLAY_MAX_GAP_S, _REPLAY_MAX_DT_S)
+    if not valid.all():
+        k = int(np.argmin(valid))
+        raise ConfigError(f"the recorded motion has a gap of more than {_REPLAY_MAX_GAP_S} s at "
+                          f"{stamps[k] - t[0]:.2f} s from its start")
+    T_rel = np.einsum("ij,njk->nik", np.linalg.inv(T_rec[0]), T_rec)  # motion relative to frame 0
+    v = scene.view
+    centre = np.asarray(v.centre, np.float64)
+    if v.kind == "wall":
+        f = np.asarray(v.facing, np.float64)
+        headings = [float(np.arctan2(f[1], f[0]))]
+    else:
+        first = seed % REPLAY_HEADINGS
+        headings = [2.0 * np.pi * ((first + j) % REPLAY_HEADINGS) / REPLAY_HEADINGS for j in range(REPLAY_HEADINGS)]
+    best = -np.inf
+    for psi in headings:
+        direction = np.array([np.cos(psi), np.sin(psi), 0.0])
+        target = np.array([0.0, 0.0, v.look_height_m]) + v.look_distance_m * direction
+        R_anchor = look_at(np.array([0.0, 0.0, v.eye_height_m]), target)[0, :3, :3]
+        path = T_rel[:, :3, 3] @ R_anchor.T  # positions relative to the anchor eye
+        eye = np.array([centre[0], centre[1], v.eye_height_m])
+        eye[:2] -= 0.5 * (path[:, :2].min(axis=0) + path[:, :2].max(axis=0))
+        eye[2] -= path[:, 2].mean()
+        positions = path + eye
+        clearance = float(scene.primitive_distances(positions).min())
+        if clearance >= clearance_m:
+            T_anchor = np.eye(4)
+            T_anchor[:3, :3] = R_anchor
+            T_anchor[:3, 3] = eye
+            return Trajectory(np.arange(n_frames) / fps, np.einsum("ij,njk->nik", T_anchor, T_rel))
+        best = max(best, clearance)
+    extent = np.ptp(T_rel[:, :3, 3], axis=0)
+    raise ConfigError(
+        f"the recorded motion (extent {extent[0]:.2f} x {extent[1]:.2f} x {extent[2]:.2f} m in its first camera "
+        f"frame) does not fit in scene {scene.name!r}: at best it passes {best:.2f} m from a surface (needs "
+        f"{clearance_m} m); replay fewer frames or a later part (start)"
+    )

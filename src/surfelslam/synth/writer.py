@@ -28,7 +28,7 @@ from surfelslam.io.trajectory import write_tum
 from surfelslam.synth.noise import KinectNoiseConfig, frame_rng, noisy_depth, noisy_rgb
 from surfelslam.synth.render import RenderOutput, render
 from surfelslam.synth.scenes import Scene, make_scene
-from surfelslam.synth.trajectories import make_trajectory
+from surfelslam.synth.trajectories import make_trajectory, replay_motion
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
 NOISE_MODELS = ["kinect", "none"]
@@ -121,18 +121,28 @@ def generate_sequence(
     height: int = 480,
     fps: float = DEFAULT_FPS,
     progress: bool | Callable[[int], None] = False,
+    motion: Trajectory | None = None,
+    speed: float = 1.0,
+    motion_start_s: float = 0.0,
+    motion_label: str = "a recorded motion",
 ) -> Path:
     """Render and write a TUM-layout sequence to ``out_dir`` (created); returns its path.
 
     ``progress``: a callable ``progress(i)`` is called after frame ``i`` is written; ``True`` shows a tqdm
     bar on stderr (for the commands; library callers leave it False).
-    Bad names or sizes raise ConfigError before anything is written.
+    ``motion``: replay this recorded camera motion (:func:`~surfelslam.synth.trajectories.replay_motion`, at
+    ``speed`` from ``motion_start_s``; ``motion_label`` names it in INFO.txt) instead of the ``style``.
+    Bad names, sizes or motions raise ConfigError before anything is written.
     """
     noise_cfg = noise_config(noise)
     if width < 1 or height < 1:
         raise ConfigError(f"image size must be positive, got {width}x{height}")
     sc = make_scene(scene, seed)
-    traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
+    if motion is None:
+        traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
+    else:
+        traj = replay_motion(motion, n_frames, sc, fps=fps, speed=speed, start_s=motion_start_s, seed=seed)
+        style = f"replay of {motion_label} at {speed:g}x speed from {motion_start_s:g} s"
     intr = default_intrinsics(width, height)
     out = Path(out_dir)
     (out / "rgb").mkdir(parents=True, exist_ok=True)

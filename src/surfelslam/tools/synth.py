@@ -25,12 +25,26 @@ def register(app: typer.Typer) -> None:
         width: Annotated[int, typer.Option("--width", help="Image width (intrinsics scaled from 640).")] = 640,
         height: Annotated[int, typer.Option("--height", help="Image height (intrinsics scaled from 480).")] = 480,
         fps: Annotated[float, typer.Option("--fps", help="Frame rate (timestamps are index / fps).")] = 30.0,
+        motion: Annotated[Path | None, typer.Option(
+            "--motion", help="Replay a recorded camera motion instead of --trajectory: a TUM trajectory file "
+                             "('timestamp tx ty tz qx qy qz qw', e.g. a dataset's groundtruth.txt: real hand-held "
+                             "motion). Its motion relative to its first pose is placed in the scene's free space.")
+        ] = None,
+        speed: Annotated[float, typer.Option(
+            "--speed", help="--motion: replay at this many times the recorded speed (3 = the same motion at 3x).")
+        ] = 1.0,
+        motion_start: Annotated[float, typer.Option(
+            "--motion-start", help="--motion: start this many seconds after the recording's first pose.")] = 0.0,
     ) -> None:
         """Render a textured indoor scene along a camera trajectory; write rgb/, depth/, groundtruth.txt."""
+        from surfelslam.io.trajectory import read_tum
         from surfelslam.synth.writer import generate_sequence
 
+        recorded = None if motion is None else read_tum(motion)
         path = generate_sequence(
             out, scene=scene, style=trajectory, n_frames=frames, noise=noise, seed=seed,
-            width=width, height=height, fps=fps, progress=True,
+            width=width, height=height, fps=fps, progress=True, motion=recorded, speed=speed,
+            motion_start_s=motion_start, motion_label=str(motion),
         )
-        console.print(f"wrote {frames} frames ({scene}, {trajectory}, noise {noise}, seed {seed}) to {path}")
+        what = trajectory if motion is None else f"motion of {motion} at {speed:g}x"
+        console.print(f"wrote {frames} frames ({scene}, {what}, noise {noise}, seed {seed}) to {path}")
