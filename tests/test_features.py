@@ -363,6 +363,17 @@ def test_hamming_kernel_matches_reference_and_opencv():
     np.testing.assert_array_equal(d2, [m[1].distance for m in knn])
     unique = d2 > d1
     np.testing.assert_array_equal(idx[unique], np.array([m[0].trainIdx for m in knn])[unique])
+    # the one-pass cross-check kernel: the same forward result, and the reverse nearest of every train row
+    m1, m2, midx, col = hamming.nearest_two_mutual_words(hamming.as_words(q), hamming.as_words(t))
+    np.testing.assert_array_equal(m1, d1)
+    np.testing.assert_array_equal(m2, d2)
+    np.testing.assert_array_equal(midx, idx)
+    np.testing.assert_array_equal(col, hamming.nearest_two_ref(t, q)[2])
+    few = (q & 3)[:, :8]  # 2 bits per byte over 8 bytes: many equal distances, so ties decide
+    few_t = (t & 3)[:, :8]
+    col_few = hamming.nearest_two_mutual_words(hamming.as_words(few), hamming.as_words(few_t))[3]
+    np.testing.assert_array_equal(col_few, hamming.nearest_two_ref(few_t, few)[2])
+    assert hamming.nearest_two_mutual_words(hamming.as_words(q[:0]), hamming.as_words(t[:4]))[3].tolist() == [-1] * 4
     # degenerate sizes
     one = hamming.nearest_two_words(hamming.as_words(q[:3]), hamming.as_words(t[:1]))
     assert np.all(one[1] == hamming.NO_MATCH) and np.all(one[2] == 0)

@@ -58,6 +58,41 @@ def nearest_two(query, train, best_d, second_d, best_idx):
         best_idx[i] = bi
 
 
+@njit(cache=True, nogil=True)
+def nearest_two_mutual(query, train, best_d, second_d, best_idx, col_idx):
+    """:func:`nearest_two` plus, in the same pass, each train row's nearest query row (for a cross-check).
+
+    Every distance is computed once instead of once per direction. ``col_idx``: ``(M,)`` int64 output, the first
+    query row at the smallest distance to each train row (-1 when ``N`` = 0): exactly ``best_idx`` of
+    ``nearest_two(train, query)``.
+    """
+    n_words = query.shape[1]
+    m = train.shape[0]
+    col_d = np.full(m, NO_MATCH, np.int64)
+    for j in range(m):
+        col_idx[j] = -1
+    for i in range(query.shape[0]):
+        b1 = NO_MATCH
+        b2 = NO_MATCH
+        bi = -1
+        for j in range(m):
+            d = 0
+            for w in range(n_words):
+                d += int(_popcount64(query[i, w] ^ train[j, w]))
+            if d < b1:
+                b2 = b1
+                b1 = d
+                bi = j
+            elif d < b2:
+                b2 = d
+            if d < col_d[j]:
+                col_d[j] = d
+                col_idx[j] = i
+        best_d[i] = b1
+        second_d[i] = b2
+        best_idx[i] = bi
+
+
 def as_words(descriptors: np.ndarray) -> np.ndarray:
     """``(N, B)`` uint8 descriptors (B a multiple of 8) -> ``(N, B / 8)`` uint64 words (a view when possible)."""
     d = np.ascontiguousarray(descriptors, dtype=np.uint8)
@@ -74,6 +109,17 @@ def nearest_two_words(query_words: np.ndarray, train_words: np.ndarray) -> tuple
     best_idx = np.empty(n, np.int64)
     nearest_two(query_words, train_words, best_d, second_d, best_idx)
     return best_d, second_d, best_idx
+
+
+def nearest_two_mutual_words(query_words: np.ndarray, train_words: np.ndarray):
+    """:func:`nearest_two_mutual` on word arrays -> ``(best_d, second_d, best_idx, col_idx)``."""
+    n, m = len(query_words), len(train_words)
+    best_d = np.empty(n, np.int64)
+    second_d = np.empty(n, np.int64)
+    best_idx = np.empty(n, np.int64)
+    col_idx = np.empty(m, np.int64)
+    nearest_two_mutual(query_words, train_words, best_d, second_d, best_idx, col_idx)
+    return best_d, second_d, best_idx, col_idx
 
 
 def nearest_two_ref(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -422,11 +422,11 @@ def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
     if len(ref) == 0 or len(cur) == 0:
         return empty
     ref_w, cur_w = hamming.as_words(ref.descriptors), hamming.as_words(cur.descriptors)
-    d12, d12_second, j12 = hamming.nearest_two_words(ref_w, cur_w)  # brute force, numba (see kernels.hamming)
-    if cfg.matching == "crosscheck":
-        _, _, i21 = hamming.nearest_two_words(cur_w, ref_w)
+    if cfg.matching == "crosscheck":  # brute force, numba (see kernels.hamming); both directions in one pass
+        d12, d12_second, j12, i21 = hamming.nearest_two_mutual_words(ref_w, cur_w)
         keep = i21[j12] == np.arange(len(ref))  # mutual nearest neighbours
     else:
+        d12, d12_second, j12 = hamming.nearest_two_words(ref_w, cur_w)
         keep = (d12_second != hamming.NO_MATCH) & (d12 < cfg.ratio * d12_second)
     if not keep.any():
         return empty
@@ -517,8 +517,10 @@ def _rgbd_system(T: np.ndarray, P: np.ndarray, uv: np.ndarray, q: np.ndarray, w_
     J[:, 2] = np.where(w_inv[:, None], J[:, 2] / si, 0.0)
     a = np.abs(r)
     w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-    H = np.einsum("nri,nr,nrj->ij", J, w, J)
-    g = np.einsum("nri,nr,nr->i", J, w, r)
+    Jf = J.reshape(-1, 6)  # one row per residual: two BLAS products instead of a three-operand einsum
+    Jw = Jf * w.reshape(-1, 1)
+    H = Jw.T @ Jf
+    g = Jw.T @ r.reshape(-1)
     return H, g
 
 
