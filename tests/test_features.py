@@ -214,6 +214,30 @@ def test_lk_tracking_and_rgbd_refinement_tighten_the_pose(intr: Intrinsics) -> N
     assert np.median(e_lk) < 0.3 < 0.5 < np.median(e_orb), (np.median(e_lk), np.median(e_orb))
 
 
+@pytest.mark.parametrize("matching", ["ratio", "crosscheck"])
+def test_sift_features_recover_known_pose(matching: str) -> None:
+    """``detector = "sift"``: float descriptors, ratio-test matching (mutual too with crosscheck), the same PnP
+    and refinement; mixing ORB and SIFT features is refused; a textureless image yields no SIFT match."""
+    T_a, T_b, fa, fb = _pair()
+    cfg = replace(CFG, detector="sift", matching=matching)
+    a = extract(fa.rgb, fa.depth_m, INTR, cfg)
+    b = extract(fb.rgb, fb.depth_m, INTR, cfg)
+    assert a.descriptors.dtype == np.float32 and a.descriptors.shape[1] == 128 and 100 < len(a) <= 600
+    m = match(a, b, cfg)
+    assert m.n_good > 50 and len(np.unique(m.pairs[:, 1])) == m.n_good or matching == "ratio"
+    res = estimate_motion(a, b, INTR, cfg)
+    assert res.ok
+    dt, dr = pose_error(res.T_cur_ref, invert(T_b) @ T_a)
+    assert dt < 0.005 and dr < 0.2, (dt, dr)
+    with pytest.raises(ValueError, match="different kinds"):
+        match(a, extract(fb.rgb, fb.depth_m, INTR, CFG), cfg)
+    flat = extract(np.full((240, 320, 3), 128, np.uint8), np.full((240, 320), 2.0, np.float32), INTR, cfg)
+    assert len(flat) == 0 and flat.descriptors.dtype == np.float32
+    assert estimate_motion(flat, b, INTR, cfg).reason == "too_few_matches"
+    with pytest.raises(ValueError, match="detector"):
+        FeatureConfig(detector="surf")
+
+
 def test_rgbd_refinement_recovers_a_known_pose_from_exact_correspondences() -> None:
     rng = np.random.default_rng(3)
     P = rng.uniform([-1.5, -1.0, 1.0], [1.5, 1.0, 4.0], size=(300, 3))

@@ -563,8 +563,9 @@ def test_register_photometric_auto_follows_colour_registration(tmp_path):
 @pytest.mark.shared
 def test_register_init_features_on_a_real_pair_90_frames_apart(tmp_path):
     """7-Scenes 210 -> 300 (about 0.6 m apart, a fifth of the view shared): ICP from the identity lands 0.5 m off;
-    the ORB guess (2000 keypoints, rigid 3D consensus: PnP-RANSAC alone finds no consensus here) brings it to
-    where ICP started at the ground truth ends (about 4.5 cm: the KinectFusion GT's own error over 90 frames)."""
+    the feature guess (2000 SIFT keypoints by default, or ORB with the rigid 3D consensus: PnP-RANSAC alone finds
+    no consensus here) brings it to where ICP started at the ground truth ends (about 4 cm: the KinectFusion GT's
+    own error over 90 frames)."""
     import json
 
     from typer.testing import CliRunner
@@ -579,8 +580,18 @@ def test_register_init_features_on_a_real_pair_90_frames_apart(tmp_path):
     assert out["identity"]["gt_error"]["trans_m"] > 0.3
     feat = out["features"]
     assert feat["init_used"] == "features" and feat["features"]["n_features"] == 2000
+    assert feat["features"]["descriptor"] == "sift"
     assert feat["init_gt_error"]["trans_m"] < 0.25
     assert feat["gt_error"]["trans_m"] < 0.06 and feat["gt_error"]["rot_deg"] < 2.0
     bad = CliRunner().invoke(register_app(), ["register", seq, "--source", "0", "--target", "1", "--out",
                                               str(tmp_path / "b"), "--features", "0"])
     assert bad.exit_code == 2 and "--features" in bad.output and "Traceback" not in bad.output
+    bad = CliRunner().invoke(register_app(), ["register", seq, "--source", "0", "--target", "1", "--out",
+                                              str(tmp_path / "b"), "--descriptor", "surf"])
+    assert bad.exit_code == 2 and "--descriptor" in bad.output and "Traceback" not in bad.output
+    # ORB (the odometry's matching) also rescues this pair
+    res = CliRunner().invoke(register_app(), ["register", seq, "--source", "210", "--target", "300",
+                                              "--init", "features", "--descriptor", "orb",
+                                              "--out", str(tmp_path / "o")])
+    orb = json.loads((tmp_path / "o" / "registration.json").read_text())
+    assert res.exit_code == 0 and orb["features"]["descriptor"] == "orb" and orb["gt_error"]["trans_m"] < 0.06

@@ -175,3 +175,12 @@ def test_voxel_filter_known_values() -> None:
     assert e[0].shape == (0, 3)
     with pytest.raises(ValueError):
         voxel_filter(xyz, rgb, 0.0)
+
+
+def test_sparse_trackers_refuse_float_descriptors() -> None:
+    """Place recognition votes with binary words: SIFT is for pairwise guesses (``register``), not the trackers."""
+    from surfelslam.tracking.features import FeatureConfig
+
+    with pytest.raises(ValueError, match="detector"):
+        SparseSlamConfig(features=FeatureConfig(detector="sift"))
+    assert SparseSlamConfig(features=FeatureConfig(detector="orb")).features.detector == "orb"

@@ -91,6 +91,8 @@ class SparseSlamConfig:
             raise ValueError(f"rejected_pose must be one of {REJECTED_POSE_MODES}, got {self.rejected_pose!r}")
         if self.keyframe_threshold <= 0:
             raise ValueError(f"keyframe_threshold must be positive, got {self.keyframe_threshold}")
+        if self.features.detector != "orb":  # place recognition votes with binary (Hamming) descriptors
+            raise ValueError(f"the sparse trackers need features.detector = 'orb', got {self.features.detector!r}")
 
 
 @dataclass

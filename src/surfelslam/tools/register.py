@@ -85,19 +85,28 @@ def register(app: typer.Typer) -> None:
                                        "default 2.0); the odometry default 0.3 is too small for pairs far "
                                        "apart.")] = None,
         features: Annotated[int | None, typer.Option(
-            "--features", help="--init features / auto: ORB keypoints per image (default 2000, twice the "
+            "--features", help="--init features / auto: keypoints per image (default 2000, twice the "
                                "odometry's: pairs far apart share little of the view).")] = None,
+        descriptor: Annotated[str, typer.Option(
+            "--descriptor", help="--init features / auto: sift (Lowe's ratio test; more correct matches between "
+                                 "views far apart, the default) or orb (the odometry's matching).")] = "sift",
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
         from surfelslam.eval.depth_agreement import depth_agreement
         from surfelslam.geometry import se3
         from surfelslam.io.atomic import write_text_atomic
-        from surfelslam.tracking.features import FeatureConfig
+        from surfelslam.tracking.features import DETECTORS
         from surfelslam.tracking.icp import pairwise_config
         from surfelslam.tracking.photometric import PHOTOMETRIC_MODES, colour_switch
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
-        from surfelslam.tracking.registration import FEATURE_MAX_NORM, INIT_MODES, PAIR_FEATURES, register_pair
+        from surfelslam.tracking.registration import (
+            FEATURE_MAX_NORM,
+            INIT_MODES,
+            PAIR_FEATURES,
+            pair_feature_config,
+            register_pair,
+        )
         from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
@@ -129,14 +138,17 @@ def register(app: typer.Typer) -> None:
         n_features = PAIR_FEATURES if features is None else features
         if n_features < 1:
             raise ConfigError(f"--features must be >= 1, got {n_features}")
+        if descriptor not in DETECTORS:
+            raise ConfigError(f"--descriptor must be one of {', '.join(DETECTORS)}, got {descriptor!r}")
         reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
                             FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric,
-                            FeatureConfig(n_features=n_features))
+                            pair_feature_config(descriptor, n_features))
         res, init_used = reg.icp, reg.init_used
         feat_info = None
         if reg.motion is not None:
             mres = reg.motion
-            feat_info = {"ok": reg.guess is not None, "reason": mres.reason, "n_features": n_features,
+            feat_info = {"ok": reg.guess is not None, "reason": mres.reason, "descriptor": descriptor,
+                         "n_features": n_features,
                          "good_matches": mres.n_good,
                          "inliers": mres.n_inliers,
                          "T_target_source": None if reg.guess is None else reg.guess.tolist()}
