@@ -29,48 +29,16 @@ def _popcount64(x):
     return (x * _H01) >> np.uint64(56)
 
 
-@njit(cache=True, nogil=True)
-def nearest_two(query, train, best_d, second_d, best_idx):
-    """For each row of ``query`` the two smallest Hamming distances to ``train`` rows and the nearest index.
-
-    Args:
-        query: ``(N, W)`` uint64 descriptors (W words each); train: ``(M, W)`` uint64.
-        best_d, second_d: ``(N,)`` int64 outputs (``NO_MATCH`` where ``M`` < 1 / < 2).
-        best_idx: ``(N,)`` int64 output, index into ``train`` of the first nearest row (-1 when ``M`` = 0).
-    """
-    n_words = query.shape[1]
-    for i in range(query.shape[0]):
-        b1 = NO_MATCH
-        b2 = NO_MATCH
-        bi = -1
-        for j in range(train.shape[0]):
-            d = 0
-            for w in range(n_words):
-                d += int(_popcount64(query[i, w] ^ train[j, w]))
-            if d < b1:
-                b2 = b1
-                b1 = d
-                bi = j
-            elif d < b2:
-                b2 = d
-        best_d[i] = b1
-        second_d[i] = b2
-        best_idx[i] = bi
-
-
-@njit(cache=True, nogil=True)
-def nearest_two_mutual(query, train, best_d, second_d, best_idx, col_idx):
-    """:func:`nearest_two` plus, in the same pass, each train row's nearest query row (for a cross-check).
-
-    Every distance is computed once instead of once per direction. ``col_idx``: ``(M,)`` int64 output, the first
-    query row at the smallest distance to each train row (-1 when ``N`` = 0): exactly ``best_idx`` of
-    ``nearest_two(train, query)``.
-    """
+@njit(cache=True, nogil=True, inline="always")
+def _search(query, train, best_d, second_d, best_idx, col_idx, columns):
+    """The brute-force pass of :func:`nearest_two` and :func:`nearest_two_mutual` (``columns``: also fill
+    ``col_idx``; a literal at each call site). One loop for both, so the two cannot drift apart."""
     n_words = query.shape[1]
     m = train.shape[0]
-    col_d = np.full(m, NO_MATCH, np.int64)
-    for j in range(m):
-        col_idx[j] = -1
+    col_d = np.full(m if columns else 0, NO_MATCH, np.int64)
+    if columns:
+        for j in range(m):
+            col_idx[j] = -1
     for i in range(query.shape[0]):
         b1 = NO_MATCH
         b2 = NO_MATCH
@@ -85,12 +53,35 @@ def nearest_two_mutual(query, train, best_d, second_d, best_idx, col_idx):
                 bi = j
             elif d < b2:
                 b2 = d
-            if d < col_d[j]:
+            if columns and d < col_d[j]:
                 col_d[j] = d
                 col_idx[j] = i
         best_d[i] = b1
         second_d[i] = b2
         best_idx[i] = bi
+
+
+@njit(cache=True, nogil=True)
+def nearest_two(query, train, best_d, second_d, best_idx):
+    """For each row of ``query`` the two smallest Hamming distances to ``train`` rows and the nearest index.
+
+    Args:
+        query: ``(N, W)`` uint64 descriptors (W words each); train: ``(M, W)`` uint64.
+        best_d, second_d: ``(N,)`` int64 outputs (``NO_MATCH`` where ``M`` < 1 / < 2).
+        best_idx: ``(N,)`` int64 output, index into ``train`` of the first nearest row (-1 when ``M`` = 0).
+    """
+    _search(query, train, best_d, second_d, best_idx, np.empty(0, np.int64), False)
+
+
+@njit(cache=True, nogil=True)
+def nearest_two_mutual(query, train, best_d, second_d, best_idx, col_idx):
+    """:func:`nearest_two` plus, in the same pass, each train row's nearest query row (for a cross-check).
+
+    Every distance is computed once instead of once per direction. ``col_idx``: ``(M,)`` int64 output, the first
+    query row at the smallest distance to each train row (-1 when ``N`` = 0): exactly ``best_idx`` of
+    ``nearest_two(train, query)``.
+    """
+    _search(query, train, best_d, second_d, best_idx, col_idx, True)
 
 
 def as_words(descriptors: np.ndarray) -> np.ndarray:
