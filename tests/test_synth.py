@@ -286,3 +286,4 @@ def test_synth_command_replays_a_trajectory_file(tmp_path):
     long = CliRunner().invoke(app, ["synth", str(tmp_path / "y"), "--motion", str(tmp_path / "gt.txt"),
                                     "--frames", "500", "--width", "80", "--height", "60"])
     assert long.exit_code == 2 and "lasts" in long.output and not (tmp_path / "y" / "rgb.txt").exists()
+    assert "gt.txt" in long.output  # the message names the recording

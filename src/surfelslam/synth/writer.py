@@ -141,7 +141,10 @@ def generate_sequence(
     if motion is None:
         traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
     else:
-        traj = replay_motion(motion, n_frames, sc, fps=fps, speed=speed, start_s=motion_start_s, seed=seed)
+        try:
+            traj = replay_motion(motion, n_frames, sc, fps=fps, speed=speed, start_s=motion_start_s, seed=seed)
+        except ConfigError as exc:  # name the recording the message is about
+            raise ConfigError(f"{motion_label}: {exc}") from None
         style = f"replay of {motion_label} at {speed:g}x speed from {motion_start_s:g} s"
     intr = default_intrinsics(width, height)
     out = Path(out_dir)
