@@ -27,11 +27,12 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 INIT_MODES = ("identity", "features", "auto")
 FEATURE_MAX_NORM = 2.0  # m + rad: the PnP guess accepts motions up to this (pairs far apart; odometry uses 0.3)
-#: ORB keypoints per image for a pair's guess. Pairs far apart share a small part of the view, so twice the
-#: odometry's 1000: on 7-Scenes pairs 90 frames apart at 640x480 the correct matches go from 0-32 to 11-77.
+#: Keypoints per image for a pair's guess. Pairs far apart share a small part of the view, so twice the
+#: odometry's 1000 (ORB on 7-Scenes pairs 90 frames apart at 640x480: the guess is accepted on 4 of 8, not 1).
 PAIR_FEATURES = 2000
-#: Keypoints of a pair's guess: SIFT (ratio test) finds more correct matches than ORB between views far apart:
-#: 7-Scenes pairs 90 frames apart at 320x240 reach the ICP-from-GT result on 9 of 12 (ORB: 6).
+#: Keypoints of a pair's guess: SIFT (ratio test) finds more correct matches than ORB between views far apart. Of
+#: the 12 7-Scenes pairs 90 frames apart in the README tables, ICP from the identity misses the ICP-from-GT result
+#: on 10 at 320x240; from the SIFT guess it reaches it on 8 of them (ORB: 5).
 PAIR_DETECTOR = "sift"
 
 
@@ -63,7 +64,7 @@ def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: Fr
                   icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM,
                   photometric: bool = False, feature_cfg: FeatureConfig | None = None) -> PairRegistration:
     """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``, level 0 at the frames' resolution)
-    from the start ``init``; ``photometric``: joint geometric + photometric ICP; ``feature_cfg``: the ORB / PnP
+    from the start ``init``; ``photometric``: joint geometric + photometric ICP; ``feature_cfg``: the feature / PnP
     settings of the guess (default :func:`pair_feature_config`), whose motion bound becomes
     ``feature_max_norm``."""
     if init not in INIT_MODES:
