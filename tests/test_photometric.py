@@ -97,6 +97,7 @@ def test_intensity_pyramid_helpers_match_numpy_references():
     packed = kph.pack_target(img)
     np.testing.assert_array_equal(packed[..., 0], img)
     np.testing.assert_array_equal(packed[..., 1], kph.gradients_ref(img)[0])
+    np.testing.assert_array_equal(packed[..., 2], kph.gradients_ref(img)[1])
     # a linear ramp: central differences give its slope exactly (NaN on the border)
     ramp = np.tile(0.01 * np.arange(10, dtype=np.float32), (6, 1))
     gx, gy = kph.gradients(ramp)

@@ -308,13 +308,19 @@ def pack_target(img):
     :func:`accumulate_photometric` (gradients as :func:`gradients`)."""
     H, W = img.shape
     out = np.empty((H, W, 3), np.float32)
-    gx, gy = gradients(img)
+    out[:, :, 0] = img
+    _gradients_into(img, out[:, :, 1], out[:, :, 2])  # written in place: no temporary gradient images
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gradients_into(img, gx, gy):
+    """Fill ``gx``, ``gy`` (``(H, W)`` float32, possibly strided views) with the gradients of :func:`gradients`."""
+    H, W = img.shape
     for v in range(H):
         for u in range(W):
-            out[v, u, 0] = img[v, u]
-            out[v, u, 1] = gx[v, u]
-            out[v, u, 2] = gy[v, u]
-    return out
+            gx[v, u] = np.float32(0.5) * (img[v, u + 1] - img[v, u - 1]) if 0 < u < W - 1 else np.nan
+            gy[v, u] = np.float32(0.5) * (img[v + 1, u] - img[v - 1, u]) if 0 < v < H - 1 else np.nan
 
 
 @njit(cache=True, nogil=True)
@@ -324,10 +330,7 @@ def gradients(img):
     H, W = img.shape
     gx = np.empty((H, W), np.float32)
     gy = np.empty((H, W), np.float32)
-    for v in range(H):
-        for u in range(W):
-            gx[v, u] = np.float32(0.5) * (img[v, u + 1] - img[v, u - 1]) if 0 < u < W - 1 else np.nan
-            gy[v, u] = np.float32(0.5) * (img[v + 1, u] - img[v - 1, u]) if 0 < v < H - 1 else np.nan
+    _gradients_into(img, gx, gy)
     return gx, gy
 
 
