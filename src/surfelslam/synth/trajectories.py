@@ -26,6 +26,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.se3 import exp as se3_exp
+from surfelslam.geometry.se3 import invert as se3_invert
 from surfelslam.synth.scenes import Scene
 from surfelslam.types import Trajectory
 
@@ -212,7 +213,7 @@ def replay_motion(
         k = int(np.argmin(valid))
         raise ConfigError(f"the recorded motion has a gap of more than {_REPLAY_MAX_GAP_S} s at "
                           f"{stamps[k] - t[0]:.2f} s from its start")
-    T_rel = np.einsum("ij,njk->nik", np.linalg.inv(T_rec[0]), T_rec)  # motion relative to frame 0
+    T_rel = np.einsum("ij,njk->nik", se3_invert(T_rec[0]), T_rec)  # motion relative to frame 0
     v = scene.view
     centre = np.asarray(v.centre, np.float64)
     if v.kind == "wall":

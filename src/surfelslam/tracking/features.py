@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from surfelslam.geometry.camera import project
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
 from surfelslam.kernels import hamming
@@ -642,28 +643,23 @@ def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarr
     return mask, rvec, tvec, None
 
 
-def _reprojection_inliers(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+def _reprojection_inliers(obj: np.ndarray, uv: np.ndarray, intr: Intrinsics, rvec: np.ndarray, tvec: np.ndarray,
                           cfg: FeatureConfig) -> np.ndarray:
-    """``(N,)`` bool: points in front of the camera that reproject within ``reprojection_error_px``."""
-    R = so3_exp(np.asarray(rvec, np.float64).reshape(3))
-    X = obj @ R.T + np.asarray(tvec, np.float64).reshape(3)
-    z = X[:, 2]
-    front = z > 0
-    zs = np.where(front, z, 1.0)
-    u = K[0, 0] * X[:, 0] / zs + K[0, 2]
-    v = K[1, 1] * X[:, 1] / zs + K[1, 2]
-    return front & (np.hypot(u - img[:, 0], v - img[:, 1]) < cfg.reprojection_error_px)
+    """``(N,)`` bool: points in front of the camera that reproject within ``reprojection_error_px`` of ``uv``."""
+    X = obj @ so3_exp(np.asarray(rvec, np.float64).reshape(3)).T + np.asarray(tvec, np.float64).reshape(3)
+    u, v, z = project(X, intr)
+    return (z > 0) & (np.hypot(u - uv[:, 0], v - uv[:, 1]) < cfg.reprojection_error_px)
 
 
-def _consensus_hypothesis(obj: np.ndarray, pts_cur: np.ndarray, img: np.ndarray, K: np.ndarray,
-                          cfg: FeatureConfig):
+def _consensus_hypothesis(obj: np.ndarray, pts_cur: np.ndarray, uv_cur: np.ndarray, img: np.ndarray,
+                          K: np.ndarray, intr: Intrinsics, cfg: FeatureConfig):
     """Pose from the rigid 3D consensus (see ``FeatureConfig.consensus_fallback``), refined by Levenberg-Marquardt
     on the consensus members' pixels and then on its reprojection inliers: ``(mask (N,), rvec (3, 1),
     tvec (3, 1))``, or ``None``.
 
     ``obj``: ``(N, 3)`` reference points; ``pts_cur``: ``(N, 3)`` current-camera points of the same matches (NaN
-    without depth); ``img``, ``K``: current pixels and camera in OpenCV's convention (rows mirrored when
-    ``fy < 0``, which leaves the pose unchanged; see the module notes)."""
+    without depth); ``uv_cur``: ``(N, 2)`` their current pixels; ``img``, ``K``: the same pixels and camera in
+    OpenCV's convention (rows mirrored when ``fy < 0``, which leaves the pose unchanged; see the module notes)."""
     T, members = rigid_consensus(obj, pts_cur, cfg.consensus_abs_tol_m, cfg.consensus_rel_tol, cfg.consensus_seeds,
                                  cfg.min_inliers)
     if T is None or len(members) < cfg.min_inliers:
@@ -671,10 +667,10 @@ def _consensus_hypothesis(obj: np.ndarray, pts_cur: np.ndarray, img: np.ndarray,
     rvec, tvec = so3_log(T[:3, :3]).reshape(3, 1).copy(), T[:3, 3].reshape(3, 1).copy()
     # the 3D fit carries the depth noise of both frames; the members' pixels pin the pose down in the image
     rvec, tvec = cv2.solvePnPRefineLM(obj[members], img[members], K, None, rvec, tvec)
-    mask = _reprojection_inliers(obj, img, K, rvec, tvec, cfg)
+    mask = _reprojection_inliers(obj, uv_cur, intr, rvec, tvec, cfg)
     if mask.sum() >= cfg.min_inliers:
         rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], K, None, rvec, tvec)
-        mask = _reprojection_inliers(obj, img, K, rvec, tvec, cfg)
+        mask = _reprojection_inliers(obj, uv_cur, intr, rvec, tvec, cfg)
     return mask, rvec, tvec
 
 
@@ -713,7 +709,7 @@ def estimate_motion(
         tvec0 = np.zeros((3, 1))
     mask, rvec, tvec, reason = _pnp_ransac(obj, img, K, rvec0, tvec0, use_guess, cfg)
     if cfg.consensus_fallback and (mask is None or mask.sum() < cfg.consensus_below_fraction * n_good):
-        alt = _consensus_hypothesis(obj, cur.points_cam[pairs[:, 1]], img, K, cfg)
+        alt = _consensus_hypothesis(obj, cur.points_cam[pairs[:, 1]], uv_cur, img, K, intr, cfg)
         if alt is not None and alt[0].sum() > (0 if mask is None else mask.sum()):
             mask, rvec, tvec = alt
     if mask is None:
