@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from surfelslam.errors import ConfigError
+from surfelslam.geometry import se3
 from surfelslam.kernels import fusion as kf
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.types import Intrinsics
@@ -195,7 +196,7 @@ def fuse(
     radius_per_depth = cfg.new_radius_px / (0.5 * (abs(intr.fx) + abs(intr.fy)))
 
     cand = smap.visible_candidates(T, intr, cfg.min_depth_m, cfg.max_depth_m)
-    T_cam_world = np.linalg.inv(T)
+    T_cam_world = se3.invert(T)
     H, W = intr.shape
     bstart = smap.scratch("fusion_bucket_start", H * W + 1, np.int32)
     border = smap.scratch("fusion_bucket_order", len(cand), np.int32)

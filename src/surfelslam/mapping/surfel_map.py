@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from surfelslam.errors import ConfigError
+from surfelslam.geometry import se3
 from surfelslam.kernels import render as kr
 from surfelslam.kernels import surfels as ks
 from surfelslam.types import Intrinsics
@@ -358,7 +359,7 @@ class SurfelMap:
         nb = self._n_blocks
         if self._size == 0 or nb == 0:
             return self._cand[:0]
-        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, np.float64))
+        T_cam_world = se3.invert(np.asarray(T_world_cam, np.float64))
         kr.cull_blocks(
             self._block_ijk, nb, self.cfg.block_size_m, self.cfg.block_margin_m,
             np.ascontiguousarray(T_cam_world[:3, :3]), np.ascontiguousarray(T_cam_world[:3, 3]),

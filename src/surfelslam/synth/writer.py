@@ -92,12 +92,13 @@ def depth_to_raw(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.nd
 
 
 def info_text(
-    scene: str, style: str, noise: str, seed: int, n_frames: int, intr: Intrinsics, fps: float
+    scene: str, motion_desc: str, noise: str, seed: int, n_frames: int, intr: Intrinsics, fps: float
 ) -> str:
+    """INFO.txt of a generated sequence; ``motion_desc`` is the trajectory style or a replay's description."""
     rows = [
         ("generator", "surfelslam synth"),
         ("scene", scene),
-        ("trajectory", style),
+        ("trajectory", motion_desc),
         ("noise", noise),
         ("seed", str(seed)),
         ("frames", str(n_frames)),
@@ -140,12 +141,13 @@ def generate_sequence(
     sc = make_scene(scene, seed)
     if motion is None:
         traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
+        motion_desc = style
     else:
         try:
             traj = replay_motion(motion, n_frames, sc, fps=fps, speed=speed, start_s=motion_start_s, seed=seed)
         except ConfigError as exc:  # name the recording the message is about
             raise ConfigError(f"{motion_label}: {exc}") from None
-        style = f"replay of {motion_label} at {speed:g}x speed from {motion_start_s:g} s"
+        motion_desc = f"replay of {motion_label} at {speed:g}x speed from {motion_start_s:g} s"
     intr = default_intrinsics(width, height)
     out = Path(out_dir)
     (out / "rgb").mkdir(parents=True, exist_ok=True)
@@ -194,5 +196,5 @@ def generate_sequence(
     )
     write_text_atomic(out / "associations.txt", "".join(f"{n} rgb/{n}.png {n} depth/{n}.png\n" for n in names))
     write_tum(traj, out / "groundtruth.txt")
-    write_text_atomic(out / "INFO.txt", info_text(scene, style, noise, seed, n_frames, intr, fps))
+    write_text_atomic(out / "INFO.txt", info_text(scene, motion_desc, noise, seed, n_frames, intr, fps))
     return out
