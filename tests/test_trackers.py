@@ -167,6 +167,25 @@ def test_loop_found_reported_and_closure_reduces_ate():
     assert _ate_m(est, gt) < _ate_m(est_no, gt), (_ate_m(est, gt), _ate_m(est_no, gt))
 
 
+def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
+    """``hybrid.loop_icp``: the PnP keyframe edges refined by ICP between the keyframes' depth carry a tight
+    weight, and the loops then correct the dense drift (measured, walking loop, 60 frames: 0.42 cm with PnP
+    edges, 0.07 cm refined, dense 0.50). Off by default (worse on 7-Scenes, see ``backend.dense_edges``)."""
+    frames, gt = _frames("loop", N_LOOP)
+    cfg = SlamConfig()
+    assert not cfg.hybrid.loop_icp.enabled
+    cheap = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
+    on = replace(cheap, hybrid=replace(cheap.hybrid, loop_icp=replace(cheap.hybrid.loop_icp, enabled=True)))
+    est_pnp, res_pnp, _ = _run("hybrid", frames, cheap)
+    est, res, _ = _run("hybrid", frames, on)
+    m = res.metrics
+    assert res_pnp.metrics["edges_dense_refined"] == 0 and res_pnp.metrics["edge_sigma_m"] is None
+    assert m["edges_dense_refined"] > 50 and m["loops_accepted"] > 10
+    assert m["edges_dense_rejected"] < 0.1 * m["edges_dense_refined"]
+    assert m["edge_sigma_m"] == pytest.approx(cfg.hybrid.loop_icp.sigma_m)
+    assert _ate_m(est, gt) < 0.5 * _ate_m(est_pnp, gt), (_ate_m(est, gt), _ate_m(est_pnp, gt))
+
+
 def test_loop_correction_moves_map_and_trajectory():
     """A graph correction ``D`` applied to every keyframe moves every surfel and frame pose by ``D``."""
     frames, _ = _frames("slow", N_SLOW)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from surfelslam.backend.dense_edges import DenseEdgeRefiner
 from surfelslam.backend.keyframes import Keyframe, MapConfig, keyframe_cloud
 from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
 from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
@@ -36,6 +37,8 @@ from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, 
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
 REJECTED_POSE_MODES = ("constant_velocity", "last")
+#: ``MotionResult.reason`` of a PnP-verified keyframe edge that the dense check dropped.
+DENSE_CHECK_FAILED = "dense_check_failed"
 
 
 @dataclass
@@ -151,18 +154,22 @@ class SparseSlam:
         intr: intrinsics of the frames that will be processed (``fy`` may be negative).
         cfg: settings.
         T_world_first: pose of the first frame (default identity).
+        edge_refiner: optional dense check of keyframe edges (:mod:`dense_edges`): every PnP-verified edge
+            (nearby or loop) is refined by ICP between the keyframes' depth maps, or dropped when that fails.
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
-                 T_world_first: np.ndarray | None = None) -> None:
+                 T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None) -> None:
         self.intr = intr
         self.cfg = cfg or SparseSlamConfig()
+        self._refiner = edge_refiner
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._graph = PoseGraph(self.cfg.graph)
         self._index = DescriptorIndex(self.cfg.loop.retrieval)
         self._rng = np.random.default_rng(self.cfg.loop.seed)
         self._kfs: list[Keyframe] = []
         self._kf_pose_buf = np.zeros((16, 4, 4))  # current estimates T_world_kf (grown by doubling)
+        self._kf_odometry: list[np.ndarray] = []  # T_world_kf chained from odometry edges alone (never optimised)
         self._ref_kf = -1
         # per processed frame: timestamp, reference keyframe, pose relative to it
         self._timestamps: list[float] = []
@@ -173,12 +180,19 @@ class SparseSlam:
         self.loops_found: list[tuple[int, int, int]] = []
         self.loops_accepted: list[tuple[int, int, int]] = []
         self.n_nearby_edges = 0
+        self.n_dense_refined = 0  # edges refined by the dense check
+        self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
         self.rejected: Counter[str] = Counter()
         self._pool: ThreadPoolExecutor | None = None
         self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
         self._unreported_loops = 0  # loops applied since the last frame result
 
     # --- state -------------------------------------------------------------------------------------
+
+    @property
+    def dense_edge_sigma_m(self) -> float | None:
+        """Sigma (m and rad) that new dense-refined edges get now; ``None`` without an edge refiner."""
+        return None if self._refiner is None else self._refiner.edge_sigma()
 
     @property
     def n_keyframes(self) -> int:
@@ -308,8 +322,12 @@ class SparseSlam:
             # the graph moved the previous keyframe: keep the new one's pose relative to it
             T_world_cam = orthonormalize(self._kf_poses[prev_kf] @ invert(T_prev_before) @ T_world_cam)
         kf_id = self._graph.add_node(T_world_cam)
+        if self._refiner is not None:
+            self._refiner.add_keyframe(kf_id, frame.depth_m)
         xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
         self._append_kf_pose(T_world_cam)
+        self._kf_odometry.append(np.asarray(T_world_cam, np.float64).copy() if prev_kf is None or T_prev_new is None
+                                 else self._kf_odometry[prev_kf] @ T_prev_new)
         # a keyframe is only ever the reference side of a pair: it keeps its grey image (sub-pixel tracking)
         # but not the depth image (only the current side's depth is used)
         self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
@@ -340,6 +358,15 @@ class SparseSlam:
         checked = []
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self.cfg.loop):
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self.intr, self.cfg.features, self.cfg.loop)
+            if res.ok and self._refiner is not None:
+                inl = res.pairs[res.inlier_mask]
+                uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
+                T = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
+                                         self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
+                if T is None:
+                    res.ok, res.reason = False, DENSE_CHECK_FAILED
+                else:
+                    res.T_cur_ref, res.information = T, None  # weighed by the dense sigma (isotropic)
             checked.append((cand, res))
         self._index.add(q)
         return kf_id, checked
@@ -353,9 +380,18 @@ class SparseSlam:
                     and res.reason != "motion_too_large":
                 self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
             if not res.ok:
+                self.n_dense_rejected += res.reason == DENSE_CHECK_FAILED
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
-            self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop",
+            T_i_j = invert(res.T_cur_ref)
+            information = None
+            if self._refiner is not None:
+                self.n_dense_refined += 1
+                if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
+                    odo = self._kf_odometry
+                    self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
+                information = self._refiner.edge_sigma() ** -2
+            self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, T_i_j, "loop", information=information,
                                           information_matrix=res.information))
             if far:
                 self.loops_accepted.append((cand.kf_id, kf_id, res.n_inliers))

@@ -417,6 +417,27 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
     )
 
 
+def icp_failure(res: ICPResult) -> str | None:
+    """Category of a tracking failure, or ``None`` when the result can be used.
+
+    Running out of iterations at the finest level is *not* a failure (the estimate is still refined);
+    too few inliers (count or fraction of the valid source points), an unsolvable or degenerate system, and
+    implausible motion are.
+    """
+    if res.converged:
+        return None
+    if res.degenerate:
+        return "degenerate"
+    stop = res.levels[-1].stop if res.levels else "solver"
+    if stop in ("too_few_inliers", "solver"):
+        return stop
+    if res.reason and res.reason.startswith("too few inliers"):  # the finest level's inlier fraction rule
+        return "too_few_inliers"
+    if res.reason and res.reason.startswith("implausible"):
+        return "implausible_motion"
+    return None
+
+
 def photometric_term(source: IntensityPyramid, target: IntensityPyramid, cfg: ICPConfig) -> PhotometricTerm:
     """The joint photometric term of one registration with ``cfg``'s settings (a fresh brightness offset)."""
     return PhotometricTerm(source, target, cfg.photometric_sigma, cfg.photometric_huber, cfg.photometric_weight,
