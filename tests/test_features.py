@@ -418,3 +418,22 @@ def test_match_crosscheck_equals_opencv_crosscheck():
     m = match(a, b, replace(CFG, matching="crosscheck"))
     assert m.n_raw == len(raw)
     assert {tuple(p) for p in m.pairs} <= cv_pairs and m.n_good > 50
+
+
+def test_reprojection_spread_px_is_the_pixel_noise():
+    """Exact reprojections plus 1.5 px Gaussian noise: the spread is 1.5 px; points behind the camera are left
+    out, and too few points give 0."""
+    from surfelslam.tracking.features import MIN_POINTS_FOR_SPREAD, reprojection_spread_px
+    from surfelslam.types import Intrinsics
+
+    intr = Intrinsics(500.0, -480.0, 320.0, 240.0, 640, 480)
+    rng = np.random.default_rng(2)
+    X = rng.uniform([-1, -1, 1], [1, 1, 4], (4000, 3))
+    uv = np.column_stack([500 * X[:, 0] / X[:, 2] + 320, -480 * X[:, 1] / X[:, 2] + 240])
+    noisy = uv + rng.normal(0, 1.5, uv.shape)
+    behind = X.copy()
+    behind[:100, 2] *= -1
+    noisy[:100] = 1e6  # would dominate if they were used
+    assert reprojection_spread_px(behind, noisy, intr) == pytest.approx(1.5, rel=0.05)
+    n = MIN_POINTS_FOR_SPREAD - 1
+    assert reprojection_spread_px(X[:n], noisy[-n:], intr) == 0.0

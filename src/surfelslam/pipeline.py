@@ -79,7 +79,7 @@ from surfelslam.geometry import se3
 from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
-from surfelslam.tracking.features import Features, robust_sigma
+from surfelslam.tracking.features import Features, reprojection_spread_px
 from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp, icp_failure, photometric_term
 from surfelslam.tracking.photometric import (
     PHOTOMETRIC_MODES,
@@ -619,7 +619,6 @@ def block_average_rgb(rgb: np.ndarray, levels: int) -> np.ndarray:
     return rgb
 
 
-_MIN_POINTS_FOR_SPREAD = 10  # fewer PnP inliers: no spread estimate (the configured sigma holds)
 
 _WARMUP_INTRINSICS = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
 
@@ -795,14 +794,7 @@ class HybridSlam(DenseSlam):
         """Robust spread (px) of the inliers' reprojection residuals at the PnP pose: the data's own pixel noise
         (larger where colour and depth are misregistered or keypoints are poorly localised)."""
         X = se3.transform_points(se3.invert(match.T_world_cam), match.points_world)
-        z = X[:, 2]
-        ok = z > 0
-        if ok.sum() < _MIN_POINTS_FOR_SPREAD:
-            return 0.0
-        k = self.intr
-        e = np.concatenate([k.fx * X[ok, 0] / z[ok] + k.cx - match.uv_cur[ok, 0],
-                            k.fy * X[ok, 1] / z[ok] + k.cy - match.uv_cur[ok, 1]])
-        return robust_sigma(e)
+        return reprojection_spread_px(X, match.uv_cur, self.intr)
 
     def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
         h = self.cfg.hybrid

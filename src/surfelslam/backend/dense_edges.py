@@ -39,13 +39,12 @@ import numpy as np
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
-from surfelslam.tracking.features import robust_sigma
+from surfelslam.tracking.features import reprojection_spread_px
 from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp, icp_failure
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_intrinsics
 from surfelslam.types import Intrinsics
 
 _MAD_TO_SIGMA = 0.6745  # median |x| of a zero-mean Gaussian, in sigmas
-_MIN_POINTS_FOR_SPREAD = 10  # fewer inliers: no spread estimate (feature_sigma_px holds)
 
 
 def _edge_icp_config() -> ICPConfig:
@@ -227,13 +226,7 @@ class DenseEdgeRefiner:
             return None
         pts = np.asarray(points_ref, np.float64)
         uv = np.asarray(uv_cur, np.float64)
-        X = se3.transform_points(T_cur_ref, pts)
+        spread = reprojection_spread_px(se3.transform_points(T_cur_ref, pts), uv, self._intr)
         k = self._intr
-        ok = X[:, 2] > 0
-        spread = 0.0
-        if ok.sum() >= _MIN_POINTS_FOR_SPREAD:
-            z = X[ok, 2]
-            spread = robust_sigma(np.concatenate([k.fx * X[ok, 0] / z + k.cx - uv[ok, 0],
-                                                  k.fy * X[ok, 1] / z + k.cy - uv[ok, 1]]))
         return ReprojectionTerm(pts, uv, k, max(c.feature_sigma_px, spread), c.feature_huber,
                                 c.feature_weight * self._icp_cfg.finest_robust_scale_m ** 2)

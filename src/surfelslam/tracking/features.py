@@ -525,6 +525,24 @@ def robust_sigma(values: np.ndarray) -> float:
     return _MAD_TO_SIGMA * float(np.median(np.abs(v - np.median(v))))
 
 
+#: Fewest points in front of the camera for :func:`reprojection_spread_px` to estimate a spread.
+MIN_POINTS_FOR_SPREAD = 10
+
+
+def reprojection_spread_px(points_cam: np.ndarray, uv: np.ndarray, intr: Intrinsics) -> float:
+    """Robust spread (px) of the reprojection residuals of ``points_cam (N, 3)`` (camera frame, m) against their
+    observed pixels ``uv (N, 2)``: :func:`robust_sigma` over both coordinates of the points in front of the camera;
+    0 when fewer than :data:`MIN_POINTS_FOR_SPREAD` are."""
+    X = np.asarray(points_cam, np.float64)
+    uv = np.asarray(uv, np.float64)
+    ok = X[:, 2] > 0
+    if ok.sum() < MIN_POINTS_FOR_SPREAD:
+        return 0.0
+    z = X[ok, 2]
+    return robust_sigma(np.concatenate([intr.fx * X[ok, 0] / z + intr.cx - uv[ok, 0],
+                                        intr.fy * X[ok, 1] / z + intr.cy - uv[ok, 1]]))
+
+
 def _rgbd_system(T: np.ndarray, P: np.ndarray, uv: np.ndarray, q: np.ndarray, w_inv: np.ndarray, si: float,
                  intr: Intrinsics, cfg: FeatureConfig) -> tuple[np.ndarray, np.ndarray] | None:
     """Huber-weighted normal equations ``(H (6, 6), g (6,))`` of the joint refinement at ``T`` (left update
