@@ -619,7 +619,6 @@ def block_average_rgb(rgb: np.ndarray, levels: int) -> np.ndarray:
     return rgb
 
 
-
 _WARMUP_INTRINSICS = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
 
 
@@ -738,7 +737,7 @@ class HybridSlam(DenseSlam):
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         refiner = None
-        if cfg.hybrid.loop_icp.enabled:  # ICP-refined keyframe edges are as precise as dense odometry
+        if cfg.hybrid.loop_icp.enabled:  # ICP-refined keyframe edges carry a tight sigma (per edge, see dense_edges)
             refiner = DenseEdgeRefiner(intr, cfg.preprocess, cfg.hybrid.loop_icp)
             sp = replace(sp, graph=replace(sp.graph, loop_information=cfg.hybrid.loop_icp.sigma_m ** -2))
         if cfg.hybrid.loop_robust_scale_m > 0:  # the kernel's scale is in whitened units (loop sigmas)

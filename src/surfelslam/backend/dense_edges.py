@@ -11,16 +11,15 @@ from the PnP pose).
 Opt-in (``hybrid.loop_icp.enabled``), because it helps on synthetic data and hurts on real Kinect data:
 
 * Synthetic Kinect-noise sequences (320x240): edge errors against ground truth fall from a median of 4 mm
-  (PnP) to 0.4 mm, and the hybrid's ATE by 2-7x where the dense tracker drifts (room, slow: 0.14 -> 0.05 cm,
-  dense 0.21; walking loop 0.33 -> 0.05, dense 0.33; office hand-held seed 1 0.064 -> 0.036, dense 0.045).
+  (PnP) to 0.4 mm, and the hybrid's ATE by 2-4x where the dense tracker drifts (room, slow: 0.14 -> 0.05 cm,
+  dense 0.21; walking loop 0.33 -> 0.08, dense 0.33; office hand-held seed 1 0.064 -> 0.036, dense 0.045).
 * 7-Scenes (frames 0-499, 320x240): 2.48 -> 3.76 cm (dense 2.47), and the poses agree worse with the depth
-  itself (median |dz| on 95 revisit pairs >= 60 frames apart: dense 10.3 mm, with refined loops 14.0 mm).
-  The refined edges differ from ground truth by a median 16 mm and 0.6 deg (PnP: 27 mm, 1.3 deg), while the
-  nearby ones agree with the odometry to under 2 mm, so their spread does not reveal it. The likely cause is the
-  low-frequency distortion of raw Kinect depth: keyframe-to-keyframe ICP of views 1-2 s apart is biased by it,
-  and frame-to-model tracking averages it out. Almost all of the refined edges there are nearby ones (140 of 142),
-  and they disagree with the dense odometry by a median 0.10 deg and 2.2 mm (synthetic: 0.011 deg, 0.37 mm).
-  Only a sigma that all but ignores them is harmless: 1 / 2 / 5 cm give 2.92 / 2.62 / 2.50 cm; a 1 cm / 1 deg
+  itself (median |dz| on 95 revisit pairs >= 60 frames apart: dense 10.3 mm, with refined edges 14.0 mm).
+  140 of the 142 refined edges there are nearby ones; they disagree with the dense odometry by a median
+  0.10 deg and 2.2 mm (synthetic: 0.011 deg, 0.37 mm), a spread of 2.9 mm, just under the 3 mm floor of the
+  data-driven sigma, so that rule does not loosen them. The likely cause is the low-frequency distortion of raw
+  Kinect depth: keyframe-to-keyframe ICP is biased by it, and frame-to-model tracking averages it out. Only a
+  sigma that all but ignores the edges is harmless: 1 / 2 / 5 cm give 2.92 / 2.62 / 2.50 cm; a 1 cm / 1 deg
   gate 2.70 cm; no feature terms 3.75 cm.
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
@@ -75,8 +74,8 @@ class DenseEdgeConfig:
             has hardly drifted); the robust spread of those discrepancies (``median |log| / 0.6745`` over the six
             components of the last ``spread_window_edges`` edges, once ``min_spread_edges`` were seen) is the
             sigma of every new refined edge when it is larger (noisier depth, weaker geometry). On 7-Scenes the
-            nearby edges agree with the odometry to under 2 mm, so this does not catch the bias of the far loop
-            edges there (module docstring).
+            spread is 2.9 mm, under the floor, although the edges hurt there (module docstring). The loop edges'
+            Cauchy scale (``hybrid.loop_robust_scale_m``) is set in units of ``sigma_m`` and so grows with it.
         min_spread_edges: nearby edges needed before their spread is used (``sigma_m`` before).
         spread_window_edges: the spread is taken over this many most recent nearby edges.
         feature_weight, feature_sigma_px, feature_huber: the edge's PnP inliers enter the ICP as reprojection
@@ -227,6 +226,5 @@ class DenseEdgeRefiner:
         pts = np.asarray(points_ref, np.float64)
         uv = np.asarray(uv_cur, np.float64)
         spread = reprojection_spread_px(se3.transform_points(T_cur_ref, pts), uv, self._intr)
-        k = self._intr
-        return ReprojectionTerm(pts, uv, k, max(c.feature_sigma_px, spread), c.feature_huber,
+        return ReprojectionTerm(pts, uv, self._intr, max(c.feature_sigma_px, spread), c.feature_huber,
                                 c.feature_weight * self._icp_cfg.finest_robust_scale_m ** 2)
