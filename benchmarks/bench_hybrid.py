@@ -131,11 +131,12 @@ def wide_pairs(tmp: Path, starts) -> list[dict]:
                "motion_deg": round(se3.rotation_angle_deg(T_gt[:3, :3]), 1)}
         for init in ("identity", "features"):  # as `register --init identity / features`
             reg = register_pair(src, tgt, p_src, p_tgt, seq.intrinsics, cfg, init)
-            if reg.init_used != init:
+            if init == "features" and reg.guess is None:
                 row[init] = "no guess"
                 continue
             dt, dr = se3.pose_error(reg.icp.T_target_source, T_gt)
-            row[init] = f"{100 * dt:.2f} cm / {dr:.2f} deg"
+            shape = " (shape guess)" if reg.init_used == "geometry" else ""  # PnP rejected, FPFH used
+            row[init] = f"{100 * dt:.2f} cm / {dr:.2f} deg{shape}"
         rows.append(row)
     return rows
 

@@ -74,9 +74,11 @@ def register(app: typer.Typer) -> None:
             "--iterations", help="Max iterations: one value for all levels or a comma list, finest first.")] = None,
         solver: Annotated[str, typer.Option("--solver", help="cholesky | lu | qr | pinv")] = "cholesky",
         init: Annotated[str, typer.Option(
-            "--init", help="ICP initial guess: identity; features (ORB + PnP-RANSAC between the two frames, "
-                           "identity when a rejection rule fires); auto (ICP from both, keeping the pose whose "
-                           "depth agreement is better; the default).")] = "auto",
+            "--init", help="ICP initial guess: identity; features (SIFT/ORB + PnP-RANSAC between the two frames; "
+                           "when a rejection rule fires, FPFH shape features of the depth + rigid consensus; "
+                           "identity when both are rejected); geometry (the FPFH guess only); auto (ICP from "
+                           "the identity and the features guess, keeping the pose whose depth agreement is "
+                           "better; the default).")] = "auto",
         photometric: Annotated[str, typer.Option(
             "--photometric", help="Joint geometric + photometric ICP: auto (on when colour and depth are "
                                   "registered, e.g. TUM, ICL-NUIM; off for 7-Scenes), on, off.")] = "auto",
@@ -147,12 +149,18 @@ def register(app: typer.Typer) -> None:
         feat_info = None
         if reg.motion is not None:
             mres = reg.motion
-            feat_info = {"ok": reg.guess is not None, "reason": mres.reason, "descriptor": descriptor,
+            feat_info = {"ok": bool(mres.ok), "reason": mres.reason, "descriptor": descriptor,
                          "n_features": n_features,
                          "good_matches": mres.n_good,
                          "inliers": mres.n_inliers,
-                         "T_target_source": None if reg.guess is None else reg.guess.tolist()}
-        T_init = reg.guess if init_used == "features" else None
+                         "T_target_source": se3.invert(mres.T_cur_ref).tolist() if mres.ok else None}
+        geo_info = None
+        if reg.geometric is not None:
+            g = reg.geometric
+            geo_info = {"ok": g.T_target_source is not None, "reason": g.reason, "points": list(g.n_points),
+                        "matches": g.n_matches, "inliers": g.n_inliers,
+                        "T_target_source": None if g.T_target_source is None else g.T_target_source.tolist()}
+        T_init = reg.guess if init_used != "identity" else None
         T = res.T_target_source
 
         result = {
@@ -175,6 +183,7 @@ def register(app: typer.Typer) -> None:
             "init_used": init_used,
             "photometric": use_photometric,
             "features": feat_info,
+            "geometric": geo_info,
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],
         }
@@ -213,7 +222,16 @@ def register(app: typer.Typer) -> None:
                               "good matches", highlight=False)
             else:
                 console.print(f"feature guess rejected ({feat_info['reason']}: {feat_info['good_matches']} good "
-                              f"matches, {feat_info['inliers']} inliers); ICP starts from identity", highlight=False)
+                              f"matches, {feat_info['inliers']} inliers)", highlight=False)
+        if geo_info is not None:
+            if geo_info["ok"]:
+                console.print(f"shape (FPFH) guess: {geo_info['inliers']} inliers of {geo_info['matches']} mutual "
+                              "matches", highlight=False)
+            else:
+                console.print(f"shape (FPFH) guess rejected ({geo_info['reason']}: {geo_info['matches']} mutual "
+                              f"matches, {geo_info['inliers']} inliers)", highlight=False)
+        if init != "identity":
+            console.print(f"ICP started from: {init_used}", highlight=False)
         console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
                       f"({100 * res.inlier_fraction:.1f}%), RMSE {1000 * res.rmse_m:.2f} mm, "
                       f"iterations {res.iterations}, converged {res.converged}"
