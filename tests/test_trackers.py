@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from surfelslam.datasets import open_sequence
+from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.pipeline import TRACKERS, HybridSlam, SlamConfig, TrackingConfig, build_slam
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_frames, noise_config
 from surfelslam.tools.run import run_sequence
+from surfelslam.types import RGBDFrame
 
 INTR = default_intrinsics(320, 240)
 N_SLOW = 40
@@ -103,6 +105,38 @@ def test_hybrid_relocalises_after_a_two_second_gap():
     assert after[5:].max() < 0.03, after  # a few frames may be lost before relocalisation
     # the frames after the gap are fused again
     assert res.metrics["frames_fused"] >= len(keep) - 8
+
+
+def _gap_run(tracker: str, cfg: SlamConfig | None = None, grey: bool = False):
+    """Synthetic slow orbit, frames 35-94 (2 s) dropped: 78 cm and 36 deg between the frames either side."""
+    frames, gt = _frames("slow", 130)
+    keep = list(range(0, 35)) + list(range(95, 130))
+    run = [frames[i] for i in keep]
+    if grey:  # no texture: no keypoints, so no PnP relocalisation
+        run = [RGBDFrame(f.index, f.timestamp, np.full_like(f.rgb, 128), f.depth_m) for f in run]
+    est, res, slam = _run(tracker, run, cfg)
+    return np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est, keep, strict=True)]), res
+
+
+def test_dense_relocalises_from_the_depth_after_a_two_second_gap():
+    """After 3 failed frames the frame is registered to the map rendered at the last tracked pose from the
+    shape-feature (FPFH) guess; without it dense never recovers."""
+    err_off, res_off = _gap_run("dense", SlamConfig(tracking=TrackingConfig(relocalise_after_failures=0)))
+    assert err_off[35:].min() > 0.3 and res_off.metrics["tracking_failures"] == 35
+    assert res_off.metrics["relocalisations_tried"] == 0
+    err, res = _gap_run("dense")
+    assert res.metrics["relocalisations"] == 1 and res.metrics["tracking_failures"] == 3
+    assert err[35 + 3:].max() < 0.01, err[35:]
+    assert res.metrics["frames_fused"] == 70 - 3
+
+
+def test_hybrid_relocalises_textureless_frames_by_shape():
+    err, res = _gap_run("hybrid", grey=True)
+    assert res.metrics["relocalisations_tracked"] == 0  # PnP has no keypoints
+    assert res.metrics["shape_relocalisations"] == 1
+    assert err[35 + 5:].max() < 0.01, err[35:]
+    with pytest.raises(ConfigError, match="relocalise_after_failures"):
+        TrackingConfig(relocalise_after_failures=-1)
 
 
 @pytest.mark.parametrize("style", ["fast"])
