@@ -9,6 +9,9 @@ Dense frame-to-model SLAM (:class:`DenseSlam`), per frame:
 4. ``track``: coarse-to-fine projective point-to-plane ICP, source -> target, from the prediction.
 5. ``fuse``: on success, the frame is fused into the map at the tracked pose (merge, add, remove);
    on failure the frame is not fused, it is counted, and the pose is the prediction.
+   ``relocalise``: after ``tracking.relocalise_after_failures`` failed frames in a row, a failed frame is
+   registered to the map rendered at the last tracked pose from the shape-feature guess
+   (:mod:`surfelslam.tracking.geometric`), and tracked and fused when ICP from it succeeds.
 
 Working resolution: tracking (render + ICP) and fusion run at the finest pyramid level that is at most
 ``tracking.max_width_px`` / ``fusion.max_width_px`` wide (default 320 for both). 320x240 input is worked on
@@ -32,7 +35,8 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
    not registered). When ICP fails (:func:`icp_failure`), reports degeneracy, or the velocity is not trusted
    (the last frame failed), the PnP pose becomes the initial guess: the map is rendered at that pose and ICP
    retried from it. After ``hybrid.relocalise_after_failures`` failed frames in a row,
-   ``SparseSlam.relocalise`` (all keyframes) gives the guess instead; on success fusing goes on.
+   ``SparseSlam.relocalise`` (all keyframes) gives the guess instead, or, when it finds no pose, the shape
+   guess of dense SLAM (against the map rendered at the current pose); on success fusing goes on.
    With ``hybrid.pnp_check`` every ICP pose is also compared with the PnP pose; one that disagrees is
    retried from the PnP pose and, if it still disagrees, the frame is not fused (ICP can slide along weakly
    constrained geometry while reporting a well-conditioned system).
