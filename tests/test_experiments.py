@@ -15,6 +15,7 @@ from surfelslam.datasets.base import DatasetOptions
 from surfelslam.pipeline import TRACKERS, SlamConfig
 from surfelslam.tools.experiments import (
     EXPECTED_TRACKERS,
+    FEATURES_SETTING,
     SECTION_TITLES,
     ExperimentOptions,
     choose_pairs,
@@ -117,6 +118,9 @@ def test_icp_rows_match_library(experiment):
     res = json.loads((experiment[1] / "results.json").read_text())
     default = [x for x in res["icp_pairs"] if x["setting"] == "coarse-to-fine defaults"]
     assert len(default) == len(GAPS) and all(x["err_trans_m"] < 0.01 for x in default)
+    feat = [x for x in res["icp_pairs"] if x["setting"] == FEATURES_SETTING]
+    assert len(feat) == len(GAPS) and all(x["start"] == "features" and x["err_trans_m"] < 0.01 for x in feat)
+    assert f"| {FEATURES_SETTING} (features) |" in sec and "icp_" in sec
 
 
 def test_solvers_agree(experiment):

@@ -607,8 +607,9 @@ class DenseSlam(_FusingMapper):
             if found is not None:
                 res, failure, T_ref = found[0], None, found[1]
         if failure is None:
-            self.velocity = se3.orthonormalize(res.T_target_source) if T_ref is T_prev else np.eye(4)
-            T_new = se3.orthonormalize(T_ref @ res.T_target_source)
+            step = se3.orthonormalize(res.T_target_source)
+            self.velocity = step if T_ref is T_prev else np.eye(4)  # a relocalised frame has no known velocity
+            T_new = se3.orthonormalize(T_ref @ step)
             self.T_world_last_tracked = T_new.copy()
             self.failures_in_a_row = 0
             self._fuse(frame, T_new)
