@@ -47,7 +47,8 @@ class GeometricGuessConfig:
             9 at 5 cm, 7 at 2 cm.
         min_normal_agreement: a voxel whose mean unit normal is shorter than this (its pixels' normals disagree:
             an edge or a corner) is dropped.
-        feature_radius_m: neighbours within this distance (m) enter a point's histogram (5 voxels).
+        feature_radius_m: neighbours within this distance (m) enter a point's histogram (5 voxels). Memory and
+            time grow with ``(feature_radius_m / voxel_m)^2`` per point (every neighbour pair is held at once).
         bins: bins per angle (3 angles: a ``3 * bins`` descriptor).
         min_neighbours: points with fewer neighbours have no descriptor.
         consensus_abs_tol_m, consensus_rel_tol: two matches are consistent when their 3D distances in the two
@@ -181,7 +182,8 @@ def fpfh(points: np.ndarray, normals: np.ndarray, radius_m: float, bins: int,
     n_pts = len(points)
     if n_pts < 2:
         return np.zeros((0, N_ANGLES * bins), np.float32), np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray")
+    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray").reshape(-1, 2)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]  # a fixed order: the float sums below depend on it
     i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
     twist, cos_nv, cos_nd = pair_features(points, normals, i, j)
     cols = [np.clip(((twist + np.pi) / (2 * np.pi) * bins).astype(np.int64), 0, bins - 1),
