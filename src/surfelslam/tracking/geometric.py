@@ -9,7 +9,8 @@ neighbours' normals and the lines joining them, which a rigid motion leaves unch
    the surface, whatever its distance to the camera.
 2. :func:`fpfh`: per point, the histogram of three angles over its neighbours within ``feature_radius_m``
    (SPFH, 3 x ``bins``), then the FPFH: its SPFH plus the inverse-distance-weighted mean of its neighbours'.
-   Vectorised over all neighbour pairs (scipy's k-d tree and a sparse matrix product).
+   Neighbour pairs from scipy's k-d tree; one numba pass over them per step (:mod:`surfelslam.kernels.fpfh`,
+   numpy references beside the kernels).
 3. :func:`mutual_matches`: nearest neighbours in descriptor space, kept when each is the other's nearest.
 4. The rigid motion of the largest set of matches that keep their pairwise 3D distances
    (:func:`surfelslam.tracking.consensus.rigid_consensus`, deterministic, no sampling), refitted on every match
@@ -25,11 +26,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import sparse
 from scipy.spatial import cKDTree
 
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
+from surfelslam.kernels import fpfh as kf
 from surfelslam.kernels.voxel import voxel_keys
 from surfelslam.tracking.consensus import rigid_consensus, rigid_fit
 
@@ -132,37 +133,8 @@ def voxel_cloud(vertex: np.ndarray, normal: np.ndarray, voxel_m: float,
 
 
 def pair_features(p: np.ndarray, n: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The three FPFH angles of point pairs ``(i, j)``, independent of which end comes first.
-
-    Args:
-        p, n: ``(N, 3)`` points and unit normals.
-        i, j: ``(M,)`` pair indices (``i != j``, distinct points).
-
-    Returns:
-        ``(twist, cos_nv, cos_nd)`` ``(M,)``: with ``s`` the end whose normal is closer to the line joining
-        them, ``d`` the unit line from ``s`` to the other end ``t``, ``u = n_s``, ``v = d x u / |d x u|``,
-        ``w = u x v``: ``twist = atan2(w . n_t, u . n_t)`` in ``[-pi, pi]``, ``cos_nv = v . n_t`` and
-        ``cos_nd = u . d`` in ``[-1, 1]``. Pairs whose line is parallel to the normal get zeros.
-    """
-    d = p[j] - p[i]
-    dist = np.linalg.norm(d, axis=1)
-    d = d / np.maximum(dist, 1e-12)[:, None]
-    ci = np.einsum("ij,ij->i", n[i], d)
-    cj = np.einsum("ij,ij->i", n[j], d)
-    swap = np.abs(ci) < np.abs(cj)  # the end whose normal is closer to the line is the source
-    u = np.where(swap[:, None], n[j], n[i])
-    nt = np.where(swap[:, None], n[i], n[j])
-    d = np.where(swap[:, None], -d, d)
-    cos_nd = np.where(swap, -cj, ci)
-    v = np.cross(d, u)
-    vn = np.linalg.norm(v, axis=1)
-    ok = vn > 1e-9
-    v = v / np.where(ok, vn, 1.0)[:, None]
-    w = np.cross(u, v)
-    twist = np.arctan2(np.einsum("ij,ij->i", w, nt), np.einsum("ij,ij->i", u, nt))
-    cos_nv = np.einsum("ij,ij->i", v, nt)
-    zero = np.zeros_like(twist)
-    return np.where(ok, twist, zero), np.where(ok, cos_nv, zero), np.where(ok, cos_nd, zero)
+    """The three FPFH angles of point pairs ``(i, j)`` (see :func:`surfelslam.kernels.fpfh.pair_features_ref`)."""
+    return kf.pair_features_ref(np.asarray(p, np.float64), np.asarray(n, np.float64), i, j)
 
 
 def fpfh(points: np.ndarray, normals: np.ndarray, radius_m: float, bins: int,
@@ -180,29 +152,22 @@ def fpfh(points: np.ndarray, normals: np.ndarray, radius_m: float, bins: int,
         gives the point of each descriptor.
     """
     n_pts = len(points)
-    if n_pts < 2:
-        return np.zeros((0, N_ANGLES * bins), np.float32), np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray").reshape(-1, 2)
-    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]  # a fixed order: the float sums below depend on it
-    i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-    twist, cos_nv, cos_nd = pair_features(points, normals, i, j)
-    cols = [np.clip(((twist + np.pi) / (2 * np.pi) * bins).astype(np.int64), 0, bins - 1),
-            np.clip(((cos_nv + 1) / 2 * bins).astype(np.int64), 0, bins - 1) + bins,
-            np.clip(((cos_nd + 1) / 2 * bins).astype(np.int64), 0, bins - 1) + 2 * bins]
-    ends = np.concatenate([i, j])
     width = N_ANGLES * bins
-    spfh = np.zeros(n_pts * width)
-    for c in cols:  # each pair counts towards both of its ends' histograms (the angles are symmetric)
-        spfh += np.bincount(ends * width + np.concatenate([c, c]), minlength=n_pts * width)
-    spfh = spfh.reshape(n_pts, width)
-    degree = np.bincount(ends, minlength=n_pts)
+    if n_pts < 2:
+        return np.zeros((0, width), np.float32), np.zeros(0, np.int64)
+    p = np.ascontiguousarray(points, np.float64)
+    n = np.ascontiguousarray(normals, np.float64)
+    pairs = cKDTree(p).query_pairs(radius_m, output_type="ndarray").reshape(-1, 2).astype(np.int64)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]  # a fixed order: the float sums below depend on it
+    i, j = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+    spfh = np.zeros((n_pts, width))
+    degree = np.zeros(n_pts, np.int64)
+    kf.spfh_accumulate(p, n, i, j, bins, spfh, degree)
     spfh /= np.maximum(degree, 1)[:, None]
-    dist = np.linalg.norm(points[i] - points[j], axis=1)
-    wgt = 1.0 / np.maximum(dist, 1e-6)
-    W = sparse.coo_matrix((np.concatenate([wgt, wgt]), (ends, np.concatenate([j, i]))), shape=(n_pts, n_pts)).tocsr()
-    wsum = np.asarray(W.sum(axis=1)).ravel()
-    desc = spfh + (W @ spfh) / np.maximum(wsum, 1e-12)[:, None]
-    desc = desc.reshape(n_pts, N_ANGLES, bins)
+    acc = np.zeros_like(spfh)
+    wsum = np.zeros(n_pts)
+    kf.neighbour_sum(p, i, j, spfh, acc, wsum)
+    desc = (spfh + acc / np.maximum(wsum, 1e-12)[:, None]).reshape(n_pts, N_ANGLES, bins)
     desc /= np.maximum(desc.sum(axis=2, keepdims=True), 1e-12)
     keep = np.flatnonzero(degree >= min_neighbours)
     return desc.reshape(n_pts, width)[keep].astype(np.float32), keep.astype(np.int64)
