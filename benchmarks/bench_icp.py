@@ -9,6 +9,9 @@ and 640x480; numba with 1 thread and with 2 threads. Rows:
 * ``icp default``: :func:`icp` with the default :class:`ICPConfig` (4 levels, up to 10/8/10/40 iterations,
   finest-level source stride 2).
 * ``icp default stride 1``: the same with every finest-level source pixel.
+* ``shape guess (FPFH)``: :func:`surfelslam.tracking.geometric.geometric_guess` on the pyramid level at most
+  320 px wide (what ``register --init features`` falls back on, and what dense relocalisation runs), on pairs
+  90 frames apart when the frames are 7-Scenes (fewer repetitions: it takes a few hundred ms).
 
 Usage: ``.venv/bin/python benchmarks/bench_icp.py [--quick]``; ``run(quick)`` returns the rows.
 """
@@ -23,22 +26,28 @@ import numba
 import numpy as np
 
 from bench_stages import _median_ms  # one timing helper for all benchmark scripts
+from surfelslam.tracking.geometric import geometric_guess
 from surfelslam.tracking.icp import ICPConfig, icp
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.types import Intrinsics
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
 FRAME_GAP = 5
+SHAPE_GAP = 90  # frames between the two views of a shape-guess pair (7-Scenes)
+SHAPE_REPS = 3
 
 
-def _depth_pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[np.ndarray, np.ndarray]], str]:
+DepthPairs = list[tuple[np.ndarray, np.ndarray]]
+
+
+def _depth_pairs(downsample: int, n: int, gap: int = FRAME_GAP) -> tuple[Intrinsics, DepthPairs, str]:
     if SHARED.is_dir():
         from surfelslam.datasets import open_sequence
         from surfelslam.datasets.base import DatasetOptions
 
         seq = open_sequence(SHARED, DatasetOptions(downsample=downsample))
-        idx = np.linspace(0, len(seq) - 1 - FRAME_GAP, n).astype(int)
-        return seq.intrinsics, [(seq[i].depth_m, seq[i + FRAME_GAP].depth_m) for i in idx], "7scenes"
+        idx = np.linspace(0, len(seq) - 1 - gap, n).astype(int)
+        return seq.intrinsics, [(seq[i].depth_m, seq[i + gap].depth_m) for i in idx], "7scenes"
     from surfelslam.geometry import se3
     from surfelslam.synth import make_scene, render
     from surfelslam.synth.trajectories import look_at
@@ -53,6 +62,21 @@ def _depth_pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[np.nda
         step = se3.exp(np.array([0.0, np.radians(2.0), 0.0, 0.05, 0.0, 0.0]))
         pairs.append((render(scene, T_w_t @ step, intr).depth_m.copy(), render(scene, T_w_t, intr).depth_m.copy()))
     return intr, pairs, "synthetic"
+
+
+def _shape_guess_ms(intr: Intrinsics, pre: Preprocessor, downsample: int, n_pairs: int, reps: int) -> float:
+    """Median ms of :func:`geometric_guess` on ``n_pairs`` pairs (90 frames apart on 7-Scenes)."""
+    from surfelslam.tracking.registration import guess_level
+
+    _, pairs, _ = _depth_pairs(downsample, n_pairs, SHAPE_GAP)
+    times = []
+    for ds_m, dt_m in pairs:
+        a, b = pre.process(ds_m), pre.process(dt_m)
+        la, lb = guess_level(a), guess_level(b)
+        geometric_guess(a[la].vertex, a[la].normal, b[lb].vertex, b[lb].normal)  # warm-up
+        times.append(_median_ms(lambda a=a, b=b, la=la, lb=lb: geometric_guess(
+            a[la].vertex, a[la].normal, b[lb].vertex, b[lb].normal), reps))
+    return float(np.median(times))
 
 
 def run(quick: bool = False, n_pairs: int | None = None, reps: int | None = None) -> list[dict]:
@@ -88,6 +112,9 @@ def run(quick: bool = False, n_pairs: int | None = None, reps: int | None = None
                     rows.append({"stage": stage, "size": size, "threads": threads,
                                  "ms": float(np.median(times)), "iterations": float(np.mean(its)),
                                  "frames": source})
+                rows.append({"stage": "shape guess (FPFH)", "size": size, "threads": threads,
+                             "ms": _shape_guess_ms(intr, pre, downsample, n_pairs, min(reps, SHAPE_REPS)),
+                             "iterations": 0.0, "frames": source})
     finally:
         numba.set_num_threads(old_threads)
     return rows
@@ -101,7 +128,7 @@ def main() -> None:
     print("| stage | size | threads | ms (median) | mean iterations |")
     print("|---|---|---|---|---|")
     for r in rows:
-        its = "" if r["stage"] == "preprocess" else f"{r['iterations']:.1f}"
+        its = f"{r['iterations']:.1f}" if r["stage"].startswith("icp") else ""
         print(f"| {r['stage']} | {r['size']} | {r['threads']} | {r['ms']:.2f} | {its} |")
 
 

@@ -421,11 +421,14 @@ def to_markdown(res: dict) -> str:
     if res.get("icp"):
         md += ["### One registration (`surfelslam register`'s ICP), median ms after the JIT warm-up", ""]
         md.append(table(["stage", "resolution", "threads", "ms", "iterations (mean)"],
-                        [[r["stage"], r["size"], r["threads"], r["ms"], r["iterations"] or "–"]
+                        [[r["stage"], r["size"], r["threads"], r["ms"],
+                          r["iterations"] if r["stage"].startswith("icp") else "–"]
                          for r in res["icp"]]))
         md += [f"Frames: {res['icp'][0]['frames']} pairs {bench_icp.FRAME_GAP} frames apart. `icp 3-level`: the "
                "first three levels of the default `ICPConfig`; `icp default`: all four levels (finest-level source "
-               "stride 2); preprocess: depth to the 4-level vertex/normal pyramid (default settings).", ""]
+               "stride 2); preprocess: depth to the 4-level vertex/normal pyramid (default settings); "
+               "shape guess (FPFH): the depth-only guess of `register --init features` and of relocalisation, on pairs "
+               f"{bench_icp.SHAPE_GAP} frames apart (7-Scenes), at the pyramid level at most 320 px wide.", ""]
     s = res.get("sustained")
     if s:
         md += [f"### Sustained throughput: {s['frames']} synthetic frames at {s['resolution']}", ""]
