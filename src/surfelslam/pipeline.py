@@ -164,7 +164,7 @@ class TrackingConfig:
         relocalise_after_failures: once this many frames in a row failed, each further failed frame is
             relocalised from the depth alone: the shape-feature guess (:mod:`surfelslam.tracking.geometric`)
             between the frame and the map rendered at the last tracked pose, then ICP from it; on success the
-            frame is tracked and fused (0: never). It costs 0.3-0.5 s per attempt, paid only while lost. Synthetic
+            frame is tracked and fused (0: never). It costs about 0.2 s per attempt, paid only while lost. Synthetic
             room, slow orbit, 60 frames (2 s) dropped (78 cm and 36 deg): dense without it fails on every frame
             after the gap; with it, the fourth frame after the gap is tracked again, within 3 mm. The hybrid
             tracker uses it (rendered at its current pose) when its PnP relocalisation finds no pose (no texture).
