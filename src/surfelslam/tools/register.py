@@ -216,20 +216,12 @@ def register(app: typer.Typer) -> None:
         plot_registration(se3.transform_points(T, src_pts.astype(np.float64)), tgt_pts, out / "after.png",
                           f"after ICP: {res.inliers} inliers, RMSE {1000 * res.rmse_m:.1f} mm")
 
-        if feat_info is not None:
-            if feat_info["ok"]:
-                console.print(f"feature guess: {feat_info['inliers']} PnP inliers of {feat_info['good_matches']} "
-                              "good matches", highlight=False)
-            else:
-                console.print(f"feature guess rejected ({feat_info['reason']}: {feat_info['good_matches']} good "
-                              f"matches, {feat_info['inliers']} inliers)", highlight=False)
-        if geo_info is not None:
-            if geo_info["ok"]:
-                console.print(f"shape (FPFH) guess: {geo_info['inliers']} inliers of {geo_info['matches']} mutual "
-                              "matches", highlight=False)
-            else:
-                console.print(f"shape (FPFH) guess rejected ({geo_info['reason']}: {geo_info['matches']} mutual "
-                              f"matches, {geo_info['inliers']} inliers)", highlight=False)
+        for label, info, n_key, n_name in (("feature guess", feat_info, "good_matches", "good matches"),
+                                           ("shape (FPFH) guess", geo_info, "matches", "mutual matches")):
+            if info is not None:
+                console.print(f"{label}: {info['inliers']} inliers of {info[n_key]} {n_name}" if info["ok"] else
+                              f"{label} rejected ({info['reason']}: {info[n_key]} {n_name}, {info['inliers']} "
+                              "inliers)", highlight=False)
         if init != "identity":
             console.print(f"ICP started from: {init_used}", highlight=False)
         console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
