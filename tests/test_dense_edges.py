@@ -7,13 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner, storage_level
+from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.synth import make_scene, render
 from surfelslam.synth.noise import KinectNoiseConfig, noisy_depth
 from surfelslam.synth.trajectories import look_at
-from surfelslam.tracking.preprocess import PreprocessConfig
+from surfelslam.tracking.preprocess import PreprocessConfig, level_for_width
 from surfelslam.types import Intrinsics
 
 INTR = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
@@ -125,7 +125,7 @@ def test_keyframe_depth_is_stored_reduced_and_quantised():
     valid = depth <= PreprocessConfig().max_depth_m
     err = np.abs(same.depth_m(0) - np.where(valid, depth, 0))
     assert err.max() <= 0.5 * PreprocessConfig().max_depth_m / 65535 + 1e-6
-    assert [storage_level(640, w) for w in (640, 320, 200, 160, 1)] == [0, 1, 2, 2, 6]
+    assert [level_for_width(640, w) for w in (640, 320, 200, 160, 1)] == [0, 1, 2, 2, 6]
 
 
 def test_edge_sigma_follows_the_spread_of_nearby_edges():

@@ -57,7 +57,7 @@ def test_working_level_tracks_and_fuses_the_block_averaged_level():
     """Input wider than the working width is tracked and fused at its 2x2 block-averaged level."""
     from dataclasses import replace
 
-    from surfelslam.pipeline import working_level
+    from surfelslam.tracking.preprocess import level_for_width
 
     base = SlamConfig()
     cfg = replace(base, tracking=replace(base.tracking, max_width_px=160),
@@ -69,5 +69,5 @@ def test_working_level_tracks_and_fuses_the_block_averaged_level():
     # the map is made at 160x120: at most one new surfel per working-level pixel and frame, and far fewer
     # than a single full-resolution frame's pixels would give
     assert 0 < slam.map.n_alive < 160 * 120 * 2
-    assert [working_level(default_intrinsics(w, w * 3 // 4), 320) for w in (320, 640, 1280)] == [0, 1, 2]
-    assert working_level(default_intrinsics(640, 480), 0) == 0
+    assert [level_for_width(default_intrinsics(w, w * 3 // 4).width, 320) for w in (320, 640, 1280)] == [0, 1, 2]
+    assert level_for_width(default_intrinsics(640, 480).width, 0) == 0

@@ -94,7 +94,13 @@ from surfelslam.tracking.photometric import (
     intensity_from_rgb,
     intensity_pyramid,
 )
-from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_from_maps
+from surfelslam.tracking.preprocess import (
+    FramePyramid,
+    PreprocessConfig,
+    Preprocessor,
+    level_for_width,
+    pyramid_from_maps,
+)
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
 TRACKERS = ("dense", "orb", "hybrid")
@@ -402,7 +408,7 @@ class _FusingMapper:
         apply_compute(cfg.compute)
         self.intr = intr
         self.cfg = cfg
-        self.fuse_level = working_level(intr, cfg.fusion.max_width_px)
+        self.fuse_level = level_for_width(intr.width, cfg.fusion.max_width_px)
         levels = max(cfg.preprocess.pyramid_levels, min_levels, self.fuse_level + 1)
         self.pre = Preprocessor(intr, replace(cfg.preprocess, pyramid_levels=levels))
         self._pre_ahead: Preprocessor | None = None  # the preparing thread's own (scratch buffers)
@@ -503,7 +509,7 @@ class DenseSlam(_FusingMapper):
         self.photometric = cfg.icp.photometric_weight > 0 and colour_switch(mode, colour_registered)
         self._src_intensity: IntensityPyramid | None = None
         self._tgt_intensity: IntensityPyramid | None = None
-        self.track_level = working_level(intr, cfg.tracking.max_width_px)
+        self.track_level = level_for_width(intr.width, cfg.tracking.max_width_px)
         super().__init__(intr, cfg, min_levels=self.track_level + cfg.icp.levels, track_level=self.track_level)
         track_intr = self.pre.level_intrinsics[self.track_level]
         self.target = FramePyramid.empty(track_intr, len(self.pre.level_intrinsics) - self.track_level)
@@ -649,14 +655,6 @@ class DenseSlam(_FusingMapper):
                              "relocalisations_tried": self.relocalisations["tried"],
                              "relocalisations": self.relocalisations["tracked"],
                              "photometric": self.photometric})
-
-
-def working_level(intr: Intrinsics, max_width_px: int) -> int:
-    """The finest pyramid level (0 = input) whose width is at most ``max_width_px`` (0: always level 0)."""
-    level, width = 0, intr.width
-    while max_width_px > 0 and width > max_width_px and width // 2 >= 8:
-        level, width = level + 1, width // 2
-    return level
 
 
 def block_average_rgb(rgb: np.ndarray, levels: int) -> np.ndarray:

@@ -40,7 +40,14 @@ from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
 from surfelslam.tracking.features import reprojection_spread_px
 from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp, icp_failure
-from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, pyramid_intrinsics
+from surfelslam.tracking.preprocess import (
+    MIN_LEVEL_WIDTH_PX,
+    FramePyramid,
+    PreprocessConfig,
+    Preprocessor,
+    level_for_width,
+    pyramid_intrinsics,
+)
 from surfelslam.types import Intrinsics
 
 _MAD_TO_SIGMA = 0.6745  # median |x| of a zero-mean Gaussian, in sigmas
@@ -116,14 +123,6 @@ class DenseEdgeConfig:
                 raise ConfigError(f"hybrid.loop_icp: {name} must be > 0, got {getattr(self, name)}")
 
 
-def storage_level(width_px: int, max_width_px: int) -> int:
-    """Halvings that bring ``width_px`` to at most ``max_width_px`` (never below 8 pixels)."""
-    level = 0
-    while width_px > max_width_px and width_px // 2 >= 8:
-        level, width_px = level + 1, width_px // 2
-    return level
-
-
 class DenseEdgeRefiner:
     """Keyframe depth store and ICP refinement of keyframe edges.
 
@@ -140,9 +139,9 @@ class DenseEdgeRefiner:
         self.cfg = cfg
         self._intr = intr
         self._pre_cfg = pre_cfg
-        self._level = storage_level(intr.width, cfg.max_width_px)
+        self._level = level_for_width(intr.width, cfg.max_width_px)
         self._intr_store = pyramid_intrinsics(intr, self._level + 1)[-1]
-        levels = min(cfg.icp.levels, storage_level(self._intr_store.width, 8) + 1)
+        levels = min(cfg.icp.levels, level_for_width(self._intr_store.width, MIN_LEVEL_WIDTH_PX) + 1)
         self._icp_cfg = replace(cfg.icp, levels=levels)
         self._pre = Preprocessor(self._intr_store, replace(pre_cfg, pyramid_levels=levels))
         self._depth_unit_m = pre_cfg.max_depth_m / np.iinfo(np.uint16).max

@@ -81,6 +81,13 @@ class ExperimentOptions:
 FEATURES_SETTING = "register --init features"
 
 
+def after_figures(s: int, t: int) -> list[tuple[str, str]]:
+    """``[(setting, figure file)]`` of pair ``s -> t`` after ICP: the :func:`icp_settings`, then
+    ``FEATURES_SETTING``."""
+    return ([(name, f"icp_{s}_{t}_setting{k}_after.png") for k, (name, _) in enumerate(icp_settings())]
+            + [(FEATURES_SETTING, f"icp_{s}_{t}_features_after.png")])
+
+
 def icp_settings():
     """``[(name, ICPConfig)]``: the seeds' single-level setting at 0.07 m and 0.17 m, and the defaults.
 
@@ -179,52 +186,32 @@ def section_icp_pairs(seq, out_dir: Path, pairs, scaled: bool, opts: ExperimentO
         plot_registration(src_pts, tgt_pts, out_dir / before,
                           f"before: source {s} (red), target {t} (green), identity")
         figs.append(before)
-        for k, (name, cfg) in enumerate(icp_settings()):
-            r = icp(src, tgt, None, cfg)
+        reg = register_pair(seq[s], seq[t], src, tgt, seq.intrinsics, pairwise_config(), "features",
+                            photometric=colour_switch("auto", seq.colour_registered))
+        results = [icp(src, tgt, None, cfg) for _, cfg in icp_settings()] + [reg.icp]
+        for (name, after), r in zip(after_figures(s, t), results, strict=True):
+            extra, label = ({"start": reg.init_used}, f"{name} ({reg.init_used})") if r is reg.icp else ({}, name)
             err = None if T_gt is None else se3.pose_error(r.T_target_source, T_gt)
-            after = f"icp_{s}_{t}_setting{k}_after.png"
             plot_registration(se3.transform_points(r.T_target_source, src_pts), tgt_pts, out_dir / after,
                               f"after {name}: {s}->{t}, {r.inliers} inliers, RMS {1000 * r.rmse_m:.1f} mm")
             figs.append(after)
-            row = {"source": s, "target": t, "setting": name, "inliers": int(r.inliers),
-                   "rmse_m": float(r.rmse_m), "iterations": int(r.iterations), "converged": bool(r.converged),
-                   "reason": r.reason,
-                   "err_trans_m": None if err is None else float(err[0]),
-                   "err_rot_deg": None if err is None else float(err[1])}
-            res_out.append(row)
+            res_out.append({"source": s, "target": t, "setting": name, **extra, "inliers": int(r.inliers),
+                            "rmse_m": float(r.rmse_m), "iterations": int(r.iterations),
+                            "converged": bool(r.converged), "reason": r.reason,
+                            "err_trans_m": None if err is None else float(err[0]),
+                            "err_rot_deg": None if err is None else float(err[1])})
             err_txt = "n/a" if err is None else f"{1000 * err[0]:.1f}, {err[1]:.2f}"
             conv = "yes" if r.converged else f"no ({r.reason})" if r.reason else "no"
-            lines.append(f"| {s}->{t} | {motion} | {name} | {r.inliers} | {1000 * r.rmse_m:.2f} "
+            lines.append(f"| {s}->{t} | {motion} | {label} | {r.inliers} | {1000 * r.rmse_m:.2f} "
                          f"[{r.rmse_m ** 2:.3e}] | {r.iterations} | {conv} | {err_txt} | [after]({after}) |")
-        reg = register_pair(seq[s], seq[t], src, tgt, seq.intrinsics, pairwise_config(), "features",
-                            photometric=colour_switch("auto", seq.colour_registered))
-        r = reg.icp
-        err = None if T_gt is None else se3.pose_error(r.T_target_source, T_gt)
-        after = f"icp_{s}_{t}_features_after.png"
-        plot_registration(se3.transform_points(r.T_target_source, src_pts), tgt_pts, out_dir / after,
-                          f"after {FEATURES_SETTING}: {s}->{t}, {r.inliers} inliers, RMS {1000 * r.rmse_m:.1f} mm")
-        figs.append(after)
-        res_out.append({"source": s, "target": t, "setting": FEATURES_SETTING, "start": reg.init_used,
-                        "inliers": int(r.inliers), "rmse_m": float(r.rmse_m), "iterations": int(r.iterations),
-                        "converged": bool(r.converged), "reason": r.reason,
-                        "err_trans_m": None if err is None else float(err[0]),
-                        "err_rot_deg": None if err is None else float(err[1])})
-        err_txt = "n/a" if err is None else f"{1000 * err[0]:.1f}, {err[1]:.2f}"
-        conv = "yes" if r.converged else f"no ({r.reason})" if r.reason else "no"
-        lines.append(f"| {s}->{t} | {motion} | {FEATURES_SETTING} ({reg.init_used}) | {r.inliers} | "
-                     f"{1000 * r.rmse_m:.2f} [{r.rmse_m ** 2:.3e}] | {r.iterations} | {conv} | {err_txt} | "
-                     f"[after]({after}) |")
     lines.append("")
     for s, t in pairs:
         lines.append(f"Pair {s}->{t}, before ICP (source red, target green): ![before {s}->{t}]"
                      f"(icp_{s}_{t}_before.png)")
         lines.append("")
-        for k, (name, _) in enumerate(icp_settings()):
-            lines.append(f"After ICP, {name}: ![after {s}->{t} {name}](icp_{s}_{t}_setting{k}_after.png)")
+        for name, after in after_figures(s, t):
+            lines.append(f"After ICP, {name}: ![after {s}->{t} {name}]({after})")
             lines.append("")
-        lines.append(f"After ICP, {FEATURES_SETTING}: ![after {s}->{t} {FEATURES_SETTING}]"
-                     f"(icp_{s}_{t}_features_after.png)")
-        lines.append("")
     return lines, res_out, pyramids
 
 

@@ -112,6 +112,18 @@ def halve_intrinsics(intr: Intrinsics) -> Intrinsics:
                       intr.width // 2, intr.height // 2)
 
 
+MIN_LEVEL_WIDTH_PX = 8  # level_for_width never halves an image below this width
+
+
+def level_for_width(width_px: int, max_width_px: int) -> int:
+    """Halvings (pyramid level, 0 = input) that bring ``width_px`` to at most ``max_width_px``, never below
+    ``MIN_LEVEL_WIDTH_PX`` pixels; ``max_width_px`` 0: level 0."""
+    level = 0
+    while max_width_px > 0 and width_px > max_width_px and width_px // 2 >= MIN_LEVEL_WIDTH_PX:
+        level, width_px = level + 1, width_px // 2
+    return level
+
+
 def pyramid_intrinsics(intr: Intrinsics, levels: int) -> list[Intrinsics]:
     """``[intr, halve(intr), halve(halve(intr)), ...]`` (``levels`` entries)."""
     out = [intr]

@@ -26,7 +26,7 @@ from surfelslam.tracking.features import FeatureConfig, MotionResult, feature_gu
 from surfelslam.tracking.geometric import GeometricGuess, GeometricGuessConfig, geometric_guess
 from surfelslam.tracking.icp import ICPConfig, ICPResult, icp, photometric_term
 from surfelslam.tracking.photometric import intensity_from_rgb, intensity_pyramid
-from surfelslam.tracking.preprocess import FramePyramid
+from surfelslam.tracking.preprocess import FramePyramid, level_for_width
 from surfelslam.types import Intrinsics, RGBDFrame
 
 INIT_MODES = ("identity", "features", "geometry", "auto")
@@ -74,10 +74,7 @@ class PairRegistration:
 
 def guess_level(pyramid: FramePyramid, max_width_px: int = GEOMETRIC_MAX_WIDTH_PX) -> int:
     """The finest level of ``pyramid`` at most ``max_width_px`` wide (its coarsest if none is)."""
-    for k in range(len(pyramid)):
-        if pyramid[k].intrinsics.width <= max_width_px:
-            return k
-    return len(pyramid) - 1
+    return min(level_for_width(pyramid.intrinsics.width, max_width_px), len(pyramid) - 1)
 
 
 def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: FramePyramid, intr: Intrinsics,
