@@ -55,6 +55,26 @@ def test_loop_edge_corrects_drift() -> None:
     np.testing.assert_allclose(optimise(init, edges + [loop])[0], gt[0], atol=1e-6)
 
 
+def test_set_information_reweights_edges_in_place() -> None:
+    """A loop edge loosened after it was added pulls like one added loose; tightened again, like one added tight."""
+    gt = _square_loop()
+    init, edges = _drifted_odometry(gt)
+    n = len(gt)
+    loop = PoseEdge(n - 1, 0, invert(gt[n - 1]) @ gt[0], "loop", information=100.0)
+    loose = optimise(init, edges + [PoseEdge(loop.i, loop.j, loop.T_i_j, "loop", information=1e-4)])
+    graph = PoseGraph()
+    for T in init:
+        graph.add_node(T)
+    for e in edges + [loop]:
+        graph.add_edge(e)
+    graph.set_information([len(edges)], 1e-4)
+    assert graph.edges[-1].information == 1e-4
+    np.testing.assert_allclose(graph.optimise(), loose, atol=1e-6)
+    assert _ate(loose, gt) > 0.9 * _ate(init, gt)  # a loose loop barely corrects
+    graph.set_information([len(edges)], 100.0)
+    np.testing.assert_allclose(graph.optimise(), optimise(init, edges + [loop]), atol=1e-6)
+
+
 @pytest.mark.parametrize("kernel", ["huber", "cauchy"])
 def test_robust_kernel_downweights_outlier_loop(kernel: str) -> None:
     gt = _square_loop()

@@ -125,6 +125,30 @@ def test_noise_sigma_grows_with_depth_and_matches_the_model(scenes):
     assert stds[1] > 4.0 * stds[0]
 
 
+def test_distorted_noise_adds_the_radial_disparity_offset(scenes):
+    """``kinect-distorted``: the depth at a pixel is ``1 / (1 / z + k r^2 / bf)`` (r = 1 at the corners): nothing
+    at the principal point, the full offset at the corners, the same at every frame; ``kinect`` has none."""
+    intr = default_intrinsics(320, 240)
+    out = render(scenes["plane"], _facing_wall(2.0), intr)  # the wall fills the image at 2 m
+    exact = dict(axial_sigma_base_m=0.0, axial_sigma_quad_per_m=0.0, disparity_step_px=0.0, holes_per_frame_mean=0.0,
+                 edge_dropout_prob=0.0)
+    cfg = noise_config("kinect-distorted")
+    assert cfg.disparity_distortion_px > 0 and noise_config("kinect").disparity_distortion_px == 0
+    dist_cfg = KinectNoiseConfig(disparity_distortion_px=cfg.disparity_distortion_px, **exact)
+    a = noisy_depth(out.depth_m, out.normal_cam, intr, dist_cfg, frame_rng(0, 0))
+    b = noisy_depth(out.depth_m, out.normal_cam, intr, dist_cfg, frame_rng(0, 7))
+    np.testing.assert_array_equal(a, b)  # a fixed pattern, not noise
+    plain = noisy_depth(out.depth_m, out.normal_cam, intr, KinectNoiseConfig(**exact), frame_rng(0, 0))
+    np.testing.assert_allclose(plain[out.depth_m > 0], out.depth_m[out.depth_m > 0], atol=1e-5)
+    bf = dist_cfg.baseline_m * disparity_focal_px(intr, dist_cfg)
+    v, u = 0, 0  # a corner: r = 1
+    z = float(out.depth_m[v, u])
+    assert a[v, u] == pytest.approx(1.0 / (1.0 / z + cfg.disparity_distortion_px / bf), rel=1e-5)
+    assert z - a[v, u] > 0.005  # about 1 cm nearer at 2 m
+    c = (int(intr.cy), int(intr.cx))
+    assert abs(a[c] - out.depth_m[c]) < 1e-4  # r ~ 0
+
+
 def test_noise_range_clipping_grazing_dropouts_and_holes(scenes):
     intr = default_intrinsics(320, 240)
     cfg = KinectNoiseConfig()

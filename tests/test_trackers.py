@@ -204,12 +204,12 @@ def test_loop_found_reported_and_closure_reduces_ate():
 def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     """``hybrid.loop_icp``: the PnP keyframe edges refined by ICP between the keyframes' depth carry a tight
     weight, and the loops then correct the dense drift (measured, walking loop, 60 frames: 0.42 cm with PnP
-    edges, 0.07 cm refined, dense 0.50). Off by default (worse on 7-Scenes, see ``backend.dense_edges``)."""
+    edges, 0.07 cm refined, dense 0.50). On by default; trusted here (synthetic depth, no distortion)."""
     frames, gt = _frames("loop", N_LOOP)
     cfg = SlamConfig()
-    assert not cfg.hybrid.loop_icp.enabled
-    cheap = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
-    on = replace(cheap, hybrid=replace(cheap.hybrid, loop_icp=replace(cheap.hybrid.loop_icp, enabled=True)))
+    assert cfg.hybrid.loop_icp.enabled
+    on = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
+    cheap = replace(on, hybrid=replace(on.hybrid, loop_icp=replace(on.hybrid.loop_icp, enabled=False)))
     est_pnp, res_pnp, _ = _run("hybrid", frames, cheap)
     est, res, _ = _run("hybrid", frames, on)
     m = res.metrics
@@ -217,6 +217,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert m["edges_dense_refined"] > 50 and m["loops_accepted"] > 10
     assert m["edges_dense_rejected"] < 0.1 * m["edges_dense_refined"]
     assert m["edge_sigma_m"] == pytest.approx(cfg.hybrid.loop_icp.sigma_m)
+    assert m["edge_spread_m"] < cfg.hybrid.loop_icp.max_trusted_spread_m
     assert _ate_m(est, gt) < 0.5 * _ate_m(est_pnp, gt), (_ate_m(est, gt), _ate_m(est_pnp, gt))
 
 

@@ -711,6 +711,7 @@ def _sparse_metrics(sparse: SparseSlam, res) -> dict:
         "edges_dense_refined": int(sparse.n_dense_refined),
         "edges_dense_rejected": int(sparse.n_dense_rejected),
         "edge_sigma_m": sparse.dense_edge_sigma_m,
+        "edge_spread_m": sparse.dense_edge_spread_m,
     }
 
 

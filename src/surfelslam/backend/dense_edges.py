@@ -95,12 +95,14 @@ class DenseEdgeConfig:
             left at ``max_width_px``, down to 8 pixels wide).
     """
 
-    enabled: bool = False
+    enabled: bool = True
     max_width_px: int = 320
     max_shift_m: float = 0.03
     max_shift_deg: float = 3.0
     cached_pyramids: int = 8
     sigma_m: float = 0.003
+    max_trusted_spread_m: float = 0.001
+    untrusted_sigma_m: float = 0.1
     min_spread_edges: int = 10
     spread_window_edges: int = 200
     feature_weight: float = 0.1
@@ -118,7 +120,8 @@ class DenseEdgeConfig:
             raise ConfigError(f"hybrid.loop_icp: cached_pyramids must be >= 0, got {self.cached_pyramids}")
         if not self.feature_weight >= 0:
             raise ConfigError(f"hybrid.loop_icp: feature_weight must be >= 0, got {self.feature_weight}")
-        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "feature_sigma_px", "feature_huber"):
+        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_spread_m", "untrusted_sigma_m",
+                     "feature_sigma_px", "feature_huber"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"hybrid.loop_icp: {name} must be > 0, got {getattr(self, name)}")
 
@@ -174,11 +177,25 @@ class DenseEdgeRefiner:
         d = se3.log(se3.invert(np.asarray(T_i_j_edge, np.float64)) @ np.asarray(T_i_j_odometry, np.float64))
         self._spread.extend(np.abs(d).tolist())
 
-    def edge_sigma(self) -> float:
-        """Sigma (m and rad) of a refined edge: ``max(sigma_m, spread of the recent nearby edges)``."""
+    def spread(self) -> float | None:
+        """Robust spread (m and rad) of the recent nearby edges against the odometry, ``None`` before
+        ``min_spread_edges`` were seen."""
         if len(self._spread) < 6 * self.cfg.min_spread_edges:
+            return None
+        return float(np.median(np.fromiter(self._spread, float))) / _MAD_TO_SIGMA
+
+    def trusted(self) -> bool:
+        """Whether refined edges are trusted now: their spread is unknown yet or at most ``max_trusted_spread_m``."""
+        s = self.spread()
+        return s is None or s <= self.cfg.max_trusted_spread_m
+
+    def edge_sigma(self) -> float:
+        """Sigma (m and rad) of a refined edge: ``max(sigma_m, spread of the recent nearby edges)``, or
+        ``untrusted_sigma_m`` when the spread exceeds ``max_trusted_spread_m``."""
+        s = self.spread()
+        if s is None:
             return self.cfg.sigma_m
-        return max(self.cfg.sigma_m, float(np.median(np.fromiter(self._spread, float))) / _MAD_TO_SIGMA)
+        return self.cfg.untrusted_sigma_m if s > self.cfg.max_trusted_spread_m else max(self.cfg.sigma_m, s)
 
     def depth_m(self, kf_id: int) -> np.ndarray:
         """Keyframe ``kf_id``'s stored depth ``(h, w)`` float32 metres (camera :attr:`intrinsics`; 0 = invalid)."""

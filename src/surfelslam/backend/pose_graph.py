@@ -10,7 +10,7 @@ iterations.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -170,6 +170,15 @@ class PoseGraph:
             raise ValueError(f"edge ({edge.i}, {edge.j}) needs two distinct existing nodes (have {self._n})")
         self._graph.add(gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j), _noise(edge, self.cfg)))
         self.edges.append(edge)
+
+    def set_information(self, edge_indices: list[int], information: float) -> None:
+        """Give the edges ``edge_indices`` (positions in :attr:`edges`) the isotropic ``information``."""
+        for e in edge_indices:
+            edge = replace(self.edges[e], information=float(information))
+            self.edges[e] = edge
+            # factor 0 is the prior on the first node; edge e is factor e + 1
+            self._graph.replace(e + 1, gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j),
+                                                                _noise(edge, self.cfg)))
 
     def set_pose(self, k: int, T_world_kf: np.ndarray) -> None:
         """Overwrite node ``k``'s current estimate (e.g. an initial guess)."""

@@ -182,6 +182,9 @@ class SparseSlam:
         self.n_nearby_edges = 0
         self.n_dense_refined = 0  # edges refined by the dense check
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
+        self._refined_edges: list[int] = []  # graph edge positions of the dense-refined edges
+        # their current isotropic information (all alike: the latest spread of the edges, see dense_edges)
+        self._refined_information = None if edge_refiner is None else edge_refiner.edge_sigma() ** -2
         self.rejected: Counter[str] = Counter()
         self._pool: ThreadPoolExecutor | None = None
         self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
@@ -193,6 +196,12 @@ class SparseSlam:
     def dense_edge_sigma_m(self) -> float | None:
         """Sigma (m and rad) that new dense-refined edges get now; ``None`` without an edge refiner."""
         return None if self._refiner is None else self._refiner.edge_sigma()
+
+    @property
+    def dense_edge_spread_m(self) -> float | None:
+        """Robust spread (m and rad) of the dense-refined nearby edges against the odometry (``None`` without an
+        edge refiner or before enough edges)."""
+        return None if self._refiner is None else self._refiner.spread()
 
     @property
     def n_keyframes(self) -> int:
@@ -390,7 +399,8 @@ class SparseSlam:
                 if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
                     odo = self._kf_odometry
                     self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
-                information = self._refiner.edge_sigma() ** -2
+                self._refined_edges.append(len(self._graph.edges))
+                information = self._refined_information
             self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, T_i_j, "loop", information=information,
                                           information_matrix=res.information))
             if far:
@@ -398,6 +408,11 @@ class SparseSlam:
                 n_loops += 1
             else:
                 self.n_nearby_edges += 1
+        if self._refiner is not None:  # every refined edge weighs by the current spread (or trust) of the edges
+            information = self._refiner.edge_sigma() ** -2
+            if information != self._refined_information:
+                self._graph.set_information(self._refined_edges, information)
+                self._refined_information = information
         if n_loops > 0:
             self._optimise()
         self._unreported_loops += n_loops

@@ -1,9 +1,13 @@
 """Kinect-v1-like sensor noise for rendered frames.
 
 Depth (in this order): dropouts at grazing angles (from the rendered normals), axial Gaussian noise with
-sigma growing with depth squared (Nguyen, Izadi, Lovell, 3DIMPVT 2012), disparity quantisation
+sigma growing with depth squared (Nguyen, Izadi, Lovell, 3DIMPVT 2012), optionally a fixed low-frequency disparity
+error (``disparity_distortion_px``: off in ``"kinect"``, on in ``"kinect-distorted"``), disparity quantisation
 (structured light: ``disparity = baseline * focal / z`` in 1/8 pixel steps), the valid range, dropouts at
-depth discontinuities and random small holes. Colour: a slight Gaussian blur and Gaussian pixel noise.
+depth discontinuities and random small holes. The distortion mimics uncalibrated Kinect v1 depth (Smisek,
+Jancosek, Pajdla 2011; Herrera, Kannala, Heikkila, PAMI 2012: a per-pixel disparity offset, so a depth error
+that grows with z^2) by a radial bowl: the offset grows with the squared distance from the image centre.
+Colour: a slight Gaussian blur and Gaussian pixel noise.
 Every random draw comes from the generator passed in; :func:`frame_rng` makes it from ``(seed, frame)``
 so that any frame can be regenerated on its own.
 """
@@ -33,6 +37,9 @@ class KinectNoiseConfig:
     # so quantisation does not depend on the rendered image size
     disparity_focal_px: float | None = None
     disparity_step_px: float = 0.125  # 1/8 sub-pixel disparity steps; 0 disables quantisation
+    # fixed disparity error (px of the disparity camera) at the image corners, growing with r^2 from the centre
+    # (r = 1 at the corners); positive = nearer. 0 disables
+    disparity_distortion_px: float = 0.0
     grazing_angle_deg: float = 78.0  # drop pixels whose ray-normal angle exceeds this
     edge_jump_rel: float = 0.04  # a neighbour differing by more than this fraction of z marks an edge
     edge_dropout_prob: float = 0.5  # probability of dropping an edge pixel
@@ -63,6 +70,16 @@ def _unit_rays(fx: float, fy: float, cx: float, cy: float, width: int, height: i
     return rays
 
 
+@functools.lru_cache(maxsize=8)
+def _radial_r2(cx: float, cy: float, width: int, height: int) -> np.ndarray:
+    """``(H, W)`` float32 squared distance from the principal point, 1 at the farthest image corner (read-only)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    r2 = (u - cx) ** 2 + (v - cy) ** 2
+    r2 /= r2.max()
+    r2.setflags(write=False)
+    return r2
+
+
 def ray_normal_cos(normal_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """``(H, W)`` ``|cos|`` of the angle between each pixel's viewing ray and the normal ``(H, W, 3)``."""
     rays = _unit_rays(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
@@ -85,8 +102,11 @@ def noisy_depth(
     valid &= ray_normal_cos(normal_cam, intr) >= np.float32(np.cos(np.radians(cfg.grazing_angle_deg)))
     sigma = axial_sigma_m(d, cfg).astype(np.float32)
     z = d + rng.standard_normal(d.shape, dtype=np.float32) * sigma
+    bf = cfg.baseline_m * disparity_focal_px(intr, cfg)
+    if cfg.disparity_distortion_px != 0:
+        offset = _radial_r2(intr.cx, intr.cy, intr.width, intr.height) * np.float32(cfg.disparity_distortion_px / bf)
+        z = np.where(z > 0, 1.0 / (1.0 / np.where(z > 0, z, np.float32(1.0)) + offset), z).astype(np.float32)
     if cfg.disparity_step_px > 0:
-        bf = cfg.baseline_m * disparity_focal_px(intr, cfg)
         zpos = z > 0
         disp_steps = np.round(np.float32(bf / cfg.disparity_step_px) / np.where(zpos, z, np.float32(np.inf)))
         ok = disp_steps > 0

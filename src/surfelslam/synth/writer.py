@@ -31,7 +31,10 @@ from surfelslam.synth.scenes import Scene, make_scene
 from surfelslam.synth.trajectories import make_trajectory, replay_motion
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
-NOISE_MODELS = ["kinect", "none"]
+NOISE_MODELS = ["kinect", "kinect-distorted", "none"]
+# "kinect-distorted": disparity error at the image corners (px); 0.1 px is 0.25 cm at 1 m, 1.0 cm at 2 m (the
+# order of the low-frequency errors of uncalibrated Kinect v1 depth)
+DISTORTED_DISPARITY_PX = 0.1
 DEPTH_SCALE = 5000.0  # raw depth units per metre (TUM)
 _UINT16_MAX = 65535
 _BASE_FOCAL_PX = 525.0  # default intrinsics at 640x480 (TUM / Kinect v1 defaults)
@@ -52,9 +55,12 @@ def default_intrinsics(width: int = 640, height: int = 480) -> Intrinsics:
 
 
 def noise_config(name: str) -> KinectNoiseConfig | None:
-    """``"kinect"`` -> default :class:`KinectNoiseConfig`; ``"none"`` -> None (exact depth and colour)."""
+    """``"kinect"`` -> default :class:`KinectNoiseConfig`; ``"kinect-distorted"`` -> the same with a fixed
+    low-frequency depth distortion (:data:`DISTORTED_DISPARITY_PX`); ``"none"`` -> None (exact depth and colour)."""
     if name == "kinect":
         return KinectNoiseConfig()
+    if name == "kinect-distorted":
+        return KinectNoiseConfig(disparity_distortion_px=DISTORTED_DISPARITY_PX)
     if name == "none":
         return None
     raise ConfigError(f"unknown noise model {name!r}; known: {', '.join(NOISE_MODELS)}")

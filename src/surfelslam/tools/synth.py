@@ -17,7 +17,9 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Argument(help="Output folder (created; existing frames are overwritten).")],
         scene: Annotated[str, typer.Option("--scene", help="Scene: room, office or plane.")] = "room",
         frames: Annotated[int, typer.Option("--frames", help="Number of frames.")] = 300,
-        noise: Annotated[str, typer.Option("--noise", help="kinect (Kinect-v1-like) or none (exact).")] = "kinect",
+        noise: Annotated[str, typer.Option(
+            "--noise", help="kinect (Kinect-v1-like), kinect-distorted (the same with a fixed low-frequency depth "
+                            "distortion) or none (exact).")] = "kinect",
         seed: Annotated[int, typer.Option("--seed", help="Seed of textures, motion jitter and noise.")] = 0,
         trajectory: Annotated[
             str, typer.Option("--trajectory", help="Motion: slow, fast, handheld or loop.")
