@@ -131,7 +131,7 @@ def test_keyframe_depth_is_stored_reduced_and_quantised():
 def test_edge_sigma_follows_the_spread_of_nearby_edges():
     """sigma_m until min_spread_edges nearby edges were seen, then the robust spread of their discrepancies with
     the odometry (never below sigma_m)."""
-    ref = _refiner(DenseEdgeConfig(min_spread_edges=5, spread_window_edges=20, max_trusted_spread_m=0.05))
+    ref = _refiner(DenseEdgeConfig(min_spread_edges=5, spread_window_edges=20))
     rng = np.random.default_rng(4)
     for k in range(40):
         if k < 5:
@@ -139,6 +139,7 @@ def test_edge_sigma_follows_the_spread_of_nearby_edges():
         T = se3.exp(rng.normal(0, 0.02, 6))
         ref.observe_nearby(T, T @ se3.exp(rng.normal(0, 0.01, 6)))
     assert ref.edge_sigma() == pytest.approx(0.01, rel=0.3) and ref.edge_sigma() == ref.spread()
+    assert not ref.trusted()
     tight = _refiner(DenseEdgeConfig(min_spread_edges=5))
     for _ in range(10):
         T = se3.exp(rng.normal(0, 0.02, 6))
@@ -147,10 +148,9 @@ def test_edge_sigma_follows_the_spread_of_nearby_edges():
 
 
 @pytest.mark.parametrize(("spread_m", "trusted"), [(0.0004, True), (0.003, False)])
-def test_edges_spread_past_the_trusted_bound_weigh_as_pnp_edges(spread_m, trusted):
+def test_edges_spread_past_the_trusted_bound_are_not_trusted(spread_m, trusted):
     """Nearby edges that disagree with the odometry by more than ``max_trusted_spread_m`` (biased depth: 7-Scenes
-    2.5-3.0 mm, synthetic Kinect-like noise 0.2-0.5 mm) are not trusted: every refined edge then weighs
-    ``untrusted_sigma_m`` (the PnP edges' sigma)."""
+    2.5-3.0 mm, synthetic Kinect-like noise 0.2-0.5 mm) are not trusted."""
     cfg = DenseEdgeConfig(min_spread_edges=10)
     ref = _refiner(cfg)
     rng = np.random.default_rng(5)
@@ -159,7 +159,7 @@ def test_edges_spread_past_the_trusted_bound_weigh_as_pnp_edges(spread_m, truste
         ref.observe_nearby(T, T @ se3.exp(rng.normal(0, spread_m, 6)))
     assert ref.spread() == pytest.approx(spread_m, rel=0.25)
     assert ref.trusted() == trusted
-    assert ref.edge_sigma() == (cfg.sigma_m if trusted else cfg.untrusted_sigma_m)
+    assert ref.edge_sigma() == max(cfg.sigma_m, ref.spread())
 
 
 def test_config_errors_name_the_field():

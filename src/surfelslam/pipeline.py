@@ -234,8 +234,9 @@ class HybridConfig:
             of the 7-Scenes hand-held motion in the synthetic room 0.17 / 0.21 (dense 0.15), the same at 3x
             0.21 / 0.22 (dense 0.23); synthetic fast 0.14 / 0.12 (dense 0.35), slow 0.13 / 0.13, walking loop
             0.33 / 0.33, office replays 0.14 / 0.14, 7-Scenes 0-499 2.48 / 2.48.
-        loop_icp: dense (ICP) refinement of the PnP keyframe edges (:mod:`surfelslam.backend.dense_edges`); off by
-            default: 2-4x lower ATE on synthetic sequences, worse on 7-Scenes (2.48 -> 3.76 cm).
+        loop_icp: dense (ICP) refinement of the PnP keyframe edges (:mod:`surfelslam.backend.dense_edges`): 2-4x
+            lower ATE on synthetic sequences; on 7-Scenes the refined edges are biased (2.48 -> 3.76 cm), which its
+            trust gate detects (``max_trusted_spread_m``), weighing them as PnP edges (2.49 cm).
         joint_features: ``auto | on | off``. On: track by joint dense + sparse optimisation: the PnP inliers
             against the reference keyframe (keyframe points, sub-pixel current pixels) add reprojection terms to
             every ICP iteration (:class:`~surfelslam.tracking.icp.ReprojectionTerm`). Texture then constrains the
@@ -712,6 +713,7 @@ def _sparse_metrics(sparse: SparseSlam, res) -> dict:
         "edges_dense_rejected": int(sparse.n_dense_rejected),
         "edge_sigma_m": sparse.dense_edge_sigma_m,
         "edge_spread_m": sparse.dense_edge_spread_m,
+        "edges_refined_trusted": sparse.dense_edges_trusted,
     }
 
 
@@ -784,14 +786,14 @@ class HybridSlam(DenseSlam):
         sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information="isotropic"))
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
-        refiner = None
-        if cfg.hybrid.loop_icp.enabled:  # ICP-refined keyframe edges carry a tight sigma (per edge, see dense_edges)
+        refiner, refined_scale = None, None
+        if cfg.hybrid.loop_icp.enabled:  # ICP-refined keyframe edges carry a tight sigma (see dense_edges)
             refiner = DenseEdgeRefiner(intr, cfg.preprocess, cfg.hybrid.loop_icp)
-            sp = replace(sp, graph=replace(sp.graph, loop_information=cfg.hybrid.loop_icp.sigma_m ** -2))
         if cfg.hybrid.loop_robust_scale_m > 0:  # the kernel's scale is in whitened units (loop sigmas)
             scale = cfg.hybrid.loop_robust_scale_m * np.sqrt(sp.graph.loop_information)
             sp = replace(sp, graph=replace(sp.graph, robust_scale_sigma=float(scale)))
-        self.sparse = SparseSlam(intr, sp, edge_refiner=refiner)
+            refined_scale = cfg.hybrid.loop_robust_scale_m / cfg.hybrid.loop_icp.sigma_m
+        self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale)
         self._kf_dense = np.zeros((0, 4, 4))  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)

@@ -8,7 +8,8 @@ PnP inliers as reprojection terms) uses every overlapping pixel; the edge can th
 check also drops PnP edges the depth disagrees with (ICP fails, is degenerate, or ends more than a gate away
 from the PnP pose).
 
-Opt-in (``hybrid.loop_icp.enabled``), because it helps on synthetic data and hurts on real Kinect data:
+On by default (``hybrid.loop_icp.enabled``), behind a trust gate, because it helps on synthetic data and hurts
+on real Kinect data:
 
 * Synthetic Kinect-noise sequences (320x240): edge errors against ground truth fall from a median of 4 mm
   (PnP) to 0.4 mm, and the hybrid's ATE by 2-4x where the dense tracker drifts (room, slow: 0.14 -> 0.05 cm,
@@ -16,11 +17,21 @@ Opt-in (``hybrid.loop_icp.enabled``), because it helps on synthetic data and hur
 * 7-Scenes (frames 0-499, 320x240): 2.48 -> 3.76 cm (dense 2.47), and the poses agree worse with the depth
   itself (median |dz| on 95 revisit pairs >= 60 frames apart: dense 10.3 mm, with refined edges 14.0 mm).
   140 of the 142 refined edges there are nearby ones; they disagree with the dense odometry by a median
-  0.10 deg and 2.2 mm (synthetic: 0.011 deg, 0.37 mm), a spread of 2.9 mm, just under the 3 mm floor of the
-  data-driven sigma, so that rule does not loosen them. The likely cause is the low-frequency distortion of raw
+  0.10 deg and 2.2 mm (synthetic: 0.011 deg, 0.37 mm). The likely cause is the low-frequency distortion of raw
   Kinect depth: keyframe-to-keyframe ICP is biased by it, and frame-to-model tracking averages it out. Only a
   sigma that all but ignores the edges is harmless: 1 / 2 / 5 cm give 2.92 / 2.62 / 2.50 cm; a 1 cm / 1 deg
   gate 2.70 cm; no feature terms 3.75 cm.
+
+The gate: the robust spread of the nearby edges' disagreement with the odometry (``median |log| / 0.6745`` over
+the six components) is 2.5-3.0 mm on 7-Scenes and 0.2-0.5 mm on 13 synthetic Kinect-noise sequences (slow, fast,
+hand-held, walking loop, replayed 7-Scenes motion at 1x and 3x). Above ``max_trusted_spread_m`` (1 mm) every
+refined edge weighs ``untrusted_sigma_m`` (0.1 m, the PnP edges' sigma): the ICP still drops the PnP edges the
+depth contradicts, and the hybrid behaves as without refinement (7-Scenes 0-499: 2.49 cm, dense 2.47; at 3x
+speed 2.56 and 2.56). The gate cannot tell every biased case: with a synthetic radial distortion of 0.1 px of
+disparity at the corners (``surfelslam synth --noise kinect-distorted``: 1 cm at 2 m) the spread is 0.7 mm, the
+edges stay trusted and the hybrid ends worse than dense (room, 7-Scenes motion, 500 frames: 2.48 cm; dense 2.14,
+hybrid without refinement 1.96). The spread cannot say whether the edges or the odometry are biased: a fast
+synthetic orbit, where the edges are right and the odometry drifts, shows a similar spread (0.5 mm).
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
 ``max_depth_m / 65535``, 0.08 mm at 5 m): 154 kB per keyframe at 320x240. The pyramids of the last few keyframes
@@ -68,7 +79,7 @@ class DenseEdgeConfig:
 
     Attributes:
         enabled: refine every PnP keyframe edge (nearby and loop) by ICP; edges that fail the check are dropped.
-            Off by default: see the module docstring (better on synthetic data, worse on 7-Scenes).
+            See the module docstring (better on synthetic data, worse on 7-Scenes, hence the trust gate).
         max_width_px: keyframe depth is kept (and registered) at the finest pyramid level at most this wide.
             Edge errors against ground truth (synthetic room, slow, 327 edges; median / max): 160 px 1.1 / 5.6 mm,
             320 px 0.4 / 1.8 mm; hybrid ATE 0.23 / 0.05 cm (dense 0.21).
@@ -80,9 +91,12 @@ class DenseEdgeConfig:
             compared with their relative pose by odometry alone (dense odometry over a short span, where it
             has hardly drifted); the robust spread of those discrepancies (``median |log| / 0.6745`` over the six
             components of the last ``spread_window_edges`` edges, once ``min_spread_edges`` were seen) is the
-            sigma of every new refined edge when it is larger (noisier depth, weaker geometry). On 7-Scenes the
-            spread is 2.9 mm, under the floor, although the edges hurt there (module docstring). The loop edges'
-            Cauchy scale (``hybrid.loop_robust_scale_m``) is set in units of ``sigma_m`` and so grows with it.
+            sigma of every refined edge when it is larger (noisier depth, weaker geometry); every refined edge in the
+            graph is re-weighted as the spread changes. The loop edges' Cauchy scale
+            (``hybrid.loop_robust_scale_m``) is set in units of ``sigma_m`` and so grows with it.
+        max_trusted_spread_m: above this spread (m and rad) the refined edges are not trusted (biased depth; module
+            docstring): the pose graph then holds the PnP edges instead, the rejected ones included, as without
+            refinement. Measured: 7-Scenes 2.5-3.0 mm, synthetic Kinect-like noise 0.2-0.5 mm.
         min_spread_edges: nearby edges needed before their spread is used (``sigma_m`` before).
         spread_window_edges: the spread is taken over this many most recent nearby edges.
         feature_weight, feature_sigma_px, feature_huber: the edge's PnP inliers enter the ICP as reprojection
@@ -102,7 +116,6 @@ class DenseEdgeConfig:
     cached_pyramids: int = 8
     sigma_m: float = 0.003
     max_trusted_spread_m: float = 0.001
-    untrusted_sigma_m: float = 0.1
     min_spread_edges: int = 10
     spread_window_edges: int = 200
     feature_weight: float = 0.1
@@ -120,7 +133,7 @@ class DenseEdgeConfig:
             raise ConfigError(f"hybrid.loop_icp: cached_pyramids must be >= 0, got {self.cached_pyramids}")
         if not self.feature_weight >= 0:
             raise ConfigError(f"hybrid.loop_icp: feature_weight must be >= 0, got {self.feature_weight}")
-        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_spread_m", "untrusted_sigma_m",
+        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_spread_m",
                      "feature_sigma_px", "feature_huber"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"hybrid.loop_icp: {name} must be > 0, got {getattr(self, name)}")
@@ -190,12 +203,9 @@ class DenseEdgeRefiner:
         return s is None or s <= self.cfg.max_trusted_spread_m
 
     def edge_sigma(self) -> float:
-        """Sigma (m and rad) of a refined edge: ``max(sigma_m, spread of the recent nearby edges)``, or
-        ``untrusted_sigma_m`` when the spread exceeds ``max_trusted_spread_m``."""
+        """Sigma (m and rad) of a refined edge: ``max(sigma_m, spread of the recent nearby edges)``."""
         s = self.spread()
-        if s is None:
-            return self.cfg.sigma_m
-        return self.cfg.untrusted_sigma_m if s > self.cfg.max_trusted_spread_m else max(self.cfg.sigma_m, s)
+        return self.cfg.sigma_m if s is None else max(self.cfg.sigma_m, s)
 
     def depth_m(self, kf_id: int) -> np.ndarray:
         """Keyframe ``kf_id``'s stored depth ``(h, w)`` float32 metres (camera :attr:`intrinsics`; 0 = invalid)."""

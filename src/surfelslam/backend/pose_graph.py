@@ -10,7 +10,7 @@ iterations.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -87,6 +87,8 @@ class PoseEdge:
         information: isotropic information overriding the config's (``None``: use the config).
         information_matrix: ``(6, 6)`` estimated information of ``T_i_j`` for a perturbation in gtsam's tangent
             ``(omega, v)`` (used in the ``"estimated"`` mode; ``None``: isotropic).
+        robust_scale: scale (whitened units) of the m-estimator of a loop edge with isotropic information,
+            overriding ``robust_scale_sigma`` (``None``: use the config).
     """
 
     i: int
@@ -95,6 +97,7 @@ class PoseEdge:
     kind: str = "odometry"
     information: float | None = None
     information_matrix: np.ndarray | None = None
+    robust_scale: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in EDGE_KINDS:
@@ -113,7 +116,8 @@ def _noise(edge: PoseEdge, cfg: PoseGraphConfig):
         info = cfg.loop_information if edge.kind == "loop" else cfg.odometry_information
     gauss = gtsam.noiseModel.Isotropic.Sigma(6, float(1.0 / np.sqrt(info)))
     if edge.kind == "loop" or cfg.robust_odometry:
-        return _robust(gauss, cfg.robust_kernel, cfg.robust_scale_sigma)
+        return _robust(gauss, cfg.robust_kernel, cfg.robust_scale_sigma if edge.robust_scale is None
+                       else edge.robust_scale)
     return gauss
 
 
@@ -171,14 +175,15 @@ class PoseGraph:
         self._graph.add(gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j), _noise(edge, self.cfg)))
         self.edges.append(edge)
 
-    def set_information(self, edge_indices: list[int], information: float) -> None:
-        """Give the edges ``edge_indices`` (positions in :attr:`edges`) the isotropic ``information``."""
-        for e in edge_indices:
-            edge = replace(self.edges[e], information=float(information))
-            self.edges[e] = edge
-            # factor 0 is the prior on the first node; edge e is factor e + 1
-            self._graph.replace(e + 1, gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j),
-                                                                _noise(edge, self.cfg)))
+    def reset_edges(self, edges: list[PoseEdge]) -> None:
+        """Replace every measurement by ``edges`` (the prior on the first node stays; poses are kept)."""
+        graph = gtsam.NonlinearFactorGraph()
+        if self._n > 0:
+            graph.add(self._graph.at(0))  # the prior
+        self._graph = graph
+        self.edges = []
+        for e in edges:
+            self.add_edge(e)
 
     def set_pose(self, k: int, T_world_kf: np.ndarray) -> None:
         """Overwrite node ``k``'s current estimate (e.g. an initial guess)."""

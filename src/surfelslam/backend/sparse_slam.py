@@ -155,14 +155,18 @@ class SparseSlam:
         cfg: settings.
         T_world_first: pose of the first frame (default identity).
         edge_refiner: optional dense check of keyframe edges (:mod:`dense_edges`): every PnP-verified edge
-            (nearby or loop) is refined by ICP between the keyframes' depth maps, or dropped when that fails.
+            (nearby or loop) is refined by ICP between the keyframes' depth maps, or dropped when that fails. While
+            the refiner does not trust the refined edges, the graph holds the PnP edges instead.
+        refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
-                 T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None) -> None:
+                 T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None,
+                 refined_robust_scale: float | None = None) -> None:
         self.intr = intr
         self.cfg = cfg or SparseSlamConfig()
         self._refiner = edge_refiner
+        self._refined_robust_scale = refined_robust_scale
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._graph = PoseGraph(self.cfg.graph)
         self._index = DescriptorIndex(self.cfg.loop.retrieval)
@@ -182,9 +186,10 @@ class SparseSlam:
         self.n_nearby_edges = 0
         self.n_dense_refined = 0  # edges refined by the dense check
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
-        self._refined_edges: list[int] = []  # graph edge positions of the dense-refined edges
-        # their current isotropic information (all alike: the latest spread of the edges, see dense_edges)
-        self._refined_information = None if edge_refiner is None else edge_refiner.edge_sigma() ** -2
+        # with an edge refiner: every edge as (PnP version or None, refined version or None), in order; the graph
+        # holds the refined versions while they are trusted, else the PnP ones (see dense_edges)
+        self._edge_versions: list[tuple[PoseEdge, PoseEdge | str | None]] = []
+        self._refined_state = (True, None if edge_refiner is None else edge_refiner.edge_sigma())  # trusted, sigma
         self.rejected: Counter[str] = Counter()
         self._pool: ThreadPoolExecutor | None = None
         self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
@@ -202,6 +207,11 @@ class SparseSlam:
         """Robust spread (m and rad) of the dense-refined nearby edges against the odometry (``None`` without an
         edge refiner or before enough edges)."""
         return None if self._refiner is None else self._refiner.spread()
+
+    @property
+    def dense_edges_trusted(self) -> bool | None:
+        """Whether the graph holds the dense-refined edges (else the PnP ones); ``None`` without an edge refiner."""
+        return None if self._refiner is None else self._refined_state[0]
 
     @property
     def n_keyframes(self) -> int:
@@ -342,7 +352,7 @@ class SparseSlam:
         self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
         self._ref_kf = kf_id
         if prev_kf is not None and T_prev_new is not None:
-            self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry", information_matrix=information))
+            self._add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry", information_matrix=information))
         if prev_kf is None:
             self._index.add(self._query_descriptors(feats))
             return
@@ -362,57 +372,58 @@ class SparseSlam:
 
         Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
         the only user of the index and the candidate generator between two :meth:`_collect_loop_checks`.
+        Returns ``(kf_id, [(candidate, PnP result, refined T_cur_ref, or None without a refiner, or
+        DENSE_CHECK_FAILED)])``.
         """
         q = self._query_descriptors(feats)
         checked = []
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self.cfg.loop):
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self.intr, self.cfg.features, self.cfg.loop)
+            refined = None
             if res.ok and self._refiner is not None:
                 inl = res.pairs[res.inlier_mask]
                 uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
-                T = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
-                                         self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
-                if T is None:
-                    res.ok, res.reason = False, DENSE_CHECK_FAILED
-                else:
-                    res.T_cur_ref, res.information = T, None  # weighed by the dense sigma (isotropic)
-            checked.append((cand, res))
+                refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
+                                               self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
+                if refined is None:
+                    refined = DENSE_CHECK_FAILED
+            checked.append((cand, res, refined))
         self._index.add(q)
         return kf_id, checked
 
     def _apply_loop_checks(self, kf_id: int, checked: list) -> None:
         """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older keyframe."""
         n_loops = 0
-        for cand, res in checked:
+        for cand, res, refined in checked:
             far = cand.source != "nearby"
             if far and res.reason != "too_few_matches" and res.n_inliers >= self.cfg.features.min_inliers \
                     and res.reason != "motion_too_large":
                 self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
             if not res.ok:
-                self.n_dense_rejected += res.reason == DENSE_CHECK_FAILED
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
-            T_i_j = invert(res.T_cur_ref)
-            information = None
-            if self._refiner is not None:
+            pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
+            if isinstance(refined, str):  # the dense check rejected it: in the graph while refined edges are untrusted
+                self.n_dense_rejected += 1
+                added = self._add_edge(pnp, DENSE_CHECK_FAILED)
+            elif refined is not None:
                 self.n_dense_refined += 1
+                T_i_j = invert(refined)
                 if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
                     odo = self._kf_odometry
                     self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
-                self._refined_edges.append(len(self._graph.edges))
-                information = self._refined_information
-            self._graph.add_edge(PoseEdge(cand.kf_id, kf_id, T_i_j, "loop", information=information,
-                                          information_matrix=res.information))
-            if far:
+                # weighed by the refined edges' sigma (isotropic), set when active
+                added = self._add_edge(pnp, PoseEdge(pnp.i, pnp.j, T_i_j, "loop",
+                                                     robust_scale=self._refined_robust_scale))
+            else:
+                added = self._add_edge(pnp)
+            if added and far:
                 self.loops_accepted.append((cand.kf_id, kf_id, res.n_inliers))
                 n_loops += 1
-            else:
+            elif added:
                 self.n_nearby_edges += 1
-        if self._refiner is not None:  # every refined edge weighs by the current spread (or trust) of the edges
-            information = self._refiner.edge_sigma() ** -2
-            if information != self._refined_information:
-                self._graph.set_information(self._refined_edges, information)
-                self._refined_information = information
+        if self._refiner is not None:
+            self._update_refined_edges()
         if n_loops > 0:
             self._optimise()
         self._unreported_loops += n_loops
@@ -425,6 +436,36 @@ class SparseSlam:
 
     def _optimise(self) -> None:
         self._kf_pose_buf[: len(self._kfs)] = self._graph.optimise()
+
+    def _add_edge(self, pnp: PoseEdge, refined: PoseEdge | str | None = None) -> bool:
+        """Add an edge: ``pnp`` (odometry or PnP-verified) and, with an edge refiner, its refined version
+        (``None``: none, the same edge either way; ``DENSE_CHECK_FAILED``: rejected by the dense check, in the
+        graph only while refined edges are not trusted). Returns whether the graph got an edge now."""
+        if self._refiner is None:
+            self._graph.add_edge(pnp)
+            return True
+        self._edge_versions.append((pnp, refined))
+        active = self._active_edge(pnp, refined)
+        if active is not None:
+            self._graph.add_edge(active)
+        return active is not None
+
+    def _active_edge(self, pnp: PoseEdge, refined: PoseEdge | str | None) -> PoseEdge | None:
+        trusted, sigma = self._refined_state
+        if refined is None or not trusted:
+            return pnp
+        if isinstance(refined, str):
+            return None
+        return replace(refined, information=sigma ** -2)
+
+    def _update_refined_edges(self) -> None:
+        """Rebuild the graph's edges when the refined edges' trust or sigma changed (see :mod:`dense_edges`)."""
+        state = (self._refiner.trusted(), self._refiner.edge_sigma())
+        if state == self._refined_state:
+            return
+        self._refined_state = state
+        edges = [self._active_edge(p, r) for p, r in self._edge_versions]
+        self._graph.reset_edges([e for e in edges if e is not None])
 
     # --- queries for the dense pipeline ---------------------------------------------------------------
 
