@@ -24,14 +24,14 @@ on real Kinect data:
 
 The gate: the robust spread of the nearby edges' disagreement with the odometry (``median |log| / 0.6745`` over
 the six components) is 2.5-3.0 mm on 7-Scenes and 0.2-0.5 mm on 13 synthetic Kinect-noise sequences (slow, fast,
-hand-held, walking loop, replayed 7-Scenes motion at 1x and 3x). Above ``max_trusted_spread_m`` (1 mm) every
-refined edge weighs ``untrusted_sigma_m`` (0.1 m, the PnP edges' sigma): the ICP still drops the PnP edges the
-depth contradicts, and the hybrid behaves as without refinement (7-Scenes 0-499: 2.49 cm, dense 2.47; at 3x
-speed 2.56 and 2.56). The gate cannot tell every biased case: with a synthetic radial distortion of 0.1 px of
-disparity at the corners (``surfelslam synth --noise kinect-distorted``: 1 cm at 2 m) the spread is 0.7 mm, the
-edges stay trusted and the hybrid ends worse than dense (room, 7-Scenes motion, 500 frames: 2.48 cm; dense 2.14,
-hybrid without refinement 1.96). The spread cannot say whether the edges or the odometry are biased: a fast
-synthetic orbit, where the edges are right and the odometry drifts, shows a similar spread (0.5 mm).
+hand-held, walking loop, replayed 7-Scenes motion at 1x and 3x). Above ``max_trusted_spread_m`` (1 mm) the pose
+graph holds the PnP edges instead, those the ICP rejected included, and the hybrid behaves as without refinement
+(7-Scenes 0-499: 2.48 cm, the same without refinement, dense 2.47; at 3x speed 2.55, dense 2.56). The gate cannot
+tell every biased case: with a synthetic radial distortion of 0.1 px of disparity at the corners (``surfelslam
+synth --noise kinect-distorted``: 1 cm at 2 m) the room's spread is 0.7 mm, the edges stay trusted and the hybrid
+ends worse than dense (7-Scenes motion, 500 frames: 2.48 cm; dense 2.14, hybrid without refinement 1.96; the
+office's spread is 1.2 mm, not trusted). The spread cannot say whether the edges or the odometry are biased: a
+fast synthetic orbit, where the edges are right and the odometry drifts, shows a similar spread (0.5 mm).
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
 ``max_depth_m / 65535``, 0.08 mm at 5 m): 154 kB per keyframe at 320x240. The pyramids of the last few keyframes
