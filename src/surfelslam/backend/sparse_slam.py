@@ -186,8 +186,9 @@ class SparseSlam:
         self.n_nearby_edges = 0
         self.n_dense_refined = 0  # edges refined by the dense check
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
-        # with an edge refiner: every edge as (PnP version or None, refined version or None), in order; the graph
-        # holds the refined versions while they are trusted, else the PnP ones (see dense_edges)
+        # with an edge refiner: every edge as (odometry or PnP edge, its refined version, None when there is none,
+        # or DENSE_CHECK_FAILED), in order; the graph holds the refined versions while they are trusted, else the
+        # PnP ones (see dense_edges)
         self._edge_versions: list[tuple[PoseEdge, PoseEdge | str | None]] = []
         self._refined_state = (True, None if edge_refiner is None else edge_refiner.edge_sigma())  # trusted, sigma
         self.rejected: Counter[str] = Counter()
@@ -460,7 +461,8 @@ class SparseSlam:
 
     def _update_refined_edges(self) -> None:
         """Rebuild the graph's edges when the refined edges' trust or sigma changed (see :mod:`dense_edges`)."""
-        state = (self._refiner.trusted(), self._refiner.edge_sigma())
+        trusted = self._refiner.trusted()
+        state = (trusted, self._refiner.edge_sigma() if trusted else None)  # untrusted: PnP edges, no sigma
         if state == self._refined_state:
             return
         self._refined_state = state
