@@ -236,7 +236,7 @@ class HybridConfig:
             0.33 / 0.33, office replays 0.14 / 0.14, 7-Scenes 0-499 2.48 / 2.48.
         loop_icp: dense (ICP) refinement of the PnP keyframe edges (:mod:`surfelslam.backend.dense_edges`): 2-4x
             lower ATE on synthetic sequences; on 7-Scenes the refined edges are biased (2.48 -> 3.76 cm), which its
-            trust gate detects (``max_trusted_spread_m``), using the PnP edges instead (2.48 cm).
+            trust gate detects (``max_trusted_residual_rad``), using the PnP edges instead (2.48 cm).
         joint_features: ``auto | on | off``. On: track by joint dense + sparse optimisation: the PnP inliers
             against the reference keyframe (keyframe points, sub-pixel current pixels) add reprojection terms to
             every ICP iteration (:class:`~surfelslam.tracking.icp.ReprojectionTerm`). Texture then constrains the
@@ -714,6 +714,7 @@ def _sparse_metrics(sparse: SparseSlam, res) -> dict:
         "edge_sigma_m": sparse.dense_edge_sigma_m,
         "edge_spread_m": sparse.dense_edge_spread_m,
         "edges_refined_trusted": sparse.dense_edges_trusted,
+        "edge_residual_rad": sparse.dense_edge_residual_rad,
     }
 
 

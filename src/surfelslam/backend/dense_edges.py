@@ -9,7 +9,7 @@ check also drops PnP edges the depth disagrees with (ICP fails, is degenerate, o
 from the PnP pose).
 
 On by default (``hybrid.loop_icp.enabled``), behind a trust gate, because it helps on synthetic data and hurts
-on real Kinect data:
+on real Kinect data when trusted:
 
 * Synthetic Kinect-noise sequences (320x240): edge errors against ground truth fall from a median of 4 mm
   (PnP) to 0.4 mm, and the hybrid's ATE by 2-4x where the dense tracker drifts (room, slow: 0.14 -> 0.05 cm,
@@ -22,16 +22,17 @@ on real Kinect data:
   sigma that all but ignores the edges is harmless: 1 / 2 / 5 cm give 2.92 / 2.62 / 2.50 cm; a 1 cm / 1 deg
   gate 2.70 cm; no feature terms 3.75 cm.
 
-The gate: the robust spread of the nearby edges' disagreement with the odometry (``median |log| / 0.6745`` over
-the six components) is 2.5-3.0 mm on 7-Scenes and 0.2-0.5 mm on 13 synthetic Kinect-noise sequences (slow, fast,
-hand-held, walking loop, replayed 7-Scenes motion at 1x and 3x). Above ``max_trusted_spread_m`` (1 mm) the pose
-graph holds the PnP edges instead, those the ICP rejected included, and the hybrid behaves as without refinement
-(7-Scenes 0-499: 2.48 cm, the same without refinement, dense 2.47; at 3x speed 2.55, dense 2.56). The gate cannot
-tell every biased case: with a synthetic radial distortion of 0.1 px of disparity at the corners (``surfelslam
-synth --noise kinect-distorted``: 1 cm at 2 m) the room's spread is 0.7 mm, the edges stay trusted and the hybrid
-ends worse than dense (7-Scenes motion, 500 frames: 2.48 cm; dense 2.14, hybrid without refinement 1.96; the
-office's spread is 1.2 mm, not trusted). The spread cannot say whether the edges or the odometry are biased: a
-fast synthetic orbit, where the edges are right and the odometry drifts, shows a similar spread (0.5 mm).
+The trust gate (``max_trusted_residual_rad``): the refined edges get a pose graph of their own (with the
+odometry), and at every optimisation the robust spread of their rotation residuals at its optimum
+(:meth:`DenseEdgeRefiner.residual_spread`) says whether they are consistent with one another. Unbiased edges are:
+0.1-0.2 mrad on synthetic Kinect-noise sequences, including those whose dense odometry is biased (colour taken
+before depth: the odometry edges absorb it). Biased edges are not: 7-Scenes 1.1 mrad, synthetic depth with a radial
+distortion (``surfelslam synth --noise kinect-distorted``, 0.1 px of disparity at the corners: 1 cm at 2 m) 0.4-0.6
+mrad. Above 0.3 mrad the poses come from the graph of the PnP edges (those the ICP rejected included), as without
+refinement: 7-Scenes 0-499 2.48 cm (dense 2.47), the distorted room 1.96 cm (dense 2.14; trusted 2.48). An earlier
+gate on the spread of the nearby edges' disagreement with the odometry could not tell which of the two was biased:
+it trusted the distorted room (0.7 mm) and distrusted the colour-offset sequences (1.2-2.6 mm), where the refined
+edges take hybrid from 0.67-2.02 cm to 0.28-0.38 cm (dense 0.57-2.07).
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
 ``max_depth_m / 65535``, 0.08 mm at 5 m): 154 kB per keyframe at 320x240. The pyramids of the last few keyframes
@@ -91,13 +92,14 @@ class DenseEdgeConfig:
             compared with their relative pose by odometry alone (dense odometry over a short span, where it
             has hardly drifted); the robust spread of those discrepancies (``median |log| / 0.6745`` over the six
             components of the last ``spread_window_edges`` edges, once ``min_spread_edges`` were seen) is the
-            sigma of every refined edge when it is larger (noisier depth, weaker geometry); every refined edge in the
-            graph is re-weighted as the spread changes. The loop edges' Cauchy scale
-            (``hybrid.loop_robust_scale_m``) is set in units of ``sigma_m`` and so grows with it.
-        max_trusted_spread_m: above this spread (m and rad) the refined edges are not trusted (biased depth; module
-            docstring): the pose graph then holds the PnP edges instead, the rejected ones included, as without
-            refinement. Measured: 7-Scenes 2.5-3.0 mm, synthetic Kinect-like noise 0.2-0.5 mm.
-        min_spread_edges: nearby edges needed before their spread is used (``sigma_m`` before).
+            sigma of every new refined edge when it is larger (noisier depth, weaker geometry). The loop edges'
+            Cauchy scale (``hybrid.loop_robust_scale_m``) is set in units of ``sigma_m`` and so grows with it.
+        max_trusted_residual_rad: the refined edges are trusted while the robust spread of their rotation
+            residuals at the optimum of their own graph is at most this (rad; module docstring): synthetic
+            Kinect-like noise 0.1-0.2 mrad, biased depth 0.4-1.1 mrad. Otherwise the poses come from the PnP
+            edges' graph. Decided at every optimisation, once ``min_spread_edges`` refined edges are in.
+        min_spread_edges: nearby edges needed before their spread is used (``sigma_m`` before), and refined edges
+            needed before the trust gate decides (trusted before).
         spread_window_edges: the spread is taken over this many most recent nearby edges.
         feature_weight, feature_sigma_px, feature_huber: the edge's PnP inliers enter the ICP as reprojection
             terms (:class:`~surfelslam.tracking.icp.ReprojectionTerm`, as in the hybrid's joint tracking), so
@@ -115,7 +117,7 @@ class DenseEdgeConfig:
     max_shift_deg: float = 3.0
     cached_pyramids: int = 8
     sigma_m: float = 0.003
-    max_trusted_spread_m: float = 0.001
+    max_trusted_residual_rad: float = 0.0003
     min_spread_edges: int = 10
     spread_window_edges: int = 200
     feature_weight: float = 0.1
@@ -133,7 +135,7 @@ class DenseEdgeConfig:
             raise ConfigError(f"hybrid.loop_icp: cached_pyramids must be >= 0, got {self.cached_pyramids}")
         if not self.feature_weight >= 0:
             raise ConfigError(f"hybrid.loop_icp: feature_weight must be >= 0, got {self.feature_weight}")
-        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_spread_m",
+        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_residual_rad",
                      "feature_sigma_px", "feature_huber"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"hybrid.loop_icp: {name} must be > 0, got {getattr(self, name)}")
@@ -197,10 +199,20 @@ class DenseEdgeRefiner:
             return None
         return float(np.median(np.fromiter(self._spread, float))) / _MAD_TO_SIGMA
 
-    def trusted(self) -> bool:
-        """Whether refined edges are trusted now: their spread is unknown yet or at most ``max_trusted_spread_m``."""
-        s = self.spread()
-        return s is None or s <= self.cfg.max_trusted_spread_m
+    def residual_spread(self, edges: list, poses_world_kf: np.ndarray) -> float | None:
+        """Robust spread (rad) of the rotation residuals of the refined edges among ``edges`` (pose-graph edges of
+        kind ``"loop"``) at the poses ``(K, 4, 4)`` their graph was optimised to; ``None`` with fewer than
+        ``min_spread_edges`` of them."""
+        loops = [e for e in edges if e.kind == "loop"]
+        if len(loops) < self.cfg.min_spread_edges:
+            return None
+        P = np.asarray(poses_world_kf, np.float64)
+        rot = [se3.log(se3.invert(e.T_i_j) @ se3.invert(P[e.i]) @ P[e.j])[:3] for e in loops]
+        return float(np.median(np.abs(rot))) / _MAD_TO_SIGMA
+
+    def trusted(self, residual_rad: float | None) -> bool:
+        """Whether refined edges whose graph leaves ``residual_rad`` (:meth:`residual_spread`) are trusted."""
+        return residual_rad is None or residual_rad <= self.cfg.max_trusted_residual_rad
 
     def edge_sigma(self) -> float:
         """Sigma (m and rad) of a refined edge: ``max(sigma_m, spread of the recent nearby edges)``."""

@@ -156,7 +156,7 @@ class SparseSlam:
         T_world_first: pose of the first frame (default identity).
         edge_refiner: optional dense check of keyframe edges (:mod:`dense_edges`): every PnP-verified edge
             (nearby or loop) is refined by ICP between the keyframes' depth maps, or dropped when that fails. While
-            the refiner does not trust the refined edges, the graph holds the PnP edges instead.
+            the refined edges are not consistent enough to be trusted, the poses come from the PnP edges' graph.
         refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
     """
 
@@ -186,11 +186,11 @@ class SparseSlam:
         self.n_nearby_edges = 0
         self.n_dense_refined = 0  # edges refined by the dense check
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
-        # with an edge refiner: every edge as (odometry or PnP edge, its refined version, None when there is none,
-        # or DENSE_CHECK_FAILED), in order; the graph holds the refined versions while they are trusted, else the
-        # PnP ones (see dense_edges)
-        self._edge_versions: list[tuple[PoseEdge, PoseEdge | str | None]] = []
-        self._refined_state = (True, None if edge_refiner is None else edge_refiner.edge_sigma())  # trusted, sigma
+        # with an edge refiner, a second graph holds the refined edges (self._graph the PnP ones); each
+        # optimisation checks the refined edges' consistency there and takes its poses from the trusted graph
+        self._graph_refined = None if edge_refiner is None else PoseGraph(self.cfg.graph)
+        self._refined_trusted = True
+        self._refined_residual_rad: float | None = None
         self.rejected: Counter[str] = Counter()
         self._pool: ThreadPoolExecutor | None = None
         self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
@@ -211,8 +211,15 @@ class SparseSlam:
 
     @property
     def dense_edges_trusted(self) -> bool | None:
-        """Whether the graph holds the dense-refined edges (else the PnP ones); ``None`` without an edge refiner."""
-        return None if self._refiner is None else self._refined_state[0]
+        """Whether the poses come from the graph of dense-refined edges (else from the PnP edges' graph);
+        ``None`` without an edge refiner."""
+        return None if self._refiner is None else self._refined_trusted
+
+    @property
+    def dense_edge_residual_rad(self) -> float | None:
+        """Robust spread (rad) of the refined edges' rotation residuals at the last optimisation of their graph
+        (``None`` without an edge refiner or before one)."""
+        return self._refined_residual_rad
 
     @property
     def n_keyframes(self) -> int:
@@ -342,6 +349,8 @@ class SparseSlam:
             # the graph moved the previous keyframe: keep the new one's pose relative to it
             T_world_cam = orthonormalize(self._kf_poses[prev_kf] @ invert(T_prev_before) @ T_world_cam)
         kf_id = self._graph.add_node(T_world_cam)
+        if self._graph_refined is not None:
+            self._graph_refined.add_node(T_world_cam)
         if self._refiner is not None:
             self._refiner.add_keyframe(kf_id, frame.depth_m)
         xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
@@ -423,8 +432,6 @@ class SparseSlam:
                 n_loops += 1
             elif added:
                 self.n_nearby_edges += 1
-        if self._refiner is not None:
-            self._update_refined_edges()
         if n_loops > 0:
             self._optimise()
         self._unreported_loops += n_loops
@@ -436,38 +443,28 @@ class SparseSlam:
             self._apply_loop_checks(*pending.result())
 
     def _optimise(self) -> None:
-        self._kf_pose_buf[: len(self._kfs)] = self._graph.optimise()
+        if self._graph_refined is None:
+            self._kf_pose_buf[: len(self._kfs)] = self._graph.optimise()
+            return
+        poses = self._graph_refined.optimise()
+        self._refined_residual_rad = self._refiner.residual_spread(self._graph_refined.edges, poses)
+        self._refined_trusted = self._refiner.trusted(self._refined_residual_rad)
+        self._kf_pose_buf[: len(self._kfs)] = poses if self._refined_trusted else self._graph.optimise()
 
     def _add_edge(self, pnp: PoseEdge, refined: PoseEdge | str | None = None) -> bool:
         """Add an edge: ``pnp`` (odometry or PnP-verified) and, with an edge refiner, its refined version
-        (``None``: none, the same edge either way; ``DENSE_CHECK_FAILED``: rejected by the dense check, in the
-        graph only while refined edges are not trusted). Returns whether the graph got an edge now."""
-        if self._refiner is None:
-            self._graph.add_edge(pnp)
+        (``None``: none, the same edge in both graphs; ``DENSE_CHECK_FAILED``: rejected by the dense check, in the
+        PnP graph only). Returns whether the graph that is trusted now got an edge."""
+        self._graph.add_edge(pnp)
+        if self._graph_refined is None:
             return True
-        self._edge_versions.append((pnp, refined))
-        active = self._active_edge(pnp, refined)
-        if active is not None:
-            self._graph.add_edge(active)
-        return active is not None
-
-    def _active_edge(self, pnp: PoseEdge, refined: PoseEdge | str | None) -> PoseEdge | None:
-        trusted, sigma = self._refined_state
-        if refined is None or not trusted:
-            return pnp
+        if refined is None:
+            self._graph_refined.add_edge(pnp)
+            return True
         if isinstance(refined, str):
-            return None
-        return replace(refined, information=sigma ** -2)
-
-    def _update_refined_edges(self) -> None:
-        """Rebuild the graph's edges when the refined edges' trust or sigma changed (see :mod:`dense_edges`)."""
-        trusted = self._refiner.trusted()
-        state = (trusted, self._refiner.edge_sigma() if trusted else None)  # untrusted: PnP edges, no sigma
-        if state == self._refined_state:
-            return
-        self._refined_state = state
-        edges = [self._active_edge(p, r) for p, r in self._edge_versions]
-        self._graph.reset_edges([e for e in edges if e is not None])
+            return not self._refined_trusted
+        self._graph_refined.add_edge(replace(refined, information=self._refiner.edge_sigma() ** -2))
+        return True
 
     # --- queries for the dense pipeline ---------------------------------------------------------------
 
