@@ -55,25 +55,6 @@ def test_loop_edge_corrects_drift() -> None:
     np.testing.assert_allclose(optimise(init, edges + [loop])[0], gt[0], atol=1e-6)
 
 
-def test_reset_edges_replaces_the_measurements() -> None:
-    """After ``reset_edges`` the graph optimises as one built with the new edges from the same poses."""
-    gt = _square_loop()
-    init, edges = _drifted_odometry(gt)
-    n = len(gt)
-    loop = PoseEdge(n - 1, 0, invert(gt[n - 1]) @ gt[0], "loop")
-    graph = PoseGraph()
-    for T in init:
-        graph.add_node(T)
-    for e in edges:
-        graph.add_edge(e)
-    graph.reset_edges(edges + [loop])
-    assert len(graph.edges) == len(edges) + 1
-    np.testing.assert_allclose(graph.optimise(), optimise(init, edges + [loop]), atol=1e-6)
-    assert _ate(graph.poses(), gt) < 0.25 * _ate(init, gt)
-    graph.reset_edges(edges)  # back to odometry alone: back to the dead-reckoned poses
-    np.testing.assert_allclose(graph.optimise(), init, atol=1e-4)
-
-
 def test_edge_robust_scale_overrides_the_config() -> None:
     """A loop edge's own ``robust_scale`` replaces ``robust_scale_sigma``: a tight kernel ignores a wrong loop."""
     gt = _square_loop()

@@ -175,16 +175,6 @@ class PoseGraph:
         self._graph.add(gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j), _noise(edge, self.cfg)))
         self.edges.append(edge)
 
-    def reset_edges(self, edges: list[PoseEdge]) -> None:
-        """Replace every measurement by ``edges`` (the prior on the first node stays; poses are kept)."""
-        graph = gtsam.NonlinearFactorGraph()
-        if self._n > 0:
-            graph.add(self._graph.at(0))  # the prior
-        self._graph = graph
-        self.edges = []
-        for e in edges:
-            self.add_edge(e)
-
     def set_pose(self, k: int, T_world_kf: np.ndarray) -> None:
         """Overwrite node ``k``'s current estimate (e.g. an initial guess)."""
         self._values.update(k, _pose3(T_world_kf))
