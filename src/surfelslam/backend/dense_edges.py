@@ -25,8 +25,8 @@ on real Kinect data when trusted:
 The trust gate (``max_trusted_residual_rad``): the refined edges get a pose graph of their own (with the
 odometry), and at every optimisation the robust spread of their rotation residuals at its optimum
 (:meth:`DenseEdgeRefiner.residual_spread`) says whether they are consistent with one another. Unbiased edges are:
-0.1-0.2 mrad on synthetic Kinect-noise sequences, including those whose dense odometry is biased (colour taken
-before depth: the odometry edges absorb it). Biased edges are not: 7-Scenes 1.1 mrad, synthetic depth with a radial
+0.11-0.18 mrad on synthetic Kinect-noise sequences, including those whose dense odometry is biased (colour taken
+before depth: the odometry edges absorb it). Biased edges are not: 7-Scenes 1.0-1.1 mrad, synthetic depth with a radial
 distortion (``surfelslam synth --noise kinect-distorted``, 0.1 px of disparity at the corners: 1 cm at 2 m) 0.4-0.6
 mrad. Above 0.3 mrad the poses come from the graph of the PnP edges (those the ICP rejected included), as without
 refinement: 7-Scenes 0-499 2.48 cm (dense 2.47), the distorted room 1.96 cm (dense 2.14; trusted 2.48). An earlier
