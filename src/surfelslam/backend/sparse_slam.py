@@ -413,7 +413,7 @@ class SparseSlam:
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
             pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
-            if isinstance(refined, str):  # the dense check rejected it: in the graph while refined edges are untrusted
+            if isinstance(refined, str):  # the dense check rejected it: in the PnP edges' graph only
                 self.n_dense_rejected += 1
                 added = self._add_edge(pnp, DENSE_CHECK_FAILED)
             elif refined is not None:
@@ -422,7 +422,7 @@ class SparseSlam:
                 if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
                     odo = self._kf_odometry
                     self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
-                # weighed by the refined edges' sigma (isotropic), set when active
+                # weighed by the refined edges' sigma (isotropic), set when it enters their graph
                 added = self._add_edge(pnp, PoseEdge(pnp.i, pnp.j, T_i_j, "loop",
                                                      robust_scale=self._refined_robust_scale))
             else:
