@@ -206,8 +206,8 @@ class DenseEdgeRefiner:
         loops = [e for e in edges if e.kind == "loop"]
         if len(loops) < self.cfg.min_spread_edges:
             return None
-        P = np.asarray(poses_world_kf, np.float64)
-        rot = [se3.log(se3.invert(e.T_i_j) @ se3.invert(P[e.i]) @ P[e.j])[:3] for e in loops]
+        R = np.asarray(poses_world_kf, np.float64)[:, :3, :3]
+        rot = [se3.so3_log(e.T_i_j[:3, :3].T @ R[e.i].T @ R[e.j]) for e in loops]  # rotation part of the residual
         return float(np.median(np.abs(rot))) / _MAD_TO_SIGMA
 
     def trusted(self, residual_rad: float | None) -> bool:
