@@ -22,7 +22,7 @@ from surfelslam.tracking.geometric import (
 )
 from surfelslam.tracking.icp import pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
-from surfelslam.tracking.registration import guess_level, register_pair
+from surfelslam.tracking.registration import guess_level, guess_maps, register_pair
 from surfelslam.types import RGBDFrame
 
 
@@ -144,6 +144,27 @@ def test_register_features_falls_back_on_shape_when_images_are_blank():
     geo = register_pair(src, tgt, ps, pt, intr, cfg, "geometry")
     assert geo.motion is None and np.array_equal(geo.icp.T_target_source, reg.icp.T_target_source)
     assert guess_level(ps) == 0 and guess_level(ps, 100) == 2 and guess_level(ps, 10) == len(ps) - 1
+
+
+def test_guess_maps_subsample_frames_wider_than_320_px():
+    """The shape guess sees a 640x480 frame as ``--downsample 2`` would (every second pixel, intrinsics / 2), not
+    as the pyramid's block-averaged level; a 320x240 frame as it is."""
+    intr = default_intrinsics(640, 480)
+    scene = make_scene("room", seed=0)
+    T = make_trajectory("handheld", 2, scene, seed=1).T_world_cam[0]
+    frame = make_frame(0, 0.0, render(scene, T, intr), intr, None, seed=1)  # exact depth
+    pyr = Preprocessor(intr, PreprocessConfig(pyramid_levels=3)).process(frame.depth_m)
+    v, n = guess_maps(frame, pyr, intr)
+    half = intr.scaled(2)
+    ref = Preprocessor(half, PreprocessConfig(pyramid_levels=1)).process(np.ascontiguousarray(frame.depth_m[::2, ::2]))
+    assert v.shape == (240, 320, 3) and np.array_equal(v, ref[0].vertex) and np.array_equal(n, ref[0].normal)
+    valid = v[..., 2] > 0
+    assert valid.mean() > 0.9  # pixel (u', v') is pixel (2u', 2v') of the frame (its depth, bilateral-filtered)
+    assert np.median(np.abs(v[..., 2][valid] - frame.depth_m[::2, ::2][valid])) < 1e-4
+    assert not np.array_equal(v, pyr[1].vertex)  # not the block means
+    small = Preprocessor(half, PreprocessConfig(pyramid_levels=3)).process(ref[0].vertex[..., 2].copy())
+    vs, _ = guess_maps(frame, small, half)
+    assert vs is small[0].vertex
 
 
 def test_geometric_config_errors():

@@ -26,7 +26,7 @@ from surfelslam.tracking.features import FeatureConfig, MotionResult, feature_gu
 from surfelslam.tracking.geometric import GeometricGuess, GeometricGuessConfig, geometric_guess
 from surfelslam.tracking.icp import ICPConfig, ICPResult, icp, photometric_term
 from surfelslam.tracking.photometric import intensity_from_rgb, intensity_pyramid
-from surfelslam.tracking.preprocess import FramePyramid, level_for_width
+from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, level_for_width
 from surfelslam.types import Intrinsics, RGBDFrame
 
 INIT_MODES = ("identity", "features", "geometry", "auto")
@@ -77,6 +77,23 @@ def guess_level(pyramid: FramePyramid, max_width_px: int = GEOMETRIC_MAX_WIDTH_P
     return min(level_for_width(pyramid.intrinsics.width, max_width_px), len(pyramid) - 1)
 
 
+def guess_maps(frame: RGBDFrame, pyramid: FramePyramid, intr: Intrinsics,
+               max_width_px: int = GEOMETRIC_MAX_WIDTH_PX) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex and normal maps ``(h, w, 3)`` the shape-feature guess uses: the frame's depth at most ``max_width_px``
+    wide, reduced by keeping every ``2**k``-th pixel (intrinsics divided by ``2**k``, as ``--downsample``), not the
+    pyramid's 2x2 block means. On the 41 7-Scenes pairs 90 frames apart at 640x480, ICP from the guess reached the
+    floor (within 5 mm / 0.3 deg of ICP started at GT) on 32 pairs from subsampled depth against 29 from the block
+    means (the hybrid's keyframe edges showed the same: ``hybrid.loop_icp.keyframe_depth_reduction``); at 320x240
+    input both are the frame itself. ``pyramid`` is the frame's (level 0 at ``intr``)."""
+    level = guess_level(pyramid, max_width_px)
+    if level == 0:
+        return pyramid[0].vertex, pyramid[0].normal
+    f = 2 ** level
+    small = Preprocessor(intr.scaled(f), PreprocessConfig(pyramid_levels=1))
+    top = small.process(np.ascontiguousarray(frame.depth_m[::f, ::f]))[0]
+    return top.vertex, top.normal
+
+
 def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: FramePyramid, intr: Intrinsics,
                   icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM,
                   photometric: bool = False, feature_cfg: FeatureConfig | None = None,
@@ -105,8 +122,8 @@ def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: Fr
         guess, motion = feature_guess(src, tgt, intr, fcfg)
         kind = "features"
     if init == "geometry" or (init != "identity" and guess is None):
-        ls, lt = guess_level(p_src), guess_level(p_tgt)
-        geo = geometric_guess(p_src[ls].vertex, p_src[ls].normal, p_tgt[lt].vertex, p_tgt[lt].normal, geometric_cfg)
+        (v_src, n_src), (v_tgt, n_tgt) = guess_maps(src, p_src, intr), guess_maps(tgt, p_tgt, intr)
+        geo = geometric_guess(v_src, n_src, v_tgt, n_tgt, geometric_cfg)
         guess, kind = geo.T_target_source, "geometry"
     if init in ("features", "geometry") and guess is not None:
         return PairRegistration(run(guess), kind, guess, motion, geo)
