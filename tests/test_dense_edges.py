@@ -113,27 +113,13 @@ def test_keyframe_depth_is_stored_reduced_and_quantised():
     depth = rng.uniform(0.5, 4.0, (480, 640)).astype(np.float32)
     depth[:10] = 0.0
     depth[20:30] = 7.0  # beyond max_depth_m: invalid
-    unit = PreprocessConfig().max_depth_m / 65535
     ref = DenseEdgeRefiner(big, PreprocessConfig(), DenseEdgeConfig(max_width_px=320))
-    assert ref.cfg.keyframe_depth_reduction == "subsample"
     ref.add_keyframe(0, depth)
     assert (ref.intrinsics.width, ref.intrinsics.height) == (320, 240)
-    # every second pixel: pixel (u', v') is (2u', 2v'), so cx, cy halve exactly (as --downsample 2)
-    assert (ref.intrinsics.fx, ref.intrinsics.cx, ref.intrinsics.cy) == pytest.approx((262.5, 159.75, 119.75))
+    assert ref.intrinsics.fx == pytest.approx(262.5)
     stored = ref.depth_m(0)
     assert stored.shape == (240, 320) and stored.dtype == np.float32
     assert np.all(stored[:5] == 0) and np.all(stored[10:15] == 0)
-    assert np.abs(stored[20:] - depth[40::2, ::2]).max() <= 0.5 * unit + 1e-6
-    # 2x2 block means: pixel (u', v') is the centre of block (2u' + 0.5, 2v' + 0.5); a smooth surface (every block
-    # within pyramid_max_depth_diff_m), so each block is averaged whole
-    smooth = (2.0 + 0.002 * np.arange(640)[None, :] + 0.001 * np.arange(480)[:, None]
-              + rng.normal(0.0, 0.002, (480, 640))).astype(np.float32)
-    avg = DenseEdgeRefiner(big, PreprocessConfig(), DenseEdgeConfig(keyframe_depth_reduction="average"))
-    avg.add_keyframe(0, smooth)
-    assert (avg.intrinsics.cx, avg.intrinsics.cy) == pytest.approx((159.5, 119.5))
-    block = smooth.reshape(240, 2, 320, 2).mean(axis=(1, 3))
-    assert np.abs(avg.depth_m(0) - block).max() <= 0.5 * unit + 1e-5
-    assert np.abs(avg.depth_m(0) - smooth[::2, ::2]).max() > 10 * unit  # not the subsample
     same = DenseEdgeRefiner(big, PreprocessConfig(), DenseEdgeConfig(max_width_px=640))
     same.add_keyframe(0, depth)
     valid = depth <= PreprocessConfig().max_depth_m
@@ -188,7 +174,6 @@ def test_config_errors_name_the_field():
     for kw, name in [({"max_width_px": 4}, "max_width_px"), ({"max_shift_m": 0}, "max_shift_m"),
                      ({"sigma_m": -1.0}, "sigma_m"), ({"feature_weight": -0.1}, "feature_weight"),
                      ({"cached_pyramids": -1}, "cached_pyramids"),
-                     ({"keyframe_depth_reduction": "median"}, "keyframe_depth_reduction"),
                      ({"min_spread_edges": 0}, "min_spread_edges"),
                      ({"spread_window_edges": 3, "min_spread_edges": 5}, "spread_window_edges")]:
         with pytest.raises(ConfigError, match=name):

@@ -34,8 +34,7 @@ gate on the spread of the nearby edges' disagreement with the odometry could not
 it trusted the distorted room (0.7 mm) and distrusted the colour-offset sequences (1.2-2.6 mm), where the refined
 edges take hybrid from 0.67-2.02 cm to 0.28-0.38 cm (dense 0.57-2.07).
 
-Keyframe depth is kept at a reduced size (``max_width_px``: every second pixel of a 640x480 frame, see
-``keyframe_depth_reduction``) as 16-bit integers (steps of
+Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
 ``max_depth_m / 65535``, 0.08 mm at 5 m): 154 kB per keyframe at 320x240. The pyramids of the last few keyframes
 used are cached (the nearby keyframes are checked again at every new keyframe).
 """
@@ -63,8 +62,6 @@ from surfelslam.tracking.preprocess import (
 )
 from surfelslam.types import Intrinsics
 
-#: ways of reducing keyframe depth to ``max_width_px`` (see :class:`DenseEdgeConfig`)
-DEPTH_REDUCTIONS = ("subsample", "average")
 _MAD_TO_SIGMA = 0.6745  # median |x| of a zero-mean Gaussian, in sigmas
 
 
@@ -87,17 +84,6 @@ class DenseEdgeConfig:
         max_width_px: keyframe depth is kept (and registered) at the finest pyramid level at most this wide.
             Edge errors against ground truth (synthetic room, slow, 327 edges; median / max): 160 px 1.1 / 5.6 mm,
             320 px 0.4 / 1.8 mm; hybrid ATE 0.23 / 0.05 cm (dense 0.21).
-        keyframe_depth_reduction: how a frame wider than ``max_width_px`` is reduced: ``"subsample"`` keeps every
-            ``2**k``-th pixel (``[::2, ::2]`` for 640 -> 320, intrinsics divided by 2, as ``--downsample``), and
-            ``"average"`` takes 2x2 block means (the ICP pyramid's reduction). Measured on 640x480 synthetic
-            sequences with Kinect-like noise (7 sequences: hand-held, fast, walking loop, 7-Scenes motion replayed
-            at 1x and 3x; hybrid ATE, aligned): average 0.19-2.47 mm, worse than dense on 3 of them (0.91 vs 0.78,
-            2.47 vs 2.06, 1.99 vs 1.30 mm); subsample 0.25-0.75 mm, below dense (0.37-2.06 mm) on all 7. Edge
-            errors against ground truth explain it: on the office replay, keyframes 30 and 60 frames apart are
-            off by a median 1.07 and 2.35 mm from averaged depth, 0.55 and 0.79 mm from subsampled depth (6
-            apart: 0.24 vs 0.37 mm). Why averaging hurts the wide pairs is not established (averaged blocks
-            mix depths up to ``preprocess.pyramid_max_depth_diff_m`` apart at edges, a view-dependent artefact,
-            is one candidate). Frames at most ``max_width_px`` wide are stored as they are either way.
         cached_pyramids: keyframe pyramids kept between checks (least recently used dropped first).
         max_shift_m, max_shift_deg: ICP may move the edge at most this far from its PnP pose (farther: the
             two disagree, the edge is dropped).
@@ -127,7 +113,6 @@ class DenseEdgeConfig:
 
     enabled: bool = True
     max_width_px: int = 320
-    keyframe_depth_reduction: str = "subsample"
     max_shift_m: float = 0.03
     max_shift_deg: float = 3.0
     cached_pyramids: int = 8
@@ -143,9 +128,6 @@ class DenseEdgeConfig:
     def __post_init__(self) -> None:
         if self.max_width_px < 8:
             raise ConfigError(f"hybrid.loop_icp: max_width_px must be >= 8, got {self.max_width_px}")
-        if self.keyframe_depth_reduction not in DEPTH_REDUCTIONS:
-            raise ConfigError("hybrid.loop_icp: keyframe_depth_reduction must be one of "
-                              f"{', '.join(DEPTH_REDUCTIONS)}, got {self.keyframe_depth_reduction!r}")
         if self.min_spread_edges < 1 or self.spread_window_edges < self.min_spread_edges:
             raise ConfigError("hybrid.loop_icp: need 1 <= min_spread_edges <= spread_window_edges, got "
                               f"{self.min_spread_edges}, {self.spread_window_edges}")
@@ -176,10 +158,7 @@ class DenseEdgeRefiner:
         self._intr = intr
         self._pre_cfg = pre_cfg
         self._level = level_for_width(intr.width, cfg.max_width_px)
-        if cfg.keyframe_depth_reduction == "subsample":
-            self._intr_store = intr.scaled(2 ** self._level)
-        else:
-            self._intr_store = pyramid_intrinsics(intr, self._level + 1)[-1]
+        self._intr_store = pyramid_intrinsics(intr, self._level + 1)[-1]
         levels = min(cfg.icp.levels, level_for_width(self._intr_store.width, MIN_LEVEL_WIDTH_PX) + 1)
         self._icp_cfg = replace(cfg.icp, levels=levels)
         self._pre = Preprocessor(self._intr_store, replace(pre_cfg, pyramid_levels=levels))
@@ -199,10 +178,7 @@ class DenseEdgeRefiner:
         """Keep keyframe ``kf_id``'s depth ``(H, W)`` float32 metres (reduced to ``max_width_px``)."""
         c = self._pre_cfg
         depth = np.asarray(depth_m, np.float32)
-        if self.cfg.keyframe_depth_reduction == "subsample":
-            f = 2 ** self._level
-            depth = np.ascontiguousarray(depth[::f, ::f][: self._intr_store.height, : self._intr_store.width])
-        for lvl in range(self._level if self.cfg.keyframe_depth_reduction == "average" else 0):
+        for lvl in range(self._level):
             out = np.empty((depth.shape[0] // 2, depth.shape[1] // 2), np.float32)
             kp.downsample_depth(depth, c.min_depth_m, c.max_depth_m, c.pyramid_max_depth_diff_m * 2.0 ** lvl, out)
             depth = out
