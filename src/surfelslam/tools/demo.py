@@ -17,7 +17,10 @@ DEMO_SCENE = "room"
 DEMO_TRAJECTORY = "handheld"
 DEMO_FRAMES = 300
 DEMO_SEED = 0
-DEMO_DOWNSAMPLE = 2
+#: the files are 640x480; the dense tracker works on their unbiased 2x2 block means (``tracking.max_width_px``),
+#: which on this sequence is more accurate and faster than reading them with ``--downsample 2`` (every second pixel):
+#: ATE 0.21 vs 0.32 cm, 44 vs 38 FPS
+DEMO_DOWNSAMPLE = 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,12 +39,13 @@ def main(argv: list[str] | None = None) -> int:
         else:
             console.print(f"[bold]1/3 synth[/]: reusing {seq_dir}")
         seq = open_sequence(seq_dir, DatasetOptions(downsample=DEMO_DOWNSAMPLE))
-        console.print(f"[bold]2/3 run[/]: dense frame-to-model SLAM at {seq.intrinsics.width}x"
-                      f"{seq.intrinsics.height} (downsample {DEMO_DOWNSAMPLE})")
         from surfelslam.pipeline import SlamConfig
 
+        cfg = SlamConfig()
+        console.print(f"[bold]2/3 run[/]: dense frame-to-model SLAM on {seq.intrinsics.width}x{seq.intrinsics.height} "
+                      f"frames (tracked and fused at most {cfg.tracking.max_width_px} px wide)")
         run_dir = out / "run"
-        metrics = run_sequence(seq, run_dir, SlamConfig(), "dense", progress=True, figures=True)
+        metrics = run_sequence(seq, run_dir, cfg, "dense", progress=True, figures=True)
         print_summary(metrics, run_dir)
         console.print("[bold]3/3 eval[/]")
         ate_cm = metrics["eval"]["ate_rmse_m"] * 100 if "eval" in metrics else float("nan")
