@@ -167,7 +167,7 @@ def test_edges_whose_graph_leaves_large_rotation_residuals_are_not_trusted(sigma
     r = ref.residual_spread(odo + loops, P)
     assert r == pytest.approx(sigma_rad, rel=0.25)
     assert ref.trusted(r) == trusted
-    assert ref.residual_spread(odo + loops[:9], P) is None and ref.trusted(None)
+    assert ref.residual_spread(odo + loops[:9], P) is None and not ref.trusted(None)
 
 
 def test_config_errors_name_the_field():

@@ -374,6 +374,32 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     assert abs(ate - ate_plain) < 0.001, (ate, ate_plain)
 
 
+@pytest.mark.shared
+def test_refined_edges_are_not_trusted_before_the_gate_can_decide():
+    """7-Scenes frames 200-239 at 320x240: 6 refined edges, fewer than ``min_spread_edges``, so the gate cannot
+    tell whether they are biased; they are not used, and the hybrid follows dense. (Trusted by default, they took
+    it from dense's 1.94 mm to 2.30 mm.)"""
+    from conftest import shared_sequence
+    from surfelslam.datasets import DatasetOptions
+
+    seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"),
+                        DatasetOptions(downsample=2, start=200, end=240))
+    T_gt, _ = seq.gt_poses()
+    gt = se3.invert(T_gt[0]) @ T_gt
+    cfg = SlamConfig()
+    out = {}
+    for tracker in ("dense", "hybrid"):
+        slam = build_slam(seq.intrinsics, cfg, tracker, seq.colour_registered)
+        live = np.stack([slam.process(f).T_world_cam for f in seq])
+        res = slam.finish()
+        est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
+        out[tracker] = (_ate_m(est, gt), res.metrics)
+    m = out["hybrid"][1]
+    assert 0 < m["edges_dense_refined"] < cfg.hybrid.loop_icp.min_spread_edges
+    assert m["edges_refined_trusted"] is False and m["edge_residual_rad"] is None
+    assert abs(out["hybrid"][0] - out["dense"][0]) < 2e-4, (out["hybrid"][0], out["dense"][0])
+
+
 def test_refined_edges_are_not_trusted_on_distorted_depth():
     """Walking loop, 120 frames, depth with a fixed radial disparity distortion (``kinect-distorted``): the refined
     keyframe edges are inconsistent with one another (rotation residuals at their graph's optimum about 1.1 mrad;

@@ -189,7 +189,7 @@ class SparseSlam:
         # with an edge refiner, a second graph holds the refined edges (self._graph the PnP ones); each
         # optimisation checks the refined edges' consistency there and takes its poses from the trusted graph
         self._graph_refined = None if edge_refiner is None else PoseGraph(self.cfg.graph)
-        self._refined_trusted = True
+        self._refined_trusted = False  # until enough refined edges show they are consistent (DenseEdgeRefiner.trusted)
         self._refined_residual_rad: float | None = None
         self.rejected: Counter[str] = Counter()
         self._pool: ThreadPoolExecutor | None = None
