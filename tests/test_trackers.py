@@ -31,8 +31,8 @@ def _frames(style: str, n: int, seed: int = 0):
     return list(iter_frames(scene, traj, INTR, noise_config("kinect"), seed)), gt
 
 
-def _run(tracker: str, frames, cfg: SlamConfig | None = None):
-    slam = build_slam(INTR, cfg or SlamConfig(), tracker)
+def _run(tracker: str, frames, cfg: SlamConfig | None = None, intr=INTR, colour_registered: bool = True):
+    slam = build_slam(intr, cfg or SlamConfig(), tracker, colour_registered)
     live = np.stack([slam.process(f).T_world_cam for f in frames])
     res = slam.finish()
     est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
@@ -387,12 +387,10 @@ def test_refined_edges_are_not_trusted_before_the_gate_can_decide():
     T_gt, _ = seq.gt_poses()
     gt = se3.invert(T_gt[0]) @ T_gt
     cfg = SlamConfig()
+    frames = list(seq)
     out = {}
     for tracker in ("dense", "hybrid"):
-        slam = build_slam(seq.intrinsics, cfg, tracker, seq.colour_registered)
-        live = np.stack([slam.process(f).T_world_cam for f in seq])
-        res = slam.finish()
-        est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
+        est, res, _ = _run(tracker, frames, cfg, seq.intrinsics, seq.colour_registered)
         out[tracker] = (_ate_m(est, gt), res.metrics)
     m = out["hybrid"][1]
     assert 0 < m["edges_dense_refined"] < cfg.hybrid.loop_icp.min_spread_edges
@@ -429,16 +427,9 @@ def test_trackers_at_640x480_use_unbiased_block_means():
     traj = make_trajectory("handheld", 120, scene, seed=1)
     gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
     frames = list(iter_frames(scene, traj, intr, noise_config("kinect"), 1))
-
-    def run(tracker: str):
-        slam = build_slam(intr, SlamConfig(), tracker)
-        live = np.stack([slam.process(f).T_world_cam for f in frames])
-        res = slam.finish()
-        est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
-        return _ate_m(est, gt), res.metrics
-
-    ate_dense, _ = run("dense")
-    ate_hybrid, m = run("hybrid")
+    ate_dense = _ate_m(_run("dense", frames, intr=intr)[0], gt)
+    est, res, _ = _run("hybrid", frames, intr=intr)
+    ate_hybrid, m = _ate_m(est, gt), res.metrics
     assert m["edges_refined_trusted"] and m["edges_dense_refined"] > 50
     assert ate_dense < 0.0012, ate_dense
     assert ate_hybrid < 0.7 * ate_dense, (ate_hybrid, ate_dense)

@@ -191,11 +191,11 @@ class Preprocessor:
         """Depth ``(H, W)`` float32 metres (0 = invalid) -> pyramid (written into ``out`` if given).
 
         ``first_level``: the finest level that is computed. With ``first_level = L > 0`` the depth image is
-        first halved ``L`` times by 2x2 block averaging (:func:`surfelslam.kernels.preprocess.downsample_depth`,
-        the same depth gate as the vertex pyramid), then filtered and back-projected at level ``L``; the maps
-        of the finer levels are left as they were. This is for a pipeline that tracks and fuses at a coarser
-        level than the input (e.g. 640x480 input worked on at 320x240): the filter, back-projection and
-        normals then cost what they cost at the working resolution.
+        first halved ``L`` times by 2x2 block averaging (:func:`surfelslam.kernels.preprocess.downsample_depth`:
+        the vertex pyramid's depth gate, centred on the block's first valid pixel), then filtered and
+        back-projected at level ``L``; the maps of the finer levels are left as they were. This is for a
+        pipeline that tracks and fuses at a coarser level than the input (e.g. 640x480 input worked on at
+        320x240): the filter, back-projection and normals then cost what they cost at the working resolution.
         """
         c = self.cfg
         pyr = out if out is not None else self.new_pyramid()
