@@ -96,3 +96,19 @@ def test_trajectory_bad_file(tmp_path):
         Trajectory.read_tum(p)
     with pytest.raises(InputError, match="not found"):
         Trajectory.read_tum(tmp_path / "none.txt")
+
+
+def test_pose_array_grows_by_doubling_and_keeps_its_poses():
+    from surfelslam.types import PoseArray
+
+    rng = np.random.default_rng(0)
+    poses = [se3.exp(rng.normal(size=6)) for _ in range(37)]
+    arr = PoseArray(capacity=4)
+    assert len(arr) == 0 and arr.poses.shape == (0, 4, 4)
+    for i, T in enumerate(poses):
+        arr.append(T)
+        assert len(arr) == i + 1
+    np.testing.assert_array_equal(arr.poses, np.stack(poses))
+    assert len(arr._buf) == 64  # 4 -> 8 -> 16 -> 32 -> 64: doubled, never grown per append
+    arr.poses[3] = np.eye(4)  # a view: writes land in the stack
+    np.testing.assert_array_equal(arr.poses[3], np.eye(4))

@@ -230,8 +230,8 @@ def test_loop_correction_moves_map_and_trajectory():
     before = slam.map.position.astype(np.float64).copy()
     traj_before = slam.trajectory().T_world_cam
     D = se3.exp(np.array([0.01, -0.02, 0.015, 0.05, -0.03, 0.02]))
-    kf_new = D[None] @ slam._kf_dense
-    slam.sparse._kf_pose_buf[: slam.sparse.n_keyframes] = kf_new  # as if the graph had moved them
+    kf_new = D[None] @ slam._kf_dense.poses
+    slam.sparse._kf_poses[:] = kf_new  # as if the graph had moved them
     slam._correct(kf_new)
     moved = before @ D[:3, :3].T + D[:3, 3]
     np.testing.assert_allclose(slam.map.position, moved, atol=2e-5)

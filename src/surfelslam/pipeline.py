@@ -101,7 +101,7 @@ from surfelslam.tracking.preprocess import (
     level_for_width,
     pyramid_from_maps,
 )
-from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+from surfelslam.types import Intrinsics, PoseArray, RGBDFrame, Trajectory
 
 TRACKERS = ("dense", "orb", "hybrid")
 
@@ -795,7 +795,7 @@ class HybridSlam(DenseSlam):
             sp = replace(sp, graph=replace(sp.graph, robust_scale_sigma=float(scale)))
             refined_scale = cfg.hybrid.loop_robust_scale_m / cfg.hybrid.loop_icp.sigma_m
         self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale)
-        self._kf_dense = np.zeros((0, 4, 4))  # keyframe poses in the dense (tracking and map) frame
+        self._kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
         self._T_kf_cam: list[np.ndarray] = []
@@ -952,25 +952,25 @@ class HybridSlam(DenseSlam):
                                      feats=self._features(frame))
             t.lap("sparse")
             if sr.is_keyframe:
-                self._kf_dense = np.concatenate([self._kf_dense, T_new[None]], axis=0)
+                self._kf_dense.append(T_new)
         anchor = self.sparse.n_keyframes - 1
         if tracked:
             self._fused_frames.append(frame.index)
             self._fused_anchor.append(anchor)
         self._stamps.append(frame.timestamp)
         self._anchor.append(anchor)
-        self._T_kf_cam.append(se3.invert(self._kf_dense[anchor]) @ T_new)
+        self._T_kf_cam.append(se3.invert(self._kf_dense.poses[anchor]) @ T_new)
         self.T_world_cam = T_new
         if sr is not None and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
             kf = self.sparse.keyframe_poses()
-            C = kf @ np.stack([se3.invert(T) for T in self._kf_dense])
+            C = kf @ np.stack([se3.invert(T) for T in self._kf_dense.poses])
             if np.linalg.norm(C[:, :3, 3], axis=1).max() > self.cfg.hybrid.live_correction_min_m:
                 self._correct(kf)
                 t.lap("correct")
 
     def _correct(self, kf_new: np.ndarray) -> None:
         """Move the surfels and the current pose by each keyframe's correction ``T_new inv(T_dense)``."""
-        C = kf_new @ np.stack([se3.invert(T) for T in self._kf_dense])  # (K, 4, 4); K is small
+        C = kf_new @ np.stack([se3.invert(T) for T in self._kf_dense.poses])  # (K, 4, 4); K is small
         self.counts["map_corrections"] += 1
         m = self.map
         n = m.size
@@ -986,11 +986,11 @@ class HybridSlam(DenseSlam):
             m._assign_blocks(0, n)  # positions moved: new culling blocks and a fresh grouping
             m.rebuild_index()
         self.T_world_cam = se3.orthonormalize(kf_new[self._anchor[-1]] @ self._T_kf_cam[-1])
-        self._kf_dense = kf_new.copy()
+        self._kf_dense.poses[:] = kf_new
 
     def _correction(self, k: int) -> np.ndarray:
         """``C_k = T_kf_graph inv(T_kf_dense)``: maps dense-frame poses near keyframe ``k`` into the graph frame."""
-        return self.sparse.keyframe_poses()[k] @ se3.invert(self._kf_dense[k])
+        return self.sparse.keyframe_poses()[k] @ se3.invert(self._kf_dense.poses[k])
 
     def _pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:
         """PnP pose and inliers against the reference keyframe, in the dense frame (the graph frame may have

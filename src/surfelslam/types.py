@@ -206,3 +206,29 @@ class Trajectory:
 
     def subset(self, mask_or_index) -> Trajectory:
         return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])
+
+
+class PoseArray:
+    """A growing stack of poses ``(K, 4, 4)`` float64: preallocated, grown by doubling (appending never copies the
+    whole stack per call, only when the capacity doubles)."""
+
+    def __init__(self, capacity: int = 16) -> None:
+        self._buf = np.zeros((max(int(capacity), 1), 4, 4))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(K, 4, 4)`` view of the stored poses (writes go to the stack)."""
+        return self._buf[: self._n]
+
+    def append(self, T: np.ndarray) -> None:
+        """Append one ``(4, 4)`` pose (copied)."""
+        if self._n == len(self._buf):
+            buf = np.zeros((2 * len(self._buf), 4, 4))
+            buf[: self._n] = self._buf[: self._n]
+            self._buf = buf
+        self._buf[self._n] = T
+        self._n += 1

@@ -34,7 +34,7 @@ from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
 from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
 from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, estimate_motion, extract
-from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+from surfelslam.types import Intrinsics, PoseArray, RGBDFrame, Trajectory
 
 REJECTED_POSE_MODES = ("constant_velocity", "last")
 #: ``MotionResult.reason`` of a PnP-verified keyframe edge that the dense check dropped.
@@ -172,7 +172,7 @@ class SparseSlam:
         self._index = DescriptorIndex(self.cfg.loop.retrieval)
         self._rng = np.random.default_rng(self.cfg.loop.seed)
         self._kfs: list[Keyframe] = []
-        self._kf_pose_buf = np.zeros((16, 4, 4))  # current estimates T_world_kf (grown by doubling)
+        self._kf_pose_buf = PoseArray()  # current estimates T_world_kf
         self._kf_odometry: list[np.ndarray] = []  # T_world_kf chained from odometry edges alone (never optimised)
         self._ref_kf = -1
         # per processed frame: timestamp, reference keyframe, pose relative to it
@@ -227,15 +227,10 @@ class SparseSlam:
 
     @property
     def _kf_poses(self) -> np.ndarray:
-        return self._kf_pose_buf[: len(self._kfs)]
+        return self._kf_pose_buf.poses
 
     def _append_kf_pose(self, T_world_kf: np.ndarray) -> None:
-        k = len(self._kfs)
-        if k >= len(self._kf_pose_buf):
-            buf = np.zeros((2 * len(self._kf_pose_buf), 4, 4))
-            buf[:k] = self._kf_pose_buf[:k]
-            self._kf_pose_buf = buf
-        self._kf_pose_buf[k] = T_world_kf
+        self._kf_pose_buf.append(T_world_kf)
 
     def keyframe_poses(self) -> np.ndarray:
         """Current (optimised) keyframe poses ``T_world_kf`` ``(K, 4, 4)``; ids = keyframe ids."""
@@ -444,12 +439,12 @@ class SparseSlam:
 
     def _optimise(self) -> None:
         if self._graph_refined is None:
-            self._kf_pose_buf[: len(self._kfs)] = self._graph.optimise()
+            self._kf_poses[:] = self._graph.optimise()
             return
         poses = self._graph_refined.optimise()
         self._refined_residual_rad = self._refiner.residual_spread(self._graph_refined.edges, poses)
         self._refined_trusted = self._refiner.trusted(self._refined_residual_rad)
-        self._kf_pose_buf[: len(self._kfs)] = poses if self._refined_trusted else self._graph.optimise()
+        self._kf_poses[:] = poses if self._refined_trusted else self._graph.optimise()
 
     def _add_edge(self, pnp: PoseEdge, refined: PoseEdge | str | None = None) -> bool:
         """Add an edge: ``pnp`` (odometry or PnP-verified) and, with an edge refiner, its refined version
