@@ -28,7 +28,7 @@ import numpy as np
 
 from surfelslam.backend.dense_edges import DenseEdgeRefiner
 from surfelslam.backend.keyframes import Keyframe, MapConfig, keyframe_cloud
-from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
+from surfelslam.backend.loops import Candidate, LoopConfig, loop_candidates, verify_edge
 from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
 from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
@@ -37,8 +37,24 @@ from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, 
 from surfelslam.types import Intrinsics, PoseArray, RGBDFrame, Trajectory
 
 REJECTED_POSE_MODES = ("constant_velocity", "last")
-#: ``MotionResult.reason`` of a PnP-verified keyframe edge that the dense check dropped.
-DENSE_CHECK_FAILED = "dense_check_failed"
+
+
+@dataclass(frozen=True)
+class LoopCheck:
+    """One verified loop candidate of a new keyframe (:meth:`SparseSlam._check_loops`).
+
+    Attributes:
+        candidate: the candidate keyframe and where it came from.
+        result: its PnP verification (``result.T_cur_ref`` maps candidate points into the new keyframe).
+        refined_T_cur_ref: ``(4, 4)`` the dense-refined ``T_cur_ref``, or ``None`` (no refiner, PnP failed, or the
+            dense check rejected the edge).
+        dense_rejected: the PnP edge passed but the dense check rejected it (it then enters the PnP graph only).
+    """
+
+    candidate: Candidate
+    result: MotionResult
+    refined_T_cur_ref: np.ndarray | None = None
+    dense_rejected: bool = False
 
 
 @dataclass
@@ -372,13 +388,12 @@ class SparseSlam:
         n_max = self.cfg.loop.retrieval.max_descriptors_per_keyframe
         return select_descriptors(feats.descriptors, feats.response, feats.valid, n_max)
 
-    def _check_loops(self, kf_id: int, feats: Features) -> tuple[int, list]:
+    def _check_loops(self, kf_id: int, feats: Features) -> tuple[int, list[LoopCheck]]:
         """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
 
         Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
         the only user of the index and the candidate generator between two :meth:`_collect_loop_checks`.
-        Returns ``(kf_id, [(candidate, PnP result, refined T_cur_ref, or None without a refiner, or
-        DENSE_CHECK_FAILED)])``.
+        Returns ``(kf_id, checks)``.
         """
         q = self._query_descriptors(feats)
         checked = []
@@ -390,16 +405,15 @@ class SparseSlam:
                 uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
                 refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
                                                self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
-                if refined is None:
-                    refined = DENSE_CHECK_FAILED
-            checked.append((cand, res, refined))
+            checked.append(LoopCheck(cand, res, refined, res.ok and self._refiner is not None and refined is None))
         self._index.add(q)
         return kf_id, checked
 
-    def _apply_loop_checks(self, kf_id: int, checked: list) -> None:
+    def _apply_loop_checks(self, kf_id: int, checked: list[LoopCheck]) -> None:
         """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older keyframe."""
         n_loops = 0
-        for cand, res, refined in checked:
+        for check in checked:
+            cand, res, refined = check.candidate, check.result, check.refined_T_cur_ref
             far = cand.source != "nearby"
             if far and res.reason != "too_few_matches" and res.n_inliers >= self.cfg.features.min_inliers \
                     and res.reason != "motion_too_large":
@@ -408,9 +422,9 @@ class SparseSlam:
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
             pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
-            if isinstance(refined, str):  # the dense check rejected it: in the PnP edges' graph only
+            if check.dense_rejected:  # in the PnP edges' graph only
                 self.n_dense_rejected += 1
-                added = self._add_edge(pnp, DENSE_CHECK_FAILED)
+                added = self._add_edge(pnp, dense_rejected=True)
             elif refined is not None:
                 self.n_dense_refined += 1
                 T_i_j = invert(refined)
@@ -446,18 +460,18 @@ class SparseSlam:
         self._refined_trusted = self._refiner.trusted(self._refined_residual_rad)
         self._kf_poses[:] = poses if self._refined_trusted else self._graph.optimise()
 
-    def _add_edge(self, pnp: PoseEdge, refined: PoseEdge | str | None = None) -> bool:
+    def _add_edge(self, pnp: PoseEdge, refined: PoseEdge | None = None, dense_rejected: bool = False) -> bool:
         """Add an edge: ``pnp`` (odometry or PnP-verified) and, with an edge refiner, its refined version
-        (``None``: none, the same edge in both graphs; ``DENSE_CHECK_FAILED``: rejected by the dense check, in the
+        (``None``: none, the same edge in both graphs) unless ``dense_rejected`` (the dense check rejected it: in the
         PnP graph only). Returns whether the graph that is trusted now got an edge."""
         self._graph.add_edge(pnp)
         if self._graph_refined is None:
             return True
+        if dense_rejected:
+            return not self._refined_trusted
         if refined is None:
             self._graph_refined.add_edge(pnp)
             return True
-        if isinstance(refined, str):
-            return not self._refined_trusted
         self._graph_refined.add_edge(replace(refined, information=self._refiner.edge_sigma() ** -2))
         return True
 
