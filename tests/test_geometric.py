@@ -165,6 +165,11 @@ def test_guess_maps_subsample_frames_wider_than_320_px():
     small = Preprocessor(half, PreprocessConfig(pyramid_levels=3)).process(ref[0].vertex[..., 2].copy())
     vs, _ = guess_maps(frame, small, half)
     assert vs is small[0].vertex
+    # the caller's preprocessing settings reach the reduced maps (here a depth range that clips the far half)
+    far_m = float(np.median(frame.depth_m[frame.depth_m > 0]))
+    clipped, _ = guess_maps(frame, pyr, intr, preprocess_cfg=PreprocessConfig(max_depth_m=far_m))
+    kept = clipped[..., 2] > 0
+    assert 0.3 < kept.mean() / valid.mean() < 0.7 and clipped[..., 2][kept].max() <= far_m
 
 
 def test_geometric_config_errors():

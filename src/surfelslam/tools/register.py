@@ -144,7 +144,7 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--descriptor must be one of {', '.join(DETECTORS)}, got {descriptor!r}")
         reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
                             FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric,
-                            pair_feature_config(descriptor, n_features))
+                            pair_feature_config(descriptor, n_features), preprocess_cfg=pre.cfg)
         res, init_used = reg.icp, reg.init_used
         feat_info = None
         if reg.motion is not None:

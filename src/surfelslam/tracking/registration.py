@@ -16,7 +16,7 @@ With ``photometric=True`` every ICP run also minimises the intensity differences
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -78,19 +78,21 @@ def guess_level(pyramid: FramePyramid, max_width_px: int = GEOMETRIC_MAX_WIDTH_P
 
 
 def guess_maps(frame: RGBDFrame, pyramid: FramePyramid, intr: Intrinsics,
-               max_width_px: int = GEOMETRIC_MAX_WIDTH_PX) -> tuple[np.ndarray, np.ndarray]:
+               max_width_px: int = GEOMETRIC_MAX_WIDTH_PX,
+               preprocess_cfg: PreprocessConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertex and normal maps ``(h, w, 3)`` the shape-feature guess uses: the frame's depth at most ``max_width_px``
     wide, reduced by keeping every ``2**k``-th pixel (intrinsics divided by ``2**k``, as ``--downsample``), not the
     pyramid's 2x2 block means, so that a 640x480 frame gives the guess what ``--downsample 2`` would. On the 41
     7-Scenes pairs 90 frames apart at 640x480 this is a wash (``register --init geometry`` / ``features`` reach the
     floor on 32 / 33 pairs either way) but 320->410 registers (1.5 cm / 0.9 deg; from the block means its guess kept 8
     inliers, under the 10 required); with the default ICP settings the guess alone reached the floor on 32 pairs
-    against 29. At 320x240 input both are the frame itself. ``pyramid`` is the frame's (level 0 at ``intr``)."""
+    against 29. At 320x240 input both are the frame itself. ``pyramid`` is the frame's (level 0 at ``intr``), built
+    with ``preprocess_cfg`` (default :class:`PreprocessConfig`), whose filters the reduced maps use too."""
     level = guess_level(pyramid, max_width_px)
     if level == 0:
         return pyramid[0].vertex, pyramid[0].normal
     f = 2 ** level
-    small = Preprocessor(intr.scaled(f), PreprocessConfig(pyramid_levels=1))
+    small = Preprocessor(intr.scaled(f), replace(preprocess_cfg or PreprocessConfig(), pyramid_levels=1))
     top = small.process(np.ascontiguousarray(frame.depth_m[::f, ::f]))[0]
     return top.vertex, top.normal
 
@@ -98,12 +100,14 @@ def guess_maps(frame: RGBDFrame, pyramid: FramePyramid, intr: Intrinsics,
 def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: FramePyramid, intr: Intrinsics,
                   icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM,
                   photometric: bool = False, feature_cfg: FeatureConfig | None = None,
-                  geometric_cfg: GeometricGuessConfig | None = None) -> PairRegistration:
+                  geometric_cfg: GeometricGuessConfig | None = None,
+                  preprocess_cfg: PreprocessConfig | None = None) -> PairRegistration:
     """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``, level 0 at the frames' resolution)
     from the start ``init``; ``photometric``: joint geometric + photometric ICP; ``feature_cfg``: the feature / PnP
     settings of the guess (default :func:`pair_feature_config`), whose motion bound becomes
     ``feature_max_norm``; ``geometric_cfg``: the shape-feature guess's settings (default
-    :class:`GeometricGuessConfig`)."""
+    :class:`GeometricGuessConfig`); ``preprocess_cfg``: the settings the pyramids were built with (the shape guess
+    reduces wide frames with them; default :class:`PreprocessConfig`)."""
     if init not in INIT_MODES:
         raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
     i_src = i_tgt = None
@@ -123,7 +127,8 @@ def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: Fr
         guess, motion = feature_guess(src, tgt, intr, fcfg)
         kind = "features"
     if init == "geometry" or (init != "identity" and guess is None):
-        (v_src, n_src), (v_tgt, n_tgt) = guess_maps(src, p_src, intr), guess_maps(tgt, p_tgt, intr)
+        (v_src, n_src), (v_tgt, n_tgt) = (guess_maps(src, p_src, intr, preprocess_cfg=preprocess_cfg),
+                                          guess_maps(tgt, p_tgt, intr, preprocess_cfg=preprocess_cfg))
         geo = geometric_guess(v_src, n_src, v_tgt, n_tgt, geometric_cfg)
         guess, kind = geo.T_target_source, "geometry"
     if init in ("features", "geometry") and guess is not None:
