@@ -269,9 +269,8 @@ def test_search_by_projection_uses_most_keypoints_and_halves_the_pose_noise() ->
     off, on = np.median(errs[False]), np.median(errs[True])
     assert on < 0.6 * off and on < 6e-4, (on, off)  # measured: 0.35 mm against 0.96 mm
     # the found points are the reference keypoints at their true positions, to a fraction of a pixel
-    P, uv = search_by_projection(feats[0], feats[5], invert(traj.T_world_cam[5]) @ traj.T_world_cam[0], intr,
-                                 FeatureConfig())
     T_gt = invert(traj.T_world_cam[5]) @ traj.T_world_cam[0]
+    P, uv = search_by_projection(feats[0], feats[5], T_gt, intr, FeatureConfig())
     u, v, _ = project(P @ T_gt[:3, :3].T + T_gt[:3, 3], intr)
     assert len(P) > 0.8 * feats[0].valid.sum()
     assert np.median(np.hypot(uv[:, 0] - u, uv[:, 1] - v)) < 0.3

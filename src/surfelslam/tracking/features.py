@@ -674,8 +674,9 @@ def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, 
         ``(4, 4)`` refined ``T_cur_ref`` (Gauss-Newton with Huber weights, left-multiplied SE(3) updates); with
         ``with_information``, ``(T, information)`` where ``information (6, 6)`` is the Gauss-Newton Hessian at
         ``T`` in normalised residual units, for a left perturbation ``exp(xi) T``, ``xi = (omega, v)``
-        (``None`` when it cannot be formed): the inverse covariance of the pose under the residual sigmas (pixel
-        sigma: the points' own reprojection spread, see ``FeatureConfig.rgbd_min_pixel_sigma_px``).
+        (``None`` when it cannot be formed): the inverse covariance of the pose under the residual sigmas (the
+        points' own spreads: pixels at least ``rgbd_min_pixel_sigma_px``, inverse depth at least
+        ``rgbd_inverse_depth_sigma``; see :class:`FeatureConfig`).
     """
     T = np.asarray(T_cur_ref, np.float64).copy()
     P = np.asarray(pts_ref, np.float64)
