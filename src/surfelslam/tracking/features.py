@@ -27,6 +27,7 @@ from surfelslam.geometry.camera import project
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
 from surfelslam.kernels import hamming
+from surfelslam.kernels import lk as klk
 from surfelslam.tracking.consensus import rigid_consensus
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -115,6 +116,16 @@ class FeatureConfig:
         projection_search_tol_px: largest distance (px) between a tracked point and its projection.
         projection_search_backtrack_px: largest forward-backward Lucas-Kanade error (px): tracking the found point
             back into the reference image must return to the keypoint within this.
+        projection_search_warp: track each projected point with its reference window warped into the current view
+            (:mod:`surfelslam.kernels.lk`): the homography that the PnP pose induces on the fronto-parallel plane
+            through the point (rotation, perspective and scale change of the patch; the surface's own slant is not
+            modelled), and the forward-backward check through its inverse. Plain Lucas-Kanade compares square
+            windows, and under a few degrees of rotation the patch deforms; the translation that best fits the
+            deformed patch is not its centre's displacement. Measured on a noisy 640x480 synthetic replay at 3x
+            speed, pairs 2-3 frames apart in a fast pan, refined from ground truth on the tracked pixels: point
+            error 0.15 -> 0.09 px, pose error 0.66 / 0.62 / 0.64 / 0.30 -> 0.43 / 0.27 / 0.46 / 0.07 mm (a
+            surface-slant plane fitted to the depth gave about the same: 0.42 / 0.25 / 0.39 / 0.04). False: OpenCV's
+            pyramidal Lucas-Kanade (``lk_window_px``, ``lk_levels``) on square windows.
         rgbd_refine_iterations: after PnP, Gauss-Newton iterations of a joint RGB-D refinement on the
             inliers (0 = off): reprojection residuals plus inverse-depth residuals against the *current*
             frame's depth at the tracked points. Reprojection alone leaves a lateral translation nearly
@@ -182,6 +193,7 @@ class FeatureConfig:
     projection_search: bool = True
     projection_search_tol_px: float = 1.0
     projection_search_backtrack_px: float = 0.5
+    projection_search_warp: bool = True
     rgbd_refine_iterations: int = 5
     rgbd_pixel_sigma_px: float = 0.5
     rgbd_inverse_depth_sigma: float = 0.003
@@ -561,6 +573,32 @@ def _lk(grey_from: np.ndarray, grey_to: np.ndarray, p_from: np.ndarray, p_to: np
     return p1, status.reshape(-1).astype(bool) & np.all(np.isfinite(p1), axis=1)
 
 
+def _lk_warped(grey_ref: np.ndarray, grey_cur: np.ndarray, uv_ref: np.ndarray, pred: np.ndarray, z_ref: np.ndarray,
+               T_cur_ref: np.ndarray, intr: Intrinsics, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Warped-window Lucas-Kanade of the reference pixels ``uv_ref (M, 2)`` (depth ``z_ref (M,)``) into the current
+    image, starting at their projections ``pred (M, 2)`` under ``T_cur_ref``, and back (``projection_search_warp``):
+    ``(found (M, 2), back (M, 2), ok (M,))``."""
+    K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+    T = np.asarray(T_cur_ref, np.float64)
+    # homography of the fronto-parallel plane z = z_ref through each point: K (R + t (0, 0, 1/z)) K^-1, ref -> cur
+    G = np.broadcast_to(T[:3, :3], (len(z_ref), 3, 3)).copy()
+    G[:, :, 2] += T[None, :3, 3] / np.asarray(z_ref, np.float64)[:, None]
+    H = K @ G @ np.linalg.inv(K)
+    ref_f = grey_ref.astype(np.float32)
+    cur_f = grey_cur.astype(np.float32)
+    m = len(pred)
+    found = np.empty((m, 2))
+    ok = np.empty(m, np.bool_)
+    klk.track_warped(ref_f, cur_f, np.linalg.inv(H), np.ascontiguousarray(pred, np.float64), np.zeros((m, 2)),
+                     half, _LK_MAX_ITERATIONS, _LK_EPSILON_PX, found, ok)
+    back = np.empty((m, 2))
+    ok_back = np.empty(m, np.bool_)
+    start = np.ascontiguousarray(uv_ref, np.float64)
+    klk.track_warped(cur_f, ref_f, np.ascontiguousarray(H), start, found - pred, half, _LK_MAX_ITERATIONS,
+                     _LK_EPSILON_PX, back, ok_back)
+    return found, back, ok & ok_back
+
+
 def search_by_projection(ref: Features, cur: Features, T_cur_ref: np.ndarray, intr: Intrinsics,
                          cfg: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """Reference keypoints found in the current image by projection (see ``FeatureConfig.projection_search``).
@@ -586,9 +624,12 @@ def search_by_projection(ref: Features, cur: Features, T_cur_ref: np.ndarray, in
     if not inside.any():
         return none
     pred = np.column_stack([u[inside], v[inside]])
-    found, ok = _lk(ref.grey, cur.grey, uv_ref[inside], pred, cfg)
-    back, ok_back = _lk(cur.grey, ref.grey, found, uv_ref[inside], cfg)
-    ok &= ok_back
+    if cfg.projection_search_warp:
+        found, back, ok = _lk_warped(ref.grey, cur.grey, uv_ref[inside], pred, P[inside, 2], T, intr, half)
+    else:
+        found, ok = _lk(ref.grey, cur.grey, uv_ref[inside], pred, cfg)
+        back, ok_back = _lk(cur.grey, ref.grey, found, uv_ref[inside], cfg)
+        ok &= ok_back
     ok &= np.linalg.norm(back - uv_ref[inside], axis=1) <= cfg.projection_search_backtrack_px
     ok &= np.linalg.norm(found - pred, axis=1) <= cfg.projection_search_tol_px
     return P[inside][ok], found[ok].astype(np.float64)
