@@ -61,6 +61,7 @@ def track_warped(template, search, A, start, shift, half, max_iterations, epsilo
             or had no texture.
     """
     h, w = search.shape
+    th, tw = template.shape
     side = 2 * half + 3  # the window plus a one-pixel margin for the template's central differences
     n_off = (2 * half + 1) * (2 * half + 1)
     tpl = np.empty((side, side))
@@ -78,7 +79,7 @@ def track_warped(template, search, A, start, shift, half, max_iterations, epsilo
                 zt = A[k, 2, 0] * px + A[k, 2, 1] * py + A[k, 2, 2]
                 tx = (A[k, 0, 0] * px + A[k, 0, 1] * py + A[k, 0, 2]) / zt + shift[k, 0]
                 ty = (A[k, 1, 0] * px + A[k, 1, 1] * py + A[k, 1, 2]) / zt + shift[k, 1]
-                if not (zt > 0.0 and 0.0 <= tx <= w - 1 and 0.0 <= ty <= h - 1):
+                if not (zt > 0.0 and 0.0 <= tx <= tw - 1 and 0.0 <= ty <= th - 1):
                     ok[k] = False
                     break
                 tpl[j, i] = _bilinear(template, tx, ty)
@@ -167,7 +168,8 @@ def track_warped_ref(template: np.ndarray, search: np.ndarray, A: np.ndarray, st
     with np.errstate(divide="ignore", invalid="ignore"):
         tx = Tw[..., 0] / zt + shift[:, None, 0]
         ty = Tw[..., 1] / zt + shift[:, None, 1]
-    ok = np.all((zt > 0) & (tx >= 0) & (tx <= w - 1) & (ty >= 0) & (ty <= h - 1), axis=1)
+    th, tw = template.shape
+    ok = np.all((zt > 0) & (tx >= 0) & (tx <= tw - 1) & (ty >= 0) & (ty <= th - 1), axis=1)
     tpl = np.zeros(zt.shape)
     tpl[ok] = _bilinear_ref(np.asarray(template, np.float32), tx[ok], ty[ok])
     tpl = tpl.reshape(n, side, side)
