@@ -222,7 +222,14 @@ class HybridConfig:
         loop_correction: apply pose-graph corrections to the dense trajectory and the surfel map.
         dense_odometry_sigma_m: sigma (m and rad) of the odometry edges between keyframes, which carry dense
             (ICP) poses: far more precise than PnP, so they get this sigma instead of
-            ``sparse.graph.odometry_information`` (0 keeps the sparse setting).
+            ``sparse.graph.odometry_information`` (0 keeps the sparse setting). Against the refined loop edges'
+            3 mm (``loop_icp.sigma_m``) it sets how far loops move the dense trajectory. 1 mm (2 mm before
+            2026-11-27): the 640x480 room replay 0.39 -> 0.35 mm (dense 0.36, the one sequence where the hybrid was
+            above dense), office replay 0.59 -> 0.52, 320x240 replays 0.61 / 1.08 / 0.66 -> 0.55 / 0.95 / 0.59 mm;
+            orbits within +-0.02 mm except the 640x480 office fast orbit 0.37 -> 0.49 (dense 0.87), and where the
+            dense odometry is biased (colour taken before depth) the loops correct less: 0.09 / 0.27 / 0.35 / 0.30
+            -> 0.12 / 0.37 / 0.36 / 0.47 cm (dense 0.61 / 1.38 / 0.57 / 2.07). 0.5 mm took the orbits further up
+            (640x480 fast 0.70 mm). 7-Scenes (refined edges untrusted) 2.48 cm either way.
         live_correction_min_m: during the run, the dense map and pose follow a graph optimisation only when a
             keyframe moved by more than this (m); smaller corrections are applied once, in ``finish``
             (re-posing the live map for centimetre corrections smears it and costs more than it helps).
@@ -260,7 +267,7 @@ class HybridConfig:
     pnp_check_max_m: float = 0.05
     pnp_check_max_deg: float = 5.0
     loop_correction: bool = True
-    dense_odometry_sigma_m: float = 0.002
+    dense_odometry_sigma_m: float = 0.001
     live_correction_min_m: float = 0.03
     loop_robust_scale_m: float = 0.03
     loop_icp: DenseEdgeConfig = field(default_factory=DenseEdgeConfig)
