@@ -41,6 +41,7 @@ _LK_EPSILON_PX = 0.01  # ... or when its update is below this (pixels)
 _MAD_TO_SIGMA = 1.4826  # median absolute deviation -> standard deviation of a Gaussian
 _MIN_POINTS_FOR_SPREAD = 6  # fewest depth residuals to estimate their spread from the data
 _RGBD_CONVERGED_UPDATE = 1e-9  # twist norm (rad + m) below which the RGB-D refinement stops
+_MIN_WARP_DET = 1e-6  # |det| of a warp's R + t n^T / d below this: the current camera is (nearly) on the plane
 
 
 @dataclass(frozen=True)
@@ -584,6 +585,9 @@ def _lk_warped(grey_ref: np.ndarray, grey_cur: np.ndarray, uv_ref: np.ndarray, p
     # homography of the fronto-parallel plane z = z_ref through each point: K (R + t (0, 0, 1/z)) K^-1, ref -> cur
     G = np.broadcast_to(T[:3, :3], (len(z_ref), 3, 3)).copy()
     G[:, :, 2] += T[None, :3, 3] / np.asarray(z_ref, np.float64)[:, None]
+    # singular when the current camera lies on that plane (a point at zero depth there): not tracked
+    singular = ~(np.abs(np.linalg.det(G)) > _MIN_WARP_DET)
+    G[singular] = np.eye(3)
     H = K @ G @ np.linalg.inv(K)
     ref_f = grey_ref.astype(np.float32)
     cur_f = grey_cur.astype(np.float32)
@@ -597,7 +601,7 @@ def _lk_warped(grey_ref: np.ndarray, grey_cur: np.ndarray, uv_ref: np.ndarray, p
     start = np.ascontiguousarray(uv_ref, np.float64)
     klk.track_warped(cur_f, ref_f, np.ascontiguousarray(H), start, found - pred, half, _LK_MAX_ITERATIONS,
                      _LK_EPSILON_PX, back, ok_back)
-    return found, back, ok & ok_back
+    return found, back, ok & ok_back & ~singular
 
 
 def search_by_projection(ref: Features, cur: Features, T_cur_ref: np.ndarray, intr: Intrinsics,
