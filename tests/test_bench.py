@@ -62,7 +62,9 @@ def test_json_sections(bench) -> None:
                   "orb_match_pnp_ms", "read_in_run_ms"):
             assert isinstance(r[k], float) and r[k] > 0.0, (k, r[k])
         assert {"read", "preprocess", "render", "icp", "fuse"} <= set(r["metrics_json_stages"])
-        assert r["loop_ms"] >= r["preprocess_ms"] + r["icp_ms"]
+        # the ICP stage is timed inside each frame's main-thread time (part <= whole); preprocessing runs in the
+        # reader thread, ahead of the frame, so it is not part of the loop (comparing sums of timings was flaky)
+        assert r["loop_ms"] >= r["icp_ms"]
 
 
 def test_sustained(bench) -> None:
