@@ -970,14 +970,18 @@ class HybridSlam(DenseSlam):
         self.T_world_cam = T_new
         if sr is not None and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
             kf = self.sparse.keyframe_poses()
-            C = kf @ np.stack([se3.invert(T) for T in self._kf_dense.poses])
+            C = self._corrections(kf)
             if np.linalg.norm(C[:, :3, 3], axis=1).max() > self.cfg.hybrid.live_correction_min_m:
-                self._correct(kf)
+                self._correct(kf, C)
                 t.lap("correct")
 
-    def _correct(self, kf_new: np.ndarray) -> None:
-        """Move the surfels and the current pose by each keyframe's correction ``T_new inv(T_dense)``."""
-        C = kf_new @ np.stack([se3.invert(T) for T in self._kf_dense.poses])  # (K, 4, 4); K is small
+    def _corrections(self, kf_new: np.ndarray) -> np.ndarray:
+        """``(K, 4, 4)`` each keyframe's correction ``T_new inv(T_dense)`` for the graph poses ``kf_new``."""
+        return kf_new @ se3.invert(self._kf_dense.poses)
+
+    def _correct(self, kf_new: np.ndarray, C: np.ndarray | None = None) -> None:
+        """Move the surfels and the current pose by each keyframe's correction ``C`` (:meth:`_corrections`)."""
+        C = self._corrections(kf_new) if C is None else C
         self.counts["map_corrections"] += 1
         m = self.map
         n = m.size

@@ -245,9 +245,6 @@ class SparseSlam:
     def _kf_poses(self) -> np.ndarray:
         return self._kf_pose_buf.poses
 
-    def _append_kf_pose(self, T_world_kf: np.ndarray) -> None:
-        self._kf_pose_buf.append(T_world_kf)
-
     def keyframe_poses(self) -> np.ndarray:
         """Current (optimised) keyframe poses ``T_world_kf`` ``(K, 4, 4)``; ids = keyframe ids."""
         return self._kf_poses.copy()
@@ -365,7 +362,7 @@ class SparseSlam:
         if self._refiner is not None:
             self._refiner.add_keyframe(kf_id, frame.depth_m)
         xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
-        self._append_kf_pose(T_world_cam)
+        self._kf_pose_buf.append(T_world_cam)
         self._kf_odometry.append(np.asarray(T_world_cam, np.float64).copy() if prev_kf is None or T_prev_new is None
                                  else self._kf_odometry[prev_kf] @ T_prev_new)
         # a keyframe is only ever the reference side of a pair: it keeps its grey image (sub-pixel tracking)

@@ -51,7 +51,7 @@ def track_warped(template, search, A, start, shift, half, max_iterations, epsilo
     """Warped-template Lucas-Kanade (see the module docstring).
 
     Args:
-        template, search: ``(H, W)`` float32 grey images.
+        template, search: ``(H, W)`` grey images (uint8 or float; sampled in float64).
         A: ``(N, 3, 3)`` float64 homographies, search pixel -> template pixel.
         start: ``(N, 2)`` float64 initial search positions (the window centres whose warp ``A`` was predicted).
         shift: ``(N, 2)`` float64 offsets added to the warped template positions.

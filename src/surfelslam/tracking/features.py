@@ -580,7 +580,7 @@ def _lk_warped(grey_ref: np.ndarray, grey_cur: np.ndarray, uv_ref: np.ndarray, p
     """Warped-window Lucas-Kanade of the reference pixels ``uv_ref (M, 2)`` (depth ``z_ref (M,)``) into the current
     image, starting at their projections ``pred (M, 2)`` under ``T_cur_ref``, and back (``projection_search_warp``):
     ``(found (M, 2), back (M, 2), ok (M,))``."""
-    K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+    K = intr.K  # signed fy: the warp lives in the images' own pixel grid
     T = np.asarray(T_cur_ref, np.float64)
     # homography of the fronto-parallel plane z = z_ref through each point: K (R + t (0, 0, 1/z)) K^-1, ref -> cur
     G = np.broadcast_to(T[:3, :3], (len(z_ref), 3, 3)).copy()
@@ -589,17 +589,15 @@ def _lk_warped(grey_ref: np.ndarray, grey_cur: np.ndarray, uv_ref: np.ndarray, p
     singular = ~(np.abs(np.linalg.det(G)) > _MIN_WARP_DET)
     G[singular] = np.eye(3)
     H = K @ G @ np.linalg.inv(K)
-    ref_f = grey_ref.astype(np.float32)
-    cur_f = grey_cur.astype(np.float32)
     m = len(pred)
     found = np.empty((m, 2))
     ok = np.empty(m, np.bool_)
-    klk.track_warped(ref_f, cur_f, np.linalg.inv(H), np.ascontiguousarray(pred, np.float64), np.zeros((m, 2)),
+    klk.track_warped(grey_ref, grey_cur, np.linalg.inv(H), np.ascontiguousarray(pred, np.float64), np.zeros((m, 2)),
                      half, _LK_MAX_ITERATIONS, _LK_EPSILON_PX, found, ok)
     back = np.empty((m, 2))
     ok_back = np.empty(m, np.bool_)
     start = np.ascontiguousarray(uv_ref, np.float64)
-    klk.track_warped(cur_f, ref_f, np.ascontiguousarray(H), start, found - pred, half, _LK_MAX_ITERATIONS,
+    klk.track_warped(grey_cur, grey_ref, np.ascontiguousarray(H), start, found - pred, half, _LK_MAX_ITERATIONS,
                      _LK_EPSILON_PX, back, ok_back)
     return found, back, ok & ok_back & ~singular
 
