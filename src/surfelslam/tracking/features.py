@@ -124,8 +124,8 @@ class FeatureConfig:
             windows, and under a few degrees of rotation the patch deforms; the translation that best fits the
             deformed patch is not its centre's displacement. Measured on a noisy 640x480 synthetic replay at 3x
             speed, pairs 2-3 frames apart in a fast pan, refined from ground truth on the tracked pixels: point
-            error 0.15 -> 0.09 px, pose error 0.66 / 0.62 / 0.64 / 0.30 -> 0.43 / 0.27 / 0.46 / 0.07 mm (a
-            surface-slant plane fitted to the depth gave about the same: 0.42 / 0.25 / 0.39 / 0.04). Windows of
+            error 0.15 -> 0.09 px, pose error 0.70 / 0.62 / 0.61 / 0.35 -> 0.45 / 0.28 / 0.46 / 0.11 mm (in a numpy
+            prototype a surface-slant plane fitted to the depth came within 0.03 mm of this). Windows of
             ``lk_window_px``, one pyramid level (the search starts at the projection). False: OpenCV's pyramidal
             Lucas-Kanade (``lk_window_px``, ``lk_levels``) on square windows.
         rgbd_refine_iterations: after PnP, Gauss-Newton iterations of a joint RGB-D refinement on the
