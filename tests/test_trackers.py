@@ -89,9 +89,9 @@ def test_hybrid_no_worse_than_dense_on_slow_sequence():
 
 
 def test_hybrid_with_nothing_to_add_is_dense_bit_for_bit():
-    """With the joint feature term off and no loop corrections (as on 7-Scenes, where colour and depth are not
-    registered and the loops move nothing), the hybrid's poses are the dense tracker's exactly: its own arithmetic
-    used to differ by rounding, which real-data tracking amplified to +-0.5 % ATE."""
+    """With the joint feature term off (as on 7-Scenes, where colour and depth are not registered) and no loop
+    correction, the hybrid's poses are the dense tracker's exactly: its own arithmetic used to differ by rounding,
+    which real-data tracking amplified to +-0.5 % ATE."""
     frames, _ = _frames("fast", N_SLOW)
     cfg = SlamConfig()
     cfg = replace(cfg, hybrid=replace(cfg.hybrid, joint_features="off", loop_correction=False))
