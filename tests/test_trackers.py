@@ -113,11 +113,12 @@ def test_hybrid_relocalises_after_a_two_second_gap():
     frames, gt = _frames("slow", 130)
     keep = list(range(0, 35)) + list(range(95, 130))  # 60 frames (2 s at 30 Hz) dropped
     est, res, slam = _run("hybrid", [frames[i] for i in keep])
-    assert slam.counts["relocalisations_tracked"] + slam.counts["pnp_guesses_tracked"] >= 1
+    assert slam.counts["relocalisations_tracked"] == 1 and res.metrics["tracking_failures"] == 3
     after = np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est[35:], keep[35:], strict=True)])
-    assert after[5:].max() < 0.03, after  # a few frames may be lost before relocalisation
-    # the frames after the gap are fused again
-    assert res.metrics["frames_fused"] >= len(keep) - 8
+    # 3 frames lost (the PnP guess against the last keyframe is too large a motion), then relocalised against all
+    # keyframes (``hybrid.relocalise_after_failures``, as dense's): measured 2 mm from the fourth frame on
+    assert after[3:].max() < 0.01, after
+    assert res.metrics["frames_fused"] == len(keep) - 3
 
 
 def _gap_run(tracker: str, cfg: SlamConfig | None = None, grey: bool = False):
@@ -146,8 +147,8 @@ def test_dense_relocalises_from_the_depth_after_a_two_second_gap():
 def test_hybrid_relocalises_textureless_frames_by_shape():
     err, res = _gap_run("hybrid", grey=True)
     assert res.metrics["relocalisations_tracked"] == 0  # PnP has no keypoints
-    assert res.metrics["shape_relocalisations"] == 1
-    assert err[35 + 5:].max() < 0.01, err[35:]
+    assert res.metrics["shape_relocalisations"] == 1 and res.metrics["tracking_failures"] == 3
+    assert err[35 + 3:].max() < 0.01, err[35:]
     with pytest.raises(ConfigError, match="relocalise_after_failures"):
         TrackingConfig(relocalise_after_failures=-1)
 
