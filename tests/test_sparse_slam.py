@@ -118,6 +118,22 @@ def test_relocalise_and_pose_guess(loop_frames, loop_run) -> None:
     assert pose_error(g, poses[-1])[0] < 0.05
 
 
+def test_coarse_reference_match_is_close_to_the_precise_one(loop_frames, loop_run) -> None:
+    """``coarse``: PnP-RANSAC + inlier refinement only (what the hybrid uses to check ICP when its joint term is off):
+    the pose is within a few millimetres of the precise match (search by projection + RGB-D refinement), far inside
+    the hybrid's 5 cm / 5 deg check, and the inliers are the same PnP ones."""
+    poses, frames = loop_frames
+    slam, _, _ = loop_run
+    fine = slam.match_reference_keyframe(frames[-1], poses[-1])
+    coarse = slam.match_reference_keyframe(frames[-1], poses[-1], coarse=True)
+    assert fine is not None and coarse is not None and coarse.kf_id == fine.kf_id
+    dt, dr = pose_error(coarse.T_world_cam, fine.T_world_cam)
+    assert dt < 0.01 and dr < 0.5, (dt, dr)
+    assert dt > 0  # a different estimate, not the same computation
+    assert pose_error(coarse.T_world_cam, poses[-1])[0] < 0.02
+    np.testing.assert_array_equal(coarse.uv_cur, fine.uv_cur)
+
+
 def test_rejected_frames_counted_and_predicted(loop_frames) -> None:
     poses, frames = loop_frames
     cfg = replace(NO_LOOP_CFG, relocalise_after_failures=100)

@@ -1015,9 +1015,11 @@ class HybridSlam(DenseSlam):
 
     def _pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:
         """PnP pose and inliers against the reference keyframe, in the dense frame (the graph frame may have
-        moved: the keyframe's pending correction is undone)."""
+        moved: the keyframe's pending correction is undone). Without the joint term the pose only checks ICP
+        (``pnp_check``, a 5 cm / 5 deg gate) or starts it again, so the coarse PnP pose is enough."""
         C = self._correction(self.sparse.n_keyframes - 1)
-        m = self.sparse.match_reference_keyframe(frame, C @ T_pred, feats=self._features(frame))
+        m = self.sparse.match_reference_keyframe(frame, C @ T_pred, feats=self._features(frame),
+                                                 coarse=not self.joint)
         if m is None:
             return None
         C_inv = se3.invert(self._correction(m.kf_id))

@@ -512,8 +512,12 @@ class SparseSlam:
         return None if m is None else m.T_world_cam
 
     def match_reference_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
-                                 feats: Features | None = None) -> KeyframeMatch | None:
+                                 feats: Features | None = None, coarse: bool = False) -> KeyframeMatch | None:
         """PnP pose of ``frame`` against the reference keyframe, with the inlier correspondences.
+
+        ``coarse``: PnP-RANSAC and its inlier refinement only, without search by projection and the joint RGB-D
+        refinement (:func:`~surfelslam.tracking.features.estimate_motion`; same rejection rules): enough for a
+        sanity check or an ICP start, at about half the cost.
 
         Returns:
             :class:`KeyframeMatch` (poses and points in the graph's world frame), or ``None`` when there is no
@@ -526,7 +530,10 @@ class SparseSlam:
         T_world_kf = self._kf_poses[kf]
         init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
         ref = self._kfs[kf].features
-        res = estimate_motion(ref, feats, self.intr, self.cfg.features, init)
+        fcfg = self.cfg.features
+        if coarse:
+            fcfg = replace(fcfg, projection_search=False, rgbd_refine_iterations=0)
+        res = estimate_motion(ref, feats, self.intr, fcfg, init)
         if not res.ok or res.uv_cur is None:
             return None
         inl = res.inlier_mask
