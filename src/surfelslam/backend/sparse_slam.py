@@ -517,7 +517,7 @@ class SparseSlam:
 
         ``coarse``: PnP-RANSAC and its inlier refinement only, without search by projection and the joint RGB-D
         refinement (:func:`~surfelslam.tracking.features.estimate_motion`; same rejection rules): enough for a
-        sanity check or an ICP start, at about half the cost.
+        sanity check or an ICP start, at a third to half the cost.
 
         Returns:
             :class:`KeyframeMatch` (poses and points in the graph's world frame), or ``None`` when there is no
