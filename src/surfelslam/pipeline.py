@@ -233,7 +233,8 @@ class HybridConfig:
             orbits within +-0.02 mm except the 640x480 office fast orbit 0.37 -> 0.49 (dense 0.87), and where the
             dense odometry is biased (colour taken before depth) the loops correct less: 0.09 / 0.27 / 0.35 / 0.30
             -> 0.12 / 0.37 / 0.36 / 0.47 cm (dense 0.61 / 1.38 / 0.57 / 2.07). 0.5 mm took the orbits further up
-            (640x480 fast 0.70 mm). 7-Scenes (refined edges untrusted) 2.48 cm either way.
+            (640x480 fast 0.70 mm). 7-Scenes (refined edges untrusted) 2.48 cm either way (2.46 since the hybrid's
+            pose arithmetic became dense's, 27 Nov).
         live_correction_min_m: during the run, the dense map and pose follow a graph optimisation only when a
             keyframe moved by more than this (m); smaller corrections are applied once, in ``finish``
             (re-posing the live map for centimetre corrections smears it and costs more than it helps).
@@ -247,7 +248,8 @@ class HybridConfig:
             0.33 / 0.33, office replays 0.14 / 0.14, 7-Scenes 0-499 2.48 / 2.48.
         loop_icp: dense (ICP) refinement of the PnP keyframe edges (:mod:`surfelslam.backend.dense_edges`): 2-4x
             lower ATE on synthetic sequences; on 7-Scenes the refined edges are biased (2.48 -> 3.76 cm), which its
-            trust gate detects (``max_trusted_residual_rad``), using the PnP edges instead (2.48 cm).
+            trust gate detects (``max_trusted_residual_rad``), using the PnP edges instead (2.48 cm then; now
+            2.4643, dense 2.4648).
         joint_features: ``auto | on | off``. On: track by joint dense + sparse optimisation: the PnP inliers
             against the reference keyframe (keyframe points, sub-pixel current pixels) add reprojection terms to
             every ICP iteration (:class:`~surfelslam.tracking.icp.ReprojectionTerm`). Texture then constrains the
@@ -625,9 +627,8 @@ class DenseSlam(_FusingMapper):
             if found is not None:
                 res, failure, T_ref = found[0], None, found[1]
         if failure is None:
-            step = se3.orthonormalize(res.T_target_source)
+            step, T_new = self._step_and_pose(T_ref, res)
             self.velocity = step if T_ref is T_prev else np.eye(4)  # a relocalised frame has no known velocity
-            T_new = se3.orthonormalize(T_ref @ step)
             self.T_world_last_tracked = T_new.copy()
             self.failures_in_a_row = 0
             self._fuse(frame, T_new)
@@ -643,6 +644,15 @@ class DenseSlam(_FusingMapper):
         self._retire_source()
         return FrameResult(frame.index, frame.timestamp, T_new.copy(), failure is None, failure is None,
                            res.reason, t.ms, self.map.n_alive, res)
+
+    @staticmethod
+    def _step_and_pose(T_ref: np.ndarray, res: ICPResult) -> tuple[np.ndarray, np.ndarray]:
+        """``(step, T_world_cam)``: the ICP motion ``res.T_target_source`` re-projected onto SE(3) and the pose it
+        gives from the render pose ``T_ref`` (both ``(4, 4)``). One formula for the dense and the hybrid
+        trackers, so that their trajectories agree to the last bit where the hybrid adds nothing (real-data
+        tracking amplifies rounding differences to about 0.5 % ATE)."""
+        step = se3.orthonormalize(res.T_target_source)
+        return step, se3.orthonormalize(T_ref @ step)
 
     def _relocalise_shape(self, T_world_render: np.ndarray | None = None) -> tuple[ICPResult, np.ndarray] | None:
         """The current source against the map rendered at ``T_world_render`` (default: the last tracked pose),
@@ -840,9 +850,7 @@ class HybridSlam(DenseSlam):
         term = self._reprojection_term(T_render, match)
         res = icp(self.track_source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp,
                   reprojection=term, photometric=self.photometric_term())
-        # the dense tracker's arithmetic (step, then pose): with nothing for the back end to add, the hybrid's
-        # trajectory is the dense one bit for bit (real-data tracking amplifies rounding differences to ~0.5 % ATE)
-        return res, icp_failure(res), se3.orthonormalize(T_render @ se3.orthonormalize(res.T_target_source))
+        return res, icp_failure(res), self._step_and_pose(T_render, res)[1]
 
     def _reprojection_term(self, T_render: np.ndarray, match: KeyframeMatch | None) -> ReprojectionTerm | None:
         h = self.cfg.hybrid
@@ -938,7 +946,7 @@ class HybridSlam(DenseSlam):
         tracked = res is not None and failure is None
         if tracked:
             if self.failures_in_a_row < h.relocalise_after_failures:
-                self.velocity = (se3.orthonormalize(res.T_target_source) if from_prev
+                self.velocity = (self._step_and_pose(T_prev, res)[0] if from_prev
                                  else se3.orthonormalize(se3.invert(T_prev) @ T_new))
             self.failures_in_a_row = 0
             self._fuse(frame, T_new)

@@ -181,6 +181,8 @@ class SparseSlam:
                  refined_robust_scale: float | None = None) -> None:
         self.intr = intr
         self.cfg = cfg or SparseSlamConfig()
+        # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement only
+        self._coarse_features = replace(self.cfg.features, projection_search=False, rgbd_refine_iterations=0)
         self._refiner = edge_refiner
         self._refined_robust_scale = refined_robust_scale
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
@@ -530,9 +532,7 @@ class SparseSlam:
         T_world_kf = self._kf_poses[kf]
         init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
         ref = self._kfs[kf].features
-        fcfg = self.cfg.features
-        if coarse:
-            fcfg = replace(fcfg, projection_search=False, rgbd_refine_iterations=0)
+        fcfg = self._coarse_features if coarse else self.cfg.features
         res = estimate_motion(ref, feats, self.intr, fcfg, init)
         if not res.ok or res.uv_cur is None:
             return None
