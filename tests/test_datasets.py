@@ -455,3 +455,42 @@ def test_gt_at_depth_time_uses_depth_stamps(tmp_path):
         f"{t} {f} {float(t) + 0.012:.6f} {f.replace('rgb', 'depth')}\n" for t, f in rows))
     (root / "depth.txt").unlink()
     assert np.allclose(open_sequence(root).depth_timestamps - t_rgb, 0.012)
+
+
+def test_info_colour_camera_makes_a_separate_colour_camera(tmp_path):
+    root = make_tum(tmp_path / "rig", n=3, info="intrinsics : fx=10 fy=10 cx=3.5 cy=2.5\n"
+                    "colour intrinsics : fx=9 fy=9.5 cx=3.0 cy=2.0\ncolour translation : -0.025 0.001 0\n")
+    seq = open_sequence(root)
+    assert not seq.colour_registered
+    cam = seq.full_colour_camera
+    assert cam.intrinsics.as_tuple() == (9.0, 9.5, 3.0, 2.0) and cam.intrinsics.shape == (H, W)
+    assert cam.t_colour_depth_m == (-0.025, 0.001, 0.0)
+    half = open_sequence(root, DatasetOptions(downsample=2)).colour_camera
+    assert half.intrinsics.as_tuple() == (4.5, 4.75, 1.5, 1.0)
+    assert seq.info()["colour_camera"]["t_colour_depth_m"] == [-0.025, 0.001, 0.0]
+    plain = open_sequence(make_tum(tmp_path / "plain", n=3))
+    assert plain.colour_registered and plain.colour_camera is None and plain.info()["colour_camera"] is None
+
+
+@pytest.mark.parametrize("info, message", [
+    ("colour intrinsics : fx=0 fy=9 cx=3 cy=2\n", "colour intrinsics"),
+    ("colour intrinsics : fx=9 fy=9 cx=3 cy=2\ncolour translation : 0.02 0\n", "three numbers"),
+    ("colour translation : 0.02 0 0\n", "without 'colour intrinsics'"),
+])
+def test_info_colour_camera_errors_name_the_file(tmp_path, info, message):
+    root = make_tum(tmp_path / "rig", n=3, info="intrinsics : fx=10 fy=10 cx=3.5 cy=2.5\n" + info)
+    with pytest.raises(DatasetError, match=message) as exc:
+        open_sequence(root)
+    assert "INFO.txt" in str(exc.value)
+
+
+def test_sevenscenes_colour_model_only_for_the_recorded_resolution(tmp_path):
+    """The Kinect colour model is for 640x480 images; other sizes (e.g. a resized copy) keep their colour as is."""
+    folder = tmp_path / "seq-01"
+    for n in range(2):
+        write_frame(folder, f"frame-{n:06d}.color.png", f"frame-{n:06d}.depth.png", depth_raw=1500)
+    seq = open_sequence(folder)
+    assert seq.layout == "7scenes" and not seq.colour_registered and seq.colour_camera is None
+    seq7 = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2))
+    from surfelslam.datasets.sevenscenes import SEVENSCENES_COLOUR_CAMERA
+    assert seq7.colour_camera == SEVENSCENES_COLOUR_CAMERA.scaled(2)

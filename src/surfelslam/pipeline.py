@@ -71,6 +71,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -80,6 +81,7 @@ from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner
 from surfelslam.backend.sparse_slam import KeyframeMatch, SparseSlam, SparseSlamConfig
 from surfelslam.errors import ConfigError, GroundTruthError
 from surfelslam.geometry import se3
+from surfelslam.geometry.camera import ColourRegistrationConfig, colour_at_depth_pixels
 from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
@@ -101,7 +103,7 @@ from surfelslam.tracking.preprocess import (
     level_for_width,
     pyramid_from_maps,
 )
-from surfelslam.types import Intrinsics, PoseArray, RGBDFrame, Trajectory
+from surfelslam.types import ColourCamera, Intrinsics, PoseArray, RGBDFrame, Trajectory
 
 TRACKERS = ("dense", "orb", "hybrid")
 
@@ -312,6 +314,7 @@ class SlamConfig:
     given_poses: GivenPosesConfig = field(default_factory=GivenPosesConfig)
     hybrid: HybridConfig = field(default_factory=HybridConfig)
     sparse: SparseSlamConfig = field(default_factory=SparseSlamConfig)
+    colour_registration: ColourRegistrationConfig = field(default_factory=ColourRegistrationConfig)
 
     def __post_init__(self) -> None:
         if self.preprocess.pyramid_levels < self.icp.levels:
@@ -418,10 +421,13 @@ class _Timer:
 class _FusingMapper:
     """What the dense pipelines share: preprocessing into reused buffers, and fusion into a surfel map."""
 
-    def __init__(self, intr: Intrinsics, cfg: SlamConfig, min_levels: int = 1, track_level: int | None = None):
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, min_levels: int = 1, track_level: int | None = None,
+                 colour_camera: ColourCamera | None = None):
         apply_compute(cfg.compute)
         self.intr = intr
         self.cfg = cfg
+        # a separate colour camera (colour not registered to depth): the map's colours are sampled through it
+        self.colour_camera = colour_camera if cfg.colour_registration.enabled else None
         self.fuse_level = level_for_width(intr.width, cfg.fusion.max_width_px)
         levels = max(cfg.preprocess.pyramid_levels, min_levels, self.fuse_level + 1)
         self.pre = Preprocessor(intr, replace(cfg.preprocess, pyramid_levels=levels))
@@ -455,7 +461,8 @@ class _FusingMapper:
             )
 
     def _fuse_rgb(self, frame: RGBDFrame) -> np.ndarray:
-        return frame.rgb if self.fuse_level == 0 else block_average_rgb(frame.rgb, self.fuse_level)
+        rgb = frame_colour_at_depth(frame, self.intr, self.colour_camera, self.cfg.colour_registration)
+        return rgb if self.fuse_level == 0 else block_average_rgb(rgb, self.fuse_level)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """The frame-only work of :meth:`process`, for another thread to do ahead (one such thread at a time).
@@ -516,15 +523,18 @@ class DenseSlam(_FusingMapper):
     """Frame-to-model dense SLAM: track each frame against the map rendered at the previous pose, then fuse.
 
     ``colour_registered``: the sequence's colour and depth pixels see the same rays (``tracking.photometric``).
+    ``colour_camera``: the sequence's separate colour camera, if known (the map's colours are sampled through it).
     """
 
-    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True):
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
+                 colour_camera: ColourCamera | None = None):
         mode = cfg.tracking.photometric
         self.photometric = cfg.icp.photometric_weight > 0 and colour_switch(mode, colour_registered)
         self._src_intensity: IntensityPyramid | None = None
         self._tgt_intensity: IntensityPyramid | None = None
         self.track_level = level_for_width(intr.width, cfg.tracking.max_width_px)
-        super().__init__(intr, cfg, min_levels=self.track_level + cfg.icp.levels, track_level=self.track_level)
+        super().__init__(intr, cfg, min_levels=self.track_level + cfg.icp.levels, track_level=self.track_level,
+                         colour_camera=colour_camera)
         track_intr = self.pre.level_intrinsics[self.track_level]
         self.target = FramePyramid.empty(track_intr, len(self.pre.level_intrinsics) - self.track_level)
         self.T_world_cam: np.ndarray | None = None
@@ -679,6 +689,14 @@ class DenseSlam(_FusingMapper):
                              "photometric": self.photometric})
 
 
+def frame_colour_at_depth(frame: RGBDFrame, intr: Intrinsics, cam: ColourCamera | None,
+                          cfg: ColourRegistrationConfig) -> np.ndarray:
+    """``(H, W, 3)`` uint8 colour of each depth pixel: ``frame.rgb`` itself, or sampled through ``cam``."""
+    if cam is None:
+        return frame.rgb
+    return colour_at_depth_pixels(frame.rgb, frame.depth_m, intr, cam, cfg.fallback_depth_m)
+
+
 def block_average_rgb(rgb: np.ndarray, levels: int) -> np.ndarray:
     """``(H, W, 3)`` uint8 colour averaged over ``2^levels`` square blocks, matching the pyramid's geometry
     (an odd last row / column is dropped at each halving)."""
@@ -751,10 +769,13 @@ class OrbSlam:
     the pose-graph-optimised one (``SlamResult.trajectory_override``).
     """
 
-    def __init__(self, intr: Intrinsics, cfg: SlamConfig):
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_camera: ColourCamera | None = None):
         self.intr = intr
         self.cfg = cfg
-        self.sparse = SparseSlam(intr, cfg.sparse)
+        cam = colour_camera if cfg.colour_registration.enabled else None
+        cloud_rgb = None if cam is None else partial(frame_colour_at_depth, intr=intr, cam=cam,
+                                                     cfg=cfg.colour_registration)
+        self.sparse = SparseSlam(intr, cfg.sparse, cloud_rgb=cloud_rgb)
         self._stamp_of_frame: dict[int, float] = {}
         self.failures = 0
         self.relocalisations = 0
@@ -799,8 +820,9 @@ class HybridSlam(DenseSlam):
     See the module docstring for the stages and the map-correction scheme.
     """
 
-    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True):
-        super().__init__(intr, cfg, colour_registered)
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
+                 colour_camera: ColourCamera | None = None):
+        super().__init__(intr, cfg, colour_registered, colour_camera)
         mode = cfg.hybrid.joint_features
         self.joint = colour_switch(mode, colour_registered)
         # dense odometry edges carry no estimated information: every edge weighs isotropically here, so the
@@ -1059,18 +1081,21 @@ class HybridSlam(DenseSlam):
         return out
 
 
-def build_slam(intr: Intrinsics, cfg: SlamConfig, tracker: str, colour_registered: bool = True):
+def build_slam(intr: Intrinsics, cfg: SlamConfig, tracker: str, colour_registered: bool = True,
+               colour_camera: ColourCamera | None = None):
     """The pipeline object for ``tracker`` (``dense`` ..., or ``given`` for mapping with given poses).
 
-    ``colour_registered``: the sequence's colour and depth pixels see the same rays (see ``HybridConfig``)."""
+    ``colour_registered``: the sequence's colour and depth pixels see the same rays (see ``HybridConfig``).
+    ``colour_camera``: the sequence's separate colour camera, if known: the maps' colours are sampled through it
+    (``colour_registration``); tracking is unaffected."""
     if tracker == "dense":
-        return DenseSlam(intr, cfg, colour_registered)
+        return DenseSlam(intr, cfg, colour_registered, colour_camera)
     if tracker == "orb":
-        return OrbSlam(intr, cfg)
+        return OrbSlam(intr, cfg, colour_camera)
     if tracker == "hybrid":
-        return HybridSlam(intr, cfg, colour_registered)
+        return HybridSlam(intr, cfg, colour_registered, colour_camera)
     if tracker == "given":
-        return GivenPoseMapper(intr, cfg)
+        return GivenPoseMapper(intr, cfg, colour_camera=colour_camera)
     raise ConfigError(f"unknown tracker {tracker!r}; known: {', '.join(TRACKERS)}")
 
 

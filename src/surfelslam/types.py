@@ -70,6 +70,27 @@ class Intrinsics:
         return (self.fx, self.fy, self.cx, self.cy)
 
 
+@dataclass(frozen=True)
+class ColourCamera:
+    """A colour camera separate from the depth camera (colour and depth images not registered).
+
+    A point ``X_depth`` (metres, depth camera frame) is seen by the colour camera at
+    ``project(X_depth + t_colour_depth_m)`` with ``intrinsics`` (the colour image's own pixel grid); the two
+    cameras' axes are taken as parallel (a Kinect-style rig, whose residual rotation is a few milliradians).
+
+    Attributes:
+        intrinsics: colour camera pinhole intrinsics; ``width`` x ``height`` is the colour image size.
+        t_colour_depth_m: ``(3,)`` translation from the depth camera frame to the colour camera frame (m).
+    """
+
+    intrinsics: Intrinsics
+    t_colour_depth_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def scaled(self, factor: int) -> ColourCamera:
+        """The same camera for images sampled ``[::factor, ::factor]`` (see :meth:`Intrinsics.scaled`)."""
+        return ColourCamera(self.intrinsics.scaled(factor), self.t_colour_depth_m)
+
+
 @dataclass
 class RGBDFrame:
     """One registered RGB-D frame.

@@ -48,11 +48,14 @@ class Keyframe:
     cloud_rgb: np.ndarray
 
 
-def keyframe_cloud(frame: RGBDFrame, intr: Intrinsics, cfg: MapConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame coloured cloud of a frame: ``(xyz (M, 3) float32, rgb (M, 3) uint8)``, voxel-filtered."""
+def keyframe_cloud(frame: RGBDFrame, intr: Intrinsics, cfg: MapConfig,
+                   rgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame coloured cloud of a frame: ``(xyz (M, 3) float32, rgb (M, 3) uint8)``, voxel-filtered.
+
+    ``rgb``: ``(H, W, 3)`` uint8 colour of each depth pixel (default ``frame.rgb``)."""
     s = cfg.pixel_stride
     vtx = backproject(frame.depth_m, intr)[::s, ::s].reshape(-1, 3)
-    rgb = frame.rgb[::s, ::s].reshape(-1, 3)
+    rgb = (frame.rgb if rgb is None else rgb)[::s, ::s].reshape(-1, 3)
     z = vtx[:, 2]
     keep = (z > cfg.min_depth_m) & (z <= cfg.max_depth_m)
     xyz, col, _ = voxel_filter(vtx[keep], rgb[keep], cfg.voxel_size_m)

@@ -21,6 +21,7 @@ stretches of the trajectory rigidly with their keyframe.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
@@ -174,16 +175,20 @@ class SparseSlam:
             (nearby or loop) is refined by ICP between the keyframes' depth maps, or dropped when that fails. While
             the refined edges are not consistent enough to be trusted, the poses come from the PnP edges' graph.
         refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
+        cloud_rgb: the colour of each depth pixel of a frame for the keyframe clouds, ``(H, W, 3)`` uint8 (``None``:
+            ``frame.rgb``; e.g. colour sampled through a separate colour camera).
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
                  T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None,
-                 refined_robust_scale: float | None = None) -> None:
+                 refined_robust_scale: float | None = None,
+                 cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None) -> None:
         self.intr = intr
         self.cfg = cfg or SparseSlamConfig()
         # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement only
         self._coarse_features = replace(self.cfg.features, projection_search=False, rgbd_refine_iterations=0)
         self._refiner = edge_refiner
+        self._cloud_rgb = cloud_rgb
         self._refined_robust_scale = refined_robust_scale
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._graph = PoseGraph(self.cfg.graph)
@@ -363,7 +368,8 @@ class SparseSlam:
             self._graph_refined.add_node(T_world_cam)
         if self._refiner is not None:
             self._refiner.add_keyframe(kf_id, frame.depth_m)
-        xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map)
+        xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map,
+                                  None if self._cloud_rgb is None else self._cloud_rgb(frame))
         self._kf_pose_buf.append(T_world_cam)
         self._kf_odometry.append(np.asarray(T_world_cam, np.float64).copy() if prev_kf is None or T_prev_new is None
                                  else self._kf_odometry[prev_kf] @ T_prev_new)

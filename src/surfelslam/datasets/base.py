@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.errors import ConfigError, FrameError
-from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 
 #: Largest gap (s) between two ground-truth poses that :meth:`RGBDSequence.gt_poses` interpolates across
 #: (TUM motion capture runs at 100 Hz; a longer gap is a dropout, where the nearest pose is used instead).
@@ -91,6 +91,9 @@ class RGBDSequence:
     #: whether colour pixel (u, v) and depth pixel (u, v) see the same ray (one camera, or depth registered to
     #: colour); False for layouts whose colour and depth come from separate, uncalibrated cameras (7-Scenes)
     colour_registered: bool = True
+    #: the separate colour camera at the files' resolution, when the layout knows it (``colour_camera`` has it
+    #: at the selection's resolution); ``None``: colour registered, or no model known
+    full_colour_camera: ColourCamera | None = None
     #: where the intrinsics / depth scale came from (an option, a metadata file, or the layout default)
     intrinsics_source: str = "unknown"
     depth_scale_source: str = "unknown"
@@ -114,6 +117,12 @@ class RGBDSequence:
         self.entries = entries[options.start : options.end : options.stride]
         self.ground_truth = ground_truth
         self.depth_invalid_raw = depth_invalid_raw
+
+    @property
+    def colour_camera(self) -> ColourCamera | None:
+        """The separate colour camera for the loaded (downsampled) images, or ``None``."""
+        cam = self.full_colour_camera
+        return None if cam is None else cam.scaled(self.options.downsample)
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -203,4 +212,8 @@ class RGBDSequence:
             "downsample": self.options.downsample,
             "ground_truth_poses": 0 if self.ground_truth is None else len(self.ground_truth),
             "frames_with_ground_truth": int(gt_valid.sum()),
+            "colour_registered": self.colour_registered,
+            "colour_camera": None if (cam := self.colour_camera) is None else {
+                "fx": cam.intrinsics.fx, "fy": cam.intrinsics.fy, "cx": cam.intrinsics.cx, "cy": cam.intrinsics.cy,
+                "t_colour_depth_m": list(cam.t_colour_depth_m)},
         }

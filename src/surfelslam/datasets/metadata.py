@@ -5,7 +5,11 @@ Two sources are read, when present in the sequence folder:
 * ``INFO.txt``: free text with ``key : value`` lines (a line starting with white space continues the
   previous value). Used keys: ``intrinsics`` (the first ``fx=``, ``fy=``, ``cx=``, ``cy=`` numbers in the
   value, or else the first four numbers of its first line), ``depth scale`` (the first number of the
-  value) and ``generator`` (``surfelslam synth`` marks our synthetic sequences).
+  value), ``generator`` (``surfelslam synth`` marks our synthetic sequences) and, for a colour camera separate
+  from the depth camera, ``colour intrinsics`` (as ``intrinsics``, on the colour image's pixel grid) with
+  ``colour translation`` (``tx ty tz`` in metres, depth camera frame to colour camera frame; default 0): the
+  maps' colours are then sampled through that camera (:func:`surfelslam.geometry.camera.colour_at_depth_pixels`)
+  and the sequence counts as not registered (photometric terms off under ``auto``).
 * ``camera-intrinsics.txt`` (7-Scenes / tsdf-fusion style): a 3x3 camera matrix, in the folder or its
   parent. Only used for what ``INFO.txt`` does not give.
 
@@ -23,7 +27,7 @@ import numpy as np
 
 from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
 from surfelslam.errors import ConfigError, DatasetError
-from surfelslam.types import Intrinsics, Trajectory
+from surfelslam.types import ColourCamera, Intrinsics, Trajectory
 
 INFO_FILE = "INFO.txt"
 CAMERA_INTRINSICS_FILE = "camera-intrinsics.txt"
@@ -43,6 +47,8 @@ class FolderMetadata:
         generator: the ``generator`` value of ``INFO.txt`` (lower case), or ``None``.
         intrinsics_file / depth_scale_file: the file each value came from.
         fields: every ``key : value`` of ``INFO.txt`` (keys lower case, single-spaced).
+        colour_intrinsics: ``(fx, fy, cx, cy)`` of a separate colour camera, or ``None``.
+        colour_translation_m: ``(tx, ty, tz)`` from the depth camera frame to that colour camera's (m).
     """
 
     intrinsics: tuple[float, float, float, float] | None = None
@@ -51,6 +57,8 @@ class FolderMetadata:
     intrinsics_file: Path | None = None
     depth_scale_file: Path | None = None
     fields: dict[str, str] = field(default_factory=dict)
+    colour_intrinsics: tuple[float, float, float, float] | None = None
+    colour_translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def is_synthetic(self) -> bool:
@@ -151,12 +159,34 @@ def read_metadata(root: Path) -> FolderMetadata:
             scale_file = info if scale is not None else None
         if "generator" in fields:
             generator = fields["generator"].strip().lower()
+        colour_intr, colour_t = _colour_camera_fields(info, fields)
+    else:
+        colour_intr, colour_t = None, (0.0, 0.0, 0.0)
     if intr is None:
         for cand in (root / CAMERA_INTRINSICS_FILE, root.parent / CAMERA_INTRINSICS_FILE):
             if cand.is_file():
                 intr, intr_file = read_camera_matrix(cand), cand
                 break
-    return FolderMetadata(intr, scale, generator, intr_file, scale_file, fields)
+    return FolderMetadata(intr, scale, generator, intr_file, scale_file, fields, colour_intr, colour_t)
+
+
+def _colour_camera_fields(info: Path, fields: dict[str, str]
+                          ) -> tuple[tuple[float, float, float, float] | None, tuple[float, float, float]]:
+    """``colour intrinsics`` / ``colour translation`` of INFO.txt; a malformed value is a DatasetError."""
+    t = (0.0, 0.0, 0.0)
+    if "colour translation" in fields:
+        nums = re.findall(_NUMBER, fields["colour translation"].splitlines()[0] if fields["colour translation"] else "")
+        if len(nums) < 3 or not all(np.isfinite([float(x) for x in nums[:3]])):
+            raise DatasetError(info, "'colour translation' needs three numbers 'tx ty tz' (metres)")
+        t = (float(nums[0]), float(nums[1]), float(nums[2]))
+    if "colour intrinsics" not in fields:
+        if "colour translation" in fields:
+            raise DatasetError(info, "'colour translation' is given without 'colour intrinsics'")
+        return None, t
+    intr = parse_intrinsics_text(fields["colour intrinsics"])
+    if intr is None:
+        raise DatasetError(info, "'colour intrinsics' needs fx=.. fy=.. cx=.. cy=.. (non-zero focal lengths)")
+    return intr, t
 
 
 def first_depth_shape(path: Path) -> tuple[int, int]:
@@ -230,6 +260,10 @@ def build_sequence(
             f"(or write an {INFO_FILE} with 'intrinsics : fx=.. fy=.. cx=.. cy=..' and 'depth scale : N')"
         )
     seq = cls(root, entries, cam.intrinsics, cam.depth_scale, options, ground_truth, depth_invalid_raw)
+    if meta.colour_intrinsics is not None:  # colour images have the depth images' size (checked per frame)
+        seq.full_colour_camera = ColourCamera(Intrinsics(*meta.colour_intrinsics, cam.intrinsics.width,
+                                                         cam.intrinsics.height), meta.colour_translation_m)
+        seq.colour_registered = False
     prefix = f"{root}/"  # show metadata files inside the sequence folder by their name
     seq.intrinsics_source = cam.intrinsics_source.removeprefix(prefix)
     seq.depth_scale_source = cam.depth_scale_source.removeprefix(prefix)

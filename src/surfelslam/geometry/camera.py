@@ -5,9 +5,14 @@ Pixel centres are at integer coordinates; images are indexed ``[v, u]``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
 import numpy as np
 
-from surfelslam.types import Intrinsics
+from surfelslam.errors import ConfigError
+from surfelslam.types import ColourCamera, Intrinsics
 
 
 def pixel_grid(intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -44,3 +49,70 @@ def round_in_image(u: np.ndarray, v: np.ndarray, intr: Intrinsics) -> tuple[np.n
     vi = np.floor(v + 0.5).astype(np.int64)
     inside = (ui >= 0) & (ui < intr.width) & (vi >= 0) & (vi < intr.height)
     return ui, vi, inside
+
+
+@dataclass(frozen=True)
+class ColourRegistrationConfig:
+    """Colour of each depth pixel when the sequence's colour camera is separate (:class:`ColourCamera`).
+
+    Attributes:
+        enabled: sample each depth pixel's colour through the sequence's colour camera model (when its layout
+            has one, e.g. 7-Scenes) for the maps' colours; False: the colour pixel at the same ``(u, v)``.
+        fallback_depth_m: depth (m) assumed where the depth pixel is invalid (its colour is then only used by
+            block averaging for a coarser fusion level; the parallax it sets is ``fx * |t| / depth``).
+    """
+
+    enabled: bool = True
+    fallback_depth_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not self.fallback_depth_m > 0:
+            raise ConfigError(f"colour_registration: fallback_depth_m must be positive, got {self.fallback_depth_m}")
+
+
+@lru_cache(maxsize=8)
+def _colour_maps_at_infinity(intr: Intrinsics, cam: ColourCamera) -> tuple[np.ndarray, np.ndarray]:
+    """Colour pixel ``(u_c, v_c)`` of each depth pixel's ray at infinite depth, ``(H, W)`` float32 each."""
+    u, v = pixel_grid(intr)
+    ci = cam.intrinsics
+    return (ci.fx / intr.fx * (u - intr.cx) + ci.cx).astype(np.float32), \
+        (ci.fy / intr.fy * (v - intr.cy) + ci.cy).astype(np.float32)
+
+
+def colour_at_depth_pixels(rgb: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, cam: ColourCamera,
+                           fallback_depth_m: float) -> np.ndarray:
+    """Each depth pixel's colour seen by a separate colour camera (registration of colour onto depth).
+
+    Depth pixel ``(u, v)`` with depth ``z`` is the point ``X = z K^-1 (u, v, 1)`` of the depth camera; the colour
+    camera sees it at ``project(X + t)``, where the colour image is sampled bilinearly (replicated at its border).
+    With parallel axes that pixel is the ray's pixel at infinity plus the parallax ``f_c t_xy / z`` (``t_z`` changes
+    the depth: ``z + t_z``).
+
+    Args:
+        rgb: ``(Hc, Wc, 3)`` uint8 colour image, ``Hc x Wc`` = ``cam.intrinsics`` size.
+        depth_m: ``(H, W)`` depth (m) of the depth camera; 0 or non-finite = invalid (``fallback_depth_m`` used).
+        intr: depth camera intrinsics (``H x W``).
+        cam: the colour camera.
+        fallback_depth_m: depth assumed at invalid pixels.
+
+    Returns:
+        ``(H, W, 3)`` uint8: colour registered to the depth pixels.
+    """
+    ci = cam.intrinsics
+    if rgb.shape[:2] != ci.shape:
+        raise ConfigError(f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, "
+                          f"the colour camera's is {ci.width}x{ci.height}")
+    if depth_m.shape != intr.shape:
+        raise ConfigError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]}, expected {intr.width}x{intr.height}")
+    u_inf, v_inf = _colour_maps_at_infinity(intr, cam)
+    tx, ty, tz = (float(c) for c in cam.t_colour_depth_m)
+    z = np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, np.float32(fallback_depth_m)).astype(np.float32)
+    if tz != 0.0:  # the point's depth in the colour camera; the ray term scales by z / (z + tz)
+        zc = z + np.float32(tz)
+        scale = z / zc
+        map_u = (u_inf - np.float32(ci.cx)) * scale + np.float32(ci.cx) + np.float32(ci.fx * tx) / zc
+        map_v = (v_inf - np.float32(ci.cy)) * scale + np.float32(ci.cy) + np.float32(ci.fy * ty) / zc
+    else:
+        map_u = u_inf + np.float32(ci.fx * tx) / z
+        map_v = v_inf + np.float32(ci.fy * ty) / z
+    return cv2.remap(rgb, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

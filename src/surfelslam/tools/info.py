@@ -23,6 +23,15 @@ from surfelslam.tools.common import (
 )
 
 
+def _colour_row(d: dict) -> str:
+    cam = d.get("colour_camera")
+    if cam is not None:
+        t = ", ".join(f"{c:g}" for c in cam["t_colour_depth_m"])
+        return (f"separate camera fx={cam['fx']:g} fy={cam['fy']:g} cx={cam['cx']:g} cy={cam['cy']:g}, "
+                f"t_colour_depth=({t}) m: the maps' colours are sampled through it")
+    return "registered to depth" if d.get("colour_registered", True) else "not registered to depth (no model)"
+
+
 def info_table(d: dict) -> Table:
     """The ``describe()`` dict as a two-column rich table."""
     table = Table(title=f"sequence {escape(d['root'])}", show_header=False)
@@ -40,6 +49,7 @@ def info_table(d: dict) -> Table:
         ("depth scale", f"{d['depth_scale']:g} units/m  (from {d['depth_scale_source']})"),
         ("ground truth", f"{d['ground_truth_poses']} poses; {d['frames_with_ground_truth']} of {d['frames']} "
                          "frames have one within 0.02 s"),
+        ("colour", _colour_row(d)),
         ("first frame depth", "no valid pixel" if med is None else
          f"median {med:.3f} m, {100 * d['first_frame_valid_depth_fraction']:.1f}% valid"),
     ]

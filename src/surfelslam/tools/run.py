@@ -56,7 +56,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
 
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
     slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given",
-                      colour_registered=getattr(seq, "colour_registered", True))
+                      colour_registered=getattr(seq, "colour_registered", True),
+                      colour_camera=getattr(seq, "colour_camera", None))
     t_warm = time.perf_counter()
     slam.warmup()
     warmup_s = time.perf_counter() - t_warm
