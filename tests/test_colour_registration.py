@@ -167,3 +167,109 @@ def test_orb_keyframe_cloud_colours_use_the_colour_camera():
     T_naive, m_naive = _run(intr, "orb", wide, None)
     assert np.array_equal(T_model, T_naive) and np.array_equal(m_model["position"], m_naive["position"])
     assert np.abs(m_model["colour"] - m_naive["colour"]).mean() > 10.0
+
+
+def _separate_colour_camera_frames(cam: ColourCamera, n: int = 6, noise: str = "kinect"):
+    """Synthetic room frames whose colour is rendered by ``cam`` (its own intrinsics and position)."""
+    from dataclasses import replace
+
+    from surfelslam.synth.scenes import make_scene
+    from surfelslam.synth.trajectories import make_trajectory
+    from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config
+    from surfelslam.types import Trajectory
+
+    scene = make_scene("room")
+    intr = default_intrinsics(320, 240)
+    traj = make_trajectory("handheld", 8 * n, scene)
+    traj = Trajectory(traj.timestamps[::8], traj.T_world_cam[::8])
+    T_depth_colour = np.eye(4)
+    T_depth_colour[:3, 3] = -np.asarray(cam.t_colour_depth_m)  # X_colour = X_depth + t
+    traj_colour = Trajectory(traj.timestamps, traj.T_world_cam @ T_depth_colour)
+    depth_frames = iter_frames(scene, traj, intr, noise_config(noise), 0)
+    colour_frames = iter_frames(scene, traj_colour, cam.intrinsics, noise_config(noise), 0)
+    return intr, [replace(d, rgb=c.rgb) for d, c in zip(depth_frames, colour_frames, strict=True)]
+
+
+def test_fit_recovers_a_separate_colour_camera():
+    """Colour rendered by a wider camera 3 cm to the side, with its own principal point: the edge fit recovers it,
+    and colour sampled through the fit lands on the depth edges."""
+    from surfelslam.geometry.colour_fit import fit_colour_camera
+    from surfelslam.synth.writer import default_intrinsics
+
+    d = default_intrinsics(320, 240)
+    truth = ColourCamera(Intrinsics(0.9 * d.fx, 0.92 * d.fy, d.cx + 3.0, d.cy - 2.0, d.width, d.height),
+                         (-0.03, 0.0, 0.0))
+    intr, frames = _separate_colour_camera_frames(truth)
+    fit = fit_colour_camera(frames, intr)
+    ci, ti = fit.camera.intrinsics, truth.intrinsics
+    assert abs(ci.fx / ti.fx - 1) < 0.01 and abs(ci.fy / ti.fy - 1) < 0.01, (ci, ti)
+    assert abs(ci.cx - ti.cx) < 1.5 and abs(ci.cy - ti.cy) < 1.5, (ci, ti)
+    assert abs(fit.camera.t_colour_depth_m[0] - truth.t_colour_depth_m[0]) < 0.01, fit.camera
+    assert fit.edge_distance_px < 0.6 * fit.edge_distance_same_pixel_px
+
+
+def test_fit_of_registered_colour_stays_at_the_depth_camera():
+    from surfelslam.geometry.colour_fit import fit_colour_camera
+    from surfelslam.synth.writer import default_intrinsics
+
+    d = default_intrinsics(320, 240)
+    intr, frames = _separate_colour_camera_frames(ColourCamera(d))
+    fit = fit_colour_camera(frames, intr)
+    ci = fit.camera.intrinsics
+    assert abs(ci.fx / d.fx - 1) < 0.01 and abs(ci.cx - d.cx) < 1.5 and abs(ci.cy - d.cy) < 1.5, ci
+    assert abs(fit.camera.t_colour_depth_m[0]) < 0.01
+    assert fit.edge_distance_px <= fit.edge_distance_same_pixel_px
+
+
+def test_fit_without_depth_edges_is_a_clear_error():
+    from surfelslam.geometry.colour_fit import fit_colour_camera
+    from surfelslam.types import RGBDFrame
+
+    flat = RGBDFrame(0, 0.0, np.zeros((*DEPTH.shape, 3), np.uint8), np.full(DEPTH.shape, 1.5, np.float32))
+    with pytest.raises(ConfigError, match="no depth discontinuities"):
+        fit_colour_camera([flat], DEPTH)
+
+
+def test_calibrate_colour_command_on_7scenes(tmp_path):
+    """`surfelslam calibrate-colour` finds the built-in 7-Scenes model again (within 1 % / 2 px / 1 cm) and prints
+    the INFO.txt lines; a copy with those lines in its INFO.txt gets that colour camera."""
+    import json
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from surfelslam.cli import app
+    from surfelslam.datasets.sevenscenes import SEVENSCENES_COLOUR_CAMERA
+
+    src = shared_sequence("7scenes_redkitchen_0000_0499")
+    res = CliRunner().invoke(app, ["calibrate-colour", str(src), "--downsample", "2", "--frames", "12", "--json"])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.output)
+    ref = SEVENSCENES_COLOUR_CAMERA.intrinsics
+    got = out["colour_intrinsics_full_resolution"]
+    assert abs(got["fx"] / ref.fx - 1) < 0.01 and abs(got["fy"] / ref.fy - 1) < 0.01, got
+    assert abs(got["cx"] - ref.cx) < 2.0 and abs(got["cy"] - ref.cy) < 2.0, got
+    assert abs(out["t_colour_depth_m"][0] - SEVENSCENES_COLOUR_CAMERA.t_colour_depth_m[0]) < 0.01, out
+    assert out["edge_distance_px"] < 0.65 * out["edge_distance_same_pixel_px"]
+    # the printed lines, put in a plain folder's INFO.txt, make that colour camera
+    rig = tmp_path / "rig"
+    rig.mkdir()
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        shutil.copy(src / name, rig / name)
+    for name in ("rgb", "depth"):
+        (rig / name).symlink_to(src / name)
+    (rig / "INFO.txt").write_text("intrinsics : fx=585 fy=585 cx=320 cy=240\ndepth scale : 1000\n"
+                                  + "\n".join(out["info_lines"]) + "\n")
+    seq = open_sequence(rig)
+    assert seq.layout == "tum" and not seq.colour_registered
+    assert abs(seq.full_colour_camera.intrinsics.fx - got["fx"]) < 0.01
+
+
+def test_calibrate_colour_empty_selection_is_one_clear_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from surfelslam.cli import app
+
+    src = shared_sequence("7scenes_redkitchen_0000_0499")
+    res = CliRunner().invoke(app, ["calibrate-colour", str(src), "--start", "600"])
+    assert res.exit_code != 0 and "keeps no frame" in res.output and "Traceback" not in res.output

@@ -388,8 +388,10 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     # ``untrusted_min_correction_m`` they are not applied, and the trajectory is dense's to the last bit
     dense = build_slam(seq.intrinsics, cfg, "dense", seq.colour_registered)
     est_dense = np.stack([dense.process(f).T_world_cam for f in seq])
-    assert m["loop_correction_skipped"] == 1 and m_plain["loop_correction_skipped"] == 1
-    assert np.array_equal(est, est_dense) and np.array_equal(est_plain, est_dense)
+    assert m["loop_correction_skipped"] == 1 and np.array_equal(est, est_dense)
+    # without refined edges nothing says the depth is biased: the PnP graph's correction is applied (sub-mm here)
+    assert m_plain["loop_correction_skipped"] == 0 and not np.array_equal(est_plain, est_dense)
+    assert np.abs(est_plain[:, :3, 3] - est_dense[:, :3, 3]).max() < cfg.hybrid.untrusted_min_correction_m
     # with every correction applied the graph moves the trajectory, by under a millimetre
     always = replace(cfg, hybrid=replace(cfg.hybrid, untrusted_min_correction_m=0.0))
     est_always, m_always = run(always)

@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "run",
     "register",
     "experiments",
+    "calibrate_colour",
 ]
 
 for _name in COMMAND_MODULES:
