@@ -175,7 +175,8 @@ def _colour_camera_fields(info: Path, fields: dict[str, str]
     """``colour intrinsics`` / ``colour translation`` of INFO.txt; a malformed value is a DatasetError."""
     t = (0.0, 0.0, 0.0)
     if "colour translation" in fields:
-        nums = re.findall(_NUMBER, fields["colour translation"].splitlines()[0] if fields["colour translation"] else "")
+        first_line = (fields["colour translation"].splitlines() or [""])[0]
+        nums = re.findall(_NUMBER, first_line)
         if len(nums) < 3 or not all(np.isfinite([float(x) for x in nums[:3]])):
             raise DatasetError(info, "'colour translation' needs three numbers 'tx ty tz' (metres)")
         t = (float(nums[0]), float(nums[1]), float(nums[2]))
