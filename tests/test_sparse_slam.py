@@ -12,7 +12,7 @@ from surfelslam.backend.place_recognition import DescriptorIndex
 from surfelslam.backend.sparse_slam import SparseSlam, SparseSlamConfig
 from surfelslam.geometry.se3 import pose_error
 from surfelslam.kernels.voxel import voxel_filter, voxel_filter_ref
-from surfelslam.types import RGBDFrame
+from surfelslam.types import Intrinsics, RGBDFrame
 from test_features import CFG, INTR, look_pose, render_room
 
 N_LOOP = 40  # frames per revolution (9 deg and ~8 cm per frame)
@@ -200,3 +200,18 @@ def test_sparse_trackers_refuse_float_descriptors() -> None:
     with pytest.raises(ValueError, match="detector"):
         SparseSlamConfig(features=FeatureConfig(detector="sift"))
     assert SparseSlamConfig(features=FeatureConfig(detector="orb")).features.detector == "orb"
+
+
+def test_pnp_inlier_bound_scales_with_image_width():
+    """``reprojection_error_px`` is given for 320-px-wide images: doubled at 640x480, as given at 320 and below."""
+    from surfelslam.backend.sparse_slam import SparseSlamConfig, features_for_width
+
+    cfg = SparseSlamConfig()
+    assert features_for_width(cfg, 640).features.reprojection_error_px == 2 * cfg.features.reprojection_error_px
+    assert features_for_width(cfg, 320) is cfg and features_for_width(cfg, 160) is cfg
+    fixed = SparseSlamConfig(features_reference_width_px=0)
+    assert features_for_width(fixed, 640) is fixed
+    slam = SparseSlam(Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480), cfg)
+    assert slam.cfg.features.reprojection_error_px == 4.0
+    with pytest.raises(ValueError, match="features_reference_width_px"):
+        SparseSlamConfig(features_reference_width_px=-1)

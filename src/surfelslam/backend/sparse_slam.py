@@ -89,6 +89,14 @@ class SparseSlamConfig:
         loop: loop-candidate selection and verification.
         graph: pose-graph weights and solver.
         map: keyframe clouds and the final voxel-filtered map.
+        features_reference_width_px: ``features.reprojection_error_px`` (the PnP-RANSAC inlier bound) is given for
+            images this wide and scaled by ``width / features_reference_width_px`` for wider ones (never below the
+            value given; 0 = as given): the same angle, since keypoint jitter and colour / depth misregistration grow
+            with the resolution. 7-Scenes at 640x480 (2 px -> 4 px): frames 250-499 at 3x speed 50.60 -> 38.63 mm
+            (dense 23.02: 2.20x -> 1.68x; fewer keyframe pairs verified at 2 px, 42 against 63 at 320x240), 0-249
+            31.49 -> 28.31 (1x) and 27.73 -> 27.10 (3x), 250-499 38.11 -> 38.99, 0-499 36.27 -> 36.13; fourteen
+            640x480 synthetic sequences -8 % to +4 % (0.28-0.86 mm). 320x240 input is unchanged. The hybrid sets
+            it to 0 (its PnP poses only guess or check ICP's; scaled, 7-Scenes 640x480 went 25.06 -> 25.32 mm).
         background_loop_checks: verify a new keyframe's loop candidates in a background thread while the next
             frames are tracked. The results are applied (edges added, graph optimised) when the next keyframe is
             inserted, before a relocalisation, and in :meth:`SparseSlam.finish`, so they land at the same point
@@ -104,6 +112,7 @@ class SparseSlamConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    features_reference_width_px: int = 320
     background_loop_checks: bool = True
 
     def __post_init__(self) -> None:
@@ -111,8 +120,20 @@ class SparseSlamConfig:
             raise ValueError(f"rejected_pose must be one of {REJECTED_POSE_MODES}, got {self.rejected_pose!r}")
         if self.keyframe_threshold <= 0:
             raise ValueError(f"keyframe_threshold must be positive, got {self.keyframe_threshold}")
+        if self.features_reference_width_px < 0:
+            raise ValueError(f"features_reference_width_px must be >= 0, got {self.features_reference_width_px}")
         if self.features.detector != "orb":  # place recognition votes with binary (Hamming) descriptors
             raise ValueError(f"the sparse trackers need features.detector = 'orb', got {self.features.detector!r}")
+
+
+def features_for_width(cfg: SparseSlamConfig, width_px: int) -> SparseSlamConfig:
+    """``cfg`` with ``features.reprojection_error_px`` scaled for images ``width_px`` wide
+    (see ``SparseSlamConfig.features_reference_width_px``)."""
+    ref = cfg.features_reference_width_px
+    if ref <= 0 or width_px <= ref:
+        return cfg
+    f = cfg.features
+    return replace(cfg, features=replace(f, reprojection_error_px=f.reprojection_error_px * width_px / ref))
 
 
 @dataclass
@@ -184,7 +205,7 @@ class SparseSlam:
                  refined_robust_scale: float | None = None,
                  cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None) -> None:
         self.intr = intr
-        self.cfg = cfg or SparseSlamConfig()
+        self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
         # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement only
         self._coarse_features = replace(self.cfg.features, projection_search=False, rgbd_refine_iterations=0)
         self._refiner = edge_refiner
