@@ -94,7 +94,8 @@ class SparseSlamConfig:
             value given; 0 = as given): the same angle, since keypoint jitter and colour / depth misregistration grow
             with the resolution. 7-Scenes at 640x480 (2 px -> 4 px): frames 250-499 at 3x speed 50.60 -> 38.63 mm
             (dense 23.02: 2.20x -> 1.68x; fewer keyframe pairs verified at 2 px, 42 against 63 at 320x240), 0-249
-            31.49 -> 28.31 (1x) and 27.73 -> 27.10 (3x), 250-499 38.11 -> 38.99, 0-499 36.27 -> 36.13; fourteen
+            31.49 -> 28.31 (1x) and 27.73 -> 27.10 (3x), 250-499 38.11 -> 38.99, 0-499 36.27 -> 36.13, 0-499 at 2x
+            36.13 -> 40.73 (dense 25.67): the worst case 2.20x -> 1.68x dense, not every segment better; fourteen
             640x480 synthetic sequences -8 % to +4 % (0.28-0.86 mm). 320x240 input is unchanged. The hybrid sets
             it to 0 (its PnP poses only guess or check ICP's; scaled, 7-Scenes 640x480 went 25.06 -> 25.32 mm).
         background_loop_checks: verify a new keyframe's loop candidates in a background thread while the next
