@@ -442,7 +442,7 @@ class _FusingMapper:
         self.intr = intr
         self.cfg = cfg
         # a separate colour camera (colour not registered to depth): the map's colours are sampled through it
-        self.colour_camera = colour_camera if cfg.colour_registration.enabled else None
+        self.colour_camera = colour_camera
         self.fuse_level = level_for_width(intr.width, cfg.fusion.max_width_px)
         levels = max(cfg.preprocess.pyramid_levels, min_levels, self.fuse_level + 1)
         self.pre = Preprocessor(intr, replace(cfg.preprocess, pyramid_levels=levels))
@@ -706,8 +706,9 @@ class DenseSlam(_FusingMapper):
 
 def frame_colour_at_depth(frame: RGBDFrame, intr: Intrinsics, cam: ColourCamera | None,
                           cfg: ColourRegistrationConfig) -> np.ndarray:
-    """``(H, W, 3)`` uint8 colour of each depth pixel: ``frame.rgb`` itself, or sampled through ``cam``."""
-    if cam is None:
+    """``(H, W, 3)`` uint8 colour of each depth pixel: ``frame.rgb`` itself, or sampled through ``cam`` (when given
+    and ``cfg.enabled``)."""
+    if cam is None or not cfg.enabled:
         return frame.rgb
     return colour_at_depth_pixels(frame.rgb, frame.depth_m, intr, cam, cfg.fallback_depth_m)
 
@@ -787,9 +788,8 @@ class OrbSlam:
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_camera: ColourCamera | None = None):
         self.intr = intr
         self.cfg = cfg
-        cam = colour_camera if cfg.colour_registration.enabled else None
-        cloud_rgb = None if cam is None else partial(frame_colour_at_depth, intr=intr, cam=cam,
-                                                     cfg=cfg.colour_registration)
+        cloud_rgb = None if colour_camera is None else partial(frame_colour_at_depth, intr=intr, cam=colour_camera,
+                                                               cfg=cfg.colour_registration)
         self.sparse = SparseSlam(intr, cfg.sparse, cloud_rgb=cloud_rgb)
         self._stamp_of_frame: dict[int, float] = {}
         self.failures = 0
@@ -1089,7 +1089,8 @@ class HybridSlam(DenseSlam):
         by more than ``untrusted_min_correction_m`` relative to the first (see :class:`HybridConfig`)."""
         if self.sparse.dense_edges_trusted is not False or len(kf_new) == 0:
             return False
-        rel = se3.invert(self._corrections(kf_new)[0]) @ kf_new  # the first keyframe's (rigid) move taken out
+        C0 = kf_new[0] @ se3.invert(self._kf_dense.poses[0])
+        rel = se3.invert(C0) @ kf_new  # the first keyframe's (rigid) move taken out
         moved = np.linalg.norm(rel[:, :3, 3] - self._kf_dense.poses[:, :3, 3], axis=1)
         return bool(moved.max() <= self.cfg.hybrid.untrusted_min_correction_m)
 
