@@ -197,6 +197,35 @@ def test_every_scene_has_orb_features(scenes):
         assert len(orb.detect(grey, None)) > 300, name
 
 
+def test_plain_texture_style_leaves_walls_texture_less(scenes):
+    """Style "plain": the same geometry, flat paint on walls / fabric / cabinets, so a view of the room has far
+    fewer ORB corners and far less image gradient than the rich style; a bad style is a clear error."""
+    from surfelslam.synth.textures import TextureConfig, make_texture
+
+    with pytest.raises(ConfigError, match="plain"):
+        TextureConfig(style="bare")
+    rng = np.random.default_rng(0)
+    wall_plain = make_texture("wallpaper", rng, 256, "plain").astype(np.float64)
+    wall_rich = make_texture("wallpaper", np.random.default_rng(0), 256, "rich").astype(np.float64)
+    grad = lambda img: np.abs(np.diff(img.mean(axis=2), axis=1)).mean()  # noqa: E731
+    assert grad(wall_plain) < 0.2 * grad(wall_rich)
+    assert wall_plain.std(axis=(0, 1)).max() < 0.1 * wall_plain.mean()  # nearly uniform paint
+    assert np.array_equal(make_texture("books", np.random.default_rng(1), 64, "plain"),
+                          make_texture("books", np.random.default_rng(1), 64, "rich"))  # structure kept
+    plain = make_scene("room", 0, TextureConfig(style="plain"))
+    assert np.array_equal(plain.prim_center, scenes["room"].prim_center)  # same geometry
+    intr = default_intrinsics(320, 240)
+    fast = cv2.FastFeatureDetector_create(20)
+    T = make_trajectory("slow", 1, plain).T_world_cam[0]
+    empty = []  # fraction of 20 x 20 px cells without a FAST corner
+    for sc in (scenes["room"], plain):
+        uv = np.array([k.pt for k in fast.detect(cv2.cvtColor(render(sc, T, intr).rgb, cv2.COLOR_RGB2GRAY))])
+        cells = np.zeros((intr.height // 20, intr.width // 20), bool)
+        cells[uv[:, 1].astype(int) // 20, uv[:, 0].astype(int) // 20] = True
+        empty.append(1.0 - cells.mean())
+    assert empty[0] < 0.1 and empty[1] > 0.2, empty  # rich: corners everywhere; plain: a quarter of the view bare
+
+
 def test_generate_sequence_is_deterministic_and_readable(tmp_path):
     a = generate_sequence(tmp_path / "a", "room", "handheld", 3, "kinect", seed=5, width=160, height=120)
     b = generate_sequence(tmp_path / "b", "room", "handheld", 3, "kinect", seed=5, width=160, height=120)
@@ -210,6 +239,7 @@ def test_generate_sequence_is_deterministic_and_readable(tmp_path):
     assert "generator       : surfelslam synth" in info
     assert "intrinsics      : fx=131.25 fy=131.25 cx=79.5 cy=59.5" in info
     assert "depth scale     : 5000" in info
+    assert "texture         : rich" in info
 
     from surfelslam.datasets import open_sequence
 

@@ -3,6 +3,11 @@
 Every texture is a square ``(S, S, 3)`` uint8 RGB image that tiles a surface at ``texel_m`` metres per
 texel. Patterns combine a coarse structure (checker, stripes/planks, blobs, rectangles) with value noise
 at several scales and high-contrast small marks, so ORB finds corners at every pyramid level.
+
+Style ``"plain"`` (:data:`TEXTURE_STYLES`) paints the walls, ceiling, rug, fabric, cabinets and metal in nearly
+uniform colours (a faint low-frequency shade, +-2 % detail), as in real rooms and ICL-NUIM's living room; only
+wood, books and posters keep their structure. Keypoints then cluster on a few objects and large parts of the
+view are texture-less, the case where feature tracking and photometric terms are weak.
 """
 
 from __future__ import annotations
@@ -16,14 +21,29 @@ import numpy as np
 from surfelslam.errors import ConfigError
 
 TEXTURE_KINDS = ("wallpaper", "wood", "plaster", "checker", "blobs", "fabric", "books", "metal", "poster")
+TEXTURE_STYLES = ("rich", "plain")
+# style "plain": each of these kinds becomes a flat paint of this colour (RGB); the others keep their pattern
+_PLAIN_PAINT = {
+    "wallpaper": (226, 218, 200),  # cream wall
+    "plaster": (232, 232, 228),  # white ceiling / wall
+    "checker": (170, 160, 150),  # grey-beige rug / floor covering
+    "blobs": (205, 210, 215),  # pale grey cabinet
+    "fabric": (95, 110, 140),  # blue-grey upholstery
+    "metal": (150, 152, 156),  # brushed metal without marks
+}
+_PLAIN_SHADE = 0.06  # +- fraction of the low-frequency shading of a plain paint
+_PLAIN_DETAIL = 0.02  # +- fraction of its fine-scale detail
 
 
 @dataclass(frozen=True)
 class TextureConfig:
     size_px: int = 1024  # texture side S (texels); a power of two (the renderer wraps with a bit mask)
     texel_m: float = 0.004  # metres per texel: 1024 texels cover 4.1 m before repeating
+    style: str = "rich"  # "rich" (texture everywhere) or "plain" (flat paint but for wood, books and posters)
 
     def __post_init__(self) -> None:
+        if self.style not in TEXTURE_STYLES:
+            raise ConfigError(f"unknown texture style {self.style!r}; known: {', '.join(TEXTURE_STYLES)}")
         if self.size_px < 2 or self.size_px & (self.size_px - 1):
             raise ConfigError(f"texture size_px must be a power of two >= 2, got {self.size_px}")
         if self.texel_m <= 0:
@@ -79,8 +99,22 @@ def _rects(rng: np.random.Generator, img: np.ndarray, n: int, size_px: tuple[int
         cv2.rectangle(img, (x, y), (x + w, y + h), tuple(float(v) for v in c), -1, cv2.LINE_8)
 
 
-def make_texture(kind: str, rng: np.random.Generator, size_px: int) -> np.ndarray:
-    """One texture ``(S, S, 3)`` uint8 RGB of the given kind (see :data:`TEXTURE_KINDS`)."""
+def plain_texture(kind: str, rng: np.random.Generator, size_px: int) -> np.ndarray:
+    """A nearly uniform paint ``(S, S, 3)`` uint8 RGB standing in for ``kind`` (style ``"plain"``)."""
+    s = size_px
+    tint = (rng.random(3).astype(np.float32) - 0.5) * 20.0
+    shade = fractal_noise(rng, s, (128, 256)) - 0.5
+    detail = fractal_noise(rng, s, (4, 16)) - 0.5
+    gain = 1.0 + 2.0 * _PLAIN_SHADE * shade + 2.0 * _PLAIN_DETAIL * detail
+    img = (np.asarray(_PLAIN_PAINT[kind], np.float32) + tint) * gain[..., None]
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def make_texture(kind: str, rng: np.random.Generator, size_px: int, style: str = "rich") -> np.ndarray:
+    """One texture ``(S, S, 3)`` uint8 RGB of the given kind (see :data:`TEXTURE_KINDS`) and style
+    (:data:`TEXTURE_STYLES`)."""
+    if style == "plain" and kind in _PLAIN_PAINT:
+        return plain_texture(kind, rng, size_px)
     s = size_px
     base = rng.random(3).astype(np.float32) * 60.0  # per-texture tint so each scene looks different
     detail = fractal_noise(rng, s, (4, 16, 64))
@@ -161,6 +195,6 @@ def make_texture_bank(kinds: tuple[str, ...], seed: int, cfg: TextureConfig = Te
     out = np.empty((len(kinds), cfg.size_px, cfg.size_px, 3), np.uint8)
     for i, kind in enumerate(kinds):
         rng = np.random.default_rng([seed, i, 7919])
-        out[i] = make_texture(kind, rng, cfg.size_px)
+        out[i] = make_texture(kind, rng, cfg.size_px, cfg.style)
     out.setflags(write=False)
     return out

@@ -28,6 +28,7 @@ from surfelslam.io.trajectory import write_tum
 from surfelslam.synth.noise import KinectNoiseConfig, frame_rng, noisy_depth, noisy_rgb
 from surfelslam.synth.render import RenderOutput, render
 from surfelslam.synth.scenes import Scene, make_scene
+from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory, replay_motion
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
@@ -98,12 +99,14 @@ def depth_to_raw(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.nd
 
 
 def info_text(
-    scene: str, motion_desc: str, noise: str, seed: int, n_frames: int, intr: Intrinsics, fps: float
+    scene: str, motion_desc: str, noise: str, seed: int, n_frames: int, intr: Intrinsics, fps: float,
+    texture: str = "rich",
 ) -> str:
     """INFO.txt of a generated sequence; ``motion_desc`` is the trajectory style or a replay's description."""
     rows = [
         ("generator", "surfelslam synth"),
         ("scene", scene),
+        ("texture", texture),
         ("trajectory", motion_desc),
         ("noise", noise),
         ("seed", str(seed)),
@@ -132,11 +135,13 @@ def generate_sequence(
     speed: float = 1.0,
     motion_start_s: float = 0.0,
     motion_label: str = "a recorded motion",
+    texture: str = "rich",
 ) -> Path:
     """Render and write a TUM-layout sequence to ``out_dir`` (created); returns its path.
 
     ``progress``: a callable ``progress(i)`` is called after frame ``i`` is written; ``True`` shows a tqdm
     bar on stderr (for the commands; library callers leave it False).
+    ``texture``: the scene's texture style (:data:`~surfelslam.synth.textures.TEXTURE_STYLES`).
     ``motion``: replay this recorded camera motion (:func:`~surfelslam.synth.trajectories.replay_motion`, at
     ``speed`` from ``motion_start_s``; ``motion_label`` names it in INFO.txt) instead of the ``style``.
     Bad names, sizes or motions raise ConfigError before anything is written.
@@ -144,7 +149,7 @@ def generate_sequence(
     noise_cfg = noise_config(noise)
     if width < 1 or height < 1:
         raise ConfigError(f"image size must be positive, got {width}x{height}")
-    sc = make_scene(scene, seed)
+    sc = make_scene(scene, seed, TextureConfig(style=texture))
     if motion is None:
         traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
         motion_desc = style
@@ -202,5 +207,6 @@ def generate_sequence(
     )
     write_text_atomic(out / "associations.txt", "".join(f"{n} rgb/{n}.png {n} depth/{n}.png\n" for n in names))
     write_tum(traj, out / "groundtruth.txt")
-    write_text_atomic(out / "INFO.txt", info_text(scene, motion_desc, noise, seed, n_frames, intr, fps))
+    write_text_atomic(out / "INFO.txt", info_text(scene, motion_desc, noise, seed, n_frames, intr, fps,
+                                                         texture))
     return out

@@ -16,6 +16,9 @@ def register(app: typer.Typer) -> None:
     def synth(
         out: Annotated[Path, typer.Argument(help="Output folder (created; existing frames are overwritten).")],
         scene: Annotated[str, typer.Option("--scene", help="Scene: room, office or plane.")] = "room",
+        texture: Annotated[str, typer.Option(
+            "--texture", help="rich (texture everywhere) or plain (flat painted walls, fabric and cabinets; "
+                              "texture only on wood, books and posters, as in real rooms).")] = "rich",
         frames: Annotated[int, typer.Option("--frames", help="Number of frames.")] = 300,
         noise: Annotated[str, typer.Option(
             "--noise", help="kinect (Kinect-v1-like), kinect-distorted (the same with a fixed low-frequency depth "
@@ -46,7 +49,8 @@ def register(app: typer.Typer) -> None:
         path = generate_sequence(
             out, scene=scene, style=trajectory, n_frames=frames, noise=noise, seed=seed,
             width=width, height=height, fps=fps, progress=True, motion=recorded, speed=speed,
-            motion_start_s=motion_start, motion_label=str(motion),
+            motion_start_s=motion_start, motion_label=str(motion), texture=texture,
         )
         what = trajectory if motion is None else f"motion of {motion} at {speed:g}x"
-        console.print(f"wrote {frames} frames ({scene}, {what}, noise {noise}, seed {seed}) to {path}")
+        console.print(f"wrote {frames} frames ({scene}, {texture} texture, {what}, noise {noise}, seed {seed}) "
+                      f"to {path}")
