@@ -215,3 +215,29 @@ def test_pnp_inlier_bound_scales_with_image_width():
     assert slam.cfg.features.reprojection_error_px == 4.0
     with pytest.raises(ValueError, match="features_reference_width_px"):
         SparseSlamConfig(features_reference_width_px=-1)
+
+
+def test_a_long_texture_loss_holds_the_last_pose(loop_frames) -> None:
+    """Forty frames without texture (a plain wall filling the view): every one is rejected; the first
+    ``velocity_reset_after_failures`` extrapolate the last motion, the rest keep the last pose, and every pose stays
+    a finite rigid transform (unbounded extrapolation once drifted metres and overflowed)."""
+    _, frames = loop_frames
+    cfg = replace(SparseSlamConfig(features=CFG), relocalise_after_failures=1000)
+    slam = SparseSlam(INTR, cfg)
+    poses = [slam.process(f).T_world_cam for f in frames[:8]]
+    blank = [RGBDFrame(f.index, f.timestamp, np.full_like(f.rgb, 128), f.depth_m) for f in frames[8:]]
+    blank = (blank * 3)[:40]
+    for f in blank:
+        r = slam.process(f)
+        assert not r.ok and r.reason == "too_few_matches"
+        poses.append(r.T_world_cam)
+    poses = np.array(poses)
+    assert np.isfinite(poses).all()
+    R = poses[:, :3, :3]
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+    n = cfg.velocity_reset_after_failures
+    step = pose_error(poses[8 + n - 1], poses[8 + n - 2])[0]
+    assert step > 1e-3  # the first rejected frames follow the last motion
+    np.testing.assert_allclose(poses[8 + n :], np.broadcast_to(poses[8 + n - 1], poses[8 + n :].shape))
+    with pytest.raises(ValueError, match="velocity_reset_after_failures"):
+        SparseSlamConfig(velocity_reset_after_failures=0)

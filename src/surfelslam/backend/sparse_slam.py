@@ -84,6 +84,10 @@ class SparseSlamConfig:
         keyframe_threshold: motion norm (m + rad) from the reference keyframe that makes a new keyframe
             (seeds: 0.1).
         rejected_pose: pose of a rejected frame: ``"constant_velocity"`` or ``"last"``.
+        velocity_reset_after_failures: after this many rejected frames in a row the constant-velocity prediction
+            stops (rejected frames keep the last pose) until a frame is tracked again. Without it a long loss (a
+            plain wall filling the view) extrapolated the last motion for every lost frame, 2 m in 40 frames,
+            and the repeated composition lost orthonormality until the poses overflowed.
         relocalise_after_failures: consecutive rejected frames before relocalisation is tried.
         relocalise_max_norm: motion-norm bound (m + rad) of a relocalisation PnP.
         loop: loop-candidate selection and verification.
@@ -108,6 +112,7 @@ class SparseSlamConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     keyframe_threshold: float = 0.1
     rejected_pose: str = "constant_velocity"
+    velocity_reset_after_failures: int = 3
     relocalise_after_failures: int = 3
     relocalise_max_norm: float = 10.0
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -121,6 +126,8 @@ class SparseSlamConfig:
             raise ValueError(f"rejected_pose must be one of {REJECTED_POSE_MODES}, got {self.rejected_pose!r}")
         if self.keyframe_threshold <= 0:
             raise ValueError(f"keyframe_threshold must be positive, got {self.keyframe_threshold}")
+        if self.velocity_reset_after_failures < 1:
+            raise ValueError(f"velocity_reset_after_failures must be >= 1, got {self.velocity_reset_after_failures}")
         if self.features_reference_width_px < 0:
             raise ValueError(f"features_reference_width_px must be >= 0, got {self.features_reference_width_px}")
         if self.features.detector != "orb":  # place recognition votes with binary (Hamming) descriptors
@@ -287,7 +294,7 @@ class SparseSlam:
 
     def _predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next ``T_world_cam``."""
-        return self._last_pose() @ self._velocity
+        return orthonormalize(self._last_pose() @ self._velocity)
 
     # --- processing ----------------------------------------------------------------------------------
 
@@ -346,7 +353,9 @@ class SparseSlam:
                 relocalised = True
                 T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
             else:
-                T_world_cam = T_pred if self.cfg.rejected_pose == "constant_velocity" else self._last_pose()
+                extrapolate = (self.cfg.rejected_pose == "constant_velocity"
+                               and self._n_failures <= self.cfg.velocity_reset_after_failures)
+                T_world_cam = T_pred if extrapolate else self._last_pose()
                 T_kf_cam = invert(T_world_kf) @ T_world_cam
             self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
             return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0, relocalised)
