@@ -203,11 +203,13 @@ def test_sparse_trackers_refuse_float_descriptors() -> None:
 
 
 def test_pnp_inlier_bound_scales_with_image_width():
-    """``reprojection_error_px`` is given for 320-px-wide images: doubled at 640x480, as given at 320 and below."""
+    """``reprojection_error_px`` and ``depth_edge_radius_px`` are given for 320-px-wide images: doubled at 640x480,
+    as given at 320 and below."""
     from surfelslam.backend.sparse_slam import SparseSlamConfig, features_for_width
 
     cfg = SparseSlamConfig()
     assert features_for_width(cfg, 640).features.reprojection_error_px == 2 * cfg.features.reprojection_error_px
+    assert features_for_width(cfg, 640).features.depth_edge_radius_px == 2 * cfg.features.depth_edge_radius_px
     assert features_for_width(cfg, 320) is cfg and features_for_width(cfg, 160) is cfg
     fixed = SparseSlamConfig(features_reference_width_px=0)
     assert features_for_width(fixed, 640) is fixed

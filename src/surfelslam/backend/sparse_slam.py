@@ -93,9 +93,10 @@ class SparseSlamConfig:
         loop: loop-candidate selection and verification.
         graph: pose-graph weights and solver.
         map: keyframe clouds and the final voxel-filtered map.
-        features_reference_width_px: ``features.reprojection_error_px`` (the PnP-RANSAC inlier bound) is given for
-            images this wide and scaled by ``width / features_reference_width_px`` for wider ones (never below the
-            value given; 0 = as given): the same angle, since keypoint jitter and colour / depth misregistration grow
+        features_reference_width_px: ``features.reprojection_error_px`` (the PnP-RANSAC inlier bound) and
+            ``features.depth_edge_radius_px`` are given for images this wide and scaled by
+            ``width / features_reference_width_px`` for wider ones (never below the value given; 0 = as given): the
+            same angle, since keypoint jitter and colour / depth misregistration grow
             with the resolution. 7-Scenes at 640x480 (2 px -> 4 px): frames 250-499 at 3x speed 50.60 -> 38.63 mm
             (dense 23.02: 2.20x -> 1.68x; fewer keyframe pairs verified at 2 px, 42 against 63 at 320x240), 0-249
             31.49 -> 28.31 (1x) and 27.73 -> 27.10 (3x), 250-499 38.11 -> 38.99, 0-499 36.27 -> 36.13, 0-499 at 2x
@@ -135,13 +136,15 @@ class SparseSlamConfig:
 
 
 def features_for_width(cfg: SparseSlamConfig, width_px: int) -> SparseSlamConfig:
-    """``cfg`` with ``features.reprojection_error_px`` scaled for images ``width_px`` wide
-    (see ``SparseSlamConfig.features_reference_width_px``)."""
+    """``cfg`` with ``features.reprojection_error_px`` and ``features.depth_edge_radius_px`` scaled for images
+    ``width_px`` wide (see ``SparseSlamConfig.features_reference_width_px``)."""
     ref = cfg.features_reference_width_px
     if ref <= 0 or width_px <= ref:
         return cfg
     f = cfg.features
-    return replace(cfg, features=replace(f, reprojection_error_px=f.reprojection_error_px * width_px / ref))
+    scale = width_px / ref
+    return replace(cfg, features=replace(f, reprojection_error_px=f.reprojection_error_px * scale,
+                                         depth_edge_radius_px=int(round(f.depth_edge_radius_px * scale))))
 
 
 @dataclass
