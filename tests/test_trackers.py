@@ -235,6 +235,39 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert _ate_m(est, gt) < 0.5 * _ate_m(est_pnp, gt), (_ate_m(est, gt), _ate_m(est_pnp, gt))
 
 
+def test_pnp_check_ignores_an_ambiguous_pnp_pose_but_catches_sliding_icp():
+    """The hybrid's PnP check: a PnP pose off by the rotation / sideways-translation ambiguity of a distant planar
+    poster does not overrule an ICP pose that explains the same inliers; an ICP pose slid sideways does not."""
+    from surfelslam.backend.sparse_slam import KeyframeMatch
+
+    slam = HybridSlam(INTR, SlamConfig())
+    rng = np.random.default_rng(0)
+    poster = np.column_stack([rng.uniform(0.2, 0.9, 80), rng.uniform(-0.6, -0.1, 80), np.full(80, 3.0)])
+    T_true = se3.make_T(se3.so3_exp([0.01, -0.02, 0.005]), [0.02, 0.01, -0.03])  # T_world_cam
+    X = se3.transform_points(se3.invert(T_true), poster)
+    uv = np.column_stack([INTR.fx * X[:, 0] / X[:, 2] + INTR.cx, INTR.fy * X[:, 1] / X[:, 2] + INTR.cy])
+    uv += rng.normal(0, 0.3, uv.shape)
+    # yaw by 1.2 deg and a sideways shift that keeps the poster centre's pixel: 6 cm off, the same pixels +- 1 px
+    yaw = se3.so3_exp([0.0, np.radians(1.2), 0.0])
+    centre = poster.mean(axis=0) - T_true[:3, 3]
+    T_ambiguous = T_true.copy()
+    T_ambiguous[:3, :3] = T_true[:3, :3] @ yaw
+    T_ambiguous[:3, 3] = T_true[:3, 3] + centre - T_ambiguous[:3, :3] @ (T_true[:3, :3].T @ centre)
+    dt, dr = se3.pose_error(T_ambiguous, T_true)
+    assert dt > slam.cfg.hybrid.pnp_check_max_m and dr < slam.cfg.hybrid.pnp_check_max_deg
+    match = KeyframeMatch(T_ambiguous, 0, poster, uv)
+    assert not slam._disagrees(T_true, match)
+    # the same difference without the rotation: every inlier moves by ~6 px
+    T_slid = T_true.copy()
+    T_slid[:3, 3] = T_ambiguous[:3, 3]
+    assert slam._disagrees(T_slid, KeyframeMatch(T_true, 0, poster, uv))
+    # with the inlier test off, the metric bounds alone decide (the previous behaviour)
+    plain = HybridSlam(INTR, replace(SlamConfig(), hybrid=replace(SlamConfig().hybrid,
+                                                                  pnp_check_min_inlier_fraction=0.0)))
+    assert plain._disagrees(T_true, match)
+    assert not slam._disagrees(T_true, KeyframeMatch(T_true @ se3.exp(np.full(6, 1e-3)), 0, poster, uv))
+
+
 def test_loop_correction_moves_map_and_trajectory():
     """A graph correction ``D`` applied to every keyframe moves every surfel and frame pose by ``D``."""
     frames, _ = _frames("slow", N_SLOW)

@@ -78,14 +78,14 @@ import cv2
 import numpy as np
 
 from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner
-from surfelslam.backend.sparse_slam import KeyframeMatch, SparseSlam, SparseSlamConfig
+from surfelslam.backend.sparse_slam import KeyframeMatch, SparseSlam, SparseSlamConfig, features_for_width
 from surfelslam.errors import ConfigError, GroundTruthError
 from surfelslam.geometry import se3
-from surfelslam.geometry.camera import ColourRegistrationConfig, colour_at_depth_pixels
+from surfelslam.geometry.camera import ColourRegistrationConfig, colour_at_depth_pixels, project
 from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
-from surfelslam.tracking.features import Features, reprojection_spread_px
+from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_spread_px
 from surfelslam.tracking.geometric import GeometricGuessConfig, geometric_guess
 from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp, icp_failure, photometric_term
 from surfelslam.tracking.photometric import (
@@ -219,6 +219,21 @@ class HybridConfig:
             differ by more than ``pnp_check_max_m`` or ``pnp_check_max_deg``, ICP is retried from the PnP pose,
             and a frame whose ICP still disagrees is not fused (ICP can slide along repetitive or weakly
             constrained geometry while reporting a well-conditioned system). Costs one ORB extraction + PnP.
+        pnp_check_min_inlier_fraction: a difference beyond those bounds counts as a disagreement only if fewer
+            than this fraction of the PnP inliers reproject within the PnP inlier bound
+            (``sparse.features.reprojection_error_px``) under the ICP pose, i.e. the features contradict ICP
+            (0 = the metric bounds alone). A PnP pose whose inliers all lie on one distant textured plane (a
+            poster on a plain wall) is ambiguous between a small rotation and a sideways translation, and can be
+            far off while the correct ICP pose explains its inliers as well: 6 cm / 1.2 deg off with 80 inliers at
+            2.7-3.5 m in a synthetic plain-walled office (ICP 4 mm from the truth), where the metric bounds alone
+            overruled ICP (hybrid 7.5 mm ATE, dense 2.1). ICP sliding along a wall moves the features by many
+            pixels and is still caught.
+        pnp_trust_min_inliers: a PnP pose with fewer inliers neither adds the joint feature term nor can overrule
+            ICP in the PnP check (it still starts ICP again when ICP fails). With a handful of keypoints (cabinet
+            corners against plain walls) RANSAC can settle on a wrong consensus: 8-20 inliers and 1-18 cm off in a
+            synthetic plain-walled office, whose joint term doubled the hybrid's frame-to-frame error (ATE 3.92 mm
+            against dense's 2.82; 3.45 with a bound of 20, 2.91 with 30). 30 is also ORB-SLAM's bar for a tracked
+            frame.
         relocalise_after_failures: failed frames in a row after which the frame is relocalised against all
             keyframes (``SparseSlam.relocalise``) and ICP is started from that pose. 3, as the dense tracker's
             ``tracking.relocalise_after_failures`` (5 before 2026-11-27): after a 2 s gap in 7-Scenes (frames
@@ -286,6 +301,8 @@ class HybridConfig:
     pnp_check: bool = True
     pnp_check_max_m: float = 0.05
     pnp_check_max_deg: float = 5.0
+    pnp_check_min_inlier_fraction: float = 0.5
+    pnp_trust_min_inliers: int = 30
     loop_correction: bool = True
     dense_odometry_sigma_m: float = 0.001
     live_correction_min_m: float = 0.03
@@ -846,6 +863,11 @@ class HybridSlam(DenseSlam):
         # its PnP poses only guess or check ICP's: the PnP inlier bound stays as given at every width (scaled as for
         # the orb tracker, 640x480 7-Scenes went from dense's 25.06 to 25.32 mm: more PnP poses past the check)
         sp = replace(sp, features_reference_width_px=0)
+        # nor does it drop the keypoints on occluding contours from the sparse side (features.depth_edge_rel: with
+        # them off there its refined keyframe edges lost 1-10 % on synthetic sequences); its joint term leaves them
+        # out instead (_pnp_match)
+        self._contours = features_for_width(cfg.sparse, intr.width).features
+        sp = replace(sp, features=replace(sp.features, depth_edge_rel=0.0))
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         refiner, refined_scale = None, None
@@ -894,7 +916,8 @@ class HybridSlam(DenseSlam):
 
     def _reprojection_term(self, T_render: np.ndarray, match: KeyframeMatch | None) -> ReprojectionTerm | None:
         h = self.cfg.hybrid
-        if match is None or not self.joint or h.joint_weight == 0 or len(match.points_world) == 0:
+        if (match is None or not self.joint or h.joint_weight == 0
+                or len(match.points_world) < max(1, h.pnp_trust_min_inliers)):
             return None
         pts_t = se3.transform_points(se3.invert(T_render), match.points_world)
         sigma = max(h.joint_sigma_px, self._match_spread_px(match))
@@ -964,7 +987,7 @@ class HybridSlam(DenseSlam):
                 t.lap("pnp")
             guess = None if match is None else match.T_world_cam
             first_ok = res is not None and failure is None
-            if first_ok and guess is not None and h.pnp_check and self._disagrees(T_new, guess):
+            if first_ok and guess is not None and h.pnp_check and self._disagrees(T_new, match):
                 first_ok = False
                 failure = "disagrees_with_pnp"
                 self.counts["pnp_disagreements"] += 1
@@ -972,7 +995,7 @@ class HybridSlam(DenseSlam):
                 self.counts["pnp_guesses_tried"] += 1
                 r2, f2, T2 = self._icp_from(guess, np.eye(4), match)
                 t.lap("icp")
-                if f2 is None and h.pnp_check and self._disagrees(T2, guess):
+                if f2 is None and h.pnp_check and self._disagrees(T2, match):
                     f2 = "disagrees_with_pnp"
                 if f2 is None and (not r2.degenerate or not first_ok):
                     res, failure, T_new, from_prev = r2, None, T2, False
@@ -1071,12 +1094,29 @@ class HybridSlam(DenseSlam):
         if m is None:
             return None
         C_inv = se3.invert(self._correction(m.kf_id))
+        # inliers on occluding contours (sparse.features.depth_edge_rel, in this frame's depth) are no fixed points:
+        # left out of the joint term and the PnP check (in a plain-walled office, cabinet silhouettes against the
+        # wall raised the hybrid's frame-to-frame error by 40 %)
+        keep = ~on_occluding_contour(frame.depth_m, m.uv_cur, self._contours)
         return KeyframeMatch(se3.orthonormalize(C_inv @ m.T_world_cam), m.kf_id,
-                             se3.transform_points(C_inv, m.points_world), m.uv_cur)
+                             se3.transform_points(C_inv, m.points_world[keep]), m.uv_cur[keep])
 
-    def _disagrees(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
-        dt, dr = se3.pose_error(T_a, T_b)
-        return dt > self.cfg.hybrid.pnp_check_max_m or dr > self.cfg.hybrid.pnp_check_max_deg
+    def _disagrees(self, T_icp: np.ndarray, match: KeyframeMatch) -> bool:
+        """Whether the ICP pose ``T_icp`` and the PnP pose of ``match`` disagree: beyond the metric bounds
+        (``hybrid.pnp_check_max_m`` / ``_deg``) and with too few of the PnP inliers consistent with the ICP pose
+        (``hybrid.pnp_check_min_inlier_fraction``)."""
+        h = self.cfg.hybrid
+        if len(match.uv_cur) < h.pnp_trust_min_inliers:
+            return False
+        dt, dr = se3.pose_error(T_icp, match.T_world_cam)
+        if dt <= h.pnp_check_max_m and dr <= h.pnp_check_max_deg:
+            return False
+        if h.pnp_check_min_inlier_fraction <= 0 or len(match.uv_cur) == 0:
+            return True
+        u, v, z = project(se3.transform_points(se3.invert(T_icp), match.points_world), self.intr)
+        err = np.hypot(u - match.uv_cur[:, 0], v - match.uv_cur[:, 1])
+        consistent = np.count_nonzero((z > 0) & (err <= self.sparse.cfg.features.reprojection_error_px))
+        return consistent < h.pnp_check_min_inlier_fraction * len(err)
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""
