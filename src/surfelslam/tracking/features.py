@@ -410,11 +410,11 @@ def _keypoint_depth(depth_m: np.ndarray, uv: np.ndarray, cfg: FeatureConfig) -> 
         z[~centre_ok] = np.nan
         if cfg.depth_plane_radius_px > 0:
             z = _plane_fit_depth(depth_m, uv, ui, vi, z, cfg)
-        if cfg.depth_edge_rel > 0:
-            z[_on_depth_edge(depth_m, ui, vi, z, cfg)] = np.nan
-        return z
-    z = depth_m[vi, ui].astype(np.float64)
-    z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
+    else:
+        z = depth_m[vi, ui].astype(np.float64)
+        z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
+    if cfg.depth_edge_rel > 0:
+        z[_on_depth_edge(depth_m, ui, vi, z, cfg)] = np.nan
     return z
 
 
