@@ -98,6 +98,26 @@ def test_trajectory_bad_file(tmp_path):
         Trajectory.read_tum(tmp_path / "none.txt")
 
 
+def test_appender_refuses_a_non_rigid_pose_and_keeps_earlier_lines(tmp_path):
+    """A tracker fault (non-finite or non-orthonormal pose) is a one-line TrackingError naming the frame's time, not
+    a traceback from the quaternion conversion; the lines written before it stay in the file."""
+    from surfelslam.errors import TrackingError
+    from surfelslam.io.trajectory import TumAppender
+
+    path = tmp_path / "trajectory.txt"
+    good = se3.exp(np.array([0.1, -0.2, 0.05, 0.3, 0.1, -0.2]))
+    bad_scale = good.copy()
+    bad_scale[:3, :3] *= 1.01
+    overflow = np.full((4, 4), 1e42)
+    with TumAppender(path) as out:
+        out.append(0.0, good)
+        for t, T in ((0.033333, bad_scale), (0.066667, overflow), (0.1, np.full((4, 4), np.nan))):
+            with pytest.raises(TrackingError, match=f"t = {t:.6f} s"):
+                out.append(t, T)
+    back = Trajectory.read_tum(path)
+    assert len(back) == 1 and np.allclose(back.T_world_cam[0], good, atol=1e-8)
+
+
 def test_pose_array_grows_by_doubling_and_keeps_its_poses():
     from surfelslam.types import PoseArray
 

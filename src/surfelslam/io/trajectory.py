@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.errors import InputError
+from surfelslam.errors import InputError, TrackingError
 from surfelslam.io.atomic import atomic_open
 from surfelslam.types import Trajectory
 
@@ -46,8 +46,19 @@ def read_tum(path: str | Path) -> Trajectory:
     return Trajectory.from_tum_rows(arr[order])
 
 
+#: Largest deviation from a rotation (max |R R^T - I|) of a pose written to a trajectory file.
+MAX_ROTATION_DEVIATION = 1e-3
+
+
 def format_tum_line(timestamp: float, T_world_cam: np.ndarray) -> str:
-    row = Trajectory(np.array([timestamp]), T_world_cam[None]).to_tum_rows()[0]
+    """One ``timestamp tx ty tz qx qy qz qw`` line; TrackingError (naming the timestamp) when ``T_world_cam`` is not
+    a finite rigid transform (a tracker fault, reported instead of a traceback; earlier lines stay written)."""
+    T = np.asarray(T_world_cam, np.float64)
+    R = T[:3, :3]
+    if not np.all(np.isfinite(T)) or np.abs(R @ R.T - np.eye(3)).max() > MAX_ROTATION_DEVIATION:
+        raise TrackingError(f"frame at t = {timestamp:.6f} s: the tracker produced a pose that is not a finite rigid "
+                            "transform; the trajectory up to the previous frame is written")
+    row = Trajectory(np.array([timestamp]), T[None]).to_tum_rows()[0]
     return f"{row[0]:.6f} " + " ".join(f"{x:.9f}" for x in row[1:]) + "\n"
 
 
