@@ -81,11 +81,11 @@ from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner
 from surfelslam.backend.sparse_slam import KeyframeMatch, SparseSlam, SparseSlamConfig, features_for_width
 from surfelslam.errors import ConfigError, GroundTruthError
 from surfelslam.geometry import se3
-from surfelslam.geometry.camera import ColourRegistrationConfig, colour_at_depth_pixels, project
+from surfelslam.geometry.camera import ColourRegistrationConfig, colour_at_depth_pixels
 from surfelslam.mapping.fusion import FusionConfig, fuse
 from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import MapConfig, SurfelMap
-from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_spread_px
+from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_inliers, reprojection_spread_px
 from surfelslam.tracking.geometric import GeometricGuessConfig, geometric_guess
 from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp, icp_failure, photometric_term
 from surfelslam.tracking.photometric import (
@@ -866,7 +866,7 @@ class HybridSlam(DenseSlam):
         # nor does it drop the keypoints on occluding contours from the sparse side (features.depth_edge_rel: with
         # them off there its refined keyframe edges lost 1-10 % on synthetic sequences); its joint term leaves them
         # out instead (_pnp_match)
-        self._contours = features_for_width(cfg.sparse, intr.width).features
+        self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
         sp = replace(sp, features=replace(sp.features, depth_edge_rel=0.0))
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
@@ -1097,7 +1097,7 @@ class HybridSlam(DenseSlam):
         # inliers on occluding contours (sparse.features.depth_edge_rel, in this frame's depth) are no fixed points:
         # left out of the joint term and the PnP check (in a plain-walled office, cabinet silhouettes against the
         # wall raised the hybrid's frame-to-frame error by 40 %)
-        keep = ~on_occluding_contour(frame.depth_m, m.uv_cur, self._contours)
+        keep = ~on_occluding_contour(frame.depth_m, m.uv_cur, self._contour_cfg)
         return KeyframeMatch(se3.orthonormalize(C_inv @ m.T_world_cam), m.kf_id,
                              se3.transform_points(C_inv, m.points_world[keep]), m.uv_cur[keep])
 
@@ -1113,10 +1113,9 @@ class HybridSlam(DenseSlam):
             return False
         if h.pnp_check_min_inlier_fraction <= 0 or len(match.uv_cur) == 0:
             return True
-        u, v, z = project(se3.transform_points(se3.invert(T_icp), match.points_world), self.intr)
-        err = np.hypot(u - match.uv_cur[:, 0], v - match.uv_cur[:, 1])
-        consistent = np.count_nonzero((z > 0) & (err <= self.sparse.cfg.features.reprojection_error_px))
-        return consistent < h.pnp_check_min_inlier_fraction * len(err)
+        consistent = reprojection_inliers(se3.transform_points(se3.invert(T_icp), match.points_world), match.uv_cur,
+                                          self.intr, self.sparse.cfg.features.reprojection_error_px)
+        return np.count_nonzero(consistent) < h.pnp_check_min_inlier_fraction * len(consistent)
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""

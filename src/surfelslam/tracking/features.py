@@ -832,12 +832,18 @@ def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarr
     return mask, rvec, tvec, None
 
 
+def reprojection_inliers(points_cam: np.ndarray, uv: np.ndarray, intr: Intrinsics, bound_px: float) -> np.ndarray:
+    """``(N,)`` bool: camera-frame points ``(N, 3)`` in front of the camera that project within ``bound_px`` of their
+    pixels ``uv (N, 2)``."""
+    u, v, z = project(points_cam, intr)
+    return (z > 0) & (np.hypot(u - uv[:, 0], v - uv[:, 1]) < bound_px)
+
+
 def _reprojection_inliers(obj: np.ndarray, uv: np.ndarray, intr: Intrinsics, rvec: np.ndarray, tvec: np.ndarray,
                           cfg: FeatureConfig) -> np.ndarray:
     """``(N,)`` bool: points in front of the camera that reproject within ``reprojection_error_px`` of ``uv``."""
     X = obj @ so3_exp(np.asarray(rvec, np.float64).reshape(3)).T + np.asarray(tvec, np.float64).reshape(3)
-    u, v, z = project(X, intr)
-    return (z > 0) & (np.hypot(u - uv[:, 0], v - uv[:, 1]) < cfg.reprojection_error_px)
+    return reprojection_inliers(X, uv, intr, cfg.reprojection_error_px)
 
 
 def _consensus_hypothesis(obj: np.ndarray, pts_cur: np.ndarray, uv_cur: np.ndarray, img: np.ndarray,
