@@ -10,7 +10,13 @@ import pytest
 
 from surfelslam.geometry.se3 import make_T, pose_error, so3_exp
 from surfelslam.kernels import consensus as kc
-from surfelslam.tracking.consensus import greedy_clique, pairwise_consistency, rigid_consensus, rigid_fit
+from surfelslam.tracking.consensus import (
+    greedy_clique,
+    has_consistent_set,
+    pairwise_consistency,
+    rigid_consensus,
+    rigid_fit,
+)
 from surfelslam.tracking.features import FeatureConfig, Features, estimate_motion
 from surfelslam.types import Intrinsics
 
@@ -37,11 +43,15 @@ def test_kernels_equal_numpy_references(seed: int) -> None:
     assert C.sum() > 0 and not C.all()
     degree = C.sum(axis=1).astype(np.int64)
     seeds = np.argsort(-degree, kind="stable")[:10].astype(np.int64)
-    for min_size in (1, 30, 10_000):
+    for min_size, stop_at in ((1, 0), (30, 0), (10_000, 0), (10, 10), (30, 25)):
         members = np.empty(len(C), np.int64)
-        k = kc.greedy_clique(C, seeds, degree, min_size, members)
-        np.testing.assert_array_equal(members[:k], kc.greedy_clique_ref(C, seeds, degree, min_size))
+        k = kc.greedy_clique(C, seeds, degree, min_size, stop_at, members)
+        np.testing.assert_array_equal(members[:k], kc.greedy_clique_ref(C, seeds, degree, min_size, stop_at))
     assert len(greedy_clique(C, 10, min_size=10_000)) == 0
+    # stopping early: a set of exactly that size, a prefix of the full growth from the same seed
+    full, early = greedy_clique(C, 10), greedy_clique(C, 10, stop_at=10)
+    assert len(full) >= 40 and len(early) == 10 and np.isin(early, full).all()
+    assert has_consistent_set(P, Q, 0.03, 0.05, 10, len(full)) and not has_consistent_set(P, Q, 0.03, 0.05, 10, 60)
 
 
 def test_clique_members_are_pairwise_consistent() -> None:
@@ -90,25 +100,29 @@ def _project(X: np.ndarray, intr: Intrinsics) -> np.ndarray:
     return np.column_stack([intr.fx * X[:, 0] / X[:, 2] + intr.cx, intr.fy * X[:, 1] / X[:, 2] + intr.cy])
 
 
-@pytest.mark.parametrize("intr", [INTR, INTR_NEG], ids=["fy_pos", "fy_neg"])
-def test_estimate_motion_falls_back_to_the_consensus(intr: Intrinsics) -> None:
-    """300 descriptor matches of which 36 (12 %) are correct, each with depth on both sides: 300 EPnP samples
-    of 5 almost never come out clean, so PnP-RANSAC alone fails; the consensus recovers the motion."""
-    rng = np.random.default_rng(8)
-    n, n_true = 300, 36
+def _scene(intr: Intrinsics, n: int, n_true: int, seed: int) -> tuple[Features, Features]:
+    """``n`` descriptor matches between two views ``T_VIEW`` apart, each with depth on both sides; the first
+    ``n_true`` are correct, the current side of the others is another random point of the current view."""
+    rng = np.random.default_rng(seed)
     # reference points in view of both cameras
     P = rng.uniform([-1.0, -0.7, 2.0], [1.0, 0.7, 3.5], (4 * n, 3))
     X = P @ T_VIEW[:3, :3].T + T_VIEW[:3, 3]
     uv_ref, uv_cur = _project(P, intr), _project(X, intr)
     inside = np.all((uv_cur > 5) & (uv_cur < [intr.width - 5, intr.height - 5]), axis=1) & (X[:, 2] > 0)
     P, X, uv_ref, uv_cur = P[inside][:n], X[inside][:n], uv_ref[inside][:n], uv_cur[inside][:n]
-    # wrong matches: the current side of the others is another random point of the current view
     wrong = np.arange(n_true, n)
     X[wrong] = rng.uniform([-1.0, -0.7, 2.0], [1.0, 0.7, 3.5], (len(wrong), 3))
     uv_cur[wrong] = _project(X[wrong], intr)
     desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)  # identical descriptors: match i <-> i
-    ref = _features(uv_ref, P, desc)
-    cur = _features(uv_cur, X, desc)
+    return _features(uv_ref, P, desc), _features(uv_cur, X, desc)
+
+
+@pytest.mark.parametrize("intr", [INTR, INTR_NEG], ids=["fy_pos", "fy_neg"])
+def test_estimate_motion_falls_back_to_the_consensus(intr: Intrinsics) -> None:
+    """300 descriptor matches of which 36 (12 %) are correct, each with depth on both sides: 300 EPnP samples
+    of 5 almost never come out clean, so PnP-RANSAC alone fails; the consensus recovers the motion."""
+    n, n_true = 300, 36
+    ref, cur = _scene(intr, n, n_true, 8)
     cfg = replace(FeatureConfig(), max_motion_norm=2.0, lk_refine=False, rgbd_refine_iterations=0)
     plain = estimate_motion(ref, cur, intr, replace(cfg, consensus_fallback=False))
     assert not plain.ok or pose_error(plain.T_cur_ref, T_VIEW)[0] > 0.05  # RANSAC alone misses it
@@ -120,3 +134,22 @@ def test_estimate_motion_falls_back_to_the_consensus(intr: Intrinsics) -> None:
     # the result does not depend on the call
     again = estimate_motion(ref, cur, intr, cfg)
     np.testing.assert_array_equal(again.T_cur_ref, res.T_cur_ref)
+
+
+def test_consistency_pretest_rejects_views_that_do_not_overlap() -> None:
+    """``min_consistent``: 150 good matches of which 6 are correct (two keyframes that barely overlap) hold no
+    rigidly consistent set of 10, so the pair is rejected before RANSAC (``too_few_consistent``); with 36 correct
+    ones the pre-test passes and the result is the one without it, bit for bit."""
+    cfg = replace(FeatureConfig(), max_motion_norm=2.0, lk_refine=False, rgbd_refine_iterations=0)
+    ref, cur = _scene(INTR, 150, 6, 3)
+    res = estimate_motion(ref, cur, INTR, cfg, min_consistent=10)
+    assert not res.ok and res.reason == "too_few_consistent" and res.n_inliers == 0
+    _, members = rigid_consensus(ref.points_cam, cur.points_cam, cfg.consensus_abs_tol_m, cfg.consensus_rel_tol,
+                                 cfg.consensus_seeds)
+    assert 6 <= len(members) < 10  # the six correct matches (plus any chance agreement) are all there is
+    ref, cur = _scene(INTR, 300, 36, 8)
+    with_test = estimate_motion(ref, cur, INTR, cfg, min_consistent=30)
+    without = estimate_motion(ref, cur, INTR, cfg)
+    assert with_test.ok and pose_error(with_test.T_cur_ref, T_VIEW)[0] < 1e-6
+    np.testing.assert_array_equal(with_test.T_cur_ref, without.T_cur_ref)
+    assert estimate_motion(ref, cur, INTR, cfg, min_consistent=37).reason == "too_few_consistent"

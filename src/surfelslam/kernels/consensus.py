@@ -37,7 +37,7 @@ def consistency_matrix_ref(P: np.ndarray, Q: np.ndarray, abs_tol: float, rel_tol
 
 
 @njit(cache=True, nogil=True)
-def greedy_clique(C, seeds, degree, min_size, members):
+def greedy_clique(C, seeds, degree, min_size, stop_at, members):
     """Largest greedy clique grown from ``seeds``; returns its size ``K`` (0 if none reaches ``min_size``).
 
     Each candidate's count of consistent candidates is kept up to date as candidates drop out (``O(N^2)`` per
@@ -48,6 +48,8 @@ def greedy_clique(C, seeds, degree, min_size, members):
         seeds: ``(S,)`` int64 start matches, by falling ``degree`` (a seed whose degree cannot beat the best set
             so far, or reach ``min_size``, ends the search).
         degree: ``(N,)`` int64 row sums of ``C``.
+        stop_at: when positive, stop as soon as a set has this many members and return it (a test for "is there
+            a consistent set this large", not the largest set).
         members: ``(N,)`` int64 output; ``members[:K]`` are the clique's indices in the order they joined.
     """
     n = C.shape[0]
@@ -79,6 +81,8 @@ def greedy_clique(C, seeds, degree, min_size, members):
                     pick = cand[a]
             grown[m] = pick
             m += 1
+            if m == stop_at:
+                break
             kept = 0
             nd = 0
             for a in range(nc):
@@ -98,10 +102,13 @@ def greedy_clique(C, seeds, degree, min_size, members):
         if m > best and m >= min_size:
             best = m
             members[:m] = grown[:m]
+            if m == stop_at:
+                break
     return best
 
 
-def greedy_clique_ref(C: np.ndarray, seeds: np.ndarray, degree: np.ndarray, min_size: int) -> np.ndarray:
+def greedy_clique_ref(C: np.ndarray, seeds: np.ndarray, degree: np.ndarray, min_size: int,
+                      stop_at: int = 0) -> np.ndarray:
     """Numpy reference of :func:`greedy_clique`: the clique's ``(K,)`` indices in joining order."""
     best = np.zeros(0, np.int64)
     for s in seeds:
@@ -112,7 +119,11 @@ def greedy_clique_ref(C: np.ndarray, seeds: np.ndarray, degree: np.ndarray, min_
         while cand.size:
             pick = int(cand[np.argmax(C[np.ix_(cand, cand)].sum(axis=1))])
             grown.append(pick)
+            if len(grown) == stop_at:
+                break
             cand = cand[C[pick, cand]]
         if len(grown) > len(best) and len(grown) >= min_size:
             best = np.array(grown, np.int64)
+            if len(grown) == stop_at:
+                break
     return best

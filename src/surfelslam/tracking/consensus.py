@@ -45,13 +45,14 @@ def pairwise_consistency(P_ref: np.ndarray, P_cur: np.ndarray, abs_tol_m: float,
     return C
 
 
-def greedy_clique(C: np.ndarray, n_seeds: int, min_size: int = 1) -> np.ndarray:
+def greedy_clique(C: np.ndarray, n_seeds: int, min_size: int = 1, stop_at: int = 0) -> np.ndarray:
     """A large set of matches that are all pairwise consistent (an approximate maximum clique of ``C``).
 
     Args:
         C: ``(N, N)`` symmetric bool consistency, False on the diagonal.
         n_seeds: grow one set from each of this many best-connected matches (ties by index); keep the largest.
         min_size: smallest set worth returning (seeds too poorly connected to reach it are not grown).
+        stop_at: when positive, the first set to reach this size is returned as it stands.
 
     Returns:
         ``(K,)`` int64 sorted indices of the set; empty when no set reaches ``min_size``. Deterministic.
@@ -62,7 +63,7 @@ def greedy_clique(C: np.ndarray, n_seeds: int, min_size: int = 1) -> np.ndarray:
     degree = C.sum(axis=1).astype(np.int64)
     seeds = np.argsort(-degree, kind="stable")[: max(n_seeds, 1)].astype(np.int64)
     members = np.empty(n, np.int64)
-    k = kc.greedy_clique(np.ascontiguousarray(C), seeds, degree, int(min_size), members)
+    k = kc.greedy_clique(np.ascontiguousarray(C), seeds, degree, int(min_size), int(stop_at), members)
     return np.sort(members[:k])
 
 
@@ -98,3 +99,16 @@ def rigid_consensus(P_ref: np.ndarray, P_cur: np.ndarray, abs_tol_m: float, rel_
     C = pairwise_consistency(P_ref[ok], P_cur[ok], abs_tol_m, rel_tol)
     members = ok[greedy_clique(C, n_seeds, max(min_size, _MIN_RIGID_POINTS))]
     return rigid_fit(P_ref[members], P_cur[members]), members
+
+
+def has_consistent_set(P_ref: np.ndarray, P_cur: np.ndarray, abs_tol_m: float, rel_tol: float, n_seeds: int,
+                       size: int) -> bool:
+    """Whether the matches ``(N, 3)`` / ``(N, 3)`` (rows with a non-finite coordinate ignored) hold a mutually
+    consistent set of ``size`` (see :func:`rigid_consensus`; growth stops once one set is that large)."""
+    P_ref = np.asarray(P_ref, np.float64)
+    P_cur = np.asarray(P_cur, np.float64)
+    ok = np.all(np.isfinite(P_ref), axis=1) & np.all(np.isfinite(P_cur), axis=1)
+    if ok.sum() < size:
+        return False
+    C = pairwise_consistency(P_ref[ok], P_cur[ok], abs_tol_m, rel_tol)
+    return len(greedy_clique(C, n_seeds, size, stop_at=size)) >= size

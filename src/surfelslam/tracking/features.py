@@ -28,12 +28,14 @@ from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
 from surfelslam.kernels import hamming
 from surfelslam.kernels import lk as klk
-from surfelslam.tracking.consensus import rigid_consensus
+from surfelslam.tracking.consensus import has_consistent_set, rigid_consensus
 from surfelslam.types import Intrinsics, RGBDFrame
 
 MATCHING_MODES = ("crosscheck", "ratio")
 DETECTORS = ("orb", "sift")
-REJECT_REASONS = ("too_few_matches", "too_few_inliers", "motion_too_large", "pnp_failed")
+REJECT_REASONS = (
+    "too_few_matches", "too_few_consistent", "too_few_inliers", "motion_too_large", "pnp_failed",
+)
 _DESCRIPTOR_BYTES = 32
 _SIFT_DIMS = 128
 _LK_MAX_ITERATIONS = 30  # Lucas-Kanade stops after this many iterations per level ...
@@ -875,6 +877,7 @@ def estimate_motion(
     intr: Intrinsics,
     cfg: FeatureConfig,
     T_init_cur_ref: np.ndarray | None = None,
+    min_consistent: int = 0,
 ) -> MotionResult:
     """Relative pose ``T_cur_ref`` by PnP-RANSAC: 3D from the reference depth, 2D from the current image.
 
@@ -882,6 +885,11 @@ def estimate_motion(
         ref, cur: features of the reference and the current frame (same intrinsics).
         intr: camera intrinsics (``fy`` may be negative).
         T_init_cur_ref: optional ``(4, 4)`` initial guess (used by RANSAC's iterative solver).
+        min_consistent: when positive, a cheap test before RANSAC: the good matches whose two ends both have
+            depth must hold a rigidly consistent set (:func:`~surfelslam.tracking.consensus.rigid_consensus`,
+            the ``consensus_*`` tolerances) of at least this many, else ``too_few_consistent``. Two views that do
+            not overlap still give a hundred or more good matches, and RANSAC then runs all its iterations in
+            vain; loop and relocalisation checks use it (``LoopConfig.min_consistent_matches``).
 
     Returns:
         :class:`MotionResult`; ``ok`` is False with a ``reason`` when a rejection rule fired.
@@ -892,6 +900,10 @@ def estimate_motion(
     if n_good < max(cfg.min_good_matches, 4):
         return _failed(m.n_raw, n_good, "too_few_matches", pairs)
     obj = ref.points_cam[pairs[:, 0]].astype(np.float64)
+    if min_consistent > 0:
+        if not has_consistent_set(obj, cur.points_cam[pairs[:, 1]], cfg.consensus_abs_tol_m, cfg.consensus_rel_tol,
+                                  cfg.consensus_seeds, min_consistent):
+            return _failed(m.n_raw, n_good, "too_few_consistent", pairs)
     K, sign = _cv_camera(intr)
     uv_cur = track_subpixel(ref, cur, pairs, cfg)
     img = _image_points_cv(uv_cur, intr, sign)
