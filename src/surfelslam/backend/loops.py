@@ -28,7 +28,7 @@ class LoopConfig:
             Most candidates do not overlap the new keyframe, yet give 100-170 good matches, on which RANSAC runs
             its 300 iterations in vain (10-15 ms each, most of a keyframe's loop-check time). Measured with the
             orb tracker, the accepted edges' consistent sets were at least 16 (7-Scenes 0-499, 320x240; 18 at
-            6x speed; 27-61 on five synthetic sequences), the failed candidates' median 6 (7-Scenes) to 21
+            6x speed; 27-61 on four synthetic sequences), the failed candidates' median 6 (7-Scenes) to 21
             (synthetic office replay at 3x).
         retrieval: descriptor-voting parameters.
     """
