@@ -114,6 +114,7 @@ def test_hybrid_relocalises_after_a_two_second_gap():
     keep = list(range(0, 35)) + list(range(95, 130))  # 60 frames (2 s at 30 Hz) dropped
     est, res, slam = _run("hybrid", [frames[i] for i in keep])
     assert slam.counts["relocalisations_tracked"] == 1 and res.metrics["tracking_failures"] == 3
+    assert res.metrics["relocalisations"] == 1 and res.metrics["shape_relocalisations"] == 0
     after = np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est[35:], keep[35:], strict=True)])
     # 3 frames lost (the PnP guess against the last keyframe is too large a motion), then relocalised against all
     # keyframes (``hybrid.relocalise_after_failures``, as dense's): measured 2 mm from the fourth frame on
@@ -148,6 +149,7 @@ def test_hybrid_relocalises_textureless_frames_by_shape():
     err, res = _gap_run("hybrid", grey=True)
     assert res.metrics["relocalisations_tracked"] == 0  # PnP has no keypoints
     assert res.metrics["shape_relocalisations"] == 1 and res.metrics["tracking_failures"] == 3
+    assert res.metrics["relocalisations"] == 1  # the key dense and orb report too
     assert err[35 + 3:].max() < 0.01, err[35:]
     with pytest.raises(ConfigError, match="relocalise_after_failures"):
         TrackingConfig(relocalise_after_failures=-1)

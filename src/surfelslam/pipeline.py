@@ -1146,6 +1146,8 @@ class HybridSlam(DenseSlam):
                             "photometric": self.photometric, "joint_features": self.joint, **self.counts,
                             "shape_relocalisations_tried": self.relocalisations["tried"],
                             "shape_relocalisations": self.relocalisations["tracked"],
+                            # recovered frames by either route, the key every tracker reports
+                            "relocalisations": self.counts["relocalisations_tracked"] + self.relocalisations["tracked"],
                             **_sparse_metrics(self.sparse, res)})
         # with nothing corrected at all, the frames keep their tracked poses (T_kf T_kf_cam would round them)
         if self.cfg.hybrid.loop_correction and self.counts["map_corrections"] > 0:
