@@ -122,6 +122,11 @@ def test_run_bad_input_is_one_line(tmp_path):
     cfg.write_text("[icp]\nbogus = 1\n")
     res = runner.invoke(app, ["run", str(tmp_path), "--config", str(cfg)])
     assert res.exit_code == 2 and "bogus" in res.output
+    # the message keeps its [section] name (rich markup used to swallow it) and names the file
+    cfg.write_text("[sparse.loop]\nmin_consistent_matches = -1\n")
+    res = runner.invoke(app, ["run", str(tmp_path), "--config", str(cfg)])
+    assert res.exit_code == 2
+    assert f"{cfg}: config: [sparse.loop] min_consistent_matches must be >= 0, got -1" in res.output
 
 
 def test_config_file_overrides_defaults(synth_seq, tmp_path):

@@ -9,6 +9,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError, SurfelSlamError
@@ -21,6 +22,12 @@ EXIT_BAD_INPUT = 2
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+def print_error(message: object) -> None:
+    """``error: <message>`` on stderr, the message printed as it is (rich markup would eat ``[section]`` names and
+    bracketed paths)."""
+    err_console.print(f"[bold red]error:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+
+
 def handle_errors(fn: F) -> F:
     """Turn every ``SurfelSlamError`` (and OS-level file errors) into one line on stderr and exit 2."""
 
@@ -29,11 +36,11 @@ def handle_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except SurfelSlamError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            print_error(exc)
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except OSError as exc:
             where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-            err_console.print(f"[bold red]error:[/] {where}{exc.strerror or exc}", highlight=False, soft_wrap=True)
+            print_error(f"{where}{exc.strerror or exc}")
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]")

@@ -9,9 +9,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from rich.markup import escape
+
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.errors import SurfelSlamError
-from surfelslam.tools.common import console, err_console
+from surfelslam.tools.common import console, print_error
 
 DEMO_SCENE = "room"
 DEMO_TRAJECTORY = "handheld"
@@ -33,11 +35,11 @@ def main(argv: list[str] | None = None) -> int:
         seq_dir = out / "sequence"
         if not (seq_dir / "INFO.txt").is_file():
             console.print(f"[bold]1/3 synth[/]: {DEMO_FRAMES} frames of scene '{DEMO_SCENE}', "
-                          f"'{DEMO_TRAJECTORY}' motion, Kinect-like noise -> {seq_dir}")
+                          f"'{DEMO_TRAJECTORY}' motion, Kinect-like noise -> {escape(str(seq_dir))}")
             generate_sequence(seq_dir, scene=DEMO_SCENE, style=DEMO_TRAJECTORY, n_frames=DEMO_FRAMES,
                               noise="kinect", seed=DEMO_SEED, width=640, height=480, progress=True)
         else:
-            console.print(f"[bold]1/3 synth[/]: reusing {seq_dir}")
+            console.print(f"[bold]1/3 synth[/]: reusing {escape(str(seq_dir))}")
         seq = open_sequence(seq_dir, DatasetOptions(downsample=DEMO_DOWNSAMPLE))
         from surfelslam.pipeline import SlamConfig
 
@@ -49,9 +51,9 @@ def main(argv: list[str] | None = None) -> int:
         print_summary(metrics, run_dir)
         console.print("[bold]3/3 eval[/]")
         ate_cm = metrics["eval"]["ate_rmse_m"] * 100 if "eval" in metrics else float("nan")
-        console.print(f"ATE RMSE: {ate_cm:.2f} cm   FPS: {metrics['fps']:.1f}   outputs: {run_dir}")
+        console.print(f"ATE RMSE: {ate_cm:.2f} cm   FPS: {metrics['fps']:.1f}   outputs: {run_dir}", markup=False)
     except SurfelSlamError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False)
+        print_error(exc)
         return 2
     return 0
 

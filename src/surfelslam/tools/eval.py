@@ -105,4 +105,4 @@ def register(app: typer.Typer) -> None:
         res = run_eval(est, gt, out, max_diff, plots=not no_plots)
         console.print(results_table(res, f"{est.name} vs {gt}"))
         for f in res["files"].values():
-            console.print(f"wrote {f}", highlight=False)
+            console.print(f"wrote {f}", highlight=False, markup=False)

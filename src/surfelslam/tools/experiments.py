@@ -608,4 +608,4 @@ def register(app: typer.Typer) -> None:
         t0 = time.perf_counter()
         res = run_experiments(seq, seq_runs, out, cfg, opts)
         console.print(f"wrote {out / 'report.md'} in {time.perf_counter() - t0:.0f} s "
-                      f"({res['frames_run']} frames run, pairs {res['pairs']})", highlight=False)
+                      f"({res['frames_run']} frames run, pairs {res['pairs']})", highlight=False, markup=False)

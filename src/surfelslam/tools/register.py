@@ -251,4 +251,4 @@ def register(app: typer.Typer) -> None:
         console.print(f"depth agreement (median |dz| where the moved source meets target depth): {text}",
                       highlight=False)
         console.print(f"wrote {out / 'registration.json'}, {out / 'before.png'}, {out / 'after.png'}",
-                      highlight=False)
+                      highlight=False, markup=False)

@@ -9,6 +9,7 @@ from typing import Annotated
 
 import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 from tqdm import tqdm
 
@@ -192,7 +193,8 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
             t.add_row(k.replace("_", " "), str(metrics[k]))
     console.print(t)
     for s in metrics["skipped"][:5]:
-        console.print(f"[yellow]skipped frame {s['position']}:[/] {s['reason']}", highlight=False, soft_wrap=True)
+        console.print(f"[yellow]skipped frame {s['position']}:[/] {escape(s['reason'])}", highlight=False,
+                      soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:

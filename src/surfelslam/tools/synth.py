@@ -53,4 +53,4 @@ def register(app: typer.Typer) -> None:
         )
         what = trajectory if motion is None else f"motion of {motion} at {speed:g}x"
         console.print(f"wrote {frames} frames ({scene}, {texture} texture, {what}, noise {noise}, seed {seed}) "
-                      f"to {path}")
+                      f"to {path}", markup=False)
