@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from surfelslam.errors import GroundTruthError, InputError
@@ -43,7 +44,7 @@ def _fmt(value: float | None, digits: int = 4) -> str:
 
 
 def results_table(res: dict, title: str) -> Table:
-    table = Table(title=title, show_header=True, header_style="bold")
+    table = Table(title=escape(title), show_header=True, header_style="bold")
     table.add_column("metric")
     table.add_column("value", justify="right")
     table.add_column("unit")

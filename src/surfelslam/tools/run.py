@@ -174,7 +174,7 @@ def _write_figures(out_dir: Path, seq, result, metrics: dict) -> None:
 
 
 def print_summary(metrics: dict, out_dir: Path) -> None:
-    t = Table(title=f"surfelslam run -> {out_dir}", show_header=False)
+    t = Table(title=f"surfelslam run -> {escape(str(out_dir))}", show_header=False)
     t.add_row("frames", f"{metrics['frames_processed']} processed, {metrics['frames_skipped']} skipped")
     t.add_row("tracking failures", str(metrics.get("tracking_failures", 0)))
     t.add_row("FPS", f"{metrics['fps']:.1f}  (JIT warm-up {metrics['warmup_s']:.1f} s excluded)")
@@ -187,7 +187,7 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
         t.add_row("RPE / frame", f"{e['rpe_trans_rmse_m_per_frame'] * 1000:.2f} mm, "
                                  f"{e['rpe_rot_rmse_deg_per_frame']:.3f} deg")
     elif "eval_error" in metrics:
-        t.add_row("ATE", f"not computed: {metrics['eval_error']}")
+        t.add_row("ATE", f"not computed: {escape(str(metrics['eval_error']))}")
     for k in ("loops_found", "loops_accepted"):
         if k in metrics:
             t.add_row(k.replace("_", " "), str(metrics[k]))
