@@ -188,7 +188,7 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
                                  f"{e['rpe_rot_rmse_deg_per_frame']:.3f} deg")
     elif "eval_error" in metrics:
         t.add_row("ATE", f"not computed: {escape(str(metrics['eval_error']))}")
-    for k in ("loops_found", "loops_accepted"):
+    for k in ("relocalisations", "loops_found", "loops_accepted"):
         if k in metrics:
             t.add_row(k.replace("_", " "), str(metrics[k]))
     console.print(t)
