@@ -88,7 +88,9 @@ class SparseSlamConfig:
             stops (rejected frames keep the last pose) until a frame is tracked again. Without it a long loss (a
             plain wall filling the view) extrapolated the last motion for every lost frame, 2 m in 40 frames,
             and the repeated composition lost orthonormality until the poses overflowed.
-        relocalise_after_failures: consecutive rejected frames before relocalisation is tried.
+        relocalise_after_failures: consecutive rejected frames before relocalisation is tried. A relocalised frame
+            at least ``keyframe_threshold`` from the keyframe it was found against becomes a keyframe (the next
+            frames are tracked against it; from the old keyframe they would exceed ``features.max_motion_norm``).
         relocalise_max_norm: motion-norm bound (m + rad) of a relocalisation PnP.
         loop: loop-candidate selection and verification.
         graph: pose-graph weights and solver.
@@ -351,16 +353,27 @@ class SparseSlam:
             if self._n_failures >= self.cfg.relocalise_after_failures:
                 reloc = self._relocalise_features(feats)
             if reloc is not None:
-                T_world_cam, self._ref_kf, _ = reloc
+                T_world_cam, self._ref_kf, reloc_res = reloc
                 self._n_failures = 0
                 relocalised = True
                 T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+                if motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold:
+                    # The next frames are tracked against this view: from the keyframe it was found against they
+                    # are as far as this frame is (up to relocalise_max_norm), beyond the odometry's motion bound,
+                    # so without a keyframe here every one of them was rejected and relocalised again.
+                    self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, reloc_res.information)
+                    T_world_cam = self._kf_poses[-1]
+                    self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
+                    self._velocity = np.eye(4)  # the motion across the loss is unknown
+                    return SparseFrameResult(T_world_cam.copy(), True, False, res.reason, res.n_inliers, 0, True)
             else:
                 extrapolate = (self.cfg.rejected_pose == "constant_velocity"
                                and self._n_failures <= self.cfg.velocity_reset_after_failures)
                 T_world_cam = T_pred if extrapolate else self._last_pose()
                 T_kf_cam = invert(T_world_kf) @ T_world_cam
             self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+            if relocalised:
+                self._velocity = np.eye(4)  # the motion across the loss is unknown
             return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0, relocalised)
 
         self._n_failures = 0
