@@ -334,6 +334,7 @@ class SparseSlam:
         ref = self._kfs[self._ref_kf]
         relocalised = False
         res = None
+        information = None  # of the measurement behind a new keyframe's edge (None: a dense pose, isotropic)
         if T_world_cam_dense is None:
             res = estimate_motion(ref.features, feats, self.intr, self.cfg.features,
                                   T_init_cur_ref=invert(T_pred) @ T_world_kf)
@@ -345,6 +346,7 @@ class SparseSlam:
             T_kf_cam = invert(res.T_cur_ref)
             T_world_cam = T_world_kf @ T_kf_cam
             ok = True
+            information = res.information
         else:
             ok = False
             self.rejected[res.reason or "pnp_failed"] += 1
@@ -352,39 +354,31 @@ class SparseSlam:
             reloc = None
             if self._n_failures >= self.cfg.relocalise_after_failures:
                 reloc = self._relocalise_features(feats)
-            if reloc is not None:
-                T_world_cam, self._ref_kf, reloc_res = reloc
-                self._n_failures = 0
-                relocalised = True
-                T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
-                if motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold:
-                    # The next frames are tracked against this view: from the keyframe it was found against they
-                    # are as far as this frame is (up to relocalise_max_norm), beyond the odometry's motion bound,
-                    # so without a keyframe here every one of them was rejected and relocalised again.
-                    self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, reloc_res.information)
-                    T_world_cam = self._kf_poses[-1]
-                    self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
-                    self._velocity = np.eye(4)  # the motion across the loss is unknown
-                    return SparseFrameResult(T_world_cam.copy(), True, False, res.reason, res.n_inliers, 0, True)
-            else:
+            if reloc is None:
                 extrapolate = (self.cfg.rejected_pose == "constant_velocity"
                                and self._n_failures <= self.cfg.velocity_reset_after_failures)
                 T_world_cam = T_pred if extrapolate else self._last_pose()
-                T_kf_cam = invert(T_world_kf) @ T_world_cam
-            self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
-            if relocalised:
-                self._velocity = np.eye(4)  # the motion across the loss is unknown
-            return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0, relocalised)
+                self._record(frame.timestamp, self._ref_kf, invert(T_world_kf) @ T_world_cam, T_world_cam)
+                return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0)
+            # Relocalised: the keyframe rule below applies as to a tracked frame. From the keyframe it was found
+            # against, the next frames are as far as this one (up to relocalise_max_norm), beyond the odometry's
+            # motion bound, so without a keyframe here every one of them was rejected and relocalised again.
+            T_world_cam, self._ref_kf, reloc_res = reloc
+            relocalised = True
+            T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+            information = reloc_res.information
 
         self._n_failures = 0
         is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
         if is_kf:
-            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam,
-                               None if res is None else res.information)
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
             T_world_cam = self._kf_poses[-1]
             self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
         else:
             self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+        if relocalised:
+            self._velocity = np.eye(4)  # the motion across the loss is unknown
+            return SparseFrameResult(T_world_cam.copy(), is_kf, False, res.reason, res.n_inliers, 0, True)
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
                                  loops_added)

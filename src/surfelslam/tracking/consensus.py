@@ -95,20 +95,25 @@ def rigid_consensus(P_ref: np.ndarray, P_cur: np.ndarray, abs_tol_m: float, rel_
     """
     P_ref = np.asarray(P_ref, np.float64)
     P_cur = np.asarray(P_cur, np.float64)
-    ok = np.flatnonzero(np.all(np.isfinite(P_ref), axis=1) & np.all(np.isfinite(P_cur), axis=1))
-    C = pairwise_consistency(P_ref[ok], P_cur[ok], abs_tol_m, rel_tol)
-    members = ok[greedy_clique(C, n_seeds, max(min_size, _MIN_RIGID_POINTS))]
+    members = _consistent_members(P_ref, P_cur, abs_tol_m, rel_tol, n_seeds, max(min_size, _MIN_RIGID_POINTS))
     return rigid_fit(P_ref[members], P_cur[members]), members
+
+
+def _consistent_members(P_ref: np.ndarray, P_cur: np.ndarray, abs_tol_m: float, rel_tol: float, n_seeds: int,
+                        min_size: int, stop_at: int = 0) -> np.ndarray:
+    """Indices into the ``N`` rows of the greedy consistent set (rows with a non-finite coordinate ignored); see
+    :func:`greedy_clique` for ``min_size`` and ``stop_at``."""
+    ok = np.flatnonzero(np.all(np.isfinite(P_ref), axis=1) & np.all(np.isfinite(P_cur), axis=1))
+    if len(ok) < min_size:
+        return np.zeros(0, np.int64)
+    C = pairwise_consistency(P_ref[ok], P_cur[ok], abs_tol_m, rel_tol)
+    return ok[greedy_clique(C, n_seeds, min_size, stop_at)]
 
 
 def has_consistent_set(P_ref: np.ndarray, P_cur: np.ndarray, abs_tol_m: float, rel_tol: float, n_seeds: int,
                        size: int) -> bool:
     """Whether the matches ``(N, 3)`` / ``(N, 3)`` (rows with a non-finite coordinate ignored) hold a mutually
     consistent set of ``size`` (see :func:`rigid_consensus`; growth stops once one set is that large)."""
-    P_ref = np.asarray(P_ref, np.float64)
-    P_cur = np.asarray(P_cur, np.float64)
-    ok = np.all(np.isfinite(P_ref), axis=1) & np.all(np.isfinite(P_cur), axis=1)
-    if ok.sum() < size:
-        return False
-    C = pairwise_consistency(P_ref[ok], P_cur[ok], abs_tol_m, rel_tol)
-    return len(greedy_clique(C, n_seeds, size, stop_at=size)) >= size
+    members = _consistent_members(np.asarray(P_ref, np.float64), np.asarray(P_cur, np.float64), abs_tol_m, rel_tol,
+                                  n_seeds, size, stop_at=size)
+    return len(members) >= size
