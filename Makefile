@@ -3,6 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
 .PHONY: demo test bench lint clean
@@ -18,7 +19,12 @@ $(STAMP): $(PY) pyproject.toml
 demo: $(STAMP)
 	$(PY) -m surfelslam.tools.demo $(DEMO_OUT)
 
-test: $(STAMP)
+# the tests also cover `surfelslam rerun`, which needs the optional rerun-sdk (the `viz` extra)
+$(VIZ_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[dev,viz]" || echo "rerun-sdk not installable here: the rerun export tests skip"
+	touch $(VIZ_STAMP)
+
+test: $(STAMP) $(VIZ_STAMP)
 	$(PY) -m pytest -q
 
 bench: $(STAMP)

@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "register",
     "experiments",
     "calibrate_colour",
+    "export_rerun",
 ]
 
 for _name in COMMAND_MODULES:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
 
@@ -120,6 +121,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
         "skipped": skipped,
         "resolution": [seq.intrinsics.width, seq.intrinsics.height],
         "downsample": seq.options.downsample,
+        "dataset_options": asdict(seq.options),
         "fps": n_done / wall_s if wall_s > 0 else 0.0,
         "wall_s": wall_s,
         "warmup_s": warmup_s,
@@ -131,6 +133,9 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
         "compression_ratio": result.map_points / max(n_done * seq.intrinsics.width * seq.intrinsics.height, 1),
         **result.metrics,
     }
+    if result.loop_stamps:
+        # keyframe timestamps (s) of each accepted loop edge, for viewers (`surfelslam rerun`)
+        metrics["loop_edges"] = [[float(a), float(b)] for a, b in result.loop_stamps]
     if seq.ground_truth is not None and n_done >= 3:
         from surfelslam.eval.metrics import evaluate
         from surfelslam.types import Trajectory
@@ -215,11 +220,22 @@ def register(app: typer.Typer) -> None:
         end: EndOpt = None,
         stride: StrideOpt = 1,
         downsample: DownsampleOpt = 1,
+        rerun: Annotated[bool, typer.Option(
+            "--rerun", help="Also write OUT/run.rrd, a Rerun recording (needs rerun-sdk; see `surfelslam rerun`)."
+        )] = False,
     ) -> None:
         """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures."""
         if tracker not in TRACKERS:
             raise ConfigError(f"--tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
+        if rerun:
+            from surfelslam.viz.rerun_export import require_rerun
+
+            require_rerun()  # before the run, not after it
         cfg = load_config(config)
         seq = open_sequence(seq_path, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
         metrics = run_sequence(seq, out, cfg, tracker, poses=poses, progress=progress, figures=figures)
         print_summary(metrics, out)
+        if rerun:
+            from surfelslam.tools.export_rerun import export_run, print_export
+
+            print_export(*export_run(out, seq=seq))

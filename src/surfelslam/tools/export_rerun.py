@@ -1,0 +1,136 @@
+"""``surfelslam rerun RUN_DIR``: a finished run as a Rerun recording (``run.rrd``), with the sequence's images."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from surfelslam.errors import ConfigError, InputError
+from surfelslam.tools.common import DepthScaleOpt, IntrinsicsOpt, console, handle_errors, parse_intrinsics
+
+#: Largest difference (s) between a trajectory stamp and a frame stamp for the frame's images to be logged.
+FRAME_MATCH_S = 1e-4
+
+
+def _read_metrics(run_dir: Path) -> dict:
+    path = run_dir / "metrics.json"
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot read metrics ({exc})") from None
+
+
+def export_run(run_dir: Path, out: Path | None = None, seq_dir: Path | None = None, images_every: int = 10,
+               images: bool = True, intrinsics: str | None = None, depth_scale: float | None = None,
+               downsample: int | None = None, seq=None):
+    """Write ``run_dir``'s outputs (and, when the sequence is found, its ground truth and images) as a Rerun
+    recording. The sequence is ``seq`` (already open), else ``seq_dir``, else the one ``metrics.json`` names, opened
+    with the run's dataset options (``metrics.json``) unless ``intrinsics`` / ``depth_scale`` / ``downsample`` are
+    given. Returns ``(ExportSummary, notes)``: notes say what was left out and why."""
+    from surfelslam.io.ply import read_ply
+    from surfelslam.types import Trajectory
+    from surfelslam.viz.rerun_export import build_scene, require_rerun, write_recording
+
+    require_rerun()
+    if not run_dir.is_dir():
+        raise InputError(run_dir, "not a folder (expected the --out folder of `surfelslam run`)")
+    traj_path = run_dir / "trajectory.txt"
+    if not traj_path.is_file():
+        raise InputError(traj_path, "missing: not the output folder of `surfelslam run`")
+    est = Trajectory.read_tum(traj_path)
+    if len(est) == 0:
+        raise InputError(traj_path, "has no poses")
+    metrics = _read_metrics(run_dir)
+    notes: list[str] = []
+    map_path = run_dir / "map.ply"
+    vertices = read_ply(map_path) if map_path.is_file() else None
+    if vertices is None:
+        notes.append(f"no map: {map_path} is missing")
+
+    if seq is not None:
+        seq_dir = seq.root
+    elif seq_dir is None and metrics.get("sequence"):
+        seq_dir = Path(metrics["sequence"])
+        if not seq_dir.is_dir():
+            notes.append(f"no images or ground truth: the run's sequence {seq_dir} is not here (pass --seq)")
+            seq_dir = None
+    if seq is None and seq_dir is not None:
+        from surfelslam.datasets import open_sequence
+        from surfelslam.datasets.base import DatasetOptions
+
+        run_opts = metrics.get("dataset_options") or {}
+        fx_fy_cx_cy = parse_intrinsics(intrinsics) if intrinsics is not None else run_opts.get("intrinsics")
+        opts = DatasetOptions(
+            intrinsics=None if fx_fy_cx_cy is None else tuple(float(v) for v in fx_fy_cx_cy),
+            depth_scale=depth_scale if depth_scale is not None else run_opts.get("depth_scale"),
+            downsample=downsample if downsample is not None else int(metrics.get("downsample", 1)))
+        seq = open_sequence(seq_dir, opts)
+        res = metrics.get("resolution")
+        if res is not None and [seq.intrinsics.width, seq.intrinsics.height] != list(res):
+            raise ConfigError(f"{seq_dir} opens at {seq.intrinsics.width}x{seq.intrinsics.height}, the run was "
+                              f"{res[0]}x{res[1]}: pass the run's --downsample")
+    elif seq is None and not metrics.get("sequence"):
+        notes.append("no images or ground truth: metrics.json names no sequence (pass --seq)")
+
+    gt = None if seq is None else seq.ground_truth
+    scene = build_scene(est, vertices, metrics.get("loop_edges", []), gt)
+    frame_at = None
+    if seq is not None and images and len(seq):
+        stamps = seq.timestamps
+        after = np.searchsorted(stamps, est.timestamps)
+        lo, hi = np.clip(after - 1, 0, len(stamps) - 1), np.clip(after, 0, len(stamps) - 1)
+        best = np.where(np.abs(stamps[lo] - est.timestamps) <= np.abs(stamps[hi] - est.timestamps), lo, hi)
+        ok = np.abs(stamps[best] - est.timestamps) <= FRAME_MATCH_S
+
+        def frame_at(k: int):
+            return seq[int(best[k])] if ok[k] else None
+
+        if not ok.any():
+            notes.append(f"no images: no frame of {seq_dir} has the trajectory's timestamps")
+    out = run_dir / "run.rrd" if out is None else out
+    summary = write_recording(out, scene, None if seq is None else seq.intrinsics, frame_at, images_every)
+    return summary, notes
+
+
+def print_export(summary, notes: list[str]) -> None:
+    for n in notes:
+        console.print(f"note: {n}", highlight=False, markup=False)
+    for s in summary.frames_skipped[:5]:
+        console.print(f"skipped frame: {s}", highlight=False, markup=False)
+    console.print(f"wrote {summary.path} ({summary.poses} poses, {summary.points:,} map points, "
+                  f"{summary.loop_edges} loop edges, {summary.images} image pairs)", highlight=False,
+                  markup=False)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("rerun")
+    @handle_errors
+    def rerun_cmd(
+        run_dir: Annotated[Path, typer.Argument(help="Output folder of `surfelslam run`.")],
+        out: Annotated[Path | None, typer.Option("--out", help="Recording to write (default RUN_DIR/run.rrd).")] = None,
+        seq: Annotated[Path | None, typer.Option(
+            "--seq", help="The run's sequence (default: the one named in metrics.json), for images and ground "
+                          "truth.")] = None,
+        images_every: Annotated[int, typer.Option("--images-every", help="Log every N-th frame's colour and "
+                                                                         "depth images.")] = 10,
+        no_images: Annotated[bool, typer.Option("--no-images", help="Poses, map and trajectories only.")] = False,
+        intrinsics: IntrinsicsOpt = None,
+        depth_scale: DepthScaleOpt = None,
+        downsample: Annotated[int | None, typer.Option(
+            "--downsample", help="Image sampling of the run (default: the one in metrics.json).")] = None,
+    ) -> None:
+        """Write a run as a Rerun recording (map, estimate vs ground truth, loops, camera and images over time).
+
+        Needs the optional rerun-sdk (pip install 'surfelslam[viz]'); view with `rerun RUN_DIR/run.rrd`.
+        """
+        if images_every < 1:
+            raise ConfigError(f"--images-every must be >= 1, got {images_every}")
+        print_export(*export_run(run_dir, out, seq, images_every, not no_images, intrinsics, depth_scale,
+                                 downsample))
+
