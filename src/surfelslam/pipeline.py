@@ -916,8 +916,7 @@ class HybridSlam(DenseSlam):
 
     def _reprojection_term(self, T_render: np.ndarray, match: KeyframeMatch | None) -> ReprojectionTerm | None:
         h = self.cfg.hybrid
-        if (match is None or not self.joint or h.joint_weight == 0
-                or len(match.points_world) < max(1, h.pnp_trust_min_inliers)):
+        if match is None or not self.joint or h.joint_weight == 0 or not self._trusted(match):
             return None
         pts_t = se3.transform_points(se3.invert(T_render), match.points_world)
         sigma = max(h.joint_sigma_px, self._match_spread_px(match))
@@ -1101,17 +1100,22 @@ class HybridSlam(DenseSlam):
         return KeyframeMatch(se3.orthonormalize(C_inv @ m.T_world_cam), m.kf_id,
                              se3.transform_points(C_inv, m.points_world[keep]), m.uv_cur[keep])
 
+    def _trusted(self, match: KeyframeMatch) -> bool:
+        """Whether ``match`` has the inliers (``hybrid.pnp_trust_min_inliers``, at least one) for its PnP pose to add
+        the joint term or check ICP."""
+        return len(match.uv_cur) >= max(1, self.cfg.hybrid.pnp_trust_min_inliers)
+
     def _disagrees(self, T_icp: np.ndarray, match: KeyframeMatch) -> bool:
         """Whether the ICP pose ``T_icp`` and the PnP pose of ``match`` disagree: beyond the metric bounds
         (``hybrid.pnp_check_max_m`` / ``_deg``) and with too few of the PnP inliers consistent with the ICP pose
         (``hybrid.pnp_check_min_inlier_fraction``)."""
         h = self.cfg.hybrid
-        if len(match.uv_cur) < h.pnp_trust_min_inliers:
+        if not self._trusted(match):
             return False
         dt, dr = se3.pose_error(T_icp, match.T_world_cam)
         if dt <= h.pnp_check_max_m and dr <= h.pnp_check_max_deg:
             return False
-        if h.pnp_check_min_inlier_fraction <= 0 or len(match.uv_cur) == 0:
+        if h.pnp_check_min_inlier_fraction <= 0:
             return True
         consistent = reprojection_inliers(se3.transform_points(se3.invert(T_icp), match.points_world), match.uv_cur,
                                           self.intr, self.sparse.cfg.features.reprojection_error_px)
