@@ -48,6 +48,23 @@ def test_scene_is_put_in_the_ground_truth_frame():
     np.testing.assert_allclose(scene.loop_edges, [[T_gt[2][:3, 3], T_gt[9][:3, 3]]], atol=1e-9)
 
 
+def test_scene_of_a_run_that_never_moved_is_aligned_at_the_first_pose():
+    """Every estimated pose at one place (tracking lost throughout, as on frames 300 apart): Umeyama is degenerate,
+    so the first poses are made to coincide instead of failing."""
+    rng = np.random.default_rng(2)
+    stamps = np.arange(6) / 30.0
+    T_gt = _random_poses(6, rng)
+    T0 = se3.exp(np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3]))
+    scene = build_scene(Trajectory(stamps, np.repeat(T0[None], 6, axis=0)), None, [], Trajectory(stamps, T_gt))
+    assert scene.alignment == "origin"
+    np.testing.assert_allclose(scene.trajectory.T_world_cam, np.repeat(T_gt[:1], 6, axis=0), atol=1e-9)
+    assert scene.ate_errors_m[0] == pytest.approx(0.0, abs=1e-9)
+    np.testing.assert_allclose(scene.ate_errors_m[1:], np.linalg.norm(T_gt[1:, :3, 3] - T_gt[0, :3, 3], axis=1),
+                               atol=1e-9)
+    two = build_scene(Trajectory(stamps[:2], T_gt[:2]), None, [], Trajectory(stamps, T_gt))
+    assert two.alignment == "none" and two.ground_truth is None and two.ate_errors_m is None
+
+
 def test_scene_without_ground_truth_keeps_the_run_frame():
     rng = np.random.default_rng(1)
     est = Trajectory(np.arange(5) / 30.0, _random_poses(5, rng))

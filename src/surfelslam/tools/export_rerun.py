@@ -80,6 +80,11 @@ def export_run(run_dir: Path, out: Path | None = None, seq_dir: Path | None = No
 
     gt = None if seq is None else seq.ground_truth
     scene = build_scene(est, vertices, metrics.get("loop_edges", []), gt)
+    if scene.alignment == "origin":
+        notes.append("the SE(3) alignment to the ground truth is degenerate (the estimate does not move): the first "
+                     "poses are aligned instead")
+    elif gt is not None and scene.ground_truth is None:
+        notes.append("no ground truth shown: fewer than 3 poses have a ground-truth pose")
     frame_at = None
     if seq is not None and images and len(seq):
         stamps = seq.timestamps

@@ -3,7 +3,8 @@
 Needs the optional ``rerun-sdk`` (``pip install 'surfelslam[viz]'``); open the file with ``rerun FILE.rrd``.
 
 What is logged (entity paths; ``world`` is the ground truth's frame when the run has ground truth, the estimate
-then SE(3)-aligned to it as in the ATE, else the first camera's frame):
+then SE(3)-aligned to it as in the ATE (its first pose put on the ground truth's where that alignment is
+degenerate), else the first camera's frame):
 
 * ``world/map``: the run's ``map.ply`` points, with their colours and (surfel maps) radii; static.
 * ``world/estimate``, ``world/ground_truth``: the whole trajectories as line strips; static.
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.errors import ConfigError
+from surfelslam.geometry import se3
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
 #: Colours (RGB, uint8) of the logged trajectories and loop edges.
@@ -63,6 +65,9 @@ class RerunScene:
             ``points_radius_m``: ``(M,)`` float32 or ``None``.
         loop_edges: ``(L, 2, 3)`` segment end points of accepted loop edges.
         T_world_run: ``(4, 4)`` transform applied to the run's poses and map (the ATE alignment, or identity).
+        alignment: ``"se3"`` (the ATE's Umeyama alignment), ``"origin"`` (the first associated poses made to
+            coincide, when Umeyama is degenerate, e.g. a run lost throughout) or ``"none"`` (no ground truth, or
+            fewer than 3 poses associated with it).
     """
 
     trajectory: Trajectory
@@ -73,6 +78,7 @@ class RerunScene:
     points_radius_m: np.ndarray | None
     loop_edges: np.ndarray
     T_world_run: np.ndarray
+    alignment: str = "none"
 
 
 def _transform_points(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -92,15 +98,33 @@ def build_scene(est: Trajectory, map_vertices: dict[str, np.ndarray] | None, loo
     """
     T = np.eye(4)
     gt_assoc = errors = None
+    alignment = "none"
     if gt is not None:
+        from evo.core.geometry import GeometryException
+
+        from surfelslam.errors import GroundTruthError
         from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S, ate
 
-        a = ate(est, gt, DEFAULT_MAX_DIFF_S if max_diff_s is None else max_diff_s)
-        T = a.T_align
-        gt_assoc = a.gt
-        errors = np.full(len(est), np.nan)
-        pos = np.searchsorted(est.timestamps, a.timestamps)
-        errors[np.clip(pos, 0, len(est) - 1)] = a.errors_m
+        tol = DEFAULT_MAX_DIFF_S if max_diff_s is None else max_diff_s
+        try:
+            a = ate(est, gt, tol)
+            alignment = "se3"
+        except GeometryException:  # e.g. every estimated pose at one place (tracking lost throughout)
+            a = ate(est, gt, tol, align=False)
+            alignment = "origin"
+        except GroundTruthError:  # fewer than 3 poses associated: nothing to align or compare
+            a = None
+        if a is not None:
+            if alignment == "origin":  # the first associated poses coincide (evo's --align_origin)
+                k = int(np.searchsorted(est.timestamps, a.timestamps[0]))
+                T = a.gt.T_world_cam[0] @ se3.invert(est.T_world_cam[min(k, len(est) - 1)])
+                a = ate(Trajectory(est.timestamps, T @ est.T_world_cam), gt, tol, align=False)
+            else:
+                T = a.T_align
+            gt_assoc = a.gt
+            errors = np.full(len(est), np.nan)
+            pos = np.searchsorted(est.timestamps, a.timestamps)
+            errors[np.clip(pos, 0, len(est) - 1)] = a.errors_m
     traj = Trajectory(est.timestamps.copy(), T @ est.T_world_cam)
     xyz = np.zeros((0, 3), np.float32)
     rgb = radius = None
@@ -116,7 +140,7 @@ def build_scene(est: Trajectory, map_vertices: dict[str, np.ndarray] | None, loo
         i, j = (int(np.argmin(np.abs(traj.timestamps - float(t)))) for t in (ti, tj))
         segs.append((centres[i], centres[j]))
     loops = np.asarray(segs, np.float64).reshape(-1, 2, 3)
-    return RerunScene(traj, gt_assoc, errors, xyz, rgb, radius, loops, T)
+    return RerunScene(traj, gt_assoc, errors, xyz, rgb, radius, loops, T, alignment)
 
 
 @dataclass
