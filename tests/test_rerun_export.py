@@ -199,3 +199,23 @@ def test_run_with_rerun_flag_writes_the_recording(orb_run, tmp_path):
     again = runner.invoke(app, ["rerun", str(out), "--out", str(tmp_path / "again.rrd")])
     assert again.exit_code == 0, again.output
     assert "3 image pairs" in " ".join(again.output.split())
+
+
+def test_unreadable_frame_is_skipped_and_reported(orb_run, tmp_path):
+    """A frame that became unreadable since the run is left out of the images and named; the rest is written."""
+    import shutil
+
+    cli = _rerun_cli()
+    seq, out = orb_run
+    seq2 = tmp_path / "seq"
+    shutil.copytree(seq, seq2)
+    bad = sorted((seq2 / "depth").iterdir())[8]
+    bad.write_bytes(b"not a png")
+    res = runner.invoke(app, ["rerun", str(out), "--seq", str(seq2), "--images-every", "8", "--out",
+                              str(tmp_path / "r.rrd")])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert f"skippedframe:{bad}:cannotdecode" in "".join(res.output.split())  # rich wraps long paths
+    assert "4 image pairs" in text  # 0, 16, 24, 32; frame 8 skipped
+    rows = _rows_per_entity(cli, tmp_path / "r.rrd")
+    assert rows["/world/camera"] == 40 and rows["/world/camera/image/rgb"] == 4

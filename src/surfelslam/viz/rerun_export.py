@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.errors import ConfigError
+from surfelslam.errors import ConfigError, SurfelSlamError
 from surfelslam.geometry import se3
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
@@ -161,8 +161,6 @@ def write_recording(path: Path, scene: RerunScene, intr: Intrinsics | None = Non
     """Write ``scene`` (and every ``images_every``-th frame's images, ``frame_at(k)`` giving the frame of pose
     ``k`` or ``None``) to ``path``, through a temp file renamed at the end (a failed export leaves no
     half-written recording). A frame that cannot be read (``SurfelSlamError``) is skipped and listed."""
-    from surfelslam.errors import SurfelSlamError
-
     rr = require_rerun()
     if images_every < 1:
         raise ConfigError(f"images_every must be >= 1, got {images_every}")
@@ -175,7 +173,7 @@ def write_recording(path: Path, scene: RerunScene, intr: Intrinsics | None = Non
     n_images = 0
     try:
         rec.save(tmp)
-        if scene.ground_truth is None:  # the world is the first camera's frame: x right, y down, z forward
+        if scene.ground_truth is None:  # the run's frame (its first camera's): x right, y down, z forward
             rec.log("world", rr.ViewCoordinates.RDF, static=True)
         rec.log("world/map", rr.Points3D(scene.points_xyz, colors=scene.points_rgb,
                                          radii=scene.points_radius_m if scene.points_radius_m is not None
