@@ -12,7 +12,11 @@ Per frame (:meth:`SparseSlam.process`):
 3. Rejected: the reason is counted and the frame gets the constant-velocity prediction
    (``rejected_pose = "constant_velocity"``) or the last pose (``"last"``); it never becomes a
    keyframe. After ``relocalise_after_failures`` consecutive rejections, :meth:`relocalise`
-   searches all keyframes and, on success, tracking resumes against the keyframe found.
+   searches all keyframes and, on success, tracking resumes against the keyframe found. When nothing is
+   found for ``reinit_after_failures`` frames (the view after a gap shares no feature with any keyframe), a
+   frame with enough keypoints starts a new segment: a keyframe at the last pose, joined to the old one by an
+   edge that all but ignores the unknown motion (``reinit_sigma_*``). The first loop edge from the new segment
+   to the old one moves the segment rigidly onto it (then the graph is optimised as for any loop).
 
 Every frame pose is stored relative to its reference keyframe, so graph corrections move whole
 stretches of the trajectory rigidly with their keyframe.
@@ -92,6 +96,14 @@ class SparseSlamConfig:
             at least ``keyframe_threshold`` from the keyframe it was found against becomes a keyframe (the next
             frames are tracked against it; from the old keyframe they would exceed ``features.max_motion_norm``).
         relocalise_max_norm: motion-norm bound (m + rad) of a relocalisation PnP.
+        reinit_after_failures: consecutive rejected frames without a relocalisation after which a frame with at
+            least ``reinit_min_keypoints`` keypoints with depth starts a new segment (module docstring); 0 = never.
+            Without it a view that shares no feature with any keyframe (7-Scenes after 60 dropped frames) was lost
+            for the rest of the run.
+        reinit_min_keypoints: keypoints with depth a frame needs to start a segment (a plain wall does not).
+        reinit_sigma_m, reinit_sigma_rad: standard deviations of the edge that joins a new segment to the old one
+            (m, rad): the motion across the loss is unknown, so the edge must not hold the segment where the loop
+            closures put it.
         loop: loop-candidate selection and verification.
         graph: pose-graph weights and solver.
         map: keyframe clouds and the final voxel-filtered map.
@@ -118,6 +130,10 @@ class SparseSlamConfig:
     velocity_reset_after_failures: int = 3
     relocalise_after_failures: int = 3
     relocalise_max_norm: float = 10.0
+    reinit_after_failures: int = 5
+    reinit_min_keypoints: int = 100
+    reinit_sigma_m: float = 1.0
+    reinit_sigma_rad: float = 1.0
     loop: LoopConfig = field(default_factory=LoopConfig)
     graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     map: MapConfig = field(default_factory=MapConfig)
@@ -131,6 +147,12 @@ class SparseSlamConfig:
             raise ValueError(f"keyframe_threshold must be positive, got {self.keyframe_threshold}")
         if self.velocity_reset_after_failures < 1:
             raise ValueError(f"velocity_reset_after_failures must be >= 1, got {self.velocity_reset_after_failures}")
+        if self.reinit_after_failures < 0 or self.reinit_min_keypoints < 0:
+            raise ValueError(f"reinit_after_failures and reinit_min_keypoints must be >= 0, got "
+                             f"{self.reinit_after_failures} and {self.reinit_min_keypoints}")
+        if self.reinit_sigma_m <= 0 or self.reinit_sigma_rad <= 0:
+            raise ValueError(f"reinit_sigma_m and reinit_sigma_rad must be positive, got {self.reinit_sigma_m} and "
+                             f"{self.reinit_sigma_rad}")
         if self.features_reference_width_px < 0:
             raise ValueError(f"features_reference_width_px must be >= 0, got {self.features_reference_width_px}")
         if self.features.detector != "orb":  # place recognition votes with binary (Hamming) descriptors
@@ -252,6 +274,11 @@ class SparseSlam:
         self._pool: ThreadPoolExecutor | None = None
         self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
         self._unreported_loops = 0  # loops applied since the last frame result
+        self.n_reinitialisations = 0  # segments started after a long loss
+        self.n_segments_merged = 0  # of them, moved onto the older map by a loop edge
+        self._open_bridges: list[int] = []  # first keyframes of segments no loop edge has joined to the old map
+        self._lost: list[tuple[int, Features]] = []  # (frame slot, features) of the lost frames in a row
+        self.n_lost_placed = 0  # lost frames placed afterwards against the keyframe of a new segment
 
     # --- state -------------------------------------------------------------------------------------
 
@@ -354,10 +381,14 @@ class SparseSlam:
             reloc = None
             if self._n_failures >= self.cfg.relocalise_after_failures:
                 reloc = self._relocalise_features(feats)
+            if reloc is None and self._may_reinitialise(feats):
+                return self._reinitialise(frame, feats, res)
             if reloc is None:
                 extrapolate = (self.cfg.rejected_pose == "constant_velocity"
                                and self._n_failures <= self.cfg.velocity_reset_after_failures)
                 T_world_cam = T_pred if extrapolate else self._last_pose()
+                if self.cfg.reinit_after_failures > 0:  # a new segment may place it later (_reinitialise)
+                    self._lost = [*self._lost[-(self.cfg.reinit_after_failures - 1):], (len(self._timestamps), feats)]
                 self._record(frame.timestamp, self._ref_kf, invert(T_world_kf) @ T_world_cam, T_world_cam)
                 return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0)
             # Relocalised: the keyframe rule below applies as to a tracked frame. From the keyframe it was found
@@ -369,6 +400,7 @@ class SparseSlam:
             information = reloc_res.information
 
         self._n_failures = 0
+        self._lost = []
         is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
         if is_kf:
             self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
@@ -382,6 +414,50 @@ class SparseSlam:
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
                                  loops_added)
+
+    def _may_reinitialise(self, feats: Features) -> bool:
+        n = self.cfg.reinit_after_failures
+        return n > 0 and self._n_failures >= n and np.count_nonzero(feats.valid) >= self.cfg.reinit_min_keypoints
+
+    def _reinitialise(self, frame: RGBDFrame, feats: Features, res: MotionResult) -> SparseFrameResult:
+        """Start a new segment at this (lost) frame: a keyframe at the last pose, joined to the reference keyframe
+        by a weak edge (``reinit_sigma_*``); tracking goes on against it, and the frames lost just before it that
+        PnP places against it join it."""
+        T_world_cam = self._last_pose()
+        T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+        # information in gtsam's tangent order (rotation, translation)
+        info = np.diag([self.cfg.reinit_sigma_rad ** -2] * 3 + [self.cfg.reinit_sigma_m ** -2] * 3)
+        self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, info)
+        kf = self.n_keyframes - 1
+        self._open_bridges.append(kf)
+        self.n_reinitialisations += 1
+        self._n_failures = 0
+        # the frames lost just before are mostly close to this one: placed by PnP against it, they join the segment
+        for slot, lost in self._lost:
+            r = estimate_motion(self._kfs[kf].features, lost, self.intr, self.cfg.features)
+            if r.ok:
+                self._frame_kf[slot], self._T_kf_cam[slot] = kf, invert(r.T_cur_ref)
+                self.n_lost_placed += 1
+        self._lost = []
+        T_world_cam = self._kf_poses[-1]
+        self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
+        self._velocity = np.eye(4)  # the motion across the loss is unknown
+        return SparseFrameResult(T_world_cam.copy(), True, False, res.reason, res.n_inliers, 0)
+
+    def _merge_segment(self, i: int, j: int, T_i_j: np.ndarray) -> None:
+        """A loop edge ``i -> j`` from the newest segment (keyframe ``j``) to a keyframe ``i`` before it: move the
+        segment rigidly so that the edge holds (the graph's start; the optimisation does the rest)."""
+        if not self._open_bridges or not i < self._open_bridges[-1] <= j:
+            return
+        b = self._open_bridges.pop()
+        C = orthonormalize(self._kf_poses[i] @ T_i_j @ invert(self._kf_poses[j]))
+        for k in range(b, self.n_keyframes):
+            T = orthonormalize(C @ self._kf_poses[k])
+            self._kf_poses[k] = T
+            for g in (self._graph, self._graph_refined):
+                if g is not None:
+                    g.set_pose(k, T)
+        self.n_segments_merged += 1
 
     def _record(self, timestamp: float, kf: int, T_kf_cam: np.ndarray, T_world_cam: np.ndarray | None) -> None:
         if T_world_cam is not None and self._timestamps:
@@ -458,6 +534,9 @@ class SparseSlam:
     def _apply_loop_checks(self, kf_id: int, checked: list[LoopCheck]) -> None:
         """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older keyframe."""
         n_loops = 0
+        # (inliers, edge) of the best accepted edge (nearby or not) from the newest segment to a keyframe before it
+        bridging: tuple[int, PoseEdge] | None = None
+        b = self._open_bridges[-1] if self._open_bridges else None
         for check in checked:
             cand, res, refined = check.candidate, check.result, check.refined_T_cur_ref
             far = cand.source != "nearby"
@@ -487,7 +566,12 @@ class SparseSlam:
                 n_loops += 1
             elif added:
                 self.n_nearby_edges += 1
-        if n_loops > 0:
+            crosses = b is not None and cand.kf_id < b <= kf_id
+            if added and crosses and (bridging is None or res.n_inliers > bridging[0]):
+                bridging = (res.n_inliers, pnp)
+        if bridging is not None:
+            self._merge_segment(bridging[1].i, bridging[1].j, bridging[1].T_i_j)
+        if n_loops > 0 or bridging is not None:
             self._optimise()
         self._unreported_loops += n_loops
 
