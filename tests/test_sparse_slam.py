@@ -243,3 +243,10 @@ def test_a_long_texture_loss_holds_the_last_pose(loop_frames) -> None:
     np.testing.assert_allclose(poses[8 + n :], np.broadcast_to(poses[8 + n - 1], poses[8 + n :].shape))
     with pytest.raises(ValueError, match="velocity_reset_after_failures"):
         SparseSlamConfig(velocity_reset_after_failures=0)
+
+
+@pytest.mark.parametrize("field,value", [("reinit_after_failures", -1), ("reinit_min_keypoints", -5),
+                                         ("reinit_sigma_m", 0.0), ("reinit_sigma_rad", -1.0)])
+def test_bad_reinit_settings_are_rejected(field, value):
+    with pytest.raises(ValueError, match=field):
+        SparseSlamConfig(**{field: value})
