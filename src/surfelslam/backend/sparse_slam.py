@@ -15,8 +15,8 @@ Per frame (:meth:`SparseSlam.process`):
    searches all keyframes and, on success, tracking resumes against the keyframe found. When nothing is
    found for ``reinit_after_failures`` frames (the view after a gap shares no feature with any keyframe), a
    frame with enough keypoints starts a new segment: a keyframe at the last pose, joined to the old one by an
-   edge that all but ignores the unknown motion (``reinit_sigma_*``). The first loop edge from the new segment
-   to the old one moves the segment rigidly onto it (then the graph is optimised as for any loop).
+   edge that all but ignores the unknown motion (``reinit_sigma_*``). The first accepted edge (nearby or loop)
+   from the new segment to a keyframe before it moves the segment rigidly onto it, then the graph is optimised.
 
 Every frame pose is stored relative to its reference keyframe, so graph corrections move whole
 stretches of the trajectory rigidly with their keyframe.
@@ -445,7 +445,7 @@ class SparseSlam:
         return SparseFrameResult(T_world_cam.copy(), True, False, res.reason, res.n_inliers, 0)
 
     def _merge_segment(self, i: int, j: int, T_i_j: np.ndarray) -> None:
-        """A loop edge ``i -> j`` from the newest segment (keyframe ``j``) to a keyframe ``i`` before it: move the
+        """An edge ``i -> j`` from the newest segment (keyframe ``j``) to a keyframe ``i`` before it: move the
         segment rigidly so that the edge holds (the graph's start; the optimisation does the rest)."""
         if not self._open_bridges or not i < self._open_bridges[-1] <= j:
             return
@@ -532,7 +532,8 @@ class SparseSlam:
         return kf_id, checked
 
     def _apply_loop_checks(self, kf_id: int, checked: list[LoopCheck]) -> None:
-        """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older keyframe."""
+        """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older (non-nearby) keyframe or
+        joins the newest segment to the keyframes before it (which first moves the segment, :meth:`_merge_segment`)."""
         n_loops = 0
         # (inliers, edge) of the best accepted edge (nearby or not) from the newest segment to a keyframe before it
         bridging: tuple[int, PoseEdge] | None = None
