@@ -388,7 +388,8 @@ class SparseSlam:
                                and self._n_failures <= self.cfg.velocity_reset_after_failures)
                 T_world_cam = T_pred if extrapolate else self._last_pose()
                 if self.cfg.reinit_after_failures > 0:  # a new segment may place it later (_reinitialise)
-                    self._lost = [*self._lost[-(self.cfg.reinit_after_failures - 1):], (len(self._timestamps), feats)]
+                    self._lost.append((len(self._timestamps), feats))
+                    del self._lost[: max(0, len(self._lost) - self.cfg.reinit_after_failures)]  # the last ones
                 self._record(frame.timestamp, self._ref_kf, invert(T_world_kf) @ T_world_cam, T_world_cam)
                 return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0)
             # Relocalised: the keyframe rule below applies as to a tracked frame. From the keyframe it was found

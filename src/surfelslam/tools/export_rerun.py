@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
 from surfelslam.errors import ConfigError, InputError
@@ -87,16 +86,15 @@ def export_run(run_dir: Path, out: Path | None = None, seq_dir: Path | None = No
         notes.append("no ground truth shown: fewer than 3 poses have a ground-truth pose")
     frame_at = None
     if seq is not None and images and len(seq):
-        stamps = seq.timestamps
-        after = np.searchsorted(stamps, est.timestamps)
-        lo, hi = np.clip(after - 1, 0, len(stamps) - 1), np.clip(after, 0, len(stamps) - 1)
-        best = np.where(np.abs(stamps[lo] - est.timestamps) <= np.abs(stamps[hi] - est.timestamps), lo, hi)
-        ok = np.abs(stamps[best] - est.timestamps) <= FRAME_MATCH_S
+        from surfelslam.datasets.tum import associate
+
+        pose_k, frame_pos, _ = associate(est.timestamps, seq.timestamps, FRAME_MATCH_S)
+        position_of = dict(zip(pose_k.tolist(), frame_pos.tolist(), strict=True))
 
         def frame_at(k: int):
-            return seq[int(best[k])] if ok[k] else None
+            return seq[position_of[k]] if k in position_of else None
 
-        if not ok.any():
+        if not position_of:
             notes.append(f"no images: no frame of {seq_dir} has the trajectory's timestamps")
     out = run_dir / "run.rrd" if out is None else out
     summary = write_recording(out, scene, None if seq is None else seq.intrinsics, frame_at, images_every)

@@ -17,9 +17,6 @@ degenerate), else the first camera's frame):
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +25,7 @@ import numpy as np
 
 from surfelslam.errors import ConfigError, SurfelSlamError
 from surfelslam.geometry import se3
+from surfelslam.io.atomic import atomic_path
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
 #: Colours (RGB, uint8) of the logged trajectories and loop edges.
@@ -81,10 +79,6 @@ class RerunScene:
     alignment: str = "none"
 
 
-def _transform_points(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return (xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-
-
 def build_scene(est: Trajectory, map_vertices: dict[str, np.ndarray] | None, loop_stamps: Iterable,
                 gt: Trajectory | None = None, max_diff_s: float | None = None) -> RerunScene:
     """Put a run's outputs into one world frame (see the module docstring).
@@ -129,7 +123,8 @@ def build_scene(est: Trajectory, map_vertices: dict[str, np.ndarray] | None, loo
     xyz = np.zeros((0, 3), np.float32)
     rgb = radius = None
     if map_vertices is not None and all(k in map_vertices for k in ("x", "y", "z")):
-        xyz = _transform_points(T, np.stack([map_vertices[k] for k in ("x", "y", "z")], axis=1))
+        xyz_run = np.stack([map_vertices[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
+        xyz = se3.transform_points(T, xyz_run).astype(np.float32)
         if all(k in map_vertices for k in ("red", "green", "blue")):
             rgb = np.stack([map_vertices[k] for k in ("red", "green", "blue")], axis=1).astype(np.uint8)
         if "radius" in map_vertices:
@@ -165,60 +160,59 @@ def write_recording(path: Path, scene: RerunScene, intr: Intrinsics | None = Non
     if images_every < 1:
         raise ConfigError(f"images_every must be >= 1, got {images_every}")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    rec = rr.RecordingStream(application_id, recording_id=path.stem)
     skipped: list[str] = []
-    n_images = 0
-    try:
-        rec.save(tmp)
-        if scene.ground_truth is None:  # the run's frame (its first camera's): x right, y down, z forward
-            rec.log("world", rr.ViewCoordinates.RDF, static=True)
-        rec.log("world/map", rr.Points3D(scene.points_xyz, colors=scene.points_rgb,
-                                         radii=scene.points_radius_m if scene.points_radius_m is not None
-                                         else POINT_RADIUS_M), static=True)
-        rec.log("world/estimate", rr.LineStrips3D([scene.trajectory.positions], colors=[ESTIMATE_RGB],
-                                                  radii=LINE_RADIUS_M), static=True)
-        if scene.ground_truth is not None:
-            rec.log("world/ground_truth", rr.LineStrips3D([scene.ground_truth.positions], colors=[GROUND_TRUTH_RGB],
-                                                          radii=LINE_RADIUS_M), static=True)
-        if len(scene.loop_edges):
-            rec.log("world/loops", rr.LineStrips3D(scene.loop_edges, colors=[LOOP_RGB], radii=LINE_RADIUS_M),
-                    static=True)
-        if intr is not None:
-            K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
-            rec.log("world/camera/image", rr.Pinhole(image_from_camera=K, resolution=[intr.width, intr.height],
-                                                     camera_xyz=rr.ViewCoordinates.RDF), static=True)
-        t0 = float(scene.trajectory.timestamps[0]) if len(scene.trajectory) else 0.0
-        for k, (t, T) in enumerate(zip(scene.trajectory.timestamps, scene.trajectory.T_world_cam, strict=True)):
-            rec.set_time("frame", sequence=k)
-            rec.set_time("time", duration=float(t) - t0)
-            rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-            if scene.ate_errors_m is not None and np.isfinite(scene.ate_errors_m[k]):
-                rec.log("plots/ate_m", rr.Scalars(float(scene.ate_errors_m[k])))
-            if frame_at is None or intr is None or k % images_every:
-                continue
-            try:
-                frame = frame_at(k)
-            except SurfelSlamError as exc:
-                skipped.append(str(exc))
-                continue
-            if frame is None:
-                continue
-            rec.log("world/camera/image/rgb", rr.Image(frame.rgb).compress(jpeg_quality=RGB_JPEG_QUALITY))
-            depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0.0) * DEPTH_UNITS_PER_M
-            rec.log("world/camera/image/depth",
-                    rr.DepthImage(np.clip(np.round(depth), 0, 65535).astype(np.uint16), meter=DEPTH_UNITS_PER_M))
-            n_images += 1
-        rec.flush()
-        rec.disconnect()
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(Exception):
-            rec.disconnect()
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        rec = rr.RecordingStream(application_id, recording_id=path.stem)
+        try:
+            rec.save(tmp)
+            n_images = _log_scene(rr, rec, scene, intr, frame_at, images_every, skipped)
+            rec.flush()
+        finally:
+            rec.disconnect()  # closes the file before it is renamed (or deleted)
     return ExportSummary(path, len(scene.trajectory), len(scene.points_xyz), len(scene.loop_edges), n_images,
                          skipped)
+
+
+def _log_scene(rr, rec, scene: RerunScene, intr: Intrinsics | None,
+               frame_at: Callable[[int], RGBDFrame | None] | None, images_every: int, skipped: list[str]) -> int:
+    """Log ``scene`` into ``rec`` (see :func:`write_recording`); returns the number of image pairs logged and
+    appends unreadable frames' messages to ``skipped``."""
+    n_images = 0
+    if scene.ground_truth is None:  # the run's frame (its first camera's): x right, y down, z forward
+        rec.log("world", rr.ViewCoordinates.RDF, static=True)
+    rec.log("world/map", rr.Points3D(scene.points_xyz, colors=scene.points_rgb,
+                                     radii=scene.points_radius_m if scene.points_radius_m is not None
+                                     else POINT_RADIUS_M), static=True)
+    rec.log("world/estimate", rr.LineStrips3D([scene.trajectory.positions], colors=[ESTIMATE_RGB],
+                                              radii=LINE_RADIUS_M), static=True)
+    if scene.ground_truth is not None:
+        rec.log("world/ground_truth", rr.LineStrips3D([scene.ground_truth.positions], colors=[GROUND_TRUTH_RGB],
+                                                      radii=LINE_RADIUS_M), static=True)
+    if len(scene.loop_edges):
+        rec.log("world/loops", rr.LineStrips3D(scene.loop_edges, colors=[LOOP_RGB], radii=LINE_RADIUS_M),
+                static=True)
+    if intr is not None:
+        rec.log("world/camera/image", rr.Pinhole(image_from_camera=intr.K, resolution=[intr.width, intr.height],
+                                                 camera_xyz=rr.ViewCoordinates.RDF), static=True)
+    t0 = float(scene.trajectory.timestamps[0]) if len(scene.trajectory) else 0.0
+    for k, (t, T) in enumerate(zip(scene.trajectory.timestamps, scene.trajectory.T_world_cam, strict=True)):
+        rec.set_time("frame", sequence=k)
+        rec.set_time("time", duration=float(t) - t0)
+        rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        if scene.ate_errors_m is not None and np.isfinite(scene.ate_errors_m[k]):
+            rec.log("plots/ate_m", rr.Scalars(float(scene.ate_errors_m[k])))
+        if frame_at is None or intr is None or k % images_every:
+            continue
+        try:
+            frame = frame_at(k)
+        except SurfelSlamError as exc:
+            skipped.append(str(exc))
+            continue
+        if frame is None:
+            continue
+        rec.log("world/camera/image/rgb", rr.Image(frame.rgb).compress(jpeg_quality=RGB_JPEG_QUALITY))
+        depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0.0) * DEPTH_UNITS_PER_M
+        rec.log("world/camera/image/depth",
+                rr.DepthImage(np.clip(np.round(depth), 0, 65535).astype(np.uint16), meter=DEPTH_UNITS_PER_M))
+        n_images += 1
+    return n_images
