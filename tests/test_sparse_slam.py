@@ -250,3 +250,32 @@ def test_a_long_texture_loss_holds_the_last_pose(loop_frames) -> None:
 def test_bad_reinit_settings_are_rejected(field, value):
     with pytest.raises(ValueError, match=field):
         SparseSlamConfig(**{field: value})
+
+
+@pytest.mark.parametrize("field,value", [("trust_min_inliers", -1), ("max_shift_m", 0.0), ("max_shift_deg", -2.0)])
+def test_bad_depth_odometry_settings_are_rejected(field, value):
+    from surfelslam.backend.sparse_slam import DepthOdometryConfig
+
+    with pytest.raises(ValueError, match=field):
+        DepthOdometryConfig(**{field: value})
+
+
+def test_depth_odometry_needs_the_keyframe_depth_store(tmp_path):
+    """Without a store of the keyframes' depth there is nothing to register to: a clear error; disabled, none is
+    needed. In a config file a bad value names its section."""
+    from surfelslam.backend.sparse_slam import DepthOdometryConfig
+    from surfelslam.config import dumps_toml, load_toml
+    from surfelslam.errors import ConfigError
+    from surfelslam.pipeline import SlamConfig
+
+    with pytest.raises(ValueError, match="edge_refiner"):
+        SparseSlam(INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig())
+    assert not SparseSlam(INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig(enabled=False)).uses_depth
+    cfg = SlamConfig()
+    cfg = replace(cfg, orb=replace(cfg.orb, depth_odometry=DepthOdometryConfig(trust_min_inliers=50)))
+    path = tmp_path / "config.toml"
+    path.write_text(dumps_toml(cfg))
+    assert load_toml(SlamConfig, path).orb == cfg.orb
+    path.write_text("[orb.depth_odometry]\nmax_shift_m = -0.1\n")
+    with pytest.raises(ConfigError, match=r"\[orb.depth_odometry\].*max_shift_m"):
+        load_toml(SlamConfig, path)

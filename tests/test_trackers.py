@@ -14,6 +14,7 @@ from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.pipeline import TRACKERS, HybridSlam, SlamConfig, TrackingConfig, build_slam
 from surfelslam.synth.scenes import make_scene
+from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_frames, noise_config
 from surfelslam.tools.run import run_sequence
@@ -177,6 +178,25 @@ def test_orb_starts_a_segment_after_a_gap_into_unseen_views_and_merges_it_by_a_l
     err_off, m_off = errors(replace(cfg, sparse=replace(cfg.sparse, reinit_after_failures=0)))
     assert m_off["reinitialisations"] == 0 and m_off["tracking_failures"] > 30
     assert np.median(err_off[41:]) > 0.5
+
+
+def test_orb_tracks_a_plain_walled_office_by_its_depth():
+    """Plain walls, a few cabinet corners: PnP against the keyframe has 8-20 inliers and is centimetres off or
+    rejected, and the orb tracker without depth is lost (29 of 60 frames rejected, 236 mm ATE when measured).
+    With the depth odometry every such frame is registered to its keyframe by ICP from the prediction (1.3 mm)."""
+    scene = make_scene("office", 2, TextureConfig(style="plain"))
+    traj = make_trajectory("handheld", 60, scene, seed=2)
+    gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
+    frames = list(iter_frames(scene, traj, INTR, noise_config("kinect"), 2))
+    cfg = SlamConfig()
+    est, res, _ = _run("orb", frames, cfg)
+    depth = res.metrics["depth_odometry"]
+    assert res.metrics["tracking_failures"] == 0 and depth["from_prediction"] >= 50 and depth["rescued"] >= 1, depth
+    assert _ate_m(est, gt) < 0.003, _ate_m(est, gt)
+    pnp_only = replace(cfg, orb=replace(cfg.orb, depth_odometry=replace(cfg.orb.depth_odometry, enabled=False)))
+    est_pnp, res_pnp, _ = _run("orb", frames, pnp_only)
+    assert res_pnp.metrics["depth_odometry"] is None
+    assert res_pnp.metrics["tracking_failures"] > 10 and _ate_m(est_pnp, gt) > 0.05, _ate_m(est_pnp, gt)
 
 
 def test_hybrid_relocalises_textureless_frames_by_shape():

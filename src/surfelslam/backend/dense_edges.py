@@ -131,25 +131,27 @@ class DenseEdgeConfig:
 
     def __post_init__(self) -> None:
         if self.max_width_px < 8:
-            raise ConfigError(f"hybrid.loop_icp: max_width_px must be >= 8, got {self.max_width_px}")
+            raise ConfigError(f"loop_icp: max_width_px must be >= 8, got {self.max_width_px}")
         if self.min_spread_edges < 1 or self.spread_window_edges < self.min_spread_edges:
-            raise ConfigError("hybrid.loop_icp: need 1 <= min_spread_edges <= spread_window_edges, got "
+            raise ConfigError("loop_icp: need 1 <= min_spread_edges <= spread_window_edges, got "
                               f"{self.min_spread_edges}, {self.spread_window_edges}")
         if self.cached_pyramids < 0:
-            raise ConfigError(f"hybrid.loop_icp: cached_pyramids must be >= 0, got {self.cached_pyramids}")
+            raise ConfigError(f"loop_icp: cached_pyramids must be >= 0, got {self.cached_pyramids}")
         if not self.feature_weight >= 0:
-            raise ConfigError(f"hybrid.loop_icp: feature_weight must be >= 0, got {self.feature_weight}")
+            raise ConfigError(f"loop_icp: feature_weight must be >= 0, got {self.feature_weight}")
         for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_residual_rad",
                      "feature_sigma_px", "feature_huber"):
             if not getattr(self, name) > 0:
-                raise ConfigError(f"hybrid.loop_icp: {name} must be > 0, got {getattr(self, name)}")
+                raise ConfigError(f"loop_icp: {name} must be > 0, got {getattr(self, name)}")
 
 
 class DenseEdgeRefiner:
-    """Keyframe depth store and ICP refinement of keyframe edges.
+    """Keyframe depth store and ICP refinement of keyframe edges (and of frames against keyframes).
 
     :meth:`add_keyframe` runs on the tracking thread; :meth:`refine` on the loop-check thread (one at a
-    time). The store is append-only and guarded by a lock.
+    time); :meth:`frame_pyramid` and :meth:`refine_frame` (the orb tracker's depth odometry) on the reader and
+    tracking threads. The store is append-only and guarded by a lock; each thread has its own preprocessing
+    buffers and pyramid cache.
 
     Args:
         intr: camera of the depth images given to :meth:`add_keyframe`.
@@ -165,11 +167,11 @@ class DenseEdgeRefiner:
         self._intr_store = pyramid_intrinsics(intr, self._level + 1)[-1]
         levels = min(cfg.icp.levels, level_for_width(self._intr_store.width, MIN_LEVEL_WIDTH_PX) + 1)
         self._icp_cfg = replace(cfg.icp, levels=levels)
-        self._pre = Preprocessor(self._intr_store, replace(pre_cfg, pyramid_levels=levels))
+        self._pre_cfg_store = replace(pre_cfg, pyramid_levels=levels)
         self._depth_unit_m = pre_cfg.max_depth_m / np.iinfo(np.uint16).max
         self._depth: dict[int, np.ndarray] = {}  # kf_id -> (h, w) uint16 depth in units of _depth_unit_m
         self._lock = threading.Lock()
-        self._cache: OrderedDict[int, FramePyramid] = OrderedDict()  # refine thread only
+        self._local = threading.local()  # per thread: .pre (Preprocessor, scratch buffers), .cache (pyramids)
         # |log(edge^-1 graph)| components of the recent nearby edges (tracking thread only)
         self._spread: deque[float] = deque(maxlen=6 * cfg.spread_window_edges)
 
@@ -178,14 +180,24 @@ class DenseEdgeRefiner:
         """Camera of the stored depth maps."""
         return self._intr_store
 
-    def add_keyframe(self, kf_id: int, depth_m: np.ndarray) -> None:
-        """Keep keyframe ``kf_id``'s depth ``(H, W)`` float32 metres (reduced to ``max_width_px``)."""
+    def _reduce(self, depth_m: np.ndarray) -> np.ndarray:
+        """``(H, W)`` float32 metres reduced to the stored size (2x2 block averages)."""
         c = self._pre_cfg
         depth = np.asarray(depth_m, np.float32)
         for lvl in range(self._level):
             out = np.empty((depth.shape[0] // 2, depth.shape[1] // 2), np.float32)
             kp.downsample_depth(depth, c.min_depth_m, c.max_depth_m, c.pyramid_max_depth_diff_m * 2.0 ** lvl, out)
             depth = out
+        return depth
+
+    def frame_pyramid(self, depth_m: np.ndarray) -> FramePyramid:
+        """Pyramid of a frame's depth ``(H, W)`` float32 metres at the stored size (for :meth:`refine_frame`)."""
+        return self._thread_state().pre.process(self._reduce(depth_m))
+
+    def add_keyframe(self, kf_id: int, depth_m: np.ndarray) -> None:
+        """Keep keyframe ``kf_id``'s depth ``(H, W)`` float32 metres (reduced to ``max_width_px``)."""
+        c = self._pre_cfg
+        depth = self._reduce(depth_m)
         valid = (depth >= c.min_depth_m) & (depth <= c.max_depth_m)
         stored = np.where(valid, np.rint(depth / self._depth_unit_m), 0).astype(np.uint16)
         with self._lock:
@@ -230,16 +242,24 @@ class DenseEdgeRefiner:
             stored = self._depth[kf_id]
         return stored.astype(np.float32) * np.float32(self._depth_unit_m)
 
+    def _thread_state(self) -> threading.local:
+        st = self._local
+        if not hasattr(st, "pre"):
+            st.pre = Preprocessor(self._intr_store, self._pre_cfg_store)
+            st.cache = OrderedDict()  # kf_id -> FramePyramid, least recently used first
+        return st
+
     def _pyramid(self, kf_id: int) -> FramePyramid:
-        pyr = self._cache.get(kf_id)
+        st = self._thread_state()
+        pyr = st.cache.get(kf_id)
         if pyr is not None:
-            self._cache.move_to_end(kf_id)
+            st.cache.move_to_end(kf_id)
             return pyr
-        pyr = self._pre.process(self.depth_m(kf_id))
+        pyr = st.pre.process(self.depth_m(kf_id))
         if self.cfg.cached_pyramids > 0:
-            self._cache[kf_id] = pyr
-            while len(self._cache) > self.cfg.cached_pyramids:
-                self._cache.popitem(last=False)
+            st.cache[kf_id] = pyr
+            while len(st.cache) > self.cfg.cached_pyramids:
+                st.cache.popitem(last=False)
         return pyr
 
     def refine(self, ref_id: int, cur_id: int, T_cur_ref: np.ndarray, points_ref: np.ndarray | None = None,
@@ -248,7 +268,15 @@ class DenseEdgeRefiner:
         points into cur), jointly with the PnP inliers ``points_ref`` ``(M, 3)`` (ref camera, m) observed at
         ``uv_cur`` ``(M, 2)`` (pixels of the cur image, the camera given at construction); returns the refined
         ``T_cur_ref``, or ``None`` when the check fails."""
-        source = self._pyramid(cur_id)
+        return self.refine_frame(ref_id, self._pyramid(cur_id), T_cur_ref, points_ref, uv_cur,
+                                 self.cfg.max_shift_m, self.cfg.max_shift_deg)
+
+    def refine_frame(self, ref_id: int, source: FramePyramid, T_cur_ref: np.ndarray,
+                     points_ref: np.ndarray | None, uv_cur: np.ndarray | None,
+                     max_shift_m: float, max_shift_deg: float) -> np.ndarray | None:
+        """:meth:`refine` for a frame given by its :meth:`frame_pyramid` ``source`` (camera :attr:`intrinsics`)
+        instead of a keyframe, with its own bounds on the move from ``T_cur_ref`` (m, deg; ``inf``: only ICP's
+        own implausible-motion bounds, ``ICPConfig.max_translation_m`` / ``max_rotation_deg``)."""
         target = self._pyramid(ref_id)
         T_cur_ref = np.asarray(T_cur_ref, np.float64)
         T_init = se3.invert(T_cur_ref)  # T_ref_cur = T_target_source
@@ -257,7 +285,7 @@ class DenseEdgeRefiner:
         if icp_failure(res) is not None or res.degenerate:
             return None
         dt_m, dr_deg = se3.pose_error(res.T_target_source, T_init)
-        if dt_m > self.cfg.max_shift_m or dr_deg > self.cfg.max_shift_deg:
+        if dt_m > max_shift_m or dr_deg > max_shift_deg:
             return None
         return se3.orthonormalize(se3.invert(res.T_target_source))
 
