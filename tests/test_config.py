@@ -35,6 +35,27 @@ def test_partial_and_strict():
         from_dict(Outer, {"inner": {"dist_thresh_m": "far"}})
 
 
+@dataclass
+class WithFactory:
+    coarse: Inner = field(default_factory=lambda: Inner(0.2, (8, 4)))
+
+
+def test_a_partial_nested_table_keeps_its_parents_defaults():
+    """Missing keys of a nested table take the value the parent's ``default_factory`` gives, not the nested
+    class's own defaults (``[orb.loop_icp] enabled = false`` once reset the orb tracker's feature weight)."""
+    got = from_dict(WithFactory, {"coarse": {"dist_thresh_m": 0.3}}).coarse
+    assert got == Inner(0.3, (8, 4))
+    from surfelslam.pipeline import SlamConfig
+
+    cfg = from_dict(SlamConfig, {"orb": {"loop_icp": {"enabled": False}}, "hybrid": {"loop_icp": {"icp": {
+        "robust_scale_m": 0.03}}}})
+    assert not cfg.orb.loop_icp.enabled
+    assert cfg.orb.loop_icp == type(cfg.orb.loop_icp)(**{**SlamConfig().orb.loop_icp.__dict__, "enabled": False})
+    assert cfg.orb.loop_icp.feature_weight == SlamConfig().orb.loop_icp.feature_weight != Inner.dist_thresh_m
+    icp = cfg.hybrid.loop_icp.icp
+    assert icp.robust_scale_m == 0.03 and (icp.levels, icp.weak_direction_ratio) == (3, 0.0)  # the edge ICP's own
+
+
 def test_bad_toml_names_file(tmp_path):
     p = tmp_path / "broken.toml"
     p.write_text("a = = 1")

@@ -36,17 +36,18 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return out
 
 
-def _coerce(value: Any, tp: Any, where: str) -> Any:
+def _coerce(value: Any, tp: Any, where: str, default: Any = None) -> Any:
+    """``value`` as type ``tp``; ``default`` is the field's default (a nested table fills its missing keys from it)."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         if value is None:
             return None
-        return _coerce(value, args[0], where)
+        return _coerce(value, args[0], where, default)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"config: [{where}] must be a table")
-        return from_dict(tp, value, where)
+        return from_dict(tp, value, where, default if isinstance(default, tp) else None)
     if origin in (tuple, list):
         if not isinstance(value, list | tuple):
             raise ConfigError(f"config: {where} must be a list, got {value!r}")
@@ -73,20 +74,30 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
-def from_dict(cls: type[C], data: dict[str, Any], where: str = "") -> C:
-    """Build dataclass ``cls`` from a (partial) dict; missing keys keep their defaults."""
+def from_dict(cls: type[C], data: dict[str, Any], where: str = "", base: C | None = None) -> C:
+    """Build dataclass ``cls`` from a (partial) dict; missing keys keep their defaults.
+
+    The defaults are those of ``base`` when given, else of ``cls()``, recursively: a nested table's missing keys
+    keep the values its parent gives that field (a ``default_factory`` with other settings than the nested class's
+    own defaults, e.g. ``orb.loop_icp``), not the nested class's own defaults.
+    """
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = set(data) - names
     if unknown:
         prefix = f"[{where}] " if where else ""
         raise ConfigError(f"config: {prefix}unknown key(s) {sorted(unknown)}; known: {sorted(names)}")
+    if base is None:
+        try:
+            base = cls()
+        except TypeError:  # a field without a default: the dict must give it
+            base = None
     kwargs = {}
     for key, val in data.items():
         sub = f"{where}.{key}" if where else key
-        kwargs[key] = _coerce(val, hints[key], sub)
+        kwargs[key] = _coerce(val, hints[key], sub, None if base is None else getattr(base, key))
     try:
-        return cls(**kwargs)
+        return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"config: [{where or cls.__name__}] {exc}") from exc
 
