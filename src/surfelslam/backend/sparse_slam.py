@@ -62,12 +62,15 @@ class LoopCheck:
         refined_T_cur_ref: ``(4, 4)`` the dense-refined ``T_cur_ref``, or ``None`` (no refiner, PnP failed, or the
             dense check rejected the edge).
         dense_rejected: the PnP edge passed but the dense check rejected it (it then enters the PnP graph only).
+        depth_only: PnP failed on this nearby candidate and ``refined_T_cur_ref`` is ICP from the graph's relative
+            pose, by depth alone (``DenseEdgeConfig.depth_only_nearby``; it enters the refined edges' graph only).
     """
 
     candidate: Candidate
     result: MotionResult
     refined_T_cur_ref: np.ndarray | None = None
     dense_rejected: bool = False
+    depth_only: bool = False
 
 
 @dataclass
@@ -97,8 +100,8 @@ class DepthOdometryConfig:
     to 17 cm off), and the keyframe chain carries the error on. Point-to-plane ICP of the frame's depth against the
     reference keyframe's settles the pose there: relative to their keyframe, the same frames end 0.1-7 mm from the
     ground truth. Synthetic plain-walled sequences, 320x240, ATE (mm), PnP odometry / with depth odometry and
-    dense-refined keyframe edges (``orb.loop_icp``): office hand-held 151.3 / 0.73 (dense 2.82), walking loop 50.8
-    (25 frames lost) / 0.81 (dense 3.52), office 7-Scenes motion replay 9.48 / 0.86 (dense 1.47).
+    dense-refined keyframe edges (``orb.loop_icp``): office hand-held 151.3 / 1.21 (dense 2.82), walking loop 50.8
+    (25 frames lost) / 0.41 (dense 3.52), office 7-Scenes motion replay 9.48 / 0.96 (dense 1.47).
 
     Attributes:
         enabled: register every tracked frame's depth to the reference keyframe's.
@@ -108,8 +111,9 @@ class DepthOdometryConfig:
             ``hybrid.pnp_trust_min_inliers``). When that ICP fails (too few inliers, degenerate, implausible) a
             weak PnP pose is kept as it is and a rejected frame stays rejected.
         max_shift_m, max_shift_deg: ICP started from a PnP pose may move it at most this far (m, deg); farther,
-            the PnP pose is kept. 3 cm / 3 deg (the keyframe-edge check's bound) kept PnP poses 3-7 cm off in the
-            plain-walled office replay (ATE 7.62 mm); 10 cm / 5 deg corrected them (6.24 mm before refined edges).
+            the PnP pose is kept. In the plain-walled office replay (a first version without refined edges and
+            with feature weight 0.1) 3 cm / 3 deg, the keyframe-edge check's bound, kept PnP poses 3-7 cm
+            off with 80-100 inliers (ATE 7.62 mm); 10 cm / 5 deg let ICP correct them (6.24 mm).
     """
 
     enabled: bool = True
@@ -336,6 +340,7 @@ class SparseSlam:
         self._open_bridges: list[int] = []  # first keyframes of segments no loop edge has joined to the old map
         self._lost: list[tuple[int, Features]] = []  # (frame slot, features) of the lost frames in a row
         self.n_lost_placed = 0  # lost frames placed afterwards against the keyframe of a new segment
+        self.n_depth_only_edges = 0  # nearby edges from depth alone where PnP could not verify (refined graph only)
 
     # --- state -------------------------------------------------------------------------------------
 
@@ -602,16 +607,18 @@ class SparseSlam:
         if self.cfg.background_loop_checks:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
-            self._pending = self._pool.submit(self._check_loops, kf_id, feats)
+            self._pending = self._pool.submit(self._check_loops, kf_id, feats, self._kf_poses.copy())
         else:
-            self._apply_loop_checks(*self._check_loops(kf_id, feats))
+            self._apply_loop_checks(*self._check_loops(kf_id, feats, self._kf_poses.copy()))
 
     def _query_descriptors(self, feats: Features) -> np.ndarray:
         n_max = self.cfg.loop.retrieval.max_descriptors_per_keyframe
         return select_descriptors(feats.descriptors, feats.response, feats.valid, n_max)
 
-    def _check_loops(self, kf_id: int, feats: Features) -> tuple[int, list[LoopCheck]]:
+    def _check_loops(self, kf_id: int, feats: Features, poses: np.ndarray) -> tuple[int, list[LoopCheck]]:
         """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
+
+        ``poses``: ``(K, 4, 4)`` the keyframe poses when ``kf_id`` was added (the start of depth-only nearby edges).
 
         Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
         the only user of the index and the candidate generator between two :meth:`_collect_loop_checks`.
@@ -627,6 +634,13 @@ class SparseSlam:
                 uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
                 refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
                                                self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
+            elif (not res.ok and cand.source == "nearby" and self._refiner is not None
+                  and self._refiner.cfg.depth_only_nearby):
+                # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
+                refined = self._refiner.refine(cand.kf_id, kf_id, invert(poses[kf_id]) @ poses[cand.kf_id])
+                if refined is not None:
+                    checked.append(LoopCheck(cand, res, refined, depth_only=True))
+                continue
             checked.append(LoopCheck(cand, res, refined, res.ok and self._refiner is not None and refined is None))
         self._index.add(q)
         return kf_id, checked
@@ -644,6 +658,11 @@ class SparseSlam:
             if far and res.reason != "too_few_matches" and res.n_inliers >= self.cfg.features.min_inliers \
                     and res.reason != "motion_too_large":
                 self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
+            if check.depth_only:
+                self.n_depth_only_edges += 1
+                self._add_edge(None, PoseEdge(cand.kf_id, kf_id, invert(refined), "loop",
+                                              robust_scale=self._refined_robust_scale))
+                continue
             if not res.ok:
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
@@ -691,11 +710,13 @@ class SparseSlam:
         self._refined_trusted = self._refiner.trusted(self._refined_residual_rad)
         self._kf_poses[:] = poses if self._refined_trusted else self._graph.optimise()
 
-    def _add_edge(self, pnp: PoseEdge, refined: PoseEdge | None = None, dense_rejected: bool = False) -> bool:
-        """Add an edge: ``pnp`` (odometry or PnP-verified) and, with an edge refiner, its refined version
-        (``None``: none, the same edge in both graphs) unless ``dense_rejected`` (the dense check rejected it: in the
-        PnP graph only). Returns whether the graph that is trusted now got an edge."""
-        self._graph.add_edge(pnp)
+    def _add_edge(self, pnp: PoseEdge | None, refined: PoseEdge | None = None, dense_rejected: bool = False) -> bool:
+        """Add an edge: ``pnp`` (odometry or PnP-verified; ``None``: a depth-only edge, in the refined graph only)
+        and, with an edge refiner, its refined version (``None``: none, the same edge in both graphs) unless
+        ``dense_rejected`` (the dense check rejected it: in the PnP graph only). Returns whether the graph that is
+        trusted now got an edge."""
+        if pnp is not None:
+            self._graph.add_edge(pnp)
         if self._graph_refined is None:
             return True
         if dense_rejected:
