@@ -100,8 +100,8 @@ class DepthOdometryConfig:
     to 17 cm off), and the keyframe chain carries the error on. Point-to-plane ICP of the frame's depth against the
     reference keyframe's settles the pose there: relative to their keyframe, the same frames end 0.1-7 mm from the
     ground truth. Synthetic plain-walled sequences, 320x240, ATE (mm), PnP odometry / with depth odometry and
-    dense-refined keyframe edges (``orb.loop_icp``): office hand-held 151.3 / 1.21 (dense 2.82), walking loop 50.8
-    (25 frames lost) / 0.41 (dense 3.52), office 7-Scenes motion replay 9.48 / 0.96 (dense 1.47).
+    dense-refined keyframe edges (``orb.loop_icp``): office hand-held 151.3 / 0.72 (dense 2.82), walking loop 50.8
+    (25 frames lost) / 0.32 (dense 3.52), office 7-Scenes motion replay 9.48 / 0.97 (dense 1.47).
 
     Attributes:
         enabled: register every tracked frame's depth to the reference keyframe's.
