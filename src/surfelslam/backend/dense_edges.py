@@ -119,7 +119,7 @@ class DenseEdgeConfig:
             frame-to-model, so keyframe-to-keyframe ICP is a second measurement where texture gives none:
             plain-walled office hand-held (320x240) 2.92 -> 1.50 mm (dense 2.82), where one odometry edge 5 mm
             off was spanned by no verified edge. The orb tracker's odometry is frame-to-keyframe ICP already; it
-            would count the same depth twice (plain office hand-held 0.78 -> 1.18 mm), so ``orb.loop_icp`` has it
+            would count the same depth twice (plain office hand-held 0.72 -> 1.21 mm), so ``orb.loop_icp`` has it
             off.
     """
 

@@ -607,18 +607,23 @@ class SparseSlam:
         if self.cfg.background_loop_checks:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
-            self._pending = self._pool.submit(self._check_loops, kf_id, feats, self._kf_poses.copy())
+            self._pending = self._pool.submit(self._check_loops, kf_id, feats, self._nearby_poses(kf_id))
         else:
-            self._apply_loop_checks(*self._check_loops(kf_id, feats, self._kf_poses.copy()))
+            self._apply_loop_checks(*self._check_loops(kf_id, feats, self._nearby_poses(kf_id)))
+
+    def _nearby_poses(self, kf_id: int) -> dict[int, np.ndarray]:
+        """Copies of ``T_world_kf`` of keyframe ``kf_id`` and its nearby loop candidates (:func:`loop_candidates`)."""
+        return {k: self._kf_poses[k].copy() for k in range(max(0, kf_id - 1 - self.cfg.loop.n_nearby), kf_id + 1)}
 
     def _query_descriptors(self, feats: Features) -> np.ndarray:
         n_max = self.cfg.loop.retrieval.max_descriptors_per_keyframe
         return select_descriptors(feats.descriptors, feats.response, feats.valid, n_max)
 
-    def _check_loops(self, kf_id: int, feats: Features, poses: np.ndarray) -> tuple[int, list[LoopCheck]]:
+    def _check_loops(self, kf_id: int, feats: Features,
+                     poses: dict[int, np.ndarray]) -> tuple[int, list[LoopCheck]]:
         """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
 
-        ``poses``: ``(K, 4, 4)`` the keyframe poses when ``kf_id`` was added (the start of depth-only nearby edges).
+        ``poses``: the :meth:`_nearby_poses` of ``kf_id`` when it was added (the start of depth-only nearby edges).
 
         Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
         the only user of the index and the candidate generator between two :meth:`_collect_loop_checks`.
