@@ -180,14 +180,20 @@ def test_orb_starts_a_segment_after_a_gap_into_unseen_views_and_merges_it_by_a_l
     assert np.median(err_off[41:]) > 0.5
 
 
-def test_orb_tracks_a_plain_walled_office_by_its_depth():
-    """Plain walls, a few cabinet corners: PnP against the keyframe has 8-20 inliers and is centimetres off or
-    rejected, and the orb tracker without depth is lost (29 of 60 frames rejected, 236 mm ATE when measured).
-    With the depth odometry every such frame is registered to its keyframe by ICP from the prediction (1.3 mm)."""
+@cache
+def _plain_office_frames():
+    """60 frames of a hand-held orbit in the plain-walled office (seed 2), Kinect-like noise, and their GT."""
     scene = make_scene("office", 2, TextureConfig(style="plain"))
     traj = make_trajectory("handheld", 60, scene, seed=2)
     gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
-    frames = list(iter_frames(scene, traj, INTR, noise_config("kinect"), 2))
+    return list(iter_frames(scene, traj, INTR, noise_config("kinect"), 2)), gt
+
+
+def test_orb_tracks_a_plain_walled_office_by_its_depth():
+    """Plain walls, a few cabinet corners: PnP against the keyframe has 8-20 inliers and is centimetres off or
+    rejected, and the orb tracker without depth is lost (29 of 60 frames rejected, 236 mm ATE when measured).
+    With the depth odometry every such frame is registered to its keyframe by ICP from the prediction (1.25 mm)."""
+    frames, gt = _plain_office_frames()
     cfg = SlamConfig()
     est, res, _ = _run("orb", frames, cfg)
     depth = res.metrics["depth_odometry"]
@@ -204,10 +210,7 @@ def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
     and the hybrid is the dense trajectory (6.7 mm unaligned over 60 frames when measured). Registered by depth
     alone from the graph's pose, the nearby pairs become refined edges (about 40), the gate trusts them and the
     error halves (3.4 mm)."""
-    scene = make_scene("office", 2, TextureConfig(style="plain"))
-    traj = make_trajectory("handheld", 60, scene, seed=2)
-    gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
-    frames = list(iter_frames(scene, traj, INTR, noise_config("kinect"), 2))
+    frames, gt = _plain_office_frames()
     cfg = SlamConfig()
     assert cfg.hybrid.loop_icp.depth_only_nearby and not cfg.orb.loop_icp.depth_only_nearby
     est, res, _ = _run("hybrid", frames, cfg)
