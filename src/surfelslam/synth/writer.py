@@ -10,6 +10,12 @@ Layout written by :func:`generate_sequence` (TUM RGB-D conventions)::
     INFO.txt           "key : value" lines (generator, scene, intrinsics, depth scale...)
 
 Timestamps are ``index / fps`` formatted ``%.6f``. The same arguments give byte-identical files.
+
+With a colour offset (``colour_offset_s``, ``colour_jitter_s``) each frame's colour is rendered at its own stamp,
+``depth stamp + offset + U(-jitter, jitter)``, on the trajectory interpolated there (translation linear, rotation
+SLERP; extrapolated from the end intervals), as from a sensor that does not expose colour and depth together (TUM's
+Kinect: up to 20 ms apart). ``rgb.txt`` then holds the colour stamps, ``depth.txt`` and ``groundtruth.txt`` the depth
+stamps: the ground truth is the depth camera's.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ _UINT16_MAX = 65535
 _BASE_FOCAL_PX = 525.0  # default intrinsics at 640x480 (TUM / Kinect v1 defaults)
 _BASE_SIZE_PX = (640, 480)
 DEFAULT_FPS = 30.0
+MAX_COLOUR_OFFSET_S = 0.02  # |colour offset| + jitter: the TUM reader pairs colour and depth within 20 ms
 _WRITER_THREADS = 2  # background PNG writers
 _MAX_QUEUED_FRAMES = 4  # frames waiting to be written (bounds memory)
 
@@ -69,26 +76,57 @@ def noise_config(name: str) -> KinectNoiseConfig | None:
 
 def make_frame(
     index: int, timestamp: float, rendered: RenderOutput, intr: Intrinsics, noise_cfg: KinectNoiseConfig | None,
-    seed: int,
+    seed: int, colour: RenderOutput | None = None,
 ) -> RGBDFrame:
-    """Frame ``index`` from a rendering: exact (``noise_cfg`` None: depth > 0 kept) or Kinect-like noisy."""
+    """Frame ``index`` from a rendering: exact (``noise_cfg`` None: depth > 0 kept) or Kinect-like noisy.
+    ``colour``: the rendering the colour comes from when it is not ``rendered`` (colour taken at another time)."""
+    rgb_src = rendered.rgb if colour is None else colour.rgb
     if noise_cfg is None:
-        return RGBDFrame(index, timestamp, rendered.rgb.copy(), rendered.depth_m.copy())
+        return RGBDFrame(index, timestamp, rgb_src.copy(), rendered.depth_m.copy())
     rng = frame_rng(seed, index)
     depth = noisy_depth(rendered.depth_m, rendered.normal_cam, intr, noise_cfg, rng)
-    rgb = noisy_rgb(rendered.rgb, noise_cfg, rng)
+    rgb = noisy_rgb(rgb_src, noise_cfg, rng)
     return RGBDFrame(index, timestamp, rgb, depth)
 
 
 def iter_frames(
     scene: Scene, trajectory: Trajectory, intr: Intrinsics, noise_cfg: KinectNoiseConfig | None = None,
-    seed: int = 0,
+    seed: int = 0, T_world_colour: np.ndarray | None = None,
 ) -> Iterator[RGBDFrame]:
-    """Render every pose of ``trajectory`` -> :class:`RGBDFrame` (index, timestamp, rgb, depth_m)."""
+    """Render every pose of ``trajectory`` -> :class:`RGBDFrame` (index, timestamp, rgb, depth_m).
+    ``T_world_colour``: ``(N, 4, 4)`` the colour camera's pose per frame when colour is taken at another time."""
     buf: RenderOutput | None = None
+    cbuf: RenderOutput | None = None
     for i, (t, T) in enumerate(zip(trajectory.timestamps, trajectory.T_world_cam, strict=True)):
         buf = render(scene, T, intr, out=buf)
-        yield make_frame(i, float(t), buf, intr, noise_cfg, seed)
+        if T_world_colour is not None:
+            cbuf = render(scene, T_world_colour[i], intr, out=cbuf)
+        yield make_frame(i, float(t), buf, intr, noise_cfg, seed, colour=cbuf)
+
+
+def colour_stamps(depth_stamps: np.ndarray, offset_s: float, jitter_s: float, seed: int) -> np.ndarray:
+    """``(N,)`` colour capture stamps: ``depth_stamps + offset_s + U(-jitter_s, jitter_s)`` (seeded)."""
+    rng = np.random.default_rng([seed, 0xC0105])
+    jitter = rng.uniform(-jitter_s, jitter_s, len(depth_stamps)) if jitter_s > 0 else 0.0
+    return np.asarray(depth_stamps, dtype=np.float64) + offset_s + jitter
+
+
+def poses_at(trajectory: Trajectory, stamps: np.ndarray) -> np.ndarray:
+    """``(M, 4, 4)`` poses of ``trajectory`` at ``stamps``: translation linear and rotation SLERP between the
+    bracketing poses, extrapolated from the first / last interval outside the trajectory (needs 2 poses)."""
+    from surfelslam.geometry.se3 import so3_exp, so3_log
+
+    t, T = trajectory.timestamps, trajectory.T_world_cam
+    stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
+    hi = np.clip(np.searchsorted(t, stamps, side="right"), 1, len(t) - 1)
+    out = np.empty((len(stamps), 4, 4))
+    for k, (b, q) in enumerate(zip(hi, stamps, strict=True)):
+        a = b - 1
+        s = (q - t[a]) / (t[b] - t[a])
+        out[k] = np.eye(4)
+        out[k, :3, :3] = T[a, :3, :3] @ so3_exp(s * so3_log(T[a, :3, :3].T @ T[b, :3, :3]))
+        out[k, :3, 3] = (1 - s) * T[a, :3, 3] + s * T[b, :3, 3]
+    return out
 
 
 def depth_to_raw(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.ndarray:
@@ -100,7 +138,7 @@ def depth_to_raw(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.nd
 
 def info_text(
     scene: str, motion_desc: str, noise: str, seed: int, n_frames: int, intr: Intrinsics, fps: float,
-    texture: str = "rich",
+    texture: str = "rich", colour_offset_s: float = 0.0, colour_jitter_s: float = 0.0,
 ) -> str:
     """INFO.txt of a generated sequence; ``motion_desc`` is the trajectory style or a replay's description."""
     rows = [
@@ -117,6 +155,10 @@ def info_text(
         ("depth scale", f"{DEPTH_SCALE:g}"),
         ("ground truth", "groundtruth.txt, T_world_cam of every frame (exact)"),
     ]
+    if colour_offset_s != 0 or colour_jitter_s > 0:
+        rows.insert(-1, ("colour timing", f"colour stamp = depth stamp {1000 * colour_offset_s:+g} ms "
+                                          f"(+- {1000 * colour_jitter_s:g} ms uniform jitter); ground truth at "
+                                          "the depth stamps"))
     return "".join(f"{k:<15} : {v}\n" for k, v in rows)
 
 
@@ -136,6 +178,8 @@ def generate_sequence(
     motion_start_s: float = 0.0,
     motion_label: str = "a recorded motion",
     texture: str = "rich",
+    colour_offset_s: float = 0.0,
+    colour_jitter_s: float = 0.0,
 ) -> Path:
     """Render and write a TUM-layout sequence to ``out_dir`` (created); returns its path.
 
@@ -144,11 +188,22 @@ def generate_sequence(
     ``texture``: the scene's texture style (:data:`~surfelslam.synth.textures.TEXTURE_STYLES`).
     ``motion``: replay this recorded camera motion (:func:`~surfelslam.synth.trajectories.replay_motion`, at
     ``speed`` from ``motion_start_s``; ``motion_label`` names it in INFO.txt) instead of the ``style``.
-    Bad names, sizes or motions raise ConfigError before anything is written.
+    ``colour_offset_s`` / ``colour_jitter_s``: colour taken at another stamp than depth (module docstring); their
+    sum must stay below :data:`MAX_COLOUR_OFFSET_S` (the TUM reader pairs colour and depth within it) and half
+    a frame interval (it pairs each colour image with the nearest depth stamp).
+    Bad names, sizes, offsets or motions raise ConfigError before anything is written.
     """
     noise_cfg = noise_config(noise)
     if width < 1 or height < 1:
         raise ConfigError(f"image size must be positive, got {width}x{height}")
+    max_offset_s = min(MAX_COLOUR_OFFSET_S, 0.5 / fps) if fps > 0 else MAX_COLOUR_OFFSET_S
+    if not (np.isfinite(colour_offset_s) and colour_jitter_s >= 0
+            and abs(colour_offset_s) + colour_jitter_s < max_offset_s):
+        raise ConfigError(f"colour offset {1000 * colour_offset_s:g} ms with jitter {1000 * colour_jitter_s:g} ms: "
+                          f"need jitter >= 0 and |offset| + jitter < {1000 * max_offset_s:.4g} ms (colour is paired "
+                          f"with the nearest depth stamp, within {1000 * MAX_COLOUR_OFFSET_S:g} ms)")
+    if n_frames < 2 and (colour_offset_s != 0 or colour_jitter_s > 0):
+        raise ConfigError("a colour offset needs at least 2 frames (the colour pose is interpolated)")
     sc = make_scene(scene, seed, TextureConfig(style=texture))
     if motion is None:
         traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
@@ -164,6 +219,13 @@ def generate_sequence(
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     names = [f"{t:.6f}" for t in traj.timestamps]
+    timed = colour_offset_s != 0 or colour_jitter_s > 0
+    T_world_colour = None
+    rgb_names = names
+    if timed:
+        c_stamps = colour_stamps(traj.timestamps, colour_offset_s, colour_jitter_s, seed)
+        T_world_colour = poses_at(traj, c_stamps)
+        rgb_names = [f"{t:.6f}" for t in c_stamps]
     bar = None
     if progress is True:
         from tqdm import tqdm
@@ -182,13 +244,13 @@ def generate_sequence(
 
     def write_frame(frame: RGBDFrame) -> int:
         name = names[frame.index]
-        write_png_rgb(out / "rgb" / f"{name}.png", frame.rgb)
+        write_png_rgb(out / "rgb" / f"{rgb_names[frame.index]}.png", frame.rgb)
         write_png_depth(out / "depth" / f"{name}.png", depth_to_raw(frame.depth_m))
         return frame.index
 
     try:
         with ThreadPoolExecutor(max_workers=_WRITER_THREADS) as pool:
-            for frame in iter_frames(sc, traj, intr, noise_cfg, seed):
+            for frame in iter_frames(sc, traj, intr, noise_cfg, seed, T_world_colour):
                 pending.append(pool.submit(write_frame, frame))
                 while len(pending) > _MAX_QUEUED_FRAMES:
                     finish_one()
@@ -199,14 +261,15 @@ def generate_sequence(
             bar.close()
     write_text_atomic(
         out / "rgb.txt",
-        "# color images\n# timestamp filename\n" + "".join(f"{n} rgb/{n}.png\n" for n in names),
+        "# color images\n# timestamp filename\n" + "".join(f"{n} rgb/{n}.png\n" for n in rgb_names),
     )
     write_text_atomic(
         out / "depth.txt",
         "# depth maps\n# timestamp filename\n" + "".join(f"{n} depth/{n}.png\n" for n in names),
     )
-    write_text_atomic(out / "associations.txt", "".join(f"{n} rgb/{n}.png {n} depth/{n}.png\n" for n in names))
+    write_text_atomic(out / "associations.txt", "".join(f"{c} rgb/{c}.png {n} depth/{n}.png\n"
+                                                        for c, n in zip(rgb_names, names, strict=True)))
     write_tum(traj, out / "groundtruth.txt")
     write_text_atomic(out / "INFO.txt", info_text(scene, motion_desc, noise, seed, n_frames, intr, fps,
-                                                         texture))
+                                                         texture, colour_offset_s, colour_jitter_s))
     return out

@@ -49,6 +49,36 @@ def per_level(text: str | None, default: tuple, levels: int, name: str, cast=flo
     return vals
 
 
+def _colour_timing(sq, i: int, pre, icp_cfg, retime_cfg):
+    """Frame ``i``'s colour timing (:func:`surfelslam.tracking.registration.colour_timing`) from its neighbours in
+    the selection; a neighbour that cannot be read is left out."""
+    from surfelslam.errors import FrameError
+    from surfelslam.tracking.registration import colour_timing
+
+    offset = float(sq.timestamps[i] - sq.depth_timestamps[i])
+    if not retime_cfg.applies(offset):
+        return None
+    t_d = sq.depth_timestamps
+    frames = {}
+    for j in (i - 1, i, i + 1):
+        if 0 <= j < len(sq):
+            try:
+                f = sq[j]
+            except FrameError:
+                continue
+            frames[j] = (f, pre.process(f.depth_m))
+    pairs = [(*frames[a][:1], *frames[b][:1], frames[a][1], frames[b][1], float(t_d[b] - t_d[a]))
+             for a, b in ((i - 1, i), (i, i + 1)) if a in frames and b in frames]
+    return colour_timing(offset, pairs, sq.intrinsics, icp_cfg, retime_cfg)
+
+
+def _timing_info(sq, i: int, ct) -> dict:
+    """``registration.json``'s record of one frame's colour timing."""
+    offset = float(sq.timestamps[i] - sq.depth_timestamps[i])
+    return {"colour_minus_depth_s": offset, "retimed": ct is not None,
+            "twist_per_s": None if ct is None else [float(x) for x in ct.twist_per_s]}
+
+
 def register(app: typer.Typer) -> None:
     @app.command("register")
     @handle_errors
@@ -92,6 +122,10 @@ def register(app: typer.Typer) -> None:
         descriptor: Annotated[str, typer.Option(
             "--descriptor", help="--init features / auto: sift (Lowe's ratio test; more correct matches between "
                                  "views far apart, the default) or orb (the odometry's matching).")] = "sift",
+        retime_colour: Annotated[str, typer.Option(
+            "--retime-colour", help="With the photometric term: auto (a frame whose colour and depth stamps differ "
+                                    "by 1-50 ms, e.g. TUM, has its colour re-timed to its depth stamp with the "
+                                    "camera velocity from its neighbour frames), off.")] = "auto",
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
@@ -109,6 +143,7 @@ def register(app: typer.Typer) -> None:
             pair_feature_config,
             register_pair,
         )
+        from surfelslam.tracking.retime import RetimeConfig
         from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
@@ -137,6 +172,10 @@ def register(app: typer.Typer) -> None:
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
         use_photometric = colour_switch(photometric, sq.colour_registered)
+        retime_cfg = RetimeConfig(mode=retime_colour)
+        timing = (None, None)
+        if use_photometric:
+            timing = tuple(_colour_timing(sq, i, pre, cfg, retime_cfg) for i in (source, target))
         n_features = PAIR_FEATURES if features is None else features
         if n_features < 1:
             raise ConfigError(f"--features must be >= 1, got {n_features}")
@@ -144,7 +183,8 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--descriptor must be one of {', '.join(DETECTORS)}, got {descriptor!r}")
         reg = register_pair(f_src, f_tgt, p_src, p_tgt, sq.intrinsics, cfg, init,
                             FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm, use_photometric,
-                            pair_feature_config(descriptor, n_features), preprocess_cfg=pre.cfg)
+                            pair_feature_config(descriptor, n_features), preprocess_cfg=pre.cfg,
+                            colour_timing=timing)
         res, init_used = reg.icp, reg.init_used
         feat_info = None
         if reg.motion is not None:
@@ -182,6 +222,8 @@ def register(app: typer.Typer) -> None:
             "init": init,
             "init_used": init_used,
             "photometric": use_photometric,
+            "colour_timing": {name: _timing_info(sq, i, ct) for name, i, ct in
+                              (("source", source, timing[0]), ("target", target, timing[1]))},
             "features": feat_info,
             "geometric": geo_info,
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)

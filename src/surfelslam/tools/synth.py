@@ -40,6 +40,13 @@ def register(app: typer.Typer) -> None:
         ] = 1.0,
         motion_start: Annotated[float, typer.Option(
             "--motion-start", help="--motion: start this many seconds after the recording's first pose.")] = 0.0,
+        colour_offset_ms: Annotated[float, typer.Option(
+            "--colour-offset-ms", help="Take each frame's colour this many ms after its depth (negative: before), "
+                                       "as a sensor without colour/depth sync (TUM's Kinect: up to 20 ms); "
+                                       "rgb.txt gets the colour stamps, ground truth is at the depth stamps.")
+        ] = 0.0,
+        colour_jitter_ms: Annotated[float, typer.Option(
+            "--colour-jitter-ms", help="Add a uniform random +-this many ms to each frame's colour offset.")] = 0.0,
     ) -> None:
         """Render a textured indoor scene along a camera trajectory; write rgb/, depth/, groundtruth.txt."""
         from surfelslam.io.trajectory import read_tum
@@ -50,6 +57,7 @@ def register(app: typer.Typer) -> None:
             out, scene=scene, style=trajectory, n_frames=frames, noise=noise, seed=seed,
             width=width, height=height, fps=fps, progress=True, motion=recorded, speed=speed,
             motion_start_s=motion_start, motion_label=str(motion), texture=texture,
+            colour_offset_s=colour_offset_ms / 1000.0, colour_jitter_s=colour_jitter_ms / 1000.0,
         )
         what = trajectory if motion is None else f"motion of {motion} at {speed:g}x"
         console.print(f"wrote {frames} frames ({scene}, {texture} texture, {what}, noise {noise}, seed {seed}) "

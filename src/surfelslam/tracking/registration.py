@@ -27,6 +27,7 @@ from surfelslam.tracking.geometric import GeometricGuess, GeometricGuessConfig, 
 from surfelslam.tracking.icp import ICPConfig, ICPResult, icp, photometric_term
 from surfelslam.tracking.photometric import intensity_from_rgb, intensity_pyramid
 from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, level_for_width
+from surfelslam.tracking.retime import ColourTiming, RetimeConfig, retime_intensity, twist_from_pose
 from surfelslam.types import Intrinsics, RGBDFrame
 
 INIT_MODES = ("identity", "features", "geometry", "auto")
@@ -101,19 +102,25 @@ def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: Fr
                   icp_cfg: ICPConfig, init: str = "auto", feature_max_norm: float = FEATURE_MAX_NORM,
                   photometric: bool = False, feature_cfg: FeatureConfig | None = None,
                   geometric_cfg: GeometricGuessConfig | None = None,
-                  preprocess_cfg: PreprocessConfig | None = None) -> PairRegistration:
+                  preprocess_cfg: PreprocessConfig | None = None,
+                  colour_timing: tuple[ColourTiming | None, ColourTiming | None] = (None, None)) -> PairRegistration:
     """Register ``src`` onto ``tgt`` (their pyramids ``p_src`` / ``p_tgt``, level 0 at the frames' resolution)
     from the start ``init``; ``photometric``: joint geometric + photometric ICP; ``feature_cfg``: the feature / PnP
     settings of the guess (default :func:`pair_feature_config`), whose motion bound becomes
     ``feature_max_norm``; ``geometric_cfg``: the shape-feature guess's settings (default
     :class:`GeometricGuessConfig`); ``preprocess_cfg``: the settings the pyramids were built with (the shape guess
-    reduces wide frames with them; default :class:`PreprocessConfig`)."""
+    reduces wide frames with them; default :class:`PreprocessConfig`); ``colour_timing``: the source's and the target's
+    colour capture relative to their depth (:mod:`surfelslam.tracking.retime`; ``None``: simultaneous): with the
+    photometric term, each colour image is re-timed to its depth stamp first."""
     if init not in INIT_MODES:
         raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
     i_src = i_tgt = None
     if photometric and icp_cfg.photometric_weight > 0:
-        i_src = intensity_pyramid(intensity_from_rgb(src.rgb), icp_cfg.levels, gradients=False)
-        i_tgt = intensity_pyramid(intensity_from_rgb(tgt.rgb), icp_cfg.levels, gradients=True)
+        img_src, img_tgt = (intensity_from_rgb(f.rgb) if ct is None else
+                            retime_intensity(intensity_from_rgb(f.rgb), f.depth_m, intr, ct.T_colour_depth)
+                            for f, ct in zip((src, tgt), colour_timing, strict=True))
+        i_src = intensity_pyramid(img_src, icp_cfg.levels, gradients=False)
+        i_tgt = intensity_pyramid(img_tgt, icp_cfg.levels, gradients=True)
 
     def run(T_init: np.ndarray | None) -> ICPResult:
         term = None if i_src is None else photometric_term(i_src, i_tgt, icp_cfg)
@@ -141,3 +148,35 @@ def register_pair(src: RGBDFrame, tgt: RGBDFrame, p_src: FramePyramid, p_tgt: Fr
         if np.isfinite(dz_f) and not dz_id <= dz_f:
             return PairRegistration(res_f, kind, guess, motion, geo)
     return PairRegistration(res, "identity", guess, motion, geo)
+
+
+def capture_twist(before: RGBDFrame, after: RGBDFrame, p_before: FramePyramid, p_after: FramePyramid,
+                  intr: Intrinsics, icp_cfg: ICPConfig, dt_s: float, photometric: bool) -> np.ndarray | None:
+    """``(6,)`` body twist per second of the depth camera between two nearby frames (``dt_s`` = depth stamp of
+    ``after`` minus that of ``before``), for re-timing a frame between them (:mod:`surfelslam.tracking.retime`);
+    ``None`` when their ICP (from the identity; joint with the photometric term when ``photometric``: on plain
+    walls depth alone slides, 0.1-0.9 m off on the synthetic office) does not converge. The colour of the two
+    frames is used as captured: its offsets bias this velocity only by their difference over ``dt_s``."""
+    i_b = intensity_pyramid(intensity_from_rgb(before.rgb), icp_cfg.levels, gradients=False) if photometric else None
+    term = None
+    if i_b is not None and icp_cfg.photometric_weight > 0:
+        term = photometric_term(i_b, intensity_pyramid(intensity_from_rgb(after.rgb), icp_cfg.levels, gradients=True),
+                                icp_cfg)
+    res = icp(p_before, p_after, None, icp_cfg, photometric=term)
+    return twist_from_pose(res.T_target_source, dt_s) if res.converged else None
+
+
+def colour_timing(offset_s: float, neighbours: list[tuple[RGBDFrame, RGBDFrame, FramePyramid, FramePyramid, float]],
+                  intr: Intrinsics, icp_cfg: ICPConfig, retime_cfg: RetimeConfig,
+                  photometric: bool = True) -> ColourTiming | None:
+    """A frame's :class:`ColourTiming` from its colour - depth stamp offset and its neighbour pairs.
+
+    ``neighbours``: ``(before, after, p_before, p_after, dt_s)`` per pair of consecutive frames that contains it
+    (the previous and the frame, the frame and the next; ``dt_s`` between their depth stamps). The twist is the mean
+    of the pairs' :func:`capture_twist` (a central difference where both exist). ``None`` when ``retime_cfg`` does
+    not apply to ``offset_s`` or no pair converged."""
+    if not retime_cfg.applies(offset_s):
+        return None
+    twists = [tw for b, a, p_b, p_a, dt in neighbours if dt > 0
+              if (tw := capture_twist(b, a, p_b, p_a, intr, icp_cfg, dt, photometric)) is not None]
+    return ColourTiming(float(offset_s), np.mean(twists, axis=0)) if twists else None
