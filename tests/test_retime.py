@@ -126,6 +126,8 @@ def test_synth_colour_offset_writes_colour_stamps_and_validates(tmp_path):
     seq = open_sequence(seq_dir, DatasetOptions())
     d = seq.timestamps - seq.depth_timestamps
     assert len(seq) == 6 and np.all((d >= -0.015 - 1e-6) & (d <= -0.009 + 1e-6)) and np.ptp(d) > 0
+    assert seq[2].colour_minus_depth_s == pytest.approx(d[2])
+    assert seq[2].depth_stamp_s == pytest.approx(2 / 30, abs=1e-6)
     np.testing.assert_allclose(seq.depth_timestamps, np.arange(6) / 30.0, atol=1e-6)
     T, valid = seq.gt_poses(at_depth_time=True)
     assert valid.all()

@@ -97,15 +97,28 @@ class RGBDFrame:
 
     Attributes:
         index: position of the frame in its sequence (0-based, after start/stride selection).
-        timestamp: seconds.
+        timestamp: seconds (the colour image's capture stamp).
         rgb: ``(H, W, 3)`` uint8, RGB order.
         depth_m: ``(H, W)`` float32 metres, 0 = invalid.
+        depth_timestamp: the depth image's capture stamp (s) when the sensor records a separate one (TUM), else
+            ``None`` (taken together with the colour).
     """
 
     index: int
     timestamp: float
     rgb: np.ndarray
     depth_m: np.ndarray
+    depth_timestamp: float | None = None
+
+    @property
+    def colour_minus_depth_s(self) -> float:
+        """Colour stamp minus depth stamp (s); 0 when they were taken together."""
+        return 0.0 if self.depth_timestamp is None else float(self.timestamp - self.depth_timestamp)
+
+    @property
+    def depth_stamp_s(self) -> float:
+        """The depth image's capture stamp (s)."""
+        return float(self.timestamp if self.depth_timestamp is None else self.depth_timestamp)
 
     def __post_init__(self) -> None:
         if self.depth_m.ndim != 2:

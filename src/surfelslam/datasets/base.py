@@ -168,7 +168,7 @@ class RGBDSequence:
         if f > 1:
             rgb = rgb[::f, ::f]
             depth_m = depth_m[::f, ::f]
-        return RGBDFrame(i, e.timestamp, np.ascontiguousarray(rgb), np.ascontiguousarray(depth_m))
+        return RGBDFrame(i, e.timestamp, np.ascontiguousarray(rgb), np.ascontiguousarray(depth_m), e.depth_timestamp)
 
     def __iter__(self):
         for i in range(len(self)):
