@@ -100,8 +100,8 @@ def test_registration_with_retimed_colour_is_as_accurate_as_with_simultaneous_co
     T_gt = se3.invert(traj.T_world_cam[13]) @ traj.T_world_cam[3]
 
     def timing(k):  # k: position in idx of the frame, with neighbours at k - 1 and k + 1
-        pairs = [(frames[a], frames[b], pyr[a], pyr[b], stamps[b] - stamps[a]) for a, b in ((k - 1, k), (k, k + 1))]
-        return colour_timing(offsets[k], pairs, INTR, cfg, RetimeConfig())
+        pairs = [(frames[a], frames[b], pyr[a], pyr[b], stamps[a], stamps[b]) for a, b in ((k - 1, k), (k, k + 1))]
+        return colour_timing(offsets[k], stamps[k], pairs, INTR, cfg, RetimeConfig())
 
     tm = (timing(1), timing(4))
     assert all(t is not None for t in tm)
@@ -115,7 +115,13 @@ def test_registration_with_retimed_colour_is_as_accurate_as_with_simultaneous_co
     assert err["retimed"][0] < 0.5 * err["as taken"][0], err
     assert err["retimed"][0] < err["synced"][0] + 0.0005, err
     # below the threshold nothing is re-timed
-    assert colour_timing(0.0002, [], INTR, cfg, RetimeConfig()) is None
+    assert colour_timing(0.0002, 0.0, [], INTR, cfg, RetimeConfig()) is None
+    # one neighbour pair alone: used only when the middle of its interval is near the colour capture
+    before = [(frames[0], frames[1], pyr[0], pyr[1], stamps[0], stamps[1])]  # middle 16.7 ms before the depth
+    after = [(frames[1], frames[2], pyr[1], pyr[2], stamps[1], stamps[2])]  # 16.7 ms after
+    assert colour_timing(-0.012, stamps[1], before, INTR, cfg, RetimeConfig()) is not None  # 10.7 ms away
+    assert colour_timing(-0.012, stamps[1], after, INTR, cfg, RetimeConfig()) is None  # 22.7 ms away
+    assert colour_timing(0.012, stamps[1], after, INTR, cfg, RetimeConfig()) is not None
 
 
 def test_synth_colour_offset_writes_colour_stamps_and_validates(tmp_path):
@@ -163,6 +169,15 @@ def test_register_command_retimes_offset_colour(tmp_path):
     assert not out["off"]["colour_timing"]["source"]["retimed"]
     e_auto, e_off = out["auto"]["gt_error"]["trans_m"], out["off"]["gt_error"]["trans_m"]
     assert e_auto < 0.5 * e_off and e_auto < 0.0005, (e_auto, e_off)
+    # frame 4 unreadable: frame 5's velocity is measured only after it (too far from its colour): neither frame is
+    # re-timed (one alone would be worse than both as taken), and the run goes on
+    (seq / "depth" / sorted((seq / "depth").iterdir())[4].name).write_bytes(b"not a png")
+    res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "5", "--target", "15",
+                                              "--out", str(tmp_path / "broken")])
+    assert res.exit_code == 0, res.output
+    ct = json.loads((tmp_path / "broken" / "registration.json").read_text())["colour_timing"]
+    assert not ct["source"]["retimed"] and not ct["target"]["retimed"] and "neither" in ct["note"]
+    assert "not re-timed" in res.output
     bad = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "0", "--target", "1",
                                               "--retime-colour", "yes", "--out", str(tmp_path / "b")])
     assert bad.exit_code == 2 and "re-timing" in bad.output and "Traceback" not in bad.output
