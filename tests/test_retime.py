@@ -167,6 +167,7 @@ def test_register_command_retimes_offset_colour(tmp_path):
     assert ct["source"]["retimed"] and ct["target"]["retimed"]
     assert -0.017 < ct["source"]["colour_minus_depth_s"] < -0.007
     assert not out["off"]["colour_timing"]["source"]["retimed"]
+    assert out["off"]["colour_timing"]["config"]["mode"] == "off" and ct["config"]["max_velocity_lag_s"] == 0.015
     e_auto, e_off = out["auto"]["gt_error"]["trans_m"], out["off"]["gt_error"]["trans_m"]
     assert e_auto < 0.5 * e_off and e_auto < 0.0005, (e_auto, e_off)
     # frame 4 unreadable: frame 5's velocity is measured only after it (too far from its colour): neither frame is

@@ -7,7 +7,7 @@ Projective point-to-plane ICP from the identity, or from a feature-based guess (
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Annotated
 
@@ -231,7 +231,7 @@ def register(app: typer.Typer) -> None:
             "photometric": use_photometric,
             "colour_timing": {**{name: _timing_info(sq, i, ct) for name, i, ct in
                                  (("source", source, timing[0]), ("target", target, timing[1]))},
-                              "note": retime_note},
+                              "note": retime_note, "config": asdict(retime_cfg)},
             "features": feat_info,
             "geometric": geo_info,
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)

@@ -11,8 +11,8 @@ depth pixel ``u`` was imaged by the colour camera at ``project(T_colour_depth @ 
 for every valid depth pixel, giving an intensity image on the depth grid at the depth time.
 
 Synthetic pairs 1-30 frames apart with colour 16.7 ms before depth (median of 34 per sequence, 320x240): room slow
-1.54 mm as taken, 0.33 re-timed, 0.30 with simultaneous colour; office hand-held 1.71 / 0.38 / 0.18 mm. The velocity comes from the frame's ICP with its neighbours
-(:func:`surfelslam.tracking.registration.colour_timing`).
+1.54 mm as taken, 0.33 re-timed, 0.30 with simultaneous colour; office hand-held 1.71 / 0.38 / 0.18 mm. The
+velocity comes from the frame's ICP with its neighbours (:func:`surfelslam.tracking.registration.colour_timing`).
 
 Not used by the frame-to-model trackers: there the offsets of consecutive frames are nearly equal and the map's
 colours, fused from such frames, carry the same shift as the frame's, so the two cancel. Measured on
