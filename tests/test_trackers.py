@@ -219,6 +219,12 @@ def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
     assert res.metrics["depth_only_edges"] >= 20 and res.metrics["edges_refined_trusted"], res.metrics
     assert res_off.metrics["depth_only_edges"] == 0
     assert _ate_m(est, gt) < 0.7 * _ate_m(est_off, gt), (_ate_m(est, gt), _ate_m(est_off, gt))
+    # only where the verification lacked matches (texture), not where PnP had matches but too few inliers: with
+    # the bound at 5 matches most of these pairs (5-30 matches) are left to the odometry
+    few = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, depth_only_max_matches=5)))
+    _, res_few, _ = _run("hybrid", frames, few)
+    assert res_few.metrics["depth_only_edges"] < res.metrics["depth_only_edges"] // 2, (res_few.metrics,
+                                                                                        res.metrics)
 
 
 def test_hybrid_relocalises_textureless_frames_by_shape():

@@ -121,6 +121,11 @@ class DenseEdgeConfig:
             off was spanned by no verified edge. The orb tracker's odometry is frame-to-keyframe ICP already; it
             would count the same depth twice (plain office hand-held 0.72 -> 1.21 mm), so ``orb.loop_icp`` has it
             off.
+        depth_only_max_matches: a depth-only nearby edge only where the PnP verification had fewer good matches
+            than this (texture too poor to verify). Where there are matches but PnP finds too few inliers (a fast
+            textured orbit at 640x480: 220-290 matches, 28-72 inliers), the odometry is the better measurement:
+            those keyframe pairs' depth alone slid 1.5-7 mm where the odometry was 0.3-0.8 mm off. On the plain
+            office hand-held the edges that helped had 5-30 matches.
     """
 
     enabled: bool = True
@@ -137,6 +142,7 @@ class DenseEdgeConfig:
     feature_huber: float = 2.0
     icp: ICPConfig = field(default_factory=_edge_icp_config)
     depth_only_nearby: bool = True
+    depth_only_max_matches: int = 100
 
     def __post_init__(self) -> None:
         if self.max_width_px < 8:

@@ -640,7 +640,8 @@ class SparseSlam:
                 refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
                                                self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
             elif (not res.ok and cand.source == "nearby" and self._refiner is not None
-                  and self._refiner.cfg.depth_only_nearby):
+                  and self._refiner.cfg.depth_only_nearby
+                  and res.n_good < self._refiner.cfg.depth_only_max_matches):
                 # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
                 refined = self._refiner.refine(cand.kf_id, kf_id, invert(poses[kf_id]) @ poses[cand.kf_id])
                 if refined is not None:
