@@ -217,8 +217,6 @@ class Trajectory:
         Returns:
             ``(T_world_cam (M, 4, 4), valid (M,) bool)``, invalid rows are the identity.
         """
-        from surfelslam.geometry.se3 import so3_exp, so3_log
-
         stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
         T, valid = self.lookup(stamps, max_dt_s)
         t = self.timestamps
@@ -230,13 +228,19 @@ class Trajectory:
             gap = t[b] - t[a]
             if not 0 < gap <= max_gap_s:
                 continue
-            s = (stamps[k] - t[a]) / gap
-            Ta, Tb = self.T_world_cam[a], self.T_world_cam[b]
-            Ti = np.eye(4)
-            Ti[:3, :3] = Ta[:3, :3] @ so3_exp(s * so3_log(Ta[:3, :3].T @ Tb[:3, :3]))
-            Ti[:3, 3] = (1 - s) * Ta[:3, 3] + s * Tb[:3, 3]
-            T[k], valid[k] = Ti, True
+            T[k], valid[k] = self.pose_between(a, b, (stamps[k] - t[a]) / gap), True
         return T, valid
+
+    def pose_between(self, a: int, b: int, s: float) -> np.ndarray:
+        """``(4, 4)`` pose the fraction ``s`` of the way from pose ``a`` to pose ``b``: translation linear,
+        rotation along the geodesic (SLERP); ``s`` outside [0, 1] extrapolates."""
+        from surfelslam.geometry.se3 import so3_exp, so3_log
+
+        Ta, Tb = self.T_world_cam[a], self.T_world_cam[b]
+        Ti = np.eye(4)
+        Ti[:3, :3] = Ta[:3, :3] @ so3_exp(s * so3_log(Ta[:3, :3].T @ Tb[:3, :3]))
+        Ti[:3, 3] = (1 - s) * Ta[:3, 3] + s * Tb[:3, 3]
+        return Ti
 
     def subset(self, mask_or_index) -> Trajectory:
         return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])

@@ -15,16 +15,17 @@ from surfelslam.errors import ConfigError
 from surfelslam.types import ColourCamera, Intrinsics
 
 
-def pixel_grid(intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """``(u, v)`` float32 arrays of shape ``(H, W)`` holding each pixel's column and row."""
-    v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float32)
+def pixel_grid(intr: Intrinsics, dtype: type = np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, v)`` arrays (``dtype``, float32 by default) of shape ``(H, W)`` holding each pixel's column and row."""
+    v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(dtype)
     return u, v
 
 
-def backproject(depth_m: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """Depth ``(H, W)`` -> vertex map ``(H, W, 3)`` float32 in the camera frame; invalid depth gives 0."""
-    u, v = pixel_grid(intr)
-    z = depth_m.astype(np.float32)
+def backproject(depth_m: np.ndarray, intr: Intrinsics, dtype: type = np.float32) -> np.ndarray:
+    """Depth ``(H, W)`` -> vertex map ``(H, W, 3)`` (``dtype``, float32 by default) in the camera frame; invalid
+    depth gives 0."""
+    u, v = pixel_grid(intr, dtype)
+    z = depth_m.astype(dtype)
     x = (u - intr.cx) / intr.fx * z
     y = (v - intr.cy) / intr.fy * z
     return np.stack([x, y, z], axis=-1)

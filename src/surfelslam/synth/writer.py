@@ -112,21 +112,13 @@ def colour_stamps(depth_stamps: np.ndarray, offset_s: float, jitter_s: float, se
 
 
 def poses_at(trajectory: Trajectory, stamps: np.ndarray) -> np.ndarray:
-    """``(M, 4, 4)`` poses of ``trajectory`` at ``stamps``: translation linear and rotation SLERP between the
-    bracketing poses, extrapolated from the first / last interval outside the trajectory (needs 2 poses)."""
-    from surfelslam.geometry.se3 import so3_exp, so3_log
-
-    t, T = trajectory.timestamps, trajectory.T_world_cam
+    """``(M, 4, 4)`` poses of ``trajectory`` at ``stamps``: :meth:`Trajectory.pose_between` the bracketing poses,
+    extrapolated from the first / last interval outside the trajectory (needs 2 poses)."""
+    t = trajectory.timestamps
     stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
     hi = np.clip(np.searchsorted(t, stamps, side="right"), 1, len(t) - 1)
-    out = np.empty((len(stamps), 4, 4))
-    for k, (b, q) in enumerate(zip(hi, stamps, strict=True)):
-        a = b - 1
-        s = (q - t[a]) / (t[b] - t[a])
-        out[k] = np.eye(4)
-        out[k, :3, :3] = T[a, :3, :3] @ so3_exp(s * so3_log(T[a, :3, :3].T @ T[b, :3, :3]))
-        out[k, :3, 3] = (1 - s) * T[a, :3, 3] + s * T[b, :3, 3]
-    return out
+    return np.stack([trajectory.pose_between(b - 1, b, (q - t[b - 1]) / (t[b] - t[b - 1]))
+                     for b, q in zip(hi, stamps, strict=True)])
 
 
 def depth_to_raw(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.ndarray:

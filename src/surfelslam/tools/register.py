@@ -49,33 +49,32 @@ def per_level(text: str | None, default: tuple, levels: int, name: str, cast=flo
     return vals
 
 
-def _colour_timing(sq, i: int, pre, icp_cfg, retime_cfg):
-    """Frame ``i``'s colour timing (:func:`surfelslam.tracking.registration.colour_timing`) from its neighbours in
-    the selection; a neighbour that cannot be read is left out."""
+def _colour_timing(sq, frame, pyramid, pre, icp_cfg, retime_cfg):
+    """The colour timing (:func:`surfelslam.tracking.registration.colour_timing`) of ``frame`` (loaded, with its
+    ``pyramid``) from its neighbours in the selection; a neighbour that cannot be read is left out."""
     from surfelslam.errors import FrameError
     from surfelslam.tracking.registration import colour_timing
 
-    offset = float(sq.timestamps[i] - sq.depth_timestamps[i])
+    offset = frame.colour_minus_depth_s
     if not retime_cfg.applies(offset):
         return None
-    t_d = sq.depth_timestamps
-    frames = {}
-    for j in (i - 1, i, i + 1):
+    i = frame.index
+    frames = {i: (frame, pyramid)}
+    for j in (i - 1, i + 1):
         if 0 <= j < len(sq):
             try:
                 f = sq[j]
             except FrameError:
                 continue
             frames[j] = (f, pre.process(f.depth_m))
-    pairs = [(frames[a][0], frames[b][0], frames[a][1], frames[b][1], float(t_d[a]), float(t_d[b]))
-             for a, b in ((i - 1, i), (i, i + 1)) if a in frames and b in frames]
-    return colour_timing(offset, float(t_d[i]), pairs, sq.intrinsics, icp_cfg, retime_cfg)
+    pairs = [(frames[a][0], frames[b][0], frames[a][1], frames[b][1], frames[a][0].depth_stamp_s,
+              frames[b][0].depth_stamp_s) for a, b in ((i - 1, i), (i, i + 1)) if a in frames and b in frames]
+    return colour_timing(offset, frame.depth_stamp_s, pairs, sq.intrinsics, icp_cfg, retime_cfg)
 
 
-def _timing_info(sq, i: int, ct) -> dict:
+def _timing_info(frame, ct) -> dict:
     """``registration.json``'s record of one frame's colour timing."""
-    offset = float(sq.timestamps[i] - sq.depth_timestamps[i])
-    return {"colour_minus_depth_s": offset, "retimed": ct is not None,
+    return {"colour_minus_depth_s": frame.colour_minus_depth_s, "retimed": ct is not None,
             "twist_per_s": None if ct is None else [float(x) for x in ct.twist_per_s]}
 
 
@@ -176,9 +175,10 @@ def register(app: typer.Typer) -> None:
         timing = (None, None)
         retime_note = None
         if use_photometric:
-            timing = tuple(_colour_timing(sq, i, pre, cfg, retime_cfg) for i in (source, target))
-            needs = [retime_cfg.applies(float(sq.timestamps[i] - sq.depth_timestamps[i])) for i in (source, target)]
-            if any(n and ct is None for n, ct in zip(needs, timing, strict=True)):
+            timing = (_colour_timing(sq, f_src, p_src, pre, cfg, retime_cfg),
+                      _colour_timing(sq, f_tgt, p_tgt, pre, cfg, retime_cfg))
+            if any(retime_cfg.applies(f.colour_minus_depth_s) and ct is None
+                   for f, ct in zip((f_src, f_tgt), timing, strict=True)):
                 # one frame alone re-timed is worse than neither: the offsets' common part no longer cancels
                 # (synthetic hand-held pair: 4.4 mm against 0.8 as taken and 0.0 both re-timed)
                 timing = (None, None)
@@ -229,8 +229,8 @@ def register(app: typer.Typer) -> None:
             "init": init,
             "init_used": init_used,
             "photometric": use_photometric,
-            "colour_timing": {**{name: _timing_info(sq, i, ct) for name, i, ct in
-                                 (("source", source, timing[0]), ("target", target, timing[1]))},
+            "colour_timing": {**{name: _timing_info(f, ct) for name, f, ct in
+                                 (("source", f_src, timing[0]), ("target", f_tgt, timing[1]))},
                               "note": retime_note, "config": asdict(retime_cfg)},
             "features": feat_info,
             "geometric": geo_info,

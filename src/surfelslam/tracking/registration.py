@@ -157,10 +157,10 @@ def capture_twist(before: RGBDFrame, after: RGBDFrame, p_before: FramePyramid, p
     ``None`` when their ICP (from the identity; joint with the photometric term when ``photometric``: on plain
     walls depth alone slides, 0.1-0.9 m off on the synthetic office) does not converge. The colour of the two
     frames is used as captured: its offsets bias this velocity only by their difference over ``dt_s``."""
-    i_b = intensity_pyramid(intensity_from_rgb(before.rgb), icp_cfg.levels, gradients=False) if photometric else None
     term = None
-    if i_b is not None and icp_cfg.photometric_weight > 0:
-        term = photometric_term(i_b, intensity_pyramid(intensity_from_rgb(after.rgb), icp_cfg.levels, gradients=True),
+    if photometric and icp_cfg.photometric_weight > 0:
+        term = photometric_term(intensity_pyramid(intensity_from_rgb(before.rgb), icp_cfg.levels, gradients=False),
+                                intensity_pyramid(intensity_from_rgb(after.rgb), icp_cfg.levels, gradients=True),
                                 icp_cfg)
     res = icp(p_before, p_after, None, icp_cfg, photometric=term)
     return twist_from_pose(res.T_target_source, dt_s) if res.converged else None
@@ -176,10 +176,11 @@ def colour_timing(offset_s: float, depth_stamp_s: float,
     contains it (the previous and the frame, the frame and the next; the ``t`` their depth stamps). Each pair's
     :func:`capture_twist` is the velocity at the middle of its interval; the frame's twist is the one between the
     colour and the depth stamp (at ``depth_stamp_s + offset_s / 2``), linear in time between the two pairs' (held at
-    the nearer one outside them), or the one pair's. ``None`` when ``retime_cfg`` does not apply to ``offset_s`` or
-    no pair converged. Synthetic hand-held orbit, colour 8-16 ms before depth, frames 5 -> 15: 0.8 mm as taken,
-    0.2 re-timed with both neighbours, 1.0 mm with the next frame alone (its interval's middle is 29 ms from
-    the colour's)."""
+    the nearer one outside them), or the one pair's. ``None`` when ``retime_cfg`` does not apply to ``offset_s``, no
+    pair converged, or the pairs' velocities were measured farther than ``retime_cfg.max_velocity_lag_s`` from
+    there. Synthetic hand-held orbit, colour 8-16 ms before depth, frames 5 -> 15: 0.8 mm as taken,
+    0.0 re-timed with both neighbours, 0.4 with the previous pair alone, 1.1 mm with the next pair alone (which
+    ``max_velocity_lag_s`` refuses: its interval's middle is 23 ms from the colour-depth interval's)."""
     if not retime_cfg.applies(offset_s):
         return None
     found = [((t_b + t_a) / 2 - depth_stamp_s, tw) for b, a, p_b, p_a, t_b, t_a in neighbours if t_a > t_b

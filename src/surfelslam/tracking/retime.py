@@ -30,6 +30,7 @@ import numpy as np
 
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
+from surfelslam.geometry.camera import backproject, pixel_grid, project
 from surfelslam.types import Intrinsics
 
 
@@ -101,12 +102,12 @@ def twist_from_pose(T_b_a: np.ndarray, dt_s: float) -> np.ndarray:
     return se3.log(se3.invert(T_b_a)) / dt_s
 
 
-def colour_pixel_maps(vertex_cam: np.ndarray, intr: Intrinsics,
+def colour_pixel_maps(depth_m: np.ndarray, intr: Intrinsics,
                       T_colour_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where each depth pixel's point was imaged by the colour camera.
 
     Args:
-        vertex_cam: ``(H, W, 3)`` depth-camera points (z = 0: invalid), or ``(H, W)`` depth in metres.
+        depth_m: ``(H, W)`` depth in metres (0 = invalid).
         intr: intrinsics of the depth grid (the colour image shares them).
         T_colour_depth: ``(4, 4)`` (:attr:`ColourTiming.T_colour_depth`).
 
@@ -115,28 +116,17 @@ def colour_pixel_maps(vertex_cam: np.ndarray, intr: Intrinsics,
         invalid) and ``(H, W)`` bool, False where a valid point falls behind the colour camera or more than half a
         pixel outside its image.
     """
-    h, w = vertex_cam.shape[:2]
+    h, w = depth_m.shape
     if (intr.width, intr.height) != (w, h):
         raise ConfigError(f"colour re-timing: intrinsics are for {intr.width}x{intr.height}, images are {w}x{h}")
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    if vertex_cam.ndim == 2:
-        z = vertex_cam.astype(np.float64)
-        x = (u - intr.cx) / intr.fx * z
-        y = (v - intr.cy) / intr.fy * z
-    else:
-        x, y, z = (vertex_cam[..., k].astype(np.float64) for k in range(3))
-    ok = z > 0
-    R, t = T_colour_depth[:3, :3], T_colour_depth[:3, 3]
-    qx = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-    qy = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-    qz = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-    front = qz > 1e-6
-    safe_z = np.where(front, qz, 1.0)
-    map_u = np.where(ok, intr.fx * qx / safe_z + intr.cx, u)
-    map_v = np.where(ok, intr.fy * qy / safe_z + intr.cy, v)
+    ok = depth_m > 0
+    u, v = pixel_grid(intr, np.float64)  # float64: an unmoved point maps onto its own pixel exactly
+    uc, vc, zc = project(se3.transform_points(T_colour_depth, backproject(depth_m, intr, np.float64)), intr)
+    map_u = np.where(ok, uc, u)
+    map_v = np.where(ok, vc, v)
     # within half a pixel of the image: the edge pixel (replicated); farther out: unseen
-    inside = (map_u > -0.5) & (map_u < w - 0.5) & (map_v > -0.5) & (map_v < h - 0.5)
-    return map_u.astype(np.float32), map_v.astype(np.float32), ~ok | (front & inside)
+    inside = (zc > 0) & (map_u > -0.5) & (map_u < w - 0.5) & (map_v > -0.5) & (map_v < h - 0.5)
+    return map_u.astype(np.float32), map_v.astype(np.float32), ~ok | inside
 
 
 def retime_intensity(intensity: np.ndarray, depth_m: np.ndarray, intr: Intrinsics,
@@ -146,7 +136,7 @@ def retime_intensity(intensity: np.ndarray, depth_m: np.ndarray, intr: Intrinsic
     Args:
         intensity: ``(H, W)`` float32 in [0, 1] (NaN = invalid), captured by the colour camera at its own stamp,
             registered to the depth grid (pixel ``u`` of both sees the same ray when the cameras coincide).
-        depth_m: ``(H, W)`` float32 metres (0 = invalid) at the depth stamp, or ``(H, W, 3)`` its vertex map.
+        depth_m: ``(H, W)`` float32 metres (0 = invalid) at the depth stamp.
         intr: intrinsics of both images.
         T_colour_depth: ``(4, 4)`` (:attr:`ColourTiming.T_colour_depth`).
 
@@ -154,8 +144,8 @@ def retime_intensity(intensity: np.ndarray, depth_m: np.ndarray, intr: Intrinsic
         ``(H, W)`` float32: at each valid depth pixel the intensity bilinearly sampled where its point projects
         into the colour image (NaN where it falls outside or behind the camera); elsewhere the input unchanged.
     """
-    if intensity.shape != depth_m.shape[:2]:
-        raise ConfigError(f"retime_intensity: intensity is {intensity.shape}, depth is {depth_m.shape[:2]}")
+    if intensity.shape != depth_m.shape:
+        raise ConfigError(f"retime_intensity: intensity is {intensity.shape}, depth is {depth_m.shape}")
     map_u, map_v, seen = colour_pixel_maps(depth_m, intr, T_colour_depth)
     out = cv2.remap(np.ascontiguousarray(intensity, dtype=np.float32), map_u, map_v, cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
