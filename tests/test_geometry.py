@@ -19,6 +19,19 @@ def test_exp_log_roundtrip():
         assert np.allclose(se3.log(T), xi, atol=1e-9)
 
 
+def test_so3_log_of_a_batch_equals_one_at_a_time():
+    """A ``(K, 3, 3)`` stack gives ``(K, 3)``, each row the single matrix's log (the pose graph's residual check
+    takes hundreds at once); angles near 0 and pi included."""
+    rng = np.random.default_rng(3)
+    omegas = [rng.normal(size=3) * 0.8 for _ in range(20)]
+    omegas += [np.array([1e-9, 0.0, 0.0]), np.array([0.0, np.pi - 1e-6, 0.0])]
+    R = np.stack([se3.so3_exp(w) for w in omegas])
+    batch = se3.so3_log(R)
+    assert batch.shape == (22, 3)
+    assert np.array_equal(batch, np.stack([se3.so3_log(r) for r in R]))
+    assert np.allclose(batch, np.stack(omegas), atol=1e-9)
+
+
 def test_exp_small_angle_matches_first_order():
     xi = np.array([1e-10, -2e-10, 3e-10, 0.1, 0.2, 0.3])
     assert np.allclose(se3.exp(xi), se3.small_angle_update(xi), atol=1e-12)

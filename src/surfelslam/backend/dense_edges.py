@@ -238,7 +238,11 @@ class DenseEdgeRefiner:
         if len(loops) < self.cfg.min_spread_edges:
             return None
         R = np.asarray(poses_world_kf, np.float64)[:, :3, :3]
-        rot = [se3.so3_log(e.T_i_j[:3, :3].T @ R[e.i].T @ R[e.j]) for e in loops]  # rotation part of the residual
+        R_ij = np.stack([e.T_i_j[:3, :3] for e in loops])
+        i = np.fromiter((e.i for e in loops), np.intp, len(loops))
+        j = np.fromiter((e.j for e in loops), np.intp, len(loops))
+        # rotation part of each residual, T_i_j^-1 T_world_i^-1 T_world_j, as one batch (K, 3)
+        rot = se3.so3_log(np.swapaxes(R_ij, 1, 2) @ np.swapaxes(R[i], 1, 2) @ R[j])
         return float(np.median(np.abs(rot))) / _MAD_TO_SIGMA
 
     def trusted(self, residual_rad: float | None) -> bool:

@@ -80,7 +80,7 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation ``(3, 3)`` -> axis-angle ``(3,)`` (robust near 0 and pi via scipy)."""
+    """Rotation(s) ``(..., 3, 3)`` -> axis-angle(s) ``(..., 3)`` (robust near 0 and pi via scipy)."""
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
 
 
