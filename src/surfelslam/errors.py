@@ -43,3 +43,22 @@ class ConfigError(SurfelSlamError):
 
 class TrackingError(SurfelSlamError):
     """Tracking could not produce a pose (too few inliers, degenerate geometry)."""
+
+
+class OutputError(SurfelSlamError):
+    """An output file cannot be written (disk full, read-only folder, permission denied).
+
+    The message names the file; whatever was left on disk is valid (no torn line, no temp file).
+    """
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+class EvaluationError(SurfelSlamError, ValueError):
+    """Trajectories that cannot be evaluated (degenerate motion, no pose pairs, bad options).
+
+    Also a ValueError, which the metrics raised for these cases before.
+    """

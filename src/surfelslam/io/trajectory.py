@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import numpy as np
 
-from surfelslam.errors import InputError, TrackingError
-from surfelslam.io.atomic import atomic_open
+from surfelslam.errors import InputError, OutputError, TrackingError
+from surfelslam.io.atomic import NEW_FILE_MODE, atomic_open, os_error_text
 from surfelslam.types import Trajectory
 
 
 def read_tum(path: str | Path) -> Trajectory:
-    """Read a TUM trajectory; sorts by timestamp and rejects malformed rows with the line number."""
+    """Read a TUM trajectory; sorts by timestamp and rejects malformed rows and duplicated timestamps with the
+    line numbers."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "trajectory file not found")
@@ -20,7 +23,7 @@ def read_tum(path: str | Path) -> Trajectory:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, f"cannot read trajectory file ({exc})") from None
-    rows = []
+    rows, linenos = [], []
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -39,10 +42,17 @@ def read_tum(path: str | Path) -> Trajectory:
         if np.linalg.norm(vals[4:8]) < 1e-6:
             raise InputError(path, f"line {lineno}: zero quaternion")
         rows.append(vals)
+        linenos.append(lineno)
     if not rows:
         raise InputError(path, "trajectory file has no poses")
     arr = np.asarray(rows, dtype=np.float64)
     order = np.argsort(arr[:, 0], kind="stable")
+    dup = np.nonzero(np.diff(arr[order, 0]) == 0)[0]
+    if len(dup):
+        a, b = linenos[order[dup[0]]], linenos[order[dup[0] + 1]]
+        more = f" ({len(dup)} duplicated stamps in all)" if len(dup) > 1 else ""
+        raise InputError(path, f"duplicate timestamp {arr[order[dup[0]], 0]:.6f} (lines {a} and {b}){more}; "
+                               "each pose needs its own timestamp")
     return Trajectory.from_tum_rows(arr[order])
 
 
@@ -72,22 +82,63 @@ def write_tum(traj: Trajectory, path: str | Path) -> None:
 
 
 class TumAppender:
-    """Append poses line by line, flushed per frame, so a killed run keeps every finished frame."""
+    """Append poses line by line, each written whole with one ``write`` call, so a killed run keeps every
+    finished frame and the file never ends in a torn line.
+
+    A write error (disk full, ...) cuts the file back to its last complete line and raises
+    :class:`~surfelslam.errors.OutputError` naming the file.
+    """
+
+    HEADER = "# timestamp tx ty tz qx qy qz qw\n"
+    #: the low-level write (``os.write``); a class attribute so that tests can inject failures
+    _write_fn = staticmethod(os.write)
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.path, "w")  # noqa: SIM115 - closed in close()
-        self._fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        self._fh.flush()
+        self.lines = 0  # poses written
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, NEW_FILE_MODE)
+        except OSError as exc:
+            raise OutputError(self.path, f"cannot create the trajectory file ({os_error_text(exc)})") from None
+        self._size = 0  # bytes of complete lines on disk
+        self._write_line(self.HEADER)
 
     def append(self, timestamp: float, T_world_cam: np.ndarray) -> None:
-        self._fh.write(format_tum_line(timestamp, T_world_cam))
-        self._fh.flush()
+        self._write_line(format_tum_line(timestamp, T_world_cam))
+        self.lines += 1
+
+    def _write_line(self, line: str) -> None:
+        if self._fd is None:
+            raise OutputError(self.path, "trajectory file already closed")
+        data = line.encode("ascii")
+        done = 0
+        try:
+            while done < len(data):
+                n = self._write_fn(self._fd, data[done:])
+                if n <= 0:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                done += n
+        except OSError as exc:
+            cut = ""
+            if done:
+                try:
+                    os.ftruncate(self._fd, self._size)
+                    os.lseek(self._fd, self._size, os.SEEK_SET)
+                    cut = "; the partial line was removed"
+                except OSError:
+                    cut = "; the partial line could not be removed"
+            raise OutputError(self.path, f"cannot write ({os_error_text(exc)}); the file keeps the "
+                                         f"{self.lines} poses written before{cut}") from None
+        self._size += len(data)
 
     def close(self) -> None:
-        if not self._fh.closed:
-            self._fh.close()
+        if self._fd is not None:
+            fd, self._fd = self._fd, None
+            try:
+                os.close(fd)
+            except OSError as exc:
+                raise OutputError(self.path, f"cannot close ({os_error_text(exc)})") from None
 
     def __enter__(self) -> TumAppender:
         return self
