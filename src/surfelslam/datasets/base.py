@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -57,6 +58,31 @@ class DatasetOptions:
                 raise ConfigError("--intrinsics: focal lengths must be non-zero")
 
 
+class UnpairedFrame(NamedTuple):
+    """A file an index or image folder lists that did not become a frame (it has no partner).
+
+    ``file``: the colour or depth image; ``timestamp``: its stamp (s) when the layout has one, else ``None``;
+    ``reason``: why it has no partner, naming the index file or folder it was looked for in.
+    """
+
+    file: Path
+    timestamp: float | None
+    reason: str
+
+
+#: Below this fraction of listed images in pairs, a sequence is refused (the index files disagree).
+MIN_PAIRED_FRACTION = 0.5
+#: Unpaired images quoted in an error message.
+UNPAIRED_EXAMPLES = 3
+
+
+def unpaired_examples(unpaired: list[UnpairedFrame], n: int = UNPAIRED_EXAMPLES) -> str:
+    """``'rgb/1.png (t=1.000000), ...'`` for the first ``n`` unpaired images (for one-line messages)."""
+    parts = [f"{u.file.parent.name}/{u.file.name}" + ("" if u.timestamp is None else f" (t={u.timestamp:.6f})")
+             for u in unpaired[:n]]
+    return ", ".join(parts) + (f" and {len(unpaired) - n} more" if len(unpaired) > n else "")
+
+
 @dataclass(frozen=True)
 class FrameEntry:
     """One frame's files before loading: timestamps in seconds, absolute paths.
@@ -82,6 +108,10 @@ class RGBDSequence:
         depth_scale: raw depth units per metre.
         entries: selected frames' files, in time order.
         ground_truth: the whole ground-truth trajectory, or ``None`` when the folder has none.
+        unpaired: images the index files or folders list that found no partner (colour without depth or the
+            reverse), as :class:`UnpairedFrame`; they are not frames of the sequence. Filled at open time.
+        warnings: doubts found at open time that do not stop a run (e.g. a layout's default intrinsics that do
+            not fit the image size), one line each.
 
     ``seq[i]`` loads frame ``i`` of the selection as an :class:`RGBDFrame` whose ``index`` is ``i``;
     a corrupt file raises :class:`FrameError` naming it.
@@ -97,6 +127,8 @@ class RGBDSequence:
     #: where the intrinsics / depth scale came from (an option, a metadata file, or the layout default)
     intrinsics_source: str = "unknown"
     depth_scale_source: str = "unknown"
+    #: "option" (--intrinsics), "file" (a metadata file in the folder) or "default" (the layout's)
+    intrinsics_kind: str = "default"
 
     def __init__(
         self,
@@ -117,6 +149,8 @@ class RGBDSequence:
         self.entries = entries[options.start : options.end : options.stride]
         self.ground_truth = ground_truth
         self.depth_invalid_raw = depth_invalid_raw
+        self.unpaired: list[UnpairedFrame] = []
+        self.warnings: list[str] = []
 
     @property
     def colour_camera(self) -> ColourCamera | None:
@@ -147,14 +181,14 @@ class RGBDSequence:
         from surfelslam.io.images import read_depth_raw, read_rgb
 
         full = self.full_intrinsics
-        try:
-            rgb = read_rgb(e.rgb_path)
+        try:  # depth first: without it there is no frame, and its message names the depth file
             raw = read_depth_raw(e.depth_path)
+            rgb = read_rgb(e.rgb_path)
         except FrameError as exc:
             if exc.index is None:
                 exc.index = i  # the position in the selection, for runs that skip and count bad frames
             raise
-        for path, shape in ((e.rgb_path, rgb.shape[:2]), (e.depth_path, raw.shape)):
+        for path, shape in ((e.depth_path, raw.shape), (e.rgb_path, rgb.shape[:2])):
             if shape != full.shape:
                 raise FrameError(
                     path, f"image is {shape[1]}x{shape[0]}, expected {full.width}x{full.height}", index=i
@@ -206,6 +240,10 @@ class RGBDSequence:
             "root": str(self.root),
             "frames": len(self),
             "frames_total": len(self.all_entries),
+            "images_unpaired": len(self.unpaired),
+            "unpaired": [{"file": str(u.file), "timestamp": u.timestamp, "reason": u.reason}
+                         for u in self.unpaired],
+            "warnings": list(self.warnings),
             "resolution": [intr.width, intr.height],
             "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
             "depth_scale": self.depth_scale,

@@ -1,6 +1,7 @@
 """Plain folder layout: numbered images in ``rgb/`` and ``depth/`` (e.g. ``rgb/12.png``, ``depth/12.png``).
 
-Files pair by the last number in their name and are ordered numerically. There are no timestamps: frame
+Files pair by the last number in their name and are ordered numerically; an image whose number the other
+folder lacks is listed in the sequence's ``unpaired`` (fewer than half paired: refused). There are no timestamps: frame
 number ``n`` gets ``n / FOLDER_FPS_HZ`` seconds. Intrinsics and depth scale must come from the options
 (``--intrinsics``, ``--depth-scale``) or from an ``INFO.txt`` in the folder. An optional
 ``groundtruth.txt`` (TUM format, same timestamps) is read.
@@ -11,7 +12,14 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
+from surfelslam.datasets.base import (
+    MIN_PAIRED_FRACTION,
+    DatasetOptions,
+    FrameEntry,
+    RGBDSequence,
+    UnpairedFrame,
+    unpaired_examples,
+)
 from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
 from surfelslam.datasets.tum import read_ground_truth
 from surfelslam.errors import DatasetError
@@ -47,11 +55,13 @@ def numbered_images(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
 
 def paired_numbered_images(
     root: Path, rgb_dir: str = "rgb", depth_dir: str = "depth"
-) -> list[tuple[int, Path, Path]]:
-    """``(number, rgb path, depth path)`` for numbers present in both folders, ascending.
+) -> tuple[list[tuple[int, Path, Path]], list[UnpairedFrame]]:
+    """``(number, rgb path, depth path)`` for numbers present in both folders, ascending, and the images whose
+    number the other folder lacks (timestamps ``number / FOLDER_FPS_HZ``).
 
     Raises:
-        DatasetError: no images, or no number common to both folders.
+        DatasetError: no images, no number common to both folders, or fewer than
+            :data:`MIN_PAIRED_FRACTION` of the images pair.
     """
     rgb = numbered_images(root / rgb_dir, RGB_SUFFIXES)
     depth = numbered_images(root / depth_dir, DEPTH_SUFFIXES)
@@ -65,7 +75,18 @@ def paired_numbered_images(
             f"{rgb_dir}/ ({min(rgb)}..{max(rgb)}) and {depth_dir}/ ({min(depth)}..{max(depth)}) "
             "share no image number",
         )
-    return [(n, rgb[n], depth[n]) for n in common]
+    unpaired = [UnpairedFrame(rgb[n], n / FOLDER_FPS_HZ, f"no image numbered {n} in {depth_dir}/")
+                for n in sorted(set(rgb) - set(depth))]
+    unpaired += [UnpairedFrame(depth[n], n / FOLDER_FPS_HZ, f"no image numbered {n} in {rgb_dir}/")
+                 for n in sorted(set(depth) - set(rgb))]
+    listed = max(len(rgb), len(depth))
+    if len(common) < MIN_PAIRED_FRACTION * listed:
+        raise DatasetError(
+            root,
+            f"only {len(common)} image numbers are in both {rgb_dir}/ ({len(rgb)} images) and {depth_dir}/ "
+            f"({len(depth)} images), fewer than {MIN_PAIRED_FRACTION:.0%}; unpaired: {unpaired_examples(unpaired)}",
+        )
+    return [(n, rgb[n], depth[n]) for n in common], unpaired
 
 
 def has_numbered_folders(root: Path) -> bool:
@@ -88,5 +109,7 @@ class FolderSequence(RGBDSequence):
     @classmethod
     def open(cls, root: Path, options: DatasetOptions, meta: FolderMetadata | None = None) -> RGBDSequence:
         meta = read_metadata(root) if meta is None else meta
-        entries = [FrameEntry(n / FOLDER_FPS_HZ, r, d) for n, r, d in paired_numbered_images(root)]
-        return build_sequence(cls, root, entries, options, meta, None, None, "none", read_ground_truth(root))
+        pairs, unpaired = paired_numbered_images(root)
+        entries = [FrameEntry(n / FOLDER_FPS_HZ, r, d) for n, r, d in pairs]
+        return build_sequence(cls, root, entries, options, meta, None, None, "none", read_ground_truth(root),
+                              unpaired=unpaired)

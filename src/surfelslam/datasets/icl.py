@@ -22,9 +22,8 @@ from pathlib import Path
 from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
 from surfelslam.datasets.folder import has_numbered_folders, paired_numbered_images
 from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
-from surfelslam.datasets.tum import GT_FILE, has_tum_index, read_tum_entries
+from surfelslam.datasets.tum import GT_FILE, has_tum_index, read_ground_truth_file, read_tum_entries
 from surfelslam.errors import DatasetError
-from surfelslam.io.trajectory import read_tum
 from surfelslam.types import Trajectory
 
 ICL_INTRINSICS = (481.2, -480.0, 319.5, 239.5)
@@ -50,7 +49,7 @@ def _read_gt_freiburg(root: Path) -> Trajectory | None:
     files = _gt_files(root)
     if len(files) > 1:
         raise DatasetError(root, f"several ground-truth files: {', '.join(f.name for f in files)}; keep one")
-    return read_tum(files[0]) if files else None
+    return read_ground_truth_file(files[0]) if files else None
 
 
 class IclSequence(RGBDSequence):
@@ -71,13 +70,14 @@ class IclSequence(RGBDSequence):
     def open(cls, root: Path, options: DatasetOptions, meta: FolderMetadata | None = None) -> RGBDSequence:
         meta = read_metadata(root) if meta is None else meta
         if has_tum_index(root):
-            entries = read_tum_entries(root)
-            gt = read_tum(root / GT_FILE) if (root / GT_FILE).is_file() else _read_gt_freiburg(root)
+            entries, unpaired = read_tum_entries(root)
+            gt = read_ground_truth_file(root / GT_FILE) if (root / GT_FILE).is_file() else _read_gt_freiburg(root)
         else:
-            pairs = paired_numbered_images(root)
+            pairs, unpaired = paired_numbered_images(root)
             gt = _read_gt_freiburg(root)
             offset = 0.0 if gt is None else float(gt.timestamps[0]) - pairs[0][0]
             entries = [FrameEntry(n + offset, r, d) for n, r, d in pairs]
+            unpaired = [u._replace(timestamp=None) for u in unpaired]  # image numbers, not seconds
         return build_sequence(
-            cls, root, entries, options, meta, ICL_INTRINSICS, ICL_DEPTH_SCALE, _DEFAULT_DESC, gt
+            cls, root, entries, options, meta, ICL_INTRINSICS, ICL_DEPTH_SCALE, _DEFAULT_DESC, gt, unpaired=unpaired
         )

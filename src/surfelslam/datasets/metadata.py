@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
-from surfelslam.errors import ConfigError, DatasetError
+from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence, UnpairedFrame
+from surfelslam.errors import ConfigError, DatasetError, FrameError
 from surfelslam.types import ColourCamera, Intrinsics, Trajectory
 
 INFO_FILE = "INFO.txt"
@@ -73,6 +73,8 @@ class CameraSetup:
     depth_scale: float
     intrinsics_source: str
     depth_scale_source: str
+    #: where the intrinsics came from: "option" (--intrinsics), "file" (a metadata file) or "default" (layout)
+    intrinsics_kind: str = "default"
 
 
 def read_info_fields(path: Path) -> dict[str, str]:
@@ -190,11 +192,36 @@ def _colour_camera_fields(info: Path, fields: dict[str, str]
     return intr, t
 
 
+#: Depth images tried for the image size, from the sequence's first frame on, when the first are unreadable.
+SIZE_PROBE_MAX_FRAMES = 30
+
+
 def first_depth_shape(path: Path) -> tuple[int, int]:
     """``(height, width)`` of a depth image (the sequence's resolution); FrameError if unreadable."""
     from surfelslam.io.images import read_depth_raw
 
     return read_depth_raw(path).shape  # type: ignore[return-value]
+
+
+def probe_image_size(entries: list[FrameEntry], max_frames: int = SIZE_PROBE_MAX_FRAMES) -> tuple[int, int]:
+    """``(height, width)`` of the sequence's first readable depth image (whatever the selection): a corrupt first
+    frame is skipped here and reported when the frame is loaded.
+
+    Raises:
+        FrameError: the only frame tried is unreadable. DatasetError: none of the ``max_frames`` tried is.
+    """
+    first: FrameError | None = None
+    tried = entries[:max_frames]
+    for e in tried:
+        try:
+            return first_depth_shape(e.depth_path)
+        except FrameError as exc:
+            first = exc if first is None else first
+    assert first is not None, "no frames to probe"
+    if len(tried) == 1:
+        raise first
+    raise DatasetError(first.path, f"{first.problem}; none of the {len(tried)} depth images tried from here on is "
+                                   "readable, so the image size is unknown")
 
 
 def resolve_camera(
@@ -203,18 +230,18 @@ def resolve_camera(
     layout_intrinsics: tuple[float, float, float, float] | None,
     layout_depth_scale: float | None,
     layout_desc: str,
-    first_depth_path: Path,
+    entries: list[FrameEntry],
 ) -> CameraSetup | None:
     """Combine options > folder metadata > layout defaults; ``None`` when a value has no source at all.
 
-    The resolution comes from the first depth image.
+    The resolution comes from the first readable depth image (:func:`probe_image_size`).
     """
     if options.intrinsics is not None:
-        intr, intr_src = options.intrinsics, "--intrinsics"
+        intr, intr_src, kind = options.intrinsics, "--intrinsics", "option"
     elif meta.intrinsics is not None:
-        intr, intr_src = meta.intrinsics, str(meta.intrinsics_file)
+        intr, intr_src, kind = meta.intrinsics, str(meta.intrinsics_file), "file"
     else:
-        intr, intr_src = layout_intrinsics, layout_desc
+        intr, intr_src, kind = layout_intrinsics, layout_desc, "default"
     if options.depth_scale is not None:
         scale, scale_src = options.depth_scale, "--depth-scale"
     elif meta.depth_scale is not None:
@@ -223,9 +250,9 @@ def resolve_camera(
         scale, scale_src = layout_depth_scale, layout_desc
     if intr is None or scale is None:
         return None
-    h, w = first_depth_shape(first_depth_path)
+    h, w = probe_image_size(entries)
     fx, fy, cx, cy = (float(x) for x in intr)
-    return CameraSetup(Intrinsics(fx, fy, cx, cy, int(w), int(h)), float(scale), intr_src, scale_src)
+    return CameraSetup(Intrinsics(fx, fy, cx, cy, int(w), int(h)), float(scale), intr_src, scale_src, kind)
 
 
 def build_sequence(
@@ -239,17 +266,18 @@ def build_sequence(
     layout_desc: str,
     ground_truth: Trajectory | None = None,
     depth_invalid_raw: tuple[int, ...] = (0,),
+    unpaired: list[UnpairedFrame] | None = None,
 ) -> RGBDSequence:
     """Construct an adapter's sequence once its files are listed (shared by every adapter).
+
+    ``unpaired``: the listed images that found no partner (kept as the sequence's ``unpaired``).
 
     Raises:
         DatasetError: no frames. ConfigError: intrinsics or depth scale known from nowhere.
     """
     if not entries:
         raise DatasetError(root, "no frames found")
-    cam = resolve_camera(
-        options, meta, layout_intrinsics, layout_depth_scale, layout_desc, entries[0].depth_path
-    )
+    cam = resolve_camera(options, meta, layout_intrinsics, layout_depth_scale, layout_desc, entries)
     if cam is None:
         missing = []
         if options.intrinsics is None and meta.intrinsics is None and layout_intrinsics is None:
@@ -261,6 +289,8 @@ def build_sequence(
             f"(or write an {INFO_FILE} with 'intrinsics : fx=.. fy=.. cx=.. cy=..' and 'depth scale : N')"
         )
     seq = cls(root, entries, cam.intrinsics, cam.depth_scale, options, ground_truth, depth_invalid_raw)
+    seq.unpaired = list(unpaired or [])
+    seq.intrinsics_kind = cam.intrinsics_kind
     if meta.colour_intrinsics is not None:  # colour images have the depth images' size (checked per frame)
         seq.full_colour_camera = ColourCamera(Intrinsics(*meta.colour_intrinsics, cam.intrinsics.width,
                                                          cam.intrinsics.height), meta.colour_translation_m)

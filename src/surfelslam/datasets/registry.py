@@ -21,6 +21,7 @@ from surfelslam.datasets.base import DatasetOptions, RGBDSequence
 from surfelslam.datasets.folder import FolderSequence
 from surfelslam.datasets.icl import IclSequence
 from surfelslam.datasets.metadata import read_metadata
+from surfelslam.datasets.plausibility import check_plausibility
 from surfelslam.datasets.sevenscenes import SevenScenesSequence
 from surfelslam.datasets.tum import SyntheticSequence, TumSequence
 from surfelslam.errors import ConfigError, DatasetError, GroundTruthError
@@ -61,7 +62,8 @@ def detect_layout(path: str | Path) -> str:
 
 
 def open_sequence(
-    path: str | Path, options: DatasetOptions | None = None, layout: str | None = None
+    path: str | Path, options: DatasetOptions | None = None, layout: str | None = None,
+    plausibility: str = "refuse",
 ) -> RGBDSequence:
     """Open a sequence folder with the adapter its layout calls for.
 
@@ -69,9 +71,16 @@ def open_sequence(
         path: the sequence folder.
         options: user overrides and frame selection (default: none).
         layout: force an adapter by name (a key of :data:`LAYOUTS`) instead of detecting it.
+        plausibility: ``"refuse"``: implausible intrinsics or depth scale raise DatasetError naming the option
+            (:mod:`surfelslam.datasets.plausibility`); ``"warn"``: they are only listed in ``seq.warnings``
+            (for diagnosis, ``surfelslam info``).
     Raises:
-        DatasetError / FrameError: unreadable folder or index files. ConfigError: bad options, unknown
-        ``layout``, missing camera for the plain folder layout, or a selection with no frames.
+        DatasetError / FrameError: unreadable folder or index files, too few images pairing, implausible camera.
+        ConfigError: bad options, unknown ``layout``, missing camera for the plain folder layout, or a
+        selection with no frames.
+
+    The returned sequence lists the images that found no partner in ``seq.unpaired`` and open-time doubts in
+    ``seq.warnings``.
     """
     options = DatasetOptions() if options is None else options
     root = Path(path)
@@ -87,6 +96,7 @@ def open_sequence(
             f"{root}: the selection (--start {options.start} --end {options.end} --stride {options.stride}) "
             f"keeps no frame of the {len(seq.all_entries)}"
         )
+    check_plausibility(seq, plausibility)
     return seq
 
 

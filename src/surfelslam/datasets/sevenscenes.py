@@ -26,7 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
+from surfelslam.datasets.base import (
+    MIN_PAIRED_FRACTION,
+    DatasetOptions,
+    FrameEntry,
+    RGBDSequence,
+    UnpairedFrame,
+    unpaired_examples,
+)
 from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
 from surfelslam.datasets.tum import has_tum_index, read_ground_truth, read_tum_entries
 from surfelslam.errors import DatasetError
@@ -43,6 +50,7 @@ SEVENSCENES_FPS_HZ = 30.0
 POSE_ORTHONORMAL_TOL = 1e-2
 _NAME = re.compile(r"7[-_ ]?scenes|sevenscenes|seven[-_]scenes")
 _FRAME = re.compile(r"^frame-(\d+)\.depth\.png$")
+_COLOUR = re.compile(r"^frame-(\d+)\.color\.(?:png|jpg)$")
 _DEFAULT_DESC = "7-Scenes default 585/585/320/240, scale 1000 (mm)"
 
 
@@ -85,25 +93,36 @@ def _read_pose(path: Path) -> np.ndarray:
     return T
 
 
-def _read_native(folder: Path) -> tuple[list[FrameEntry], Trajectory | None]:
-    entries, gt_t, gt_T = [], [], []
+def _read_native(folder: Path) -> tuple[list[FrameEntry], Trajectory | None, list[UnpairedFrame]]:
+    """Frames of a ``seq-XX`` folder, its ground truth, and the colour / depth images without a partner."""
+    entries, gt_t, gt_T, unpaired = [], [], [], []
     numbered = sorted(
         (int(m.group(1)), p) for p in folder.glob("frame-*.depth.png") if (m := _FRAME.match(p.name))
     )
+    depth_numbers = {n for n, _ in numbered}
     for n, depth in numbered:
         stem = depth.name[: -len(".depth.png")]
         candidates = (folder / f"{stem}.color.png", folder / f"{stem}.color.jpg")
         color = next((c for c in candidates if c.is_file()), None)
-        if color is None:
-            raise DatasetError(depth, f"has no colour image ({stem}.color.png or .color.jpg)")
         t = n / SEVENSCENES_FPS_HZ
+        if color is None:
+            unpaired.append(UnpairedFrame(depth, t, f"no colour image {stem}.color.png or .color.jpg"))
+            continue
         entries.append(FrameEntry(t, color, depth))
         pose = folder / f"{stem}.pose.txt"
         if pose.is_file():
             gt_t.append(t)
             gt_T.append(_read_pose(pose))
+    for p in sorted(folder.glob("frame-*.color.*")):
+        m = _COLOUR.match(p.name)
+        if m is not None and int(m.group(1)) not in depth_numbers:
+            unpaired.append(UnpairedFrame(p, int(m.group(1)) / SEVENSCENES_FPS_HZ,
+                                          f"no depth image frame-{m.group(1)}.depth.png"))
+    if len(entries) < MIN_PAIRED_FRACTION * (len(entries) + len(unpaired)):
+        raise DatasetError(folder, f"only {len(entries)} of the frame-*.depth.png / .color.* images pair up, "
+                                   f"fewer than {MIN_PAIRED_FRACTION:.0%}; unpaired: {unpaired_examples(unpaired)}")
     gt = Trajectory(np.array(gt_t), np.array(gt_T)) if gt_t else None
-    return entries, gt
+    return entries, gt, unpaired
 
 
 class SevenScenesSequence(RGBDSequence):
@@ -125,14 +144,14 @@ class SevenScenesSequence(RGBDSequence):
         native = _native_folder(root)
         if native is not None:
             meta = read_metadata(native)
-            entries, gt = _read_native(native)
+            entries, gt, unpaired = _read_native(native)
             root = native
         else:
             meta = read_metadata(root) if meta is None else meta
-            entries, gt = read_tum_entries(root), read_ground_truth(root)
+            (entries, unpaired), gt = read_tum_entries(root), read_ground_truth(root)
         seq = build_sequence(
             cls, root, entries, options, meta, SEVENSCENES_INTRINSICS, SEVENSCENES_DEPTH_SCALE, _DEFAULT_DESC,
-            gt, depth_invalid_raw=SEVENSCENES_INVALID_RAW,
+            gt, depth_invalid_raw=SEVENSCENES_INVALID_RAW, unpaired=unpaired,
         )
         # the Kinect colour model holds for the recorded 640x480 images (INFO.txt 'colour intrinsics' overrides it)
         if seq.full_colour_camera is None and seq.full_intrinsics.shape == SEVENSCENES_COLOUR_CAMERA.intrinsics.shape:

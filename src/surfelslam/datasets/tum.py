@@ -2,7 +2,11 @@
 optional ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, camera-to-world).
 
 Colour and depth are paired by nearest timestamp within :data:`MAX_RGB_DEPTH_DT_S` (each depth image used
-at most once, the closest pair wins); the frame takes the colour timestamp. ``associations.txt`` is only
+at most once, the closest pair wins); the frame takes the colour timestamp. Images left without a partner are
+listed in the sequence's ``unpaired`` (with the reason); when fewer than half of the listed images pair, the
+sequence is refused (the index files disagree: another clock, milliseconds instead of seconds, ...).
+Unsorted index lines are sorted; a duplicated timestamp (in an index or the ground truth) is an error naming
+both lines. ``associations.txt`` is only
 used when ``rgb.txt`` or ``depth.txt`` is absent (its lines may list the depth pair first, as ICL-NUIM's do).
 
 This module also holds the ``synthetic`` layout: the TUM layout written by ``surfelslam synth``
@@ -16,9 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence
+from surfelslam.datasets.base import (
+    MIN_PAIRED_FRACTION,
+    DatasetOptions,
+    FrameEntry,
+    RGBDSequence,
+    UnpairedFrame,
+    unpaired_examples,
+)
 from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
-from surfelslam.errors import DatasetError
+from surfelslam.errors import DatasetError, GroundTruthError, InputError
 from surfelslam.io.trajectory import read_tum
 from surfelslam.types import Trajectory
 
@@ -124,11 +135,36 @@ def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt_s: float) -> tuple[np.nda
     return ia, nearest[ia], float(dt.min())
 
 
-def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> list[FrameEntry]:
-    """Frames of a TUM-layout folder (rgb.txt + depth.txt, else associations.txt)."""
+def _unpaired_reasons(t_a: np.ndarray, t_b: np.ndarray, used_b: np.ndarray, max_dt_s: float,
+                      b_index: str, b_what: str) -> list[str]:
+    """Why each of ``t_a`` (all unpaired) has no partner among ``t_b``: too far, or its nearest is taken."""
+    if len(t_b) == 0:
+        return [f"{b_index} lists no {b_what}"] * len(t_a)
+    k = np.searchsorted(t_b, t_a)
+    left = np.clip(k - 1, 0, len(t_b) - 1)
+    right = np.clip(k, 0, len(t_b) - 1)
+    j = np.where(np.abs(t_b[right] - t_a) < np.abs(t_a - t_b[left]), right, left)
+    gap = np.abs(t_b[j] - t_a)
+    out = []
+    for g, jb in zip(gap, j, strict=True):
+        if g <= max_dt_s * (1 + 1e-9) and used_b[jb]:
+            out.append(f"its nearest {b_what} in {b_index} ({g:.4f} s away) is paired with a closer one")
+        else:
+            out.append(f"no {b_what} within {max_dt_s} s in {b_index} (the nearest is {g:.4g} s away)")
+    return out
+
+
+def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> tuple[list[FrameEntry], list[UnpairedFrame]]:
+    """Frames of a TUM-layout folder (rgb.txt + depth.txt, else associations.txt), and the listed images that
+    found no partner.
+
+    Raises:
+        DatasetError: nothing pairs, or fewer than :data:`MIN_PAIRED_FRACTION` of the listed images do (the
+            message names both index files and example stamps).
+    """
     rgb_idx, depth_idx, assoc = root / RGB_INDEX, root / DEPTH_INDEX, root / ASSOC_INDEX
     if not (rgb_idx.is_file() and depth_idx.is_file()) and assoc.is_file():
-        return _read_associations(assoc, root)
+        return _read_associations(assoc, root), []
     t_rgb, rgb_paths = read_timed_files(rgb_idx, root)
     t_depth, depth_paths = read_timed_files(depth_idx, root)
     ia, ib, gap = associate(t_rgb, t_depth, max_dt_s)
@@ -138,8 +174,28 @@ def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> list[F
             f"no rgb/depth pair within {max_dt_s} s between {RGB_INDEX} ({len(t_rgb)} lines) and "
             f"{DEPTH_INDEX} ({len(t_depth)} lines); the nearest gap found is {gap:.6g} s",
         )
-    return [FrameEntry(float(t_rgb[a]), rgb_paths[a], depth_paths[b], float(t_depth[b]))
-            for a, b in zip(ia, ib, strict=True)]
+    used_rgb = np.zeros(len(t_rgb), bool)
+    used_rgb[ia] = True
+    used_depth = np.zeros(len(t_depth), bool)
+    used_depth[ib] = True
+    lone_rgb, lone_depth = np.nonzero(~used_rgb)[0], np.nonzero(~used_depth)[0]
+    unpaired = [UnpairedFrame(rgb_paths[k], float(t_rgb[k]), why) for k, why in zip(
+        lone_rgb, _unpaired_reasons(t_rgb[lone_rgb], t_depth, used_depth, max_dt_s, DEPTH_INDEX, "depth image"),
+        strict=True)]
+    unpaired += [UnpairedFrame(depth_paths[k], float(t_depth[k]), why) for k, why in zip(
+        lone_depth, _unpaired_reasons(t_depth[lone_depth], t_rgb, used_rgb, max_dt_s, RGB_INDEX, "colour image"),
+        strict=True)]
+    listed = max(len(t_rgb), len(t_depth))
+    if len(ia) < MIN_PAIRED_FRACTION * listed:
+        raise DatasetError(
+            root,
+            f"only {len(ia)} frames pair within {max_dt_s} s between {RGB_INDEX} ({len(t_rgb)} lines) and "
+            f"{DEPTH_INDEX} ({len(t_depth)} lines), fewer than {MIN_PAIRED_FRACTION:.0%}; unpaired: "
+            f"{unpaired_examples(unpaired)}; check that both files use the same clock and units (seconds)",
+        )
+    entries = [FrameEntry(float(t_rgb[a]), rgb_paths[a], depth_paths[b], float(t_depth[b]))
+               for a, b in zip(ia, ib, strict=True)]
+    return entries, unpaired
 
 
 def _read_associations(path: Path, root: Path) -> list[FrameEntry]:
@@ -160,12 +216,20 @@ def _read_associations(path: Path, root: Path) -> list[FrameEntry]:
     return entries
 
 
+def read_ground_truth_file(path: Path) -> Trajectory:
+    """A TUM ground-truth file; its problems (malformed line, duplicated stamp) are GroundTruthErrors."""
+    try:
+        return read_tum(path)
+    except InputError as exc:
+        raise GroundTruthError(path, exc.problem) from None
+
+
 def read_ground_truth(root: Path, names: tuple[str, ...] = (GT_FILE,)) -> Trajectory | None:
     """The first existing ground-truth file among ``names`` (TUM format), or ``None``."""
     for name in names:
         path = root / name
         if path.is_file():
-            return read_tum(path)
+            return read_ground_truth_file(path)
     return None
 
 
@@ -191,10 +255,11 @@ class TumSequence(RGBDSequence):
     @classmethod
     def open(cls, root: Path, options: DatasetOptions, meta: FolderMetadata | None = None) -> RGBDSequence:
         meta = read_metadata(root) if meta is None else meta
-        entries = read_tum_entries(root)
+        entries, unpaired = read_tum_entries(root)
         intr, desc = tum_default_intrinsics(root)
         return build_sequence(
-            cls, root, entries, options, meta, intr, TUM_DEPTH_SCALE, desc, read_ground_truth(root)
+            cls, root, entries, options, meta, intr, TUM_DEPTH_SCALE, desc, read_ground_truth(root),
+            unpaired=unpaired,
         )
 
 
