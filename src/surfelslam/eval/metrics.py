@@ -36,14 +36,19 @@ from evo.core import filters as evo_filters
 from evo.core import lie_algebra as lie
 from evo.core import metrics as evo_metrics
 from evo.core import sync as evo_sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 
-from surfelslam.errors import GroundTruthError
+from surfelslam.errors import EvaluationError, GroundTruthError
 from surfelslam.types import Trajectory
 
 MIN_ASSOCIATED_POSES = 3  # fewer pairs cannot constrain an SE(3) alignment
 DEFAULT_MAX_DIFF_S = 0.02  # TUM association window: 20 ms
 DEFAULT_REL_DELTA_TOL = 0.1  # evo's default relative tolerance for non-frame RPE deltas
+#: Positions closer than this to their mean (m) count as one point when explaining a failed alignment.
+STILL_SPREAD_M = 1e-9
+#: A second principal spread below this fraction of the first counts as motion along one line.
+LINE_SPREAD_RATIO = 1e-9
 
 # evo logs a warning for every unsorted/odd input; keep library calls quiet (the CLI reports errors itself).
 logging.getLogger("evo").setLevel(logging.ERROR)
@@ -144,8 +149,8 @@ def _associate_evo(
     est: Trajectory, gt: Trajectory, max_diff_s: float
 ) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
     """Associate with evo exactly as ``evo_ape``/``evo_rpe`` do (reference first); returns (est, gt)."""
-    if max_diff_s < 0:
-        raise ValueError(f"max_diff_s must be >= 0, got {max_diff_s}")
+    if not (np.isfinite(max_diff_s) and max_diff_s >= 0):
+        raise EvaluationError(f"max_diff must be a finite number of seconds >= 0, got {max_diff_s}")
     if len(est) == 0 or len(gt) == 0:
         raise _association_error(est, gt, max_diff_s, 0)
     try:
@@ -175,6 +180,27 @@ def associate(
     return from_evo(est_sync), from_evo(gt_sync)
 
 
+def _motion_words(positions: np.ndarray) -> str | None:
+    """``"does not move"`` / ``"moves along one line"`` for positions that cannot anchor a rigid alignment."""
+    centred = positions - positions.mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False) if len(centred) else np.zeros(3)
+    if not np.all(np.isfinite(s)) or s[0] <= STILL_SPREAD_M:
+        return "does not move"
+    if s[1] <= LINE_SPREAD_RATIO * s[0]:
+        return "moves along one straight line"
+    return None
+
+
+def _alignment_error(est_sync: PoseTrajectory3D, gt_sync: PoseTrajectory3D, exc: Exception) -> EvaluationError:
+    """Why the Umeyama alignment failed, in words (evo says 'Degenerate covariance rank')."""
+    why = [f"the {name} {words}" for name, traj in (("estimate", est_sync), ("ground truth", gt_sync))
+           if (words := _motion_words(np.asarray(traj.positions_xyz, np.float64))) is not None]
+    detail = " and ".join(why) if why else f"{type(exc).__name__}: {exc}"
+    return EvaluationError(
+        f"cannot align the estimate to the ground truth over the {est_sync.num_poses} associated poses: "
+        f"{detail}; the SE(3) alignment of the ATE needs positions spread in at least two directions")
+
+
 def _stats(errors: np.ndarray) -> dict[str, float]:
     """rmse / mean / median / max / std exactly as evo's ``PE.get_statistic`` defines them."""
     m = evo_metrics.APE()
@@ -201,7 +227,10 @@ def ate(
     T_align = np.eye(4)
     scale = 1.0
     if align or correct_scale:
-        r_a, t_a, s = est_sync.align(gt_sync, correct_scale=correct_scale, correct_only_scale=not align)
+        try:
+            r_a, t_a, s = est_sync.align(gt_sync, correct_scale=correct_scale, correct_only_scale=not align)
+        except (GeometryException, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+            raise _alignment_error(est_sync, gt_sync, exc) from None
         scale = float(s)
         T_align = lie.sim3(r_a, t_a, s) if align else lie.sim3(np.eye(3), np.zeros(3), s)
     ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
@@ -238,7 +267,7 @@ def time_delta_pairs(
     """
     t = np.asarray(timestamps, dtype=np.float64)
     if delta_s <= 0:
-        raise ValueError(f"delta must be > 0 seconds, got {delta_s}")
+        raise EvaluationError(f"delta must be > 0 seconds, got {delta_s}")
     target = t + delta_s
     hi = np.clip(np.searchsorted(t, target), 1, len(t) - 1)
     lo = hi - 1
@@ -264,13 +293,13 @@ def rpe(
 
     Raises:
         GroundTruthError: fewer than 3 poses could be associated.
-        ValueError: bad delta / unit, or no pose pair ``delta`` apart.
+        EvaluationError (a ValueError): bad delta / unit, or no pose pair ``delta`` apart.
     """
     est_sync, gt_sync = _associate_evo(est, gt, max_diff_s)
     stamps = np.asarray(est_sync.timestamps, dtype=np.float64)
     if delta_unit == "frames":
         if delta < 1 or int(delta) != delta:
-            raise ValueError(f"frame delta must be a positive integer, got {delta}")
+            raise EvaluationError(f"frame delta must be a positive integer, got {delta}")
         rel = evo_metrics.PoseRelation
         per_relation = {}
         for relation in (rel.translation_part, rel.rotation_angle_deg):
@@ -278,7 +307,7 @@ def rpe(
             try:
                 metric.process_data((gt_sync, est_sync))
             except evo_filters.FilterException as exc:
-                raise ValueError(str(exc)) from None
+                raise EvaluationError(f"relative pose error: {exc}") from None
             per_relation[relation] = metric
         trans = np.asarray(per_relation[rel.translation_part].error, dtype=np.float64)
         rot = np.asarray(per_relation[rel.rotation_angle_deg].error, dtype=np.float64)
@@ -287,7 +316,7 @@ def rpe(
     elif delta_unit == "seconds":
         pairs = time_delta_pairs(stamps, float(delta), rel_delta_tol)
         if len(pairs) == 0:
-            raise ValueError(
+            raise EvaluationError(
                 f"no pose pairs {delta} s apart (+/- {rel_delta_tol * delta:.3f} s) among {len(stamps)} "
                 f"associated poses spanning {stamps[-1] - stamps[0]:.3f} s"
             )
@@ -297,7 +326,7 @@ def rpe(
         trans = np.array([np.linalg.norm(E_ij[:3, 3]) for E_ij in E])
         rot = np.array([abs(lie.so3_log_angle(E_ij[:3, :3], True)) for E_ij in E])
     else:
-        raise ValueError(f"delta_unit must be 'frames' or 'seconds', got {delta_unit!r}")
+        raise EvaluationError(f"delta_unit must be 'frames' or 'seconds', got {delta_unit!r}")
     st_t = _stats(trans)
     st_r = _stats(rot)
     return RpeResult(
@@ -322,13 +351,25 @@ def rpe(
 def evaluate_all(
     est: Trajectory, gt: Trajectory, max_diff_s: float = DEFAULT_MAX_DIFF_S
 ) -> tuple[AteResult, RpeResult, RpeResult | None]:
-    """ATE, RPE per frame (delta 1 frame) and RPE per second (delta 1 s; None if the run spans < 1 s)."""
-    a = ate(est, gt, max_diff_s)
-    rf = rpe(est, gt, 1, "frames", max_diff_s)
+    """ATE, RPE per frame (delta 1 frame) and RPE per second (delta 1 s; None if the run spans < 1 s).
+
+    Raises:
+        GroundTruthError: fewer than 3 poses could be associated.
+        EvaluationError: degenerate trajectories (no motion, motion along a line) or a bad ``max_diff_s``; any
+            other failure inside evo is reported as one too, never as a traceback.
+    """
     try:
-        rs: RpeResult | None = rpe(est, gt, 1.0, "seconds", max_diff_s)
-    except ValueError:
-        rs = None
+        a = ate(est, gt, max_diff_s)
+        rf = rpe(est, gt, 1, "frames", max_diff_s)
+        try:
+            rs: RpeResult | None = rpe(est, gt, 1.0, "seconds", max_diff_s)
+        except EvaluationError:
+            rs = None
+    except (GroundTruthError, EvaluationError):
+        raise
+    except (GeometryException, evo_filters.FilterException, evo_sync.SyncException, np.linalg.LinAlgError,
+            ValueError, IndexError, FloatingPointError) as exc:
+        raise EvaluationError(f"cannot evaluate the trajectories ({type(exc).__name__}: {exc})") from None
     return a, rf, rs
 
 
@@ -364,7 +405,7 @@ def evaluate(est: Trajectory, gt: Trajectory, max_diff_s: float = DEFAULT_MAX_DI
     pair is 1 s apart (the associated trajectory spans less than about one second).
 
     Raises:
-        GroundTruthError: fewer than 3 poses could be associated.
+        GroundTruthError: fewer than 3 poses could be associated. EvaluationError: see :func:`evaluate_all`.
     """
     a, rf, rs = evaluate_all(est, gt, max_diff_s)
     return summary(a, rf, rs, len(est), len(gt), max_diff_s)

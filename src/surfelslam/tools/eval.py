@@ -1,8 +1,14 @@
-"""``surfelslam eval EST GT``: ATE / RPE of a TUM trajectory against ground truth, with plots and JSON."""
+"""``surfelslam eval EST GT``: ATE / RPE of a TUM trajectory against ground truth, with plots and JSON.
+
+Its files carry their own names (:data:`EVAL_FILES`: ``eval.json``, ``eval_trajectory.png``,
+``eval_ate_errors.png``), none of which ``surfelslam run`` writes: evaluating a run in its own folder (the
+default ``--out``) never replaces the run's outputs. The plots cover the estimate's time span.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -10,7 +16,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from surfelslam.errors import GroundTruthError, InputError
+from surfelslam.errors import ConfigError, EvaluationError, GroundTruthError, InputError
 from surfelslam.eval import metrics
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.trajectory import read_tum
@@ -18,6 +24,10 @@ from surfelslam.tools.common import console, handle_errors
 from surfelslam.types import Trajectory
 
 GT_FILENAME = "groundtruth.txt"
+#: the trajectory file read when EST is a run folder
+RUN_TRAJECTORY = "trajectory.txt"
+#: what ``eval`` writes into its output folder (key -> file name); ``run`` writes none of these names
+EVAL_FILES = {"json": "eval.json", "trajectory_png": "eval_trajectory.png", "ate_errors_png": "eval_ate_errors.png"}
 
 
 def load_ground_truth(path: Path) -> Trajectory:
@@ -31,12 +41,33 @@ def load_ground_truth(path: Path) -> Trajectory:
     except ImportError:  # datasets adapters not available: plain TUM layout only
         open_sequence = None
     if open_sequence is not None:
-        gt = open_sequence(path).ground_truth
+        gt = open_sequence(path, plausibility="warn").ground_truth  # only its ground truth is used
     else:
         gt = read_tum(path / GT_FILENAME) if (path / GT_FILENAME).is_file() else None
     if gt is None:
         raise GroundTruthError(path, f"sequence has no ground truth ({GT_FILENAME} not found)")
     return gt
+
+
+def load_estimate(path: Path) -> Trajectory:
+    """The estimate: a TUM file, or a run folder's ``trajectory.txt``."""
+    if path.is_dir() and (path / RUN_TRAJECTORY).is_file():
+        path = path / RUN_TRAJECTORY
+    return read_tum(path)
+
+
+def check_max_diff(max_diff_s: float) -> float:
+    if not (math.isfinite(max_diff_s) and max_diff_s >= 0):
+        raise ConfigError(f"--max-diff must be a finite number of seconds >= 0, got {max_diff_s}")
+    return max_diff_s
+
+
+def within_span(gt: Trajectory, est: Trajectory, margin_s: float) -> Trajectory:
+    """The ground-truth poses within the estimate's time span (plus ``margin_s`` each side); all of them when
+    fewer than two fall inside."""
+    t0, t1 = est.timestamps[0] - margin_s, est.timestamps[-1] + margin_s
+    keep = (gt.timestamps >= t0) & (gt.timestamps <= t1)
+    return gt.subset(keep) if keep.sum() >= 2 else gt
 
 
 def _fmt(value: float | None, digits: int = 4) -> str:
@@ -65,26 +96,31 @@ def results_table(res: dict, title: str) -> Table:
 
 
 def run_eval(est_path: Path, gt_path: Path, out_dir: Path | None, max_diff_s: float, plots: bool) -> dict:
-    est = read_tum(est_path)
+    check_max_diff(max_diff_s)
+    est = load_estimate(est_path)
     gt = load_ground_truth(gt_path)
-    out_dir = est_path.resolve().parent if out_dir is None else out_dir
+    base = est_path.resolve() if est_path.is_dir() else est_path.resolve().parent
+    out_dir = base if out_dir is None else out_dir
     try:
         a, rf, rs = metrics.evaluate_all(est, gt, max_diff_s)
     except GroundTruthError as exc:
         raise GroundTruthError(None, f"{est_path} vs {gt_path}: {exc.problem}") from None
+    except EvaluationError as exc:
+        raise EvaluationError(f"{est_path} vs {gt_path}: {exc}") from None
     summary = metrics.summary(a, rf, rs, len(est), len(gt), max_diff_s)
     res = {"est": str(est_path), "gt": str(gt_path), **summary}
-    files = {"json": str(out_dir / "eval.json")}
+    files = {"json": str(out_dir / EVAL_FILES["json"])}
     if plots:
         from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory
 
         est_full_aligned = Trajectory(est.timestamps, a.T_align @ est.T_world_cam)
+        gt_span = within_span(gt, est, max_diff_s)
         title = f"{est_path.name} vs {gt_path.name}: ATE RMSE {a.rmse_m:.4f} m ({a.n_pairs} poses)"
-        traj_png = plot_trajectory(out_dir / "trajectory.png", est_full_aligned, gt, title)
-        files["trajectory_png"] = str(traj_png)
-        files["ate_errors_png"] = str(plot_errors(out_dir / "ate_errors.png", a, rf))
+        files["trajectory_png"] = str(plot_trajectory(out_dir / EVAL_FILES["trajectory_png"], est_full_aligned,
+                                                      gt_span, title))
+        files["ate_errors_png"] = str(plot_errors(out_dir / EVAL_FILES["ate_errors_png"], a, rf))
     res["files"] = files
-    write_text_atomic(out_dir / "eval.json", json.dumps(res, indent=2) + "\n")
+    write_text_atomic(out_dir / EVAL_FILES["json"], json.dumps(res, indent=2) + "\n")
     return res
 
 
@@ -92,10 +128,11 @@ def register(app: typer.Typer) -> None:
     @app.command("eval")
     @handle_errors
     def eval_cmd(
-        est: Annotated[Path, typer.Argument(help="Estimated trajectory (TUM file).")],
+        est: Annotated[Path, typer.Argument(help="Estimated trajectory (TUM file, or a run folder).")],
         gt: Annotated[Path, typer.Argument(help="Ground truth: TUM file or sequence folder.")],
         out: Annotated[
-            Path | None, typer.Option("--out", help="Output folder (default: the folder of EST).")
+            Path | None, typer.Option("--out", help="Output folder for eval.json, eval_trajectory.png and "
+                                                    "eval_ate_errors.png (default: the folder of EST).")
         ] = None,
         max_diff: Annotated[
             float, typer.Option("--max-diff", help="Max timestamp difference for association [s].")
