@@ -1,3 +1,6 @@
+"""``python -m surfelslam``: the same as the ``surfelslam`` command."""
+
 from surfelslam.cli import main
 
-main()
+if __name__ == "__main__":
+    main()

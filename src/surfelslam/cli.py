@@ -1,37 +1,267 @@
-"""The ``surfelslam`` command line. Each command lives in :mod:`surfelslam.tools`."""
+"""The ``surfelslam`` command line. Each command lives in :mod:`surfelslam.tools`.
+
+A command's module (and with it numba, OpenCV, matplotlib, evo) is imported only when that command runs:
+``surfelslam --help`` lists the commands from :data:`COMMANDS`, whose one-line help texts are copied from the
+commands' docstrings (a test keeps them equal).
+
+Start-up guarantees (:func:`main`):
+
+* numba caches compiled kernels next to their sources, else in ``~/.cache/numba``; when neither is writable
+  (read-only install, no writable HOME) ``NUMBA_CACHE_DIR`` is pointed at a temp folder before numba is imported
+  (:func:`numba_cache_fallback`); a user-set ``NUMBA_CACHE_DIR`` is kept.
+* Ctrl-C at any moment prints ``interrupted`` on stderr and exits with 130, without a traceback.
+* An unexpected exception prints ``error: internal error: <type>: <message> (please report)`` and exits with 1;
+  ``SURFELSLAM_DEBUG=1`` shows the traceback instead.
+"""
 
 from __future__ import annotations
 
 import importlib
+import os
+import signal
+import sys
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
 
-import typer
+#: command name -> (module in surfelslam.tools, its docstring's first paragraph: the listing's help text)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "info": ("info", "Show the detected layout, frames, resolution, intrinsics, depth scale and ground-truth "
+                     "coverage."),
+    "synth": ("synth", "Render a textured indoor scene along a camera trajectory; write rgb/, depth/, "
+                       "groundtruth.txt."),
+    "eval": ("eval", "ATE (SE(3)-aligned, TUM protocol) and RPE per frame and per second, computed with evo."),
+    "run": ("run", "Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and "
+                   "figures."),
+    "register": ("register", "Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and "
+                             "GT error."),
+    "experiments": ("experiments", "The seeds' experiments (ICP pairs, solvers, fusion, dormant rule, features, "
+                                   "trackers) -> report.md."),
+    "calibrate-colour": ("calibrate_colour", "Fit the colour camera (intrinsics + sideways offset) so that colour "
+                                             "edges fall on depth edges."),
+    "rerun": ("export_rerun", "Write a run as a Rerun recording (map, estimate vs ground truth, loops, camera and "
+                              "images over time)."),
+}
+#: One module per command, each with ``register(app)``.
+COMMAND_MODULES = [module for module, _ in COMMANDS.values()]
 
-app = typer.Typer(
-    name="surfelslam",
-    help="Dense RGB-D SLAM: projective ICP + point-based fusion, with a sparse ORB back end.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
-
-# One module per command, each with register(app).
-COMMAND_MODULES = [
-    "info",
-    "synth",
-    "eval",
-    "run",
-    "register",
-    "experiments",
-    "calibrate_colour",
-    "export_rerun",
-]
-
-for _name in COMMAND_MODULES:
-    importlib.import_module(f"surfelslam.tools.{_name}").register(app)
+APP_HELP = "Dense RGB-D SLAM: projective ICP + point-based fusion, with a sparse ORB back end."
+EXIT_INTERNAL_ERROR = 1
+EXIT_INTERRUPTED = 130
+DEBUG_ENV = "SURFELSLAM_DEBUG"
+NUMBA_CACHE_ENV = "NUMBA_CACHE_DIR"
+#: numba's in-tree cache of our kernels (it falls back to the user-wide cache when this is not writable)
+KERNEL_CACHE_DIR = Path(__file__).resolve().parent / "kernels" / "__pycache__"
 
 
-def main() -> None:
-    app()
+# ------------------------------------------------------------------------------------------------ environment
+def _writable_dir(path: Path) -> bool:
+    """True when ``path`` exists or can be created and a file can be created in it (numba's own test)."""
+    try:
+        os.makedirs(path, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
+        return True
+    except OSError:
+        return False
+
+
+def numba_cache_fallback(environ: Mapping[str, str] | None = None, in_tree: Path = KERNEL_CACHE_DIR,
+                         temp_root: Path | None = None) -> str | None:
+    """The ``NUMBA_CACHE_DIR`` to set, or ``None`` when numba's defaults work (or the user chose one).
+
+    numba tries the kernels' ``__pycache__`` (``in_tree``), then ``$XDG_CACHE_HOME/numba`` or
+    ``~/.cache/numba``, and raises a RuntimeError at the first cached kernel when neither is writable. Then this
+    gives ``<temp>/surfelslam-numba-<uid>`` (a fresh temp folder when that one is not usable either).
+    """
+    environ = os.environ if environ is None else environ
+    if environ.get(NUMBA_CACHE_ENV):
+        return None
+    if _writable_dir(in_tree):
+        return None
+    home = environ.get("HOME") or os.path.expanduser("~")
+    user = Path(environ.get("XDG_CACHE_HOME", os.path.join(home, ".cache"))) / "numba"
+    if _writable_dir(user):
+        return None
+    root = Path(tempfile.gettempdir()) if temp_root is None else temp_root
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    shared = root / f"surfelslam-numba-{uid}"
+    if _writable_dir(shared):
+        return str(shared)
+    try:
+        return tempfile.mkdtemp(prefix="surfelslam-numba-", dir=root)
+    except OSError:
+        return None  # nowhere to write: numba reports it when a kernel is compiled
+
+
+def configure_numba_cache() -> None:
+    """Set ``NUMBA_CACHE_DIR`` from :func:`numba_cache_fallback` (before numba is imported)."""
+    fallback = numba_cache_fallback()
+    if fallback is not None:
+        os.environ[NUMBA_CACHE_ENV] = fallback
+
+
+# ------------------------------------------------------------------------------------------------ messages
+def _stderr_line(text: str) -> None:
+    try:
+        sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+
+
+def _exit_now(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    os.write(2, b"interrupted\n")
+    os._exit(EXIT_INTERRUPTED)
+
+
+def force_exit_on_interrupt() -> None:
+    """From now on Ctrl-C exits at once with 130 (used after the first Ctrl-C was reported, and while the
+    interpreter shuts down, where a KeyboardInterrupt would print a traceback from the clean-up code)."""
+    try:
+        signal.signal(signal.SIGINT, _exit_now)
+    except (ValueError, OSError):  # not the main thread
+        pass
+
+
+def report_interrupt() -> None:
+    """``interrupted`` on stderr; a second Ctrl-C exits at once."""
+    force_exit_on_interrupt()
+    _stderr_line("interrupted")
+
+
+def debug_enabled() -> bool:
+    """``SURFELSLAM_DEBUG`` set (and not 0): unexpected exceptions keep their traceback."""
+    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
+
+
+def internal_error_message(exc: BaseException) -> str:
+    """``internal error: <type>: <message> (please report ...)`` on one line."""
+    msg = " ".join(str(exc).split()) or "(no message)"
+    return f"internal error: {type(exc).__name__}: {msg} (please report; {DEBUG_ENV}=1 shows the traceback)"
+
+
+# ------------------------------------------------------------------------------------------------ the app
+def _build_app() -> Any:
+    import typer
+    from typer.core import TyperCommand, TyperGroup
+
+    try:  # typer >= 0.20 vendors click
+        from typer._click.exceptions import UsageError
+    except ImportError:  # pragma: no cover - older typer on click
+        from click.exceptions import UsageError
+
+    class LazyCommandGroup(TyperGroup):
+        """Imports a command's module on first use; lists unloaded commands from :data:`COMMANDS`."""
+
+        def list_commands(self, ctx) -> list[str]:
+            return [*self.commands, *(name for name in COMMANDS if name not in self.commands)]
+
+        def get_command(self, ctx, cmd_name: str):
+            if cmd_name not in self.commands and cmd_name in COMMANDS:
+                self.commands[cmd_name] = load_command(cmd_name)
+            return self.commands.get(cmd_name)
+
+        def format_commands(self, ctx, formatter) -> None:
+            rows = []
+            names = [n for n in self.list_commands(ctx)
+                     if not (n in self.commands and self.commands[n].hidden)]
+            if not names:
+                return
+            limit = formatter.width - 6 - max(len(n) for n in names)
+            for name in names:
+                cmd = self.commands.get(name) or TyperCommand(name, help=COMMANDS[name][1])
+                rows.append((name, cmd.get_short_help_str(limit)))
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+        def invoke(self, ctx):
+            try:  # importing the command's module can take a second: Ctrl-C there is reported too
+                return super().invoke(ctx)
+            except KeyboardInterrupt:
+                report_interrupt()
+                raise typer.Exit(EXIT_INTERRUPTED) from None
+
+        def resolve_command(self, ctx, args):
+            try:
+                return self._click_resolve_command(ctx, args)
+            except UsageError as exc:
+                if self.suggest_commands and args:
+                    import difflib
+
+                    matches = difflib.get_close_matches(args[0], self.list_commands(ctx))
+                    if matches:
+                        exc.message = (exc.message.rstrip(".") + ". Did you mean "
+                                       + ", ".join(repr(m) for m in matches) + "?")
+                raise
+
+    def load_command(name: str):
+        """Import ``surfelslam.tools.<module>`` and build its click command."""
+        module = importlib.import_module(f"surfelslam.tools.{COMMANDS[name][0]}")
+        sub = typer.Typer(rich_markup_mode=None, pretty_exceptions_enable=False, add_completion=False)
+        module.register(sub)
+        return typer.main.get_group(sub).commands[name]
+
+    def show_version(value: bool) -> None:
+        if value:
+            from surfelslam import __version__
+
+            typer.echo(f"surfelslam {__version__}")
+            raise typer.Exit(0)
+
+    app = typer.Typer(
+        name="surfelslam",
+        help=APP_HELP,
+        cls=LazyCommandGroup,
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+        rich_markup_mode=None,  # help texts hold literal brackets: 'surfelslam[viz]', units like [s]
+    )
+
+    @app.callback()
+    def _root(
+        version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True,
+                                     callback=show_version),
+    ) -> None:
+        pass
+
+    return app
+
+
+_APP = None
+
+
+def get_app() -> Any:
+    """The typer application (built once; building imports typer but no command module)."""
+    global _APP
+    if _APP is None:
+        configure_numba_cache()
+        _APP = _build_app()
+    return _APP
+
+
+def __getattr__(name: str) -> Any:  # ``from surfelslam.cli import app`` builds it on demand
+    if name == "app":
+        return get_app()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``surfelslam`` script: no traceback for Ctrl-C or unexpected errors (module docstring)."""
+    try:
+        get_app()(args=argv, prog_name="surfelslam")
+    except KeyboardInterrupt:
+        report_interrupt()
+        sys.exit(EXIT_INTERRUPTED)
+    except SystemExit:
+        force_exit_on_interrupt()  # the interpreter's shutdown (thread joins) is no place for a traceback
+        raise
+    except Exception as exc:
+        if debug_enabled():
+            raise
+        _stderr_line(f"error: {internal_error_message(exc)}")
+        sys.exit(EXIT_INTERNAL_ERROR)
 
 
 if __name__ == "__main__":

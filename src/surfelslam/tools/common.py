@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import re
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -11,30 +14,61 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from surfelslam.cli import (
+    EXIT_INTERNAL_ERROR,
+    EXIT_INTERRUPTED,
+    debug_enabled,
+    force_exit_on_interrupt,
+    internal_error_message,
+)
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError, SurfelSlamError
+
+try:  # typer >= 0.20 vendors click
+    from typer._click.exceptions import ClickException
+except ImportError:  # pragma: no cover - older typer on click
+    from click.exceptions import ClickException
 
 console = Console()
 err_console = Console(stderr=True)
 
 EXIT_BAD_INPUT = 2
+#: typer's own control flow (exit codes, usage errors), passed through untouched
+_CONTROL = (typer.Exit, typer.Abort, ClickException)
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+def _stderr_lock():
+    """The image reader's lock while it redirects fd 2 (so that our line is not taken for decoder chatter)."""
+    images = sys.modules.get("surfelslam.io.images")
+    lock = getattr(images, "stderr_lock", None)
+    return contextlib.nullcontext() if lock is None else lock
+
+
 def print_error(message: object) -> None:
-    """``error: <message>`` on stderr, the message printed as it is (rich markup would eat ``[section]`` names and
-    bracketed paths)."""
-    err_console.print(f"[bold red]error:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+    """``error: <message>`` on stderr, on one line, the message printed as it is (rich markup would eat
+    ``[section]`` names and bracketed paths)."""
+    text = re.sub(r"\s*[\r\n]+\s*", " ", str(message)).strip()
+    with _stderr_lock():
+        err_console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
 
 
 def handle_errors(fn: F) -> F:
-    """Turn every ``SurfelSlamError`` (and OS-level file errors) into one line on stderr and exit 2."""
+    """Wrap a command so that it never ends in a traceback:
+
+    * ``SurfelSlamError`` and OS-level file errors: one line on stderr, exit 2;
+    * Ctrl-C: ``interrupted``, exit 130 (a second Ctrl-C during clean-up exits at once);
+    * anything else: ``error: internal error: <type>: <message> (please report ...)``, exit 1, unless
+      ``SURFELSLAM_DEBUG=1`` (then the exception propagates with its traceback).
+    """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
+        except _CONTROL:
+            raise
         except SurfelSlamError as exc:
             print_error(exc)
             raise typer.Exit(EXIT_BAD_INPUT) from None
@@ -43,8 +77,15 @@ def handle_errors(fn: F) -> F:
             print_error(f"{where}{exc.strerror or exc}")
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except KeyboardInterrupt:
-            err_console.print("[yellow]interrupted[/]")
-            raise typer.Exit(130) from None
+            force_exit_on_interrupt()
+            with _stderr_lock():
+                err_console.print("[yellow]interrupted[/]")
+            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except Exception as exc:
+            if debug_enabled():
+                raise
+            print_error(internal_error_message(exc))
+            raise typer.Exit(EXIT_INTERNAL_ERROR) from None
 
     return wrapper  # type: ignore[return-value]
 
