@@ -66,7 +66,7 @@ def _writable_dir(path: Path) -> bool:
         return False
 
 
-def numba_cache_fallback(environ: Mapping[str, str] | None = None, in_tree: Path = KERNEL_CACHE_DIR,
+def numba_cache_fallback(environ: Mapping[str, str] | None = None, in_tree: Path | None = None,
                          temp_root: Path | None = None) -> str | None:
     """The ``NUMBA_CACHE_DIR`` to set, or ``None`` when numba's defaults work (or the user chose one).
 
@@ -77,7 +77,7 @@ def numba_cache_fallback(environ: Mapping[str, str] | None = None, in_tree: Path
     environ = os.environ if environ is None else environ
     if environ.get(NUMBA_CACHE_ENV):
         return None
-    if _writable_dir(in_tree):
+    if _writable_dir(KERNEL_CACHE_DIR if in_tree is None else in_tree):
         return None
     home = environ.get("HOME") or os.path.expanduser("~")
     user = Path(environ.get("XDG_CACHE_HOME", os.path.join(home, ".cache"))) / "numba"

@@ -31,6 +31,11 @@ DEPTH_SAMPLE_FRAMES = 5
 POLICIES = ("refuse", "warn")
 
 
+def number(x: float) -> str:
+    """A value as the user would type it: ``1000000`` (not ``1e+06``), ``79.5``."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
 @dataclass(frozen=True)
 class Finding:
     """One implausible value: ``message`` names the option; ``path`` is the file or folder to name."""
@@ -46,14 +51,15 @@ def intrinsics_findings(seq: RGBDSequence) -> list[Finding]:
     w, h = intr.width, intr.height
     problems = []
     if not (0.0 <= intr.cx <= w and 0.0 <= intr.cy <= h):
-        problems.append(f"the principal point ({intr.cx:g}, {intr.cy:g}) is outside the {w}x{h} image")
+        problems.append(f"the principal point ({number(intr.cx)}, {number(intr.cy)}) is outside the {w}x{h} image")
     lo, hi = FOCAL_RANGE_IMAGE_WIDTHS
     for name, f in (("fx", intr.fx), ("fy", intr.fy)):
         if not lo * w <= abs(f) <= hi * w:
-            problems.append(f"{name} = {f:g} px is outside {lo:g}-{hi:g} image widths ({lo * w:g}-{hi * w:g} px)")
+            problems.append(f"{name} = {number(f)} px is outside {lo:g}-{hi:g} image widths "
+                            f"({lo * w:g}-{hi * w:g} px)")
     if not problems:
         return []
-    values = f"{intr.fx:g},{intr.fy:g},{intr.cx:g},{intr.cy:g}"
+    values = ",".join(number(v) for v in (intr.fx, intr.fy, intr.cx, intr.cy))
     what = "; ".join(problems)
     kind = seq.intrinsics_kind
     if kind == "option":
@@ -91,7 +97,7 @@ def depth_findings(seq: RGBDSequence) -> list[Finding]:
     if not read:
         return []  # nothing readable: the frames report themselves
     names = ", ".join(p.name for p in read)
-    scale = f"--depth-scale {seq.depth_scale:g} units per metre (from {seq.depth_scale_source})"
+    scale = f"--depth-scale {number(seq.depth_scale)} units per metre (from {seq.depth_scale_source})"
     if not medians:
         return [Finding(seq.root, f"no valid depth pixel in the {len(read)} depth images sampled ({names}); "
                                   f"check the depth files and {scale}", True)]

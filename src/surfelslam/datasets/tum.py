@@ -57,6 +57,8 @@ def has_tum_index(root: Path) -> bool:
 
 def read_index(path: Path, min_columns: int = 2) -> list[tuple[int, list[str]]]:
     """Non-comment lines of an index file as ``(line number, fields)``; DatasetError when absent or empty."""
+    if path.exists() and not path.is_file():
+        raise DatasetError(path, f"{path.name} is not a file (the TUM layout needs rgb.txt and depth.txt files)")
     if not path.is_file():
         raise DatasetError(path, f"{path.name} not found (the TUM layout needs rgb.txt and depth.txt)")
     try:

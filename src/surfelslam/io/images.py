@@ -92,7 +92,7 @@ def decoder_messages() -> Iterator[list[str]]:
                 if size:
                     text = os.pread(cap, size, 0).decode("utf-8", errors="replace")
                     back = []
-                    for line in text.splitlines(keepends=True):
+                    for line in re.findall(r"[^\n]*\n|[^\n]+$", text):  # '\r' stays inside its line
                         if _NOT_DECODER.search(line):
                             back.append(line)
                         elif line.strip():

@@ -62,7 +62,8 @@ def prefetch_frames(seq, ahead: int = 3, prepare: Callable[[RGBDFrame], object] 
         for i in range(n):
             yield _load(seq, i)
         return
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-read") as pool:
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-read")
+    try:
         pending: dict[int, Future] = {}
         for i in range(min(ahead, n)):
             pending[i] = pool.submit(_load, seq, i, prepare)
@@ -71,3 +72,6 @@ def prefetch_frames(seq, ahead: int = 3, prepare: Callable[[RGBDFrame], object] 
             if nxt < n:
                 pending[nxt] = pool.submit(_load, seq, nxt, prepare)
             yield pending.pop(i).result()
+    finally:
+        # a consumer that stops early (error, Ctrl-C) waits for the frame being read, not for the queued ones
+        pool.shutdown(wait=True, cancel_futures=True)
