@@ -6,13 +6,12 @@ STAMP := $(VENV)/.installed
 VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test test-fast bench lint clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 
 $(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 
@@ -24,8 +23,16 @@ $(VIZ_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[dev,viz]" || echo "rerun-sdk not installable here: the rerun export tests skip"
 	touch $(VIZ_STAMP)
 
+# The suite runs on every core (pytest-xdist). numba's on-disk cache is shared by the workers: numba writes each
+# cache file to a temporary name and renames it, so two workers compiling the same kernel both end with a valid file.
+# The slowest (whole-sequence) tests are scheduled first (tests/conftest.py), and idle workers steal queued tests.
+PYTEST_WORKERS ?= auto
 test: $(STAMP) $(VIZ_STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
+
+# The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal -m "not slow and not shared"
 
 bench: $(STAMP)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) || true

@@ -1,23 +1,26 @@
-"""Shared fixtures: paths to the real sequences in ../shared/data (skipped with a reason when absent)."""
+"""Shared fixtures: paths to the real sequences in ../shared/data (skipped with a reason when absent).
+
+Plain helpers (the standard camera, ATE, ``shared_sequence``) live in ``tests/helpers.py``.
+"""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # `from helpers import ...` in every test folder
 
-
-def shared_sequence(name: str) -> Path:
-    """Path of ../shared/data/<name>; skips the test when it is not there."""
-    path = SHARED_DATA / name
-    if not path.is_dir():
-        pytest.skip(f"real data not available: {path} is absent (needs ../shared beside the repo)")
-    return path
+from helpers import shared_sequence  # noqa: E402
 
 
 @pytest.fixture
 def sevenscenes_path() -> Path:
     return shared_sequence("7scenes_redkitchen_0000_0499")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The whole-sequence tests (marker ``slow``) first: the parallel workers start on the long tests and finish on
+    the short ones, instead of one worker running a 30 s test at the end while the other is idle."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

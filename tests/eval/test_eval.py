@@ -14,12 +14,13 @@ import typer
 from evo.core import metrics as evo_metrics
 from typer.testing import CliRunner
 
-from conftest import shared_sequence
 from surfelslam.errors import GroundTruthError
 from surfelslam.eval import metrics
 from surfelslam.geometry.se3 import make_T, so3_exp
 from surfelslam.tools import eval as eval_tool
 from surfelslam.types import Trajectory
+
+from helpers import shared_sequence
 
 EVO_BIN = Path(sys.executable).parent
 RATE_HZ = 30.0

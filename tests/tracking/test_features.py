@@ -28,64 +28,9 @@ from surfelslam.tracking.features import (
 )
 from surfelslam.types import Intrinsics, RGBDFrame
 
-ROOM_HALF_M = np.array([2.0, 1.2, 2.5])  # axis-aligned room [-h, h]^3 around the origin (y down)
-TEX_CELL_M = (0.09, 0.035)  # two layers of random blocks
+from helpers import ROOM_INTR, look_pose, render_room
 
-
-def _textures(seed: int = 7) -> np.ndarray:
-    """``(6, 2, 128, 128)`` uint8 random block values per face and layer."""
-    return np.random.default_rng(seed).integers(0, 256, size=(6, 2, 128, 128), dtype=np.uint8)
-
-
-_TEX = _textures()
-_TINT = np.array([[1.0, 0.8, 0.7], [0.7, 1.0, 0.8], [0.8, 0.7, 1.0], [1.0, 1.0, 0.7], [0.7, 1.0, 1.0], [1.0, 0.7, 1.0]])
-
-
-def render_room(T_world_cam: np.ndarray, intr: Intrinsics, supersample: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-cast the textured box room: ``(rgb (H, W, 3) uint8, depth_m (H, W) float32)``.
-
-    Colour is anti-aliased by averaging ``supersample^2`` rays per pixel; depth is the centre ray's.
-    """
-    s = supersample
-    v, u = np.mgrid[0 : intr.height * s, 0 : intr.width * s].astype(np.float64)
-    u = (u - (s - 1) / 2) / s
-    v = (v - (s - 1) / 2) / s
-    d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
-    d = d_cam @ T_world_cam[:3, :3].T
-    o = T_world_cam[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_hi = (ROOM_HALF_M - o) / d
-        t_lo = (-ROOM_HALF_M - o) / d
-    t_axis = np.where(d > 0, t_hi, t_lo)  # (H, W, 3): exit distance through each axis' wall
-    t_axis = np.where(np.isfinite(t_axis) & (t_axis > 0), t_axis, np.inf)
-    axis = np.argmin(t_axis, axis=-1)
-    t = np.take_along_axis(t_axis, axis[..., None], -1)[..., 0]
-    p = o + t[..., None] * d
-    face = axis * 2 + (np.take_along_axis(d, axis[..., None], -1)[..., 0] > 0)
-    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]  # the two in-plane axes
-    a = np.take_along_axis(p, other[..., :1], -1)[..., 0]
-    b = np.take_along_axis(p, other[..., 1:], -1)[..., 0]
-    grey = np.zeros(a.shape)
-    for layer, (cell, w) in enumerate(zip(TEX_CELL_M, (0.6, 0.4), strict=True)):
-        ia = np.floor(a / cell).astype(np.int64) % 128
-        ib = np.floor(b / cell).astype(np.int64) % 128
-        grey += w * _TEX[face, layer, ia, ib]
-    rgb = grey[..., None] * _TINT[face]
-    rgb = rgb.reshape(intr.height, s, intr.width, s, 3).mean(axis=(1, 3))
-    rgb = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
-    if s > 1:  # depth of the exact pixel centre (a planar room: one more cheap ray cast)
-        _, depth = render_room(T_world_cam, intr, supersample=1)
-        return rgb, depth
-    return rgb, t.astype(np.float32)  # d_cam has z = 1, so the ray parameter is the depth
-
-
-def look_pose(position: np.ndarray, yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
-    """Camera at ``position`` turned by yaw (about world y) then pitch (about camera x)."""
-    R = so3_exp([0.0, yaw_rad, 0.0]) @ so3_exp([pitch_rad, 0.0, 0.0])
-    return make_T(R, position)
-
-
-INTR = Intrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
+CAM = ROOM_INTR
 INTR_NEG = Intrinsics(260.0, -260.0, 159.5, 119.5, 320, 240)
 CFG = FeatureConfig(n_features=600)
 
@@ -95,7 +40,7 @@ def _frame(T_world_cam: np.ndarray, intr: Intrinsics, index: int = 0) -> RGBDFra
     return RGBDFrame(index, float(index), rgb, depth)
 
 
-def _pair(intr: Intrinsics = INTR):
+def _pair(intr: Intrinsics = CAM):
     T_a = look_pose(np.array([0.1, 0.0, -0.3]), 0.1)
     T_b = look_pose(np.array([0.16, 0.03, -0.25]), 0.16, 0.04)
     return T_a, T_b, _frame(T_a, intr, 0), _frame(T_b, intr, 1)
@@ -103,19 +48,19 @@ def _pair(intr: Intrinsics = INTR):
 
 def test_extract_spreads_keypoints_and_lifts_depth() -> None:
     _, _, fa, _ = _pair()
-    f = extract(fa.rgb, fa.depth_m, INTR, CFG)
+    f = extract(fa.rgb, fa.depth_m, CAM, CFG)
     assert 300 <= len(f) <= CFG.n_features
     assert f.descriptors.shape == (len(f), 32) and f.descriptors.dtype == np.uint8
     assert f.keypoints_uv.dtype == np.float32 and f.points_cam.dtype == np.float32
     # all four image quadrants hold keypoints
-    q = (f.keypoints_uv[:, 0] > INTR.cx).astype(int) * 2 + (f.keypoints_uv[:, 1] > INTR.cy)
+    q = (f.keypoints_uv[:, 0] > CAM.cx).astype(int) * 2 + (f.keypoints_uv[:, 1] > CAM.cy)
     assert np.bincount(q, minlength=4).min() > 0.1 * len(f)
     # 3D points re-project onto their keypoints
     p = f.points_cam[f.valid]
     uv = f.keypoints_uv[f.valid]
     assert f.valid.mean() > 0.95
-    np.testing.assert_allclose(INTR.fx * p[:, 0] / p[:, 2] + INTR.cx, uv[:, 0], atol=1e-3)
-    np.testing.assert_allclose(INTR.fy * p[:, 1] / p[:, 2] + INTR.cy, uv[:, 1], atol=1e-3)
+    np.testing.assert_allclose(CAM.fx * p[:, 0] / p[:, 2] + CAM.cx, uv[:, 0], atol=1e-3)
+    np.testing.assert_allclose(CAM.fy * p[:, 1] / p[:, 2] + CAM.cy, uv[:, 1], atol=1e-3)
 
 
 def test_plane_fit_depth_averages_noise_and_respects_edges() -> None:
@@ -155,12 +100,12 @@ def test_plane_fit_depth_averages_noise_and_respects_edges() -> None:
 def test_invalid_depth_gives_nan_points() -> None:
     _, _, fa, _ = _pair()
     depth = fa.depth_m.copy()
-    depth[:, : INTR.width // 2] = 0.0
-    f = extract(fa.rgb, depth, INTR, CFG)
-    left = f.keypoints_uv[:, 0] < INTR.width // 2 - 2
+    depth[:, : CAM.width // 2] = 0.0
+    f = extract(fa.rgb, depth, CAM, CFG)
+    left = f.keypoints_uv[:, 0] < CAM.width // 2 - 2
     assert left.sum() > 50
     assert not f.valid[left].any() and np.isnan(f.points_cam[left]).all()
-    assert f.valid[f.keypoints_uv[:, 0] > INTR.width // 2 + 2].all()
+    assert f.valid[f.keypoints_uv[:, 0] > CAM.width // 2 + 2].all()
 
 
 def test_bucketing_is_spread_and_deterministic() -> None:
@@ -179,8 +124,8 @@ def test_bucketing_is_spread_and_deterministic() -> None:
 def test_match_good_filter(matching: str) -> None:
     _, _, fa, fb = _pair()
     cfg = replace(CFG, matching=matching)
-    a = extract(fa.rgb, fa.depth_m, INTR, cfg)
-    b = extract(fb.rgb, fb.depth_m, INTR, cfg)
+    a = extract(fa.rgb, fa.depth_m, CAM, cfg)
+    b = extract(fb.rgb, fb.depth_m, CAM, cfg)
     m = match(a, b, cfg)
     assert m.n_good == len(m.pairs) == len(m.distances) > 100
     assert m.n_raw >= m.n_good
@@ -189,7 +134,7 @@ def test_match_good_filter(matching: str) -> None:
     assert len(np.unique(m.pairs[:, 0])) == m.n_good
 
 
-@pytest.mark.parametrize("intr", [INTR, INTR_NEG], ids=["fy_pos", "fy_neg"])
+@pytest.mark.parametrize("intr", [CAM, INTR_NEG], ids=["fy_pos", "fy_neg"])
 def test_pnp_recovers_known_pose(intr: Intrinsics) -> None:
     T_a, T_b, fa, fb = _pair(intr)
     a = extract(fa.rgb, fa.depth_m, intr, CFG)
@@ -206,7 +151,7 @@ def test_pnp_recovers_known_pose(intr: Intrinsics) -> None:
     assert pose_error(res2.T_cur_ref, T_gt_b_a)[0] < 0.02
 
 
-@pytest.mark.parametrize("intr", [INTR, INTR_NEG], ids=["fy_pos", "fy_neg"])
+@pytest.mark.parametrize("intr", [CAM, INTR_NEG], ids=["fy_pos", "fy_neg"])
 def test_lk_tracking_and_rgbd_refinement_tighten_the_pose(intr: Intrinsics) -> None:
     """ORB keypoints are re-detected at about +-0.5 px in each image; tracking the reference pixel by LK
     and the joint reprojection + depth refinement take the error of an exact-data pair well below plain PnP."""
@@ -243,20 +188,20 @@ def test_sift_features_recover_known_pose(matching: str) -> None:
     and refinement; mixing ORB and SIFT features is refused; a textureless image yields no SIFT match."""
     T_a, T_b, fa, fb = _pair()
     cfg = replace(CFG, detector="sift", matching=matching)
-    a = extract(fa.rgb, fa.depth_m, INTR, cfg)
-    b = extract(fb.rgb, fb.depth_m, INTR, cfg)
+    a = extract(fa.rgb, fa.depth_m, CAM, cfg)
+    b = extract(fb.rgb, fb.depth_m, CAM, cfg)
     assert a.descriptors.dtype == np.float32 and a.descriptors.shape[1] == 128 and 100 < len(a) <= 600
     m = match(a, b, cfg)
     assert m.n_good > 50 and len(np.unique(m.pairs[:, 1])) == m.n_good or matching == "ratio"
-    res = estimate_motion(a, b, INTR, cfg)
+    res = estimate_motion(a, b, CAM, cfg)
     assert res.ok
     dt, dr = pose_error(res.T_cur_ref, invert(T_b) @ T_a)
     assert dt < 0.005 and dr < 0.2, (dt, dr)
     with pytest.raises(ValueError, match="different kinds"):
-        match(a, extract(fb.rgb, fb.depth_m, INTR, CFG), cfg)
-    flat = extract(np.full((240, 320, 3), 128, np.uint8), np.full((240, 320), 2.0, np.float32), INTR, cfg)
+        match(a, extract(fb.rgb, fb.depth_m, CAM, CFG), cfg)
+    flat = extract(np.full((240, 320, 3), 128, np.uint8), np.full((240, 320), 2.0, np.float32), CAM, cfg)
     assert len(flat) == 0 and flat.descriptors.dtype == np.float32
-    assert estimate_motion(flat, b, INTR, cfg).reason == "too_few_matches"
+    assert estimate_motion(flat, b, CAM, cfg).reason == "too_few_matches"
     with pytest.raises(ValueError, match="detector"):
         FeatureConfig(detector="surf")
 
@@ -302,7 +247,7 @@ def test_rgbd_refinement_recovers_a_known_pose_from_exact_correspondences() -> N
     P = rng.uniform([-1.5, -1.0, 1.0], [1.5, 1.0, 4.0], size=(300, 3))
     T_true = make_T(so3_exp([0.02, -0.05, 0.01]), [0.04, -0.02, 0.03])
     X = P @ T_true[:3, :3].T + T_true[:3, 3]
-    for intr in (INTR, INTR_NEG):
+    for intr in (CAM, INTR_NEG):
         uv = np.column_stack([intr.fx * X[:, 0] / X[:, 2] + intr.cx, intr.fy * X[:, 1] / X[:, 2] + intr.cy])
         inv_z = 1.0 / X[:, 2]
         inv_z[::3] = np.nan  # points without a current depth: reprojection only
@@ -322,12 +267,12 @@ def test_rgbd_refinement_information_is_the_inverse_covariance_of_the_pose(pixel
     T_true = make_T(so3_exp([0.02, -0.05, 0.01]), [0.04, -0.02, 0.03])
     X = P @ T_true[:3, :3].T + T_true[:3, 3]
     cfg = replace(CFG, rgbd_refine_iterations=5, rgbd_huber=100.0)  # Gaussian noise: no Huber down-weighting
-    uv0 = np.column_stack([INTR.fx * X[:, 0] / X[:, 2] + INTR.cx, INTR.fy * X[:, 1] / X[:, 2] + INTR.cy])
+    uv0 = np.column_stack([CAM.fx * X[:, 0] / X[:, 2] + CAM.cx, CAM.fy * X[:, 1] / X[:, 2] + CAM.cy])
     xis, infos = [], []
     for _ in range(300):
         uv = uv0 + rng.normal(0.0, pixel_sigma_px, uv0.shape)
         inv_z = 1.0 / X[:, 2] + rng.normal(0.0, cfg.rgbd_inverse_depth_sigma, len(X))
-        T, info = refine_rgbd(T_true, P, uv, inv_z, INTR, cfg, with_information=True)
+        T, info = refine_rgbd(T_true, P, uv, inv_z, CAM, cfg, with_information=True)
         xis.append(se3_log(T @ invert(T_true)))
         infos.append(info)
     cov_mc = np.cov(np.array(xis).T)
@@ -341,7 +286,7 @@ def test_rgbd_refinement_information_is_the_inverse_covariance_of_the_pose(pixel
 
 def test_feature_guess_direction() -> None:
     T_a, T_b, fa, fb = _pair()
-    T_tgt_src, res = feature_guess(fb, fa, INTR, CFG)  # source b, target a
+    T_tgt_src, res = feature_guess(fb, fa, CAM, CFG)  # source b, target a
     assert T_tgt_src is not None
     dt, dr = pose_error(T_tgt_src, invert(T_a) @ T_b)
     assert dt < 0.02 and dr < 0.5  # FAST keypoints are integer pixels: ~0.5 px noise per axis
@@ -350,41 +295,41 @@ def test_feature_guess_direction() -> None:
 def test_textureless_rejected_too_few_matches() -> None:
     rgb = np.full((240, 320, 3), 128, np.uint8)
     depth = np.full((240, 320), 2.0, np.float32)
-    f = extract(rgb, depth, INTR, CFG)
-    res = estimate_motion(f, f, INTR, CFG)
+    f = extract(rgb, depth, CAM, CFG)
+    res = estimate_motion(f, f, CAM, CFG)
     assert not res.ok and res.reason == "too_few_matches"
-    T, res2 = feature_guess(RGBDFrame(0, 0.0, rgb, depth), RGBDFrame(1, 0.1, rgb, depth), INTR, CFG)
+    T, res2 = feature_guess(RGBDFrame(0, 0.0, rgb, depth), RGBDFrame(1, 0.1, rgb, depth), CAM, CFG)
     assert T is None and res2.reason == "too_few_matches"
 
 
 def test_large_motion_rejected() -> None:
     T_a = look_pose(np.array([0.0, 0.0, 0.0]), 0.0)
     T_b = look_pose(np.array([0.25, 0.0, 0.2]), 0.2)  # norm ~0.52 > 0.3
-    fa, fb = _frame(T_a, INTR), _frame(T_b, INTR)
-    a = extract(fa.rgb, fa.depth_m, INTR, CFG)
-    b = extract(fb.rgb, fb.depth_m, INTR, CFG)
-    res = estimate_motion(a, b, INTR, CFG)
+    fa, fb = _frame(T_a, CAM), _frame(T_b, CAM)
+    a = extract(fa.rgb, fa.depth_m, CAM, CFG)
+    b = extract(fb.rgb, fb.depth_m, CAM, CFG)
+    res = estimate_motion(a, b, CAM, CFG)
     assert not res.ok and res.reason == "motion_too_large"
     assert pose_error(res.T_cur_ref, invert(T_b) @ T_a)[0] < 0.03  # the pose itself was right
     assert motion_norm(res.T_cur_ref) > CFG.max_motion_norm
-    ok = estimate_motion(a, b, INTR, replace(CFG, max_motion_norm=1.0))
+    ok = estimate_motion(a, b, CAM, replace(CFG, max_motion_norm=1.0))
     assert ok.ok
 
 
 def test_too_few_inliers() -> None:
     _, _, fa, _ = _pair()
-    a = extract(fa.rgb, fa.depth_m, INTR, CFG)
+    a = extract(fa.rgb, fa.depth_m, CAM, CFG)
     # scramble the 2D side: descriptors match perfectly but the geometry is random
     rng = np.random.default_rng(3)
     b = replace(a, keypoints_uv=a.keypoints_uv[rng.permutation(len(a))])
-    res = estimate_motion(a, b, INTR, replace(CFG, min_inliers=20))
+    res = estimate_motion(a, b, CAM, replace(CFG, min_inliers=20))
     assert not res.ok and res.reason in ("too_few_inliers", "pnp_failed")
 
 
 def test_deterministic() -> None:
     _, _, fa, fb = _pair()
-    r = [estimate_motion(extract(fa.rgb, fa.depth_m, INTR, CFG), extract(fb.rgb, fb.depth_m, INTR, CFG),
-                         INTR, CFG) for _ in range(2)]
+    r = [estimate_motion(extract(fa.rgb, fa.depth_m, CAM, CFG), extract(fb.rgb, fb.depth_m, CAM, CFG),
+                         CAM, CFG) for _ in range(2)]
     np.testing.assert_array_equal(r[0].T_cur_ref, r[1].T_cur_ref)
     np.testing.assert_array_equal(r[0].inlier_mask, r[1].inlier_mask)
 
@@ -393,9 +338,10 @@ def test_deterministic() -> None:
 
 
 def _load_7scenes(i: int):
-    from conftest import shared_sequence
     from surfelslam.io.images import read_depth_raw, read_rgb
     from surfelslam.io.trajectory import read_tum
+
+    from helpers import shared_sequence
 
     root = shared_sequence("7scenes_redkitchen_0000_0499")
     rgb = read_rgb(root / "rgb" / f"{i:06d}.jpg")
@@ -473,7 +419,7 @@ def test_match_crosscheck_equals_opencv_crosscheck():
     import cv2
 
     _, _, fa, fb = _pair()
-    a, b = extract(fa.rgb, fa.depth_m, INTR, CFG), extract(fb.rgb, fb.depth_m, INTR, CFG)
+    a, b = extract(fa.rgb, fa.depth_m, CAM, CFG), extract(fb.rgb, fb.depth_m, CAM, CFG)
     raw = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(a.descriptors, b.descriptors)
     cv_pairs = {(m.queryIdx, m.trainIdx) for m in raw}
     m = match(a, b, replace(CFG, matching="crosscheck"))

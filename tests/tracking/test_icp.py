@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from conftest import shared_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.kernels import icp as kicp
@@ -26,7 +25,8 @@ from surfelslam.tracking.icp import (
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor, build_pyramid
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+from helpers import INTR, register_app, shared_sequence
+
 EYE = np.array([2.5, 2.0, 1.4])
 T_WORLD_TGT = look_at(EYE, np.array([2.5, 0.0, 0.8]))[0]
 
@@ -451,21 +451,6 @@ def test_pairwise_config_converges_on_large_real_motions(s, t):
 # ---------------------------------------------------------------------------------------------
 # the register command
 # ---------------------------------------------------------------------------------------------
-
-
-def register_app():
-    import typer
-
-    from surfelslam.tools import register as register_tool
-
-    app = typer.Typer(pretty_exceptions_enable=False)
-
-    @app.callback()
-    def _root() -> None:
-        pass
-
-    register_tool.register(app)
-    return app
 
 
 def test_register_command_bad_input_exits_2(tmp_path):

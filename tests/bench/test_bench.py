@@ -17,7 +17,7 @@ import pytest
 
 from surfelslam.synth.writer import generate_sequence
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 sys.path.insert(0, str(BENCH))
 
 import run_all  # noqa: E402
@@ -28,6 +28,8 @@ TINY = run_all.Plan(
     sustained_window=5, synth_width=80, synth_slow_frames=24, synth_loop_frames=12, open3d_frames_real=0,
     open3d_frames_synth=0, extra_runs=(("orb", "real", 6), ("orb", "slow", 6)), min_frames=8, budget_s=0.0,
 )
+
+pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
 
 
 @pytest.fixture(scope="module")

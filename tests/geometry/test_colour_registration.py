@@ -6,11 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import shared_sequence
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.camera import colour_at_depth_pixels, pixel_grid
 from surfelslam.types import ColourCamera, Intrinsics
+
+from helpers import shared_sequence
 
 DEPTH = Intrinsics(300.0, 300.0, 79.5, 59.5, 160, 120)
 #: a wider colour camera (smaller focal), its own principal point, 3 cm to the depth camera's +x and 1 cm behind

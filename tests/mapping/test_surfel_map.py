@@ -12,7 +12,7 @@ from surfelslam.kernels import surfels as ks
 from surfelslam.mapping import MapConfig, RenderConfig, SurfelMap, render, render_index_map
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(120.0, -115.0, 79.5, 59.5, 160, 120)  # negative fy on purpose (ICL-NUIM style)
+CAM_NEG = Intrinsics(120.0, -115.0, 79.5, 59.5, 160, 120)  # negative fy on purpose (ICL-NUIM style)
 
 
 def _random_map(n: int, seed: int = 0, cfg: MapConfig | None = None) -> SurfelMap:
@@ -115,12 +115,12 @@ def test_cull_and_gather_match_reference_and_keep_every_visible_surfel():
     m.append(extra, np.tile([0, 0, -1.0], (3000, 1)), np.zeros((3000, 3)), 1.0, 0.01, 1)
     assert m.n_grouped == 20000 and m.size == 23000
     T = make_T(so3_exp([0.1, 0.4, -0.05]), [0.2, -0.1, 0.3])
-    cand = m.visible_candidates(T, INTR, 0.1, 4.0).copy()
+    cand = m.visible_candidates(T, CAM_NEG, 0.1, 4.0).copy()
     # reference culling + gathering
     Tcw = invert(T)
     vis_ref = kr.cull_blocks_ref(
         m._block_ijk, m.n_blocks, 0.5, m.cfg.block_margin_m, Tcw[:3, :3], Tcw[:3, 3],
-        INTR.fx, INTR.fy, INTR.cx, INTR.cy, -0.5, INTR.width - 0.5, -0.5, INTR.height - 0.5, 0.1, 4.0,
+        CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, -0.5, CAM_NEG.width - 0.5, -0.5, CAM_NEG.height - 0.5, 0.1, 4.0,
     )
     np.testing.assert_array_equal(m._visible[: m.n_blocks], vis_ref)
     assert 0 < vis_ref.sum() < m.n_blocks  # some culled, some kept
@@ -130,9 +130,9 @@ def test_cull_and_gather_match_reference_and_keep_every_visible_surfel():
     # every surfel that projects into the image within the depth range is a candidate
     pc = m.position.astype(np.float64) @ Tcw[:3, :3].T + Tcw[:3, 3]
     z = pc[:, 2]
-    u = INTR.fx * pc[:, 0] / z + INTR.cx
-    v = INTR.fy * pc[:, 1] / z + INTR.cy
-    inview = (z > 0.1) & (z < 4.0) & (u > -0.5) & (u < INTR.width - 0.5) & (v > -0.5) & (v < INTR.height - 0.5)
+    u = CAM_NEG.fx * pc[:, 0] / z + CAM_NEG.cx
+    v = CAM_NEG.fy * pc[:, 1] / z + CAM_NEG.cy
+    inview = (z > 0.1) & (z < 4.0) & (u > -0.5) & (u < CAM_NEG.width - 0.5) & (v > -0.5) & (v < CAM_NEG.height - 0.5)
     assert inview.sum() > 1000
     assert np.isin(np.flatnonzero(inview), cand).all()
     assert len(cand) < 0.8 * m.size  # and culling removed a real share
@@ -144,15 +144,15 @@ def test_render_plane_depth_and_normal_at_known_pixels():
     m = _plane_map(z0)
     # camera translated and rotated about y: plane z = z0 in world
     T = make_T(so3_exp([0.0, 0.2, 0.0]), [0.1, 0.05, -0.3])
-    view = render(m, T, INTR, RenderConfig(vertex="disc"))  # disc mode: the exact plane point on each ray
+    view = render(m, T, CAM_NEG, RenderConfig(vertex="disc"))  # disc mode: the exact plane point on each ray
     assert view.valid.mean() > 0.99  # no holes
-    centre = render(m, T, INTR)  # centre mode (default): the surfel centres, on the plane too
+    centre = render(m, T, CAM_NEG)  # centre mode (default): the surfel centres, on the plane too
     Tcw = invert(T)
     n_cam = Tcw[:3, :3] @ np.array([0.0, 0.0, -1.0])
     # expected: intersection of each pixel ray with the plane n_cam . x = n_cam . p0 (p0 a plane point in cam)
     p0 = Tcw[:3, :3] @ np.array([0.0, 0.0, z0]) + Tcw[:3, 3]
     for u, v in [(0, 0), (80, 60), (159, 119), (23, 97), (140, 11)]:
-        d = np.array([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, 1.0])
+        d = np.array([(u - CAM_NEG.cx) / CAM_NEG.fx, (v - CAM_NEG.cy) / CAM_NEG.fy, 1.0])
         t = n_cam @ p0 / (n_cam @ d)
         np.testing.assert_allclose(view.vertex_cam[v, u], t * d, atol=1e-5)
         np.testing.assert_allclose(view.normal_cam[v, u], n_cam, atol=1e-6)
@@ -165,9 +165,9 @@ def test_render_plane_depth_and_normal_at_known_pixels():
 
 def test_render_from_closer_has_no_holes_thanks_to_splats():
     m = _plane_map(2.0, spacing_m=0.012)
-    view = render(m, make_T(np.eye(3), [0, 0, 0.6]), INTR)  # 1.4 m away: spacing ~1.0 px... closer than creation
+    view = render(m, make_T(np.eye(3), [0, 0, 0.6]), CAM_NEG)  # 1.4 m away: spacing ~1.0 px... closer than creation
     assert view.valid.mean() > 0.99
-    view0 = render(m, make_T(np.eye(3), [0, 0, 0.6]), INTR, RenderConfig(max_splat_radius_px=0.0))
+    view0 = render(m, make_T(np.eye(3), [0, 0, 0.6]), CAM_NEG, RenderConfig(max_splat_radius_px=0.0))
     assert view0.valid.mean() < view.valid.mean()
 
 
@@ -175,14 +175,14 @@ def test_render_culls_backfaces_and_handles_min_confidence_fallback():
     m = _plane_map(2.0)
     # the camera behind the plane (looking along -z from z = 4) sees the back of every surfel
     T_back = make_T(so3_exp([0.0, np.pi, 0.0]), [0.0, 0.0, 4.0])
-    assert not render(m, T_back, INTR).valid.any()
-    assert render(m, T_back, INTR, RenderConfig(cull_backfaces=False)).valid.mean() > 0.99
+    assert not render(m, T_back, CAM_NEG).valid.any()
+    assert render(m, T_back, CAM_NEG, RenderConfig(cull_backfaces=False)).valid.mean() > 0.99
     # min_confidence: all surfels have confidence 1, first seen at frame 0
     m.latest_frame = 5
     strict = RenderConfig(min_confidence=2.0, young_age_frames=3)
-    assert not render(m, np.eye(4), INTR, strict).valid.any()  # old and unstable: hidden
+    assert not render(m, np.eye(4), CAM_NEG, strict).valid.any()  # old and unstable: hidden
     young = RenderConfig(min_confidence=2.0, young_age_frames=10)
-    assert render(m, np.eye(4), INTR, young).valid.mean() > 0.99  # young map: fallback draws them
+    assert render(m, np.eye(4), CAM_NEG, young).valid.mean() > 0.99  # young map: fallback draws them
 
 
 def test_splat_fill_and_index_kernels_match_references():
@@ -192,9 +192,9 @@ def test_splat_fill_and_index_kernels_match_references():
     R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
     cand = np.arange(m.size, dtype=np.int32)[::-1].copy()  # arbitrary order matters only for exact ties
     a = m.raw()
-    H, W = INTR.shape
+    H, W = CAM_NEG.shape
     args = (cand, len(cand), a["position"], a["normal"], a["radius"], a["confidence"], a["first_seen"], 2.0, 15,
-            R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, 2.0, 0.1, 8.0, True)
+            R, t, CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, 2.0, 0.1, 8.0, True)
     depth = np.full((H, W), np.inf)
     index = np.full((H, W), -1, np.int32)
     kr.splat_zbuffer(*args, depth, index)
@@ -207,17 +207,17 @@ def test_splat_fill_and_index_kernels_match_references():
            np.empty((H, W), np.float32)]
     for use_centre in (True, False):
         kr.fill_view(index, depth, a["position"], a["normal"], a["colour"], a["confidence"], R, t,
-                     INTR.fx, INTR.fy, INTR.cx, INTR.cy, use_centre, *out)
+                     CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, use_centre, *out)
         ref = kr.fill_view_ref(index, depth, a["position"], a["normal"], a["colour"], a["confidence"], R, t,
-                               INTR.fx, INTR.fy, INTR.cx, INTR.cy, use_centre)
+                               CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, use_centre)
         for o, r in zip(out, ref, strict=True):
             np.testing.assert_allclose(o.astype(np.float64), r.astype(np.float64), atol=1e-5)
 
     shape_s = (H * 4, W * 4)
     d4 = np.full(shape_s, np.inf)
     i4 = np.full(shape_s, -1, np.int32)
-    iargs = (cand, len(cand), a["position"], a["normal"], R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, 4, 0.1, 8.0,
-             True)
+    c = CAM_NEG
+    iargs = (cand, len(cand), a["position"], a["normal"], R, t, c.fx, c.fy, c.cx, c.cy, 4, 0.1, 8.0, True)
     kr.index_zbuffer(*iargs, d4, i4)
     d4r, i4r = kr.index_zbuffer_ref(*iargs, shape_s)
     np.testing.assert_array_equal(i4, i4r)
@@ -231,9 +231,9 @@ def test_render_index_map_cell_of_known_surfel():
     m = SurfelMap()
     # one surfel exactly on the ray of pixel (u, v) = (10.3, 20.6) at 2 m
     u, v, z = 10.3, 20.6, 2.0
-    p = [(u - INTR.cx) / INTR.fx * z, (v - INTR.cy) / INTR.fy * z, z]
+    p = [(u - CAM_NEG.cx) / CAM_NEG.fx * z, (v - CAM_NEG.cy) / CAM_NEG.fy * z, z]
     m.append(np.array([p]), np.array([[0, 0, -1.0]]), np.zeros((1, 3)), 1.0, 0.01, 0)
-    im = render_index_map(m, np.eye(4), INTR, scale=4)
+    im = render_index_map(m, np.eye(4), CAM_NEG, scale=4)
     sv, su = np.argwhere(im.index == 0)[0]
     assert (su, sv) == (int(np.floor((u + 0.5) * 4)), int(np.floor((v + 0.5) * 4)))
     assert (su // 4, sv // 4) == (10, 21)

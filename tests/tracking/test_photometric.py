@@ -19,7 +19,7 @@ from surfelslam.tracking.photometric import IntensityPyramid, PhotometricTerm, i
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+from helpers import INTR
 
 
 def _slanted_textured_plane(fy: float = 70.0):

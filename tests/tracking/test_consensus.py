@@ -20,7 +20,8 @@ from surfelslam.tracking.consensus import (
 from surfelslam.tracking.features import FeatureConfig, Features, estimate_motion
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+from helpers import INTR
+
 INTR_NEG = Intrinsics(262.5, -262.5, 159.5, 119.5, 320, 240)
 T_TRUE = make_T(so3_exp([0.1, -0.4, 0.05]), [0.35, -0.05, 0.2])  # 0.4 m and 24 deg: a wide baseline
 T_VIEW = make_T(so3_exp([0.05, -0.12, 0.02]), [0.3, -0.05, 0.1])  # 0.3 m and 7.5 deg: views that overlap

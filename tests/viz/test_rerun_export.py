@@ -19,6 +19,8 @@ from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
 from surfelslam.viz.rerun_export import build_scene
 
+pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+
 runner = CliRunner()
 
 

@@ -17,7 +17,7 @@ from surfelslam.tracking.preprocess import (
 )
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(150.0, 150.0, 39.5, 29.5, 80, 60)
+CAM80 = Intrinsics(150.0, 150.0, 39.5, 29.5, 80, 60)
 
 
 def plane_depth(intr: Intrinsics, n=(0.2, -0.3, -1.0), d=2.0) -> np.ndarray:
@@ -28,7 +28,7 @@ def plane_depth(intr: Intrinsics, n=(0.2, -0.3, -1.0), d=2.0) -> np.ndarray:
     return (-d / (ray @ n)).astype(np.float32)
 
 
-def noisy_scene_depth(seed=0, intr=INTR) -> np.ndarray:
+def noisy_scene_depth(seed=0, intr=CAM80) -> np.ndarray:
     rng = np.random.default_rng(seed)
     z = plane_depth(intr) + rng.normal(0, 0.004, intr.shape).astype(np.float32)
     z[10:25, 20:40] -= 0.4  # a box in front: depth discontinuities
@@ -48,7 +48,7 @@ def test_bilateral_kernel_matches_reference():
     # edge preserving: the box front and the wall behind are not blended
     assert abs(out[17, 30] - z[10:25, 20:40][z[10:25, 20:40] > 0].mean()) < 0.05
     # smoothing reduces the noise on the plane
-    clean = plane_depth(INTR)
+    clean = plane_depth(CAM80)
     m = (z > 0) & (z < 5)
     m[8:27, 18:42] = False
     assert np.std((out - clean)[m]) < 0.6 * np.std((z - clean)[m])
@@ -56,7 +56,7 @@ def test_bilateral_kernel_matches_reference():
 
 def test_vertex_normal_downsample_kernels_match_reference():
     z = noisy_scene_depth(1)
-    i = INTR
+    i = CAM80
     V = np.empty((*z.shape, 3), np.float32)
     kp.depth_to_vertex(z, i.fx, i.fy, i.cx, i.cy, 0.1, 5.0, V)
     np.testing.assert_allclose(V, kp.depth_to_vertex_ref(z, i.fx, i.fy, i.cx, i.cy, 0.1, 5.0), atol=1e-6)
@@ -86,10 +86,10 @@ def test_plane_normals_exact_and_face_camera(fy_sign):
 
 
 def test_normals_invalid_at_holes_and_discontinuities():
-    z = plane_depth(INTR)
+    z = plane_depth(CAM80)
     z[30, 40] = 0.0
     z[10:20, 10:20] -= 0.5
-    pyr = build_pyramid(z, INTR, PreprocessConfig(bilateral=False, pyramid_levels=1))
+    pyr = build_pyramid(z, CAM80, PreprocessConfig(bilateral=False, pyramid_levels=1))
     n = pyr[0].normal
     for v, u in [(30, 40), (29, 40), (31, 40), (30, 39), (30, 41), (15, 9), (15, 10), (15, 19), (15, 20)]:
         assert np.all(n[v, u] == 0), (v, u)
@@ -125,12 +125,12 @@ def test_pyramid_block_average_does_not_mix_depths():
 def test_preprocessor_reuses_buffers_and_matches_build_pyramid():
     z = noisy_scene_depth(2)
     cfg = PreprocessConfig(pyramid_levels=3)
-    pre = Preprocessor(INTR, cfg)
+    pre = Preprocessor(CAM80, cfg)
     out = pre.new_pyramid()
     ids = [id(lvl.vertex) for lvl in out.levels]
     res = pre.process(z, out=out)
     assert res is out and [id(lvl.vertex) for lvl in out.levels] == ids
-    ref = build_pyramid(z, INTR, cfg)
+    ref = build_pyramid(z, CAM80, cfg)
     for a, b in zip(out.levels, ref.levels, strict=True):
         assert np.array_equal(a.vertex, b.vertex) and np.array_equal(a.normal, b.normal)
         assert a.intrinsics == b.intrinsics
@@ -139,16 +139,16 @@ def test_preprocessor_reuses_buffers_and_matches_build_pyramid():
 
 def test_pyramid_from_maps():
     z = noisy_scene_depth(3)
-    src = build_pyramid(z, INTR, PreprocessConfig(bilateral=False, pyramid_levels=1))
-    pyr = pyramid_from_maps(src[0].vertex, src[0].normal, INTR, levels=3)
+    src = build_pyramid(z, CAM80, PreprocessConfig(bilateral=False, pyramid_levels=1))
+    pyr = pyramid_from_maps(src[0].vertex, src[0].normal, CAM80, levels=3)
     assert isinstance(pyr, FramePyramid) and len(pyr) == 3
     assert np.array_equal(pyr[0].vertex, src[0].vertex)
     np.testing.assert_allclose(pyr[1].vertex, kp.downsample_vertex_ref(src[0].vertex, 0.05), atol=1e-6)
     nrm = np.linalg.norm(pyr[2].normal, axis=-1)
     assert np.allclose(nrm[nrm > 0], 1.0, atol=1e-5)
-    assert pyr[2].intrinsics == halve_intrinsics(halve_intrinsics(INTR))
+    assert pyr[2].intrinsics == halve_intrinsics(halve_intrinsics(CAM80))
     with pytest.raises(ConfigError):
-        pyramid_from_maps(src[0].vertex[:-1], src[0].normal[:-1], INTR, levels=2)
+        pyramid_from_maps(src[0].vertex[:-1], src[0].normal[:-1], CAM80, levels=2)
 
 
 def test_bad_config_and_shapes():
@@ -157,7 +157,7 @@ def test_bad_config_and_shapes():
     with pytest.raises(ConfigError):
         PreprocessConfig(pyramid_levels=0)
     with pytest.raises(ConfigError, match="depth image"):
-        build_pyramid(np.zeros((10, 10), np.float32), INTR)
+        build_pyramid(np.zeros((10, 10), np.float32), CAM80)
 
 
 def test_depth_downsample_kernel_matches_reference_and_keeps_depths_apart():
@@ -197,10 +197,10 @@ def test_preprocess_from_a_coarser_first_level():
     """first_level=1: level 1 is the block-averaged depth processed at level-1 intrinsics; coarser levels follow."""
     z = noisy_scene_depth(4)
     cfg = PreprocessConfig(pyramid_levels=3)
-    pre = Preprocessor(INTR, cfg)
+    pre = Preprocessor(CAM80, cfg)
     pyr = pre.process(z, first_level=1)
     half = kp.downsample_depth_ref(z, cfg.min_depth_m, cfg.max_depth_m, cfg.pyramid_max_depth_diff_m)
-    direct = Preprocessor(halve_intrinsics(INTR), replace(cfg, pyramid_levels=2,
+    direct = Preprocessor(halve_intrinsics(CAM80), replace(cfg, pyramid_levels=2,
                                                           normal_max_depth_jump_m=2 * cfg.normal_max_depth_jump_m,
                                                           pyramid_max_depth_diff_m=2 * cfg.pyramid_max_depth_diff_m))
     ref = direct.process(half)

@@ -25,6 +25,8 @@ from surfelslam.tools.experiments import (
 )
 from surfelslam.tracking.features import FeatureConfig
 
+pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+
 FRAMES = 10
 GAPS = (10, 20)
 START = 10

@@ -14,12 +14,12 @@ from surfelslam.kernels import fusion as kf
 from surfelslam.mapping import FusionConfig, SurfelMap, fuse, pixel_weights, render
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(130.0, -130.0, 79.5, 59.5, 160, 120)  # negative fy (ICL-NUIM convention)
+CAM_NEG = Intrinsics(130.0, -130.0, 79.5, 59.5, 160, 120)  # negative fy (ICL-NUIM convention)
 ROOM_LO = np.array([-2.5, -1.5, -2.0])
 ROOM_HI = np.array([2.5, 1.5, 3.0])
 
 
-def room_frame(T_world_cam: np.ndarray, intr: Intrinsics = INTR, noise_m: float = 0.0, seed: int = 0):
+def room_frame(T_world_cam: np.ndarray, intr: Intrinsics = CAM_NEG, noise_m: float = 0.0, seed: int = 0):
     """Ray-cast the inside of an axis-aligned box room: (vertex_cam, normal_cam, rgb, depth)."""
     H, W = intr.shape
     v, u = np.mgrid[0:H, 0:W].astype(np.float64)
@@ -72,7 +72,7 @@ def _setup_two_frames(noise_m=0.003):
     cfg = FusionConfig(remove_unstable=False)
     T0 = pose([0.0, 0.1, 0.0], [0.1, 0.0, 0.0])
     V, N, C, _ = room_frame(T0, noise_m=noise_m, seed=1)
-    fuse(m, V, N, C, T0, INTR, 0, cfg)
+    fuse(m, V, N, C, T0, CAM_NEG, 0, cfg)
     T1 = pose([0.01, 0.13, 0.0], [0.13, 0.02, 0.05])
     V1, _, C1, _ = room_frame(T1, noise_m=noise_m, seed=2)
     N1 = numpy_normals(V1)
@@ -80,15 +80,15 @@ def _setup_two_frames(noise_m=0.003):
 
 
 def _buckets(m, T):
-    cand = m.visible_candidates(T, INTR, 0.1, 4.0).copy()
+    cand = m.visible_candidates(T, CAM_NEG, 0.1, 4.0).copy()
     a = m.raw()
     Tcw = np.linalg.inv(T)
-    H, W = INTR.shape
+    H, W = CAM_NEG.shape
     start = np.empty(H * W + 1, np.int32)
     order = np.empty(len(cand), np.int32)
     pix = np.empty(len(cand), np.int32)
     args = (cand, len(cand), a["position"], a["normal"], Tcw[:3, :3].copy(), Tcw[:3, 3].copy(),
-            INTR.fx, INTR.fy, INTR.cx, INTR.cy, H, W, 0.1, 4.0, True)
+            CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, H, W, 0.1, 4.0, True)
     n = kf.bucket_by_pixel(*args, pix, start, order)
     start_r, order_r = kf.bucket_by_pixel_ref(*args)
     np.testing.assert_array_equal(start, start_r)
@@ -99,12 +99,12 @@ def _buckets(m, T):
 def test_bucket_and_associate_kernels_match_references():
     m, cfg, T1, V1, N1, _ = _setup_two_frames()
     start, order = _buckets(m, T1)
-    assert np.diff(start).max() >= 1 and start[-1] > 0.5 * INTR.width * INTR.height
+    assert np.diff(start).max() >= 1 and start[-1] > 0.5 * CAM_NEG.width * CAM_NEG.height
     a = m.raw()
     R, t = T1[:3, :3].copy(), T1[:3, 3].copy()
     cos_a = math.cos(math.radians(20))
     for cover in (0, 1):
-        out = np.empty(INTR.shape, np.int32)
+        out = np.empty(CAM_NEG.shape, np.int32)
         args = (V1, N1, start, order, a["position"], a["normal"], a["confidence"], R, t, 0.03, cos_a, 0.1, 4.0,
                 cover)
         kf.associate(*args, out)
@@ -122,10 +122,10 @@ def test_merge_and_add_kernels_match_references():
     start, order = _buckets(m, T1)
     a = m.raw()
     R, t = T1[:3, :3].copy(), T1[:3, 3].copy()
-    assoc = np.empty(INTR.shape, np.int32)
+    assoc = np.empty(CAM_NEG.shape, np.int32)
     kf.associate(V1, N1, start, order, a["position"], a["normal"], a["confidence"], R, t, 0.03,
                  math.cos(math.radians(20)), 0.1, 4.0, 1, assoc)
-    w = pixel_weights(INTR, "keller", 0.6)
+    w = pixel_weights(CAM_NEG, "keller", 0.6)
     rpd = 1.0 / 130.0
     n = m.size
     before = [a[k][:n].copy() for k in ("position", "normal", "colour", "confidence", "radius", "last_seen", "hits")]
@@ -175,10 +175,10 @@ def test_same_frame_twice_merges_without_duplicates():
     T = pose([0.0, 0.3, 0.0], [0.0, 0.2, 0.0])
     V, N, C, depth = room_frame(T)
     cfg = FusionConfig(weight_mode="constant")
-    s1 = fuse(m, V, N, C, T, INTR, 0, cfg)
+    s1 = fuse(m, V, N, C, T, CAM_NEG, 0, cfg)
     assert s1.added == m.size == int((depth > 0.1).sum() - ((depth > 4.0).sum()))
     pos0 = m.position.copy()
-    s2 = fuse(m, V, N, C, T, INTR, 1, cfg)
+    s2 = fuse(m, V, N, C, T, CAM_NEG, 1, cfg)
     assert s2.added == 0 and s2.merged == m.size == s1.added
     np.testing.assert_array_equal(m.confidence, 2.0)
     np.testing.assert_array_equal(m.hits, 2)
@@ -186,19 +186,19 @@ def test_same_frame_twice_merges_without_duplicates():
     np.testing.assert_allclose(m.position, pos0, atol=1e-6)
     # Keller weights: confidence grows by the radial weight, 1 at the centre
     m2 = SurfelMap()
-    fuse(m2, V, N, C, T, INTR, 0)
+    fuse(m2, V, N, C, T, CAM_NEG, 0)
     c1 = m2.confidence.copy()
-    fuse(m2, V, N, C, T, INTR, 1)
+    fuse(m2, V, N, C, T, CAM_NEG, 1)
     np.testing.assert_allclose(m2.confidence, 2 * c1, rtol=1e-6)
     assert c1.max() <= 1.0 and c1.min() >= math.exp(-1 / (2 * 0.6**2)) - 1e-6
 
 
 def test_pixel_weights_keller_and_constant():
-    w = pixel_weights(INTR, "keller", 0.6)
-    assert w.shape == INTR.shape
+    w = pixel_weights(CAM_NEG, "keller", 0.6)
+    assert w.shape == CAM_NEG.shape
     assert w.max() <= 1.0 and w[60, 80] > 0.999
     np.testing.assert_allclose(w[0, 0], math.exp(-1 / (2 * 0.36)), rtol=1e-5)
-    assert (pixel_weights(INTR, "constant", 0.6) == 1).all()
+    assert (pixel_weights(CAM_NEG, "constant", 0.6) == 1).all()
 
 
 def _trajectory(n: int) -> list[np.ndarray]:
@@ -214,7 +214,7 @@ def test_gt_fusion_gives_surfels_on_the_true_surfaces():
     for i, T in enumerate(poses):
         V, _, C, _ = room_frame(T, noise_m=0.002, seed=i)
         N = numpy_normals(V)
-        stats.append(fuse(m, V, N, C, T, INTR, i, cfg))
+        stats.append(fuse(m, V, N, C, T, CAM_NEG, i, cfg))
     d = dist_to_room(m.position.astype(np.float64))
     assert np.quantile(d, 0.99) < 0.01
     stable = m.hits >= 4
@@ -222,11 +222,11 @@ def test_gt_fusion_gives_surfels_on_the_true_surfaces():
     assert d[stable].max() < 0.01
     assert np.abs(d[stable]).mean() < 0.0015  # averaging beats the 2 mm noise
     # most pixels merge once the map exists; the map grows far slower than the input
-    assert all(s.merged > 0.7 * (INTR.width * INTR.height) for s in stats[1:])
-    ratio = m.size / (len(poses) * INTR.width * INTR.height)
+    assert all(s.merged > 0.7 * (CAM_NEG.width * CAM_NEG.height) for s in stats[1:])
+    ratio = m.size / (len(poses) * CAM_NEG.width * CAM_NEG.height)
     assert ratio < 0.25
     # the map rendered at a frame's pose reproduces its depth
-    view = render(m, poses[6], INTR)
+    view = render(m, poses[6], CAM_NEG)
     _, _, _, depth = room_frame(poses[6])
     ok = view.valid & (depth < 4.0)
     assert ok.mean() > 0.9
@@ -238,7 +238,7 @@ def test_fusion_is_deterministic():
         m = SurfelMap()
         for i, T in enumerate(_trajectory(5)):
             V, _, C, _ = room_frame(T, noise_m=0.003, seed=i)
-            fuse(m, V, numpy_normals(V), C, T, INTR, i)
+            fuse(m, V, numpy_normals(V), C, T, CAM_NEG, i)
         return m
 
     a, b = run(), run()
@@ -256,10 +256,10 @@ def test_dormant_rule_on_and_off():
         m = SurfelMap()
         cfg = FusionConfig(remove_unstable=on, unstable_max_age_frames=5, stable_min_hits=3,
                            compact_dead_fraction=0.0, weight_mode="constant")
-        fuse(m, Va, Na, Ca, T_a, INTR, 0, cfg)  # region A seen once
+        fuse(m, Va, Na, Ca, T_a, CAM_NEG, 0, cfg)  # region A seen once
         n_a = m.size
         for f in range(1, 10):  # region B seen every frame
-            fuse(m, Vb, Nb, Cb, T_b, INTR, f, cfg)
+            fuse(m, Vb, Nb, Cb, T_b, CAM_NEG, f, cfg)
         counts[on] = (n_a, m.size, m.n_alive)
         if on:
             assert np.all(m.hits >= 3)  # the once-seen surfels are gone, the stable ones stay
@@ -276,11 +276,11 @@ def test_keller_stale_rule_removes_unstable_surfels_left_in_view():
     m = SurfelMap()
     cfg = FusionConfig(unstable_max_age_frames=3, stable_min_hits=0, stable_min_confidence=1.5,
                        weight_mode="constant", compact_dead_fraction=0.0)
-    fuse(m, V, N, C, T, INTR, 0, cfg)
+    fuse(m, V, N, C, T, CAM_NEG, 0, cfg)
     n0 = m.size
     empty = np.zeros_like(V)
     for f in range(1, 5):  # the camera sees nothing valid (e.g. depth dropout); the surfels stay in view
-        s = fuse(m, empty, empty, C, T, INTR, f, cfg)
+        s = fuse(m, empty, empty, C, T, CAM_NEG, f, cfg)
     assert s.removed == n0 and m.size == 0
 
 
@@ -288,9 +288,9 @@ def test_bad_input_and_config():
     m = SurfelMap()
     V, N, C, _ = room_frame(np.eye(4))
     with pytest.raises(ValueError, match="vertex/normal maps"):
-        fuse(m, V[:, :-1], N, C, np.eye(4), INTR, 0)
+        fuse(m, V[:, :-1], N, C, np.eye(4), CAM_NEG, 0)
     with pytest.raises(ValueError, match="frame_rgb"):
-        fuse(m, V, N, C.astype(np.float32), np.eye(4), INTR, 0)
+        fuse(m, V, N, C.astype(np.float32), np.eye(4), CAM_NEG, 0)
     with pytest.raises(ConfigError, match="weight_mode"):
         FusionConfig(weight_mode="linear")
     with pytest.raises(ConfigError, match="angle_diff_deg"):

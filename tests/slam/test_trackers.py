@@ -20,7 +20,10 @@ from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_
 from surfelslam.tools.run import run_sequence
 from surfelslam.types import RGBDFrame
 
-INTR = default_intrinsics(320, 240)
+from helpers import INTR, ate_m
+
+pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+
 N_SLOW = 40
 
 
@@ -39,10 +42,6 @@ def _run(tracker: str, frames, cfg: SlamConfig | None = None, intr=INTR, colour_
     est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
     return est, res, slam
 
-
-def _ate_m(est: np.ndarray, gt: np.ndarray) -> float:
-    """RMS position error, first poses identical (no alignment)."""
-    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[: len(est), :3, 3]) ** 2, axis=1))))
 
 
 @cache
@@ -81,8 +80,8 @@ def test_orb_via_run_sequence_within_2x_of_dense(tmp_path):
 
 def test_hybrid_no_worse_than_dense_on_slow_sequence():
     runs, gt = _slow_runs()
-    ate_dense = _ate_m(runs["dense"][0], gt)
-    ate_hybrid = _ate_m(runs["hybrid"][0], gt)
+    ate_dense = ate_m(runs["dense"][0], gt)
+    ate_hybrid = ate_m(runs["hybrid"][0], gt)
     assert ate_hybrid < ate_dense + 2e-3, (ate_hybrid, ate_dense)
     res = runs["hybrid"][1]
     assert res.metrics["keyframes"] >= 2 and res.metrics["tracking_failures"] == 0
@@ -198,11 +197,11 @@ def test_orb_tracks_a_plain_walled_office_by_its_depth():
     est, res, _ = _run("orb", frames, cfg)
     depth = res.metrics["depth_odometry"]
     assert res.metrics["tracking_failures"] == 0 and depth["from_prediction"] >= 50 and depth["rescued"] >= 1, depth
-    assert _ate_m(est, gt) < 0.003, _ate_m(est, gt)
+    assert ate_m(est, gt) < 0.003, ate_m(est, gt)
     pnp_only = replace(cfg, orb=replace(cfg.orb, depth_odometry=replace(cfg.orb.depth_odometry, enabled=False)))
     est_pnp, res_pnp, _ = _run("orb", frames, pnp_only)
     assert res_pnp.metrics["depth_odometry"] is None
-    assert res_pnp.metrics["tracking_failures"] > 10 and _ate_m(est_pnp, gt) > 0.05, _ate_m(est_pnp, gt)
+    assert res_pnp.metrics["tracking_failures"] > 10 and ate_m(est_pnp, gt) > 0.05, ate_m(est_pnp, gt)
 
 
 def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
@@ -218,7 +217,7 @@ def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
     est_off, res_off, _ = _run("hybrid", frames, off)
     assert res.metrics["depth_only_edges"] >= 20 and res.metrics["edges_refined_trusted"], res.metrics
     assert res_off.metrics["depth_only_edges"] == 0
-    assert _ate_m(est, gt) < 0.7 * _ate_m(est_off, gt), (_ate_m(est, gt), _ate_m(est_off, gt))
+    assert ate_m(est, gt) < 0.7 * ate_m(est_off, gt), (ate_m(est, gt), ate_m(est_off, gt))
     # only where the verification lacked matches (texture), not where PnP had matches but too few inliers: with
     # the bound at 5 matches most of these pairs (5-30 matches) are left to the odometry
     few = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, depth_only_max_matches=5)))
@@ -240,8 +239,8 @@ def test_hybrid_relocalises_textureless_frames_by_shape():
 @pytest.mark.parametrize("style", ["fast"])
 def test_hybrid_vs_dense_on_fast_sequence(style):
     frames, gt = _frames(style, N_SLOW)
-    ate_dense = _ate_m(_run("dense", frames)[0], gt)
-    ate_hybrid = _ate_m(_run("hybrid", frames)[0], gt)
+    ate_dense = ate_m(_run("dense", frames)[0], gt)
+    ate_hybrid = ate_m(_run("hybrid", frames)[0], gt)
     assert ate_hybrid < ate_dense + 2e-3, (ate_hybrid, ate_dense)
 
 
@@ -251,17 +250,17 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     both stay under a centimetre (measured, 100 frames: geometric 13.2 cm; hybrid without photometric 0.64 cm)."""
     frames, gt = _frames("fast", 48, seed=1)
     geometric = SlamConfig(tracking=TrackingConfig(photometric="off"))
-    ate_geometric = _ate_m(_run("dense", frames, geometric)[0], gt)
+    ate_geometric = ate_m(_run("dense", frames, geometric)[0], gt)
     est_dense, _, dense = _run("dense", frames)
-    ate_dense = _ate_m(est_dense, gt)
+    ate_dense = ate_m(est_dense, gt)
     assert dense.photometric and not _run("dense", frames[:2], geometric)[2].photometric
     est, res, slam = _run("hybrid", frames)
-    ate_hybrid = _ate_m(est, gt)
+    ate_hybrid = ate_m(est, gt)
     assert slam.joint and res.metrics["joint_features"] is True
     assert ate_hybrid < 0.01 and ate_dense < 0.01, (ate_hybrid, ate_dense)
     assert ate_geometric > 5 * max(ate_hybrid, ate_dense), (ate_geometric, ate_hybrid, ate_dense)
     # features alone (no photometric term) rescue it too
-    features_only = _ate_m(_run("hybrid", frames, geometric)[0], gt)
+    features_only = ate_m(_run("hybrid", frames, geometric)[0], gt)
     assert features_only < 0.01 and ate_geometric > 5 * features_only, (features_only, ate_geometric)
     off = SlamConfig()
     off = replace(off, hybrid=replace(off.hybrid, joint_features="off"))
@@ -290,13 +289,13 @@ def test_loop_found_reported_and_closure_reduces_ate():
     assert m["loops_accepted"] >= 1 and m["loops_found"] >= m["loops_accepted"] and m["keyframes"] > 10
     assert res.loop_stamps and all(a < b for a, b in res.loop_stamps)
     assert res.trajectory_override is not None and len(res.trajectory_override) == N_LOOP
-    assert _ate_m(est, gt) < 0.02
+    assert ate_m(est, gt) < 0.02
     assert isinstance(slam, HybridSlam) and res.surfel_map is not None
     no_loop = replace(cheap, sparse=replace(cheap.sparse, loop=replace(cheap.sparse.loop, n_nearby=0, n_random=0,
                                                                         n_retrieved=0)))
     est_no, res_no, _ = _run("hybrid", frames, no_loop)
     assert res_no.metrics["loops_accepted"] == 0
-    assert _ate_m(est, gt) < _ate_m(est_no, gt), (_ate_m(est, gt), _ate_m(est_no, gt))
+    assert ate_m(est, gt) < ate_m(est_no, gt), (ate_m(est, gt), ate_m(est_no, gt))
 
 
 def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
@@ -316,7 +315,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert m["edges_dense_rejected"] < 0.1 * m["edges_dense_refined"]
     assert m["edge_sigma_m"] == pytest.approx(cfg.hybrid.loop_icp.sigma_m)
     assert m["edges_refined_trusted"] and m["edge_residual_rad"] < cfg.hybrid.loop_icp.max_trusted_residual_rad
-    assert _ate_m(est, gt) < 0.5 * _ate_m(est_pnp, gt), (_ate_m(est, gt), _ate_m(est_pnp, gt))
+    assert ate_m(est, gt) < 0.5 * ate_m(est_pnp, gt), (ate_m(est, gt), ate_m(est_pnp, gt))
 
 
 def test_pnp_check_ignores_an_ambiguous_pnp_pose_but_catches_sliding_icp():
@@ -423,7 +422,7 @@ def test_background_loop_checks_keep_poses_rigid_and_close_to_inline():
         kf = slam.sparse.keyframe_poses()
         R = kf[:, :3, :3]
         assert np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() < 1e-9
-        runs[background] = _ate_m(est, gt)
+        runs[background] = ate_m(est, gt)
     assert runs[True] < 0.02 and abs(runs[True] - runs[False]) < 3e-3, runs
 
 
@@ -451,8 +450,9 @@ def test_dense_relocalises_on_real_data_after_a_gap():
     shape-feature relocalisation brings dense back onto the trajectory it follows without the gap (measured: 1.5-3.5
     mm from it from the third frame after the gap; dense drifts to 7.7 cm unaligned over these 150 frames either
     way); without it every frame after the gap fails."""
-    from conftest import shared_sequence
     from surfelslam.datasets import DatasetOptions
+
+    from helpers import shared_sequence
 
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2))
     T_gt, _ = seq.gt_poses()
@@ -481,8 +481,9 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     leave rotation residuals at their graph's optimum past ``max_trusted_residual_rad`` (synthetic Kinect-like
     noise: 0.1-0.2 mrad), so the poses come from the PnP edges' graph, whose corrections here are noise: the hybrid is
     the dense trajectory (on 0-499 the refined edges took it from 2.48 to 3.76 cm)."""
-    from conftest import shared_sequence
     from surfelslam.datasets import DatasetOptions
+
+    from helpers import shared_sequence
 
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2, end=150))
     T_gt, _ = seq.gt_poses()
@@ -515,8 +516,8 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     assert m_always["loop_correction_skipped"] == 0
     moved = np.linalg.norm(est_always[:, :3, 3] - est_dense[:, :3, 3], axis=1)
     assert 0 < moved.max() < cfg.hybrid.untrusted_min_correction_m * 2, moved.max()
-    ate_dense = _ate_m(est_dense, se3.invert(T_gt[0]) @ T_gt)
-    assert abs(_ate_m(est_always, se3.invert(T_gt[0]) @ T_gt) - ate_dense) < 2e-4
+    ate_dense = ate_m(est_dense, se3.invert(T_gt[0]) @ T_gt)
+    assert abs(ate_m(est_always, se3.invert(T_gt[0]) @ T_gt) - ate_dense) < 2e-4
 
 
 @pytest.mark.shared
@@ -524,8 +525,9 @@ def test_refined_edges_are_not_trusted_before_the_gate_can_decide():
     """7-Scenes frames 200-239 at 320x240: 6 refined edges, fewer than ``min_spread_edges``, so the gate cannot
     tell whether they are biased; they are not used, and the hybrid follows dense. (Trusted by default, they took
     it from dense's 1.94 mm to 2.30 mm.)"""
-    from conftest import shared_sequence
     from surfelslam.datasets import DatasetOptions
+
+    from helpers import shared_sequence
 
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"),
                         DatasetOptions(downsample=2, start=200, end=240))
@@ -536,7 +538,7 @@ def test_refined_edges_are_not_trusted_before_the_gate_can_decide():
     out = {}
     for tracker in ("dense", "hybrid"):
         est, res, _ = _run(tracker, frames, cfg, seq.intrinsics, seq.colour_registered)
-        out[tracker] = (_ate_m(est, gt), res.metrics)
+        out[tracker] = (ate_m(est, gt), res.metrics)
     m = out["hybrid"][1]
     assert 0 < m["edges_dense_refined"] < cfg.hybrid.loop_icp.min_spread_edges
     assert m["edges_refined_trusted"] is False and m["edge_residual_rad"] is None
@@ -559,7 +561,7 @@ def test_refined_edges_are_not_trusted_on_distorted_depth():
     assert m["edges_refined_trusted"] is False and m["loops_accepted"] > 5
     assert m["loop_correction_skipped"] == 0  # real drift: the PnP graph's correction is centimetres, applied
     assert m["edge_residual_rad"] > 2 * cfg.hybrid.loop_icp.max_trusted_residual_rad
-    assert _ate_m(est, gt) <= _ate_m(est_dense, gt) + 0.001, (_ate_m(est, gt), _ate_m(est_dense, gt))
+    assert ate_m(est, gt) <= ate_m(est_dense, gt) + 0.001, (ate_m(est, gt), ate_m(est_dense, gt))
 
 
 def test_trackers_at_640x480_use_unbiased_block_means():
@@ -573,9 +575,9 @@ def test_trackers_at_640x480_use_unbiased_block_means():
     traj = make_trajectory("handheld", 120, scene, seed=1)
     gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
     frames = list(iter_frames(scene, traj, intr, noise_config("kinect"), 1))
-    ate_dense = _ate_m(_run("dense", frames, intr=intr)[0], gt)
+    ate_dense = ate_m(_run("dense", frames, intr=intr)[0], gt)
     est, res, _ = _run("hybrid", frames, intr=intr)
-    ate_hybrid, m = _ate_m(est, gt), res.metrics
+    ate_hybrid, m = ate_m(est, gt), res.metrics
     assert m["edges_refined_trusted"] and m["edges_dense_refined"] > 50
     assert ate_dense < 0.0012, ate_dense
     assert ate_hybrid < 0.7 * ate_dense, (ate_hybrid, ate_dense)

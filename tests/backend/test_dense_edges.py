@@ -16,7 +16,7 @@ from surfelslam.synth.trajectories import look_at
 from surfelslam.tracking.preprocess import PreprocessConfig, level_for_width
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+from helpers import INTR
 
 
 def _keypoints(depth_ref: np.ndarray, T_cur_ref: np.ndarray, n: int, seed: int, noise_px: float = 0.3):

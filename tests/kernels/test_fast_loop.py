@@ -9,7 +9,7 @@ from surfelslam.mapping import SurfelMap, render
 from surfelslam.tracking.preprocess import Preprocessor, pyramid_from_maps
 from surfelslam.types import Intrinsics
 
-INTR = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+CAM64 = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
 
 
 def _buckets(rng, H=6, W=7, n=60):
@@ -44,9 +44,9 @@ def test_flag_duplicates_matches_reference():
 
 
 def _plane_pyramid(z0, tilt):
-    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float32)
+    v, u = np.mgrid[0 : CAM64.height, 0 : CAM64.width].astype(np.float32)
     depth = (z0 + tilt * u + 0.3 * tilt * v + 0.05 * np.sin(u / 5.0) * np.cos(v / 7.0)).astype(np.float32)
-    return Preprocessor(INTR).process(depth)
+    return Preprocessor(CAM64).process(depth)
 
 
 def test_serial_and_parallel_twins_agree_bitwise():
@@ -59,7 +59,7 @@ def test_serial_and_parallel_twins_agree_bitwise():
         try:
             stats = np.zeros(kicp.N_STATS)
             kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal, T,
-                                             INTR.fx, INTR.fy, INTR.cx, INTR.cy, 0.1, 0.5, 1, 0.02, stats, 1)
+                                             CAM64.fx, CAM64.fy, CAM64.cx, CAM64.cy, 0.1, 0.5, 1, 0.02, stats, 1)
             out[on] = stats
         finally:
             threads.set_parallel(False)
@@ -73,14 +73,14 @@ def test_render_into_pyramid_level0_without_copy():
     pos = np.c_[g, np.full(len(g), 1.0)]
     m.append(pos, np.tile([0.0, 0.0, -1.0], (len(g), 1)), np.zeros((len(g), 3)), 1.0, 0.008, 0)
     T = np.eye(4)
-    ref = render(m, T, INTR)
-    pyr = Preprocessor(INTR).new_pyramid()
-    view = render(m, T, INTR, vertex_out=pyr[0].vertex, normal_out=pyr[0].normal)
+    ref = render(m, T, CAM64)
+    pyr = Preprocessor(CAM64).new_pyramid()
+    view = render(m, T, CAM64, vertex_out=pyr[0].vertex, normal_out=pyr[0].normal)
     assert view.vertex_cam is pyr[0].vertex
     np.testing.assert_array_equal(pyr[0].vertex, ref.vertex_cam)
     np.testing.assert_array_equal(pyr[0].normal, ref.normal_cam)
-    a = pyramid_from_maps(view.vertex_cam, view.normal_cam, INTR, len(pyr), out=pyr)
-    b = pyramid_from_maps(ref.vertex_cam, ref.normal_cam, INTR, len(pyr))
+    a = pyramid_from_maps(view.vertex_cam, view.normal_cam, CAM64, len(pyr), out=pyr)
+    b = pyramid_from_maps(ref.vertex_cam, ref.normal_cam, CAM64, len(pyr))
     for la, lb in zip(a.levels, b.levels, strict=True):
         np.testing.assert_array_equal(la.vertex, lb.vertex)
         np.testing.assert_array_equal(la.normal, lb.normal)
@@ -118,8 +118,8 @@ def test_render_geometry_only_equals_full_render():
     nrm = np.tile([-0.3, 0.0, -1.0], (len(g), 1)) / np.hypot(0.3, 1.0)
     m.append(pos, nrm, np.full((len(g), 3), 100.0), 1.0, 0.008, 0)
     T = np.eye(4)
-    full = render(m, T, INTR)
-    geo = render(m, T, INTR, attributes=False)
+    full = render(m, T, CAM64)
+    geo = render(m, T, CAM64, attributes=False)
     assert geo.colour is None and geo.confidence is None
     assert full.valid.mean() > 0.5
     np.testing.assert_array_equal(geo.index, full.index)

@@ -11,7 +11,6 @@ from surfelslam.synth.render import render
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import (
-    default_intrinsics,
     generate_sequence,
     make_frame,
     noise_config,
@@ -24,7 +23,7 @@ from surfelslam.tracking.registration import colour_timing, register_pair
 from surfelslam.tracking.retime import ColourTiming, RetimeConfig, retime_intensity, twist_from_pose
 from surfelslam.types import RGBDFrame
 
-INTR = default_intrinsics(320, 240)
+from helpers import INTR
 
 
 def test_twist_from_pose_inverts_the_constant_velocity_motion():
@@ -153,7 +152,7 @@ def test_register_command_retimes_offset_colour(tmp_path):
     re-times both frames and lands closer to the ground truth than ``off``; a bad mode exits 2."""
     from typer.testing import CliRunner
 
-    from test_icp import register_app
+    from helpers import register_app
 
     seq = generate_sequence(tmp_path / "seq", "office", "handheld", 17, "kinect", 1, 320, 240,
                             colour_offset_s=-0.012, colour_jitter_s=0.004)

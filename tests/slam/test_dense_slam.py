@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from surfelslam.geometry import se3
 from surfelslam.pipeline import DenseSlam, SlamConfig
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config
+
+pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
 
 
 def _track(noise: str, n: int = 60, style: str = "handheld", cfg: SlamConfig | None = None):

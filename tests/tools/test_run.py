@@ -19,6 +19,8 @@ from surfelslam.synth.writer import generate_sequence
 from surfelslam.tools.run import run_sequence
 from surfelslam.types import Trajectory
 
+pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+
 runner = CliRunner()
 
 

@@ -12,8 +12,10 @@ from surfelslam.backend.place_recognition import DescriptorIndex
 from surfelslam.backend.sparse_slam import SparseSlam, SparseSlamConfig
 from surfelslam.geometry.se3 import pose_error
 from surfelslam.kernels.voxel import voxel_filter, voxel_filter_ref
+from surfelslam.tracking.features import FeatureConfig
 from surfelslam.types import Intrinsics, RGBDFrame
-from test_features import CFG, INTR, look_pose, render_room
+
+from helpers import ROOM_INTR, ate_m, look_pose, render_room
 
 N_LOOP = 40  # frames per revolution (9 deg and ~8 cm per frame)
 N_EXTRA = 6  # frames past the start: the loop closes
@@ -34,7 +36,7 @@ def loop_frames() -> tuple[np.ndarray, list[RGBDFrame]]:
     poses = _loop_poses()
     frames = []
     for k, T in enumerate(poses):
-        rgb, depth = render_room(T, INTR, supersample=1)
+        rgb, depth = render_room(T, ROOM_INTR, supersample=1)
         depth = depth * (1.0 + rng.normal(0.0, 0.01, depth.shape)).astype(np.float32)  # 1 % depth noise
         rgb = np.clip(rgb + rng.normal(0.0, 4.0, rgb.shape), 0, 255).astype(np.uint8)
         frames.append(RGBDFrame(k, k / 30.0, rgb, depth))
@@ -42,21 +44,17 @@ def loop_frames() -> tuple[np.ndarray, list[RGBDFrame]]:
 
 
 LOOP_CFG = SparseSlamConfig(
-    features=replace(CFG, n_features=400),
+    features=FeatureConfig(n_features=400),
     loop=LoopConfig(n_nearby=2, n_random=1, n_retrieved=2),
 )
 NO_LOOP_CFG = replace(LOOP_CFG, loop=LoopConfig(n_nearby=0, n_random=0, n_retrieved=0))
 
 
 def _run(cfg: SparseSlamConfig, poses: np.ndarray, frames: list[RGBDFrame]):
-    slam = SparseSlam(INTR, cfg, T_world_first=poses[0])
+    slam = SparseSlam(ROOM_INTR, cfg, T_world_first=poses[0])
     per_frame = [slam.process(f) for f in frames]
     return slam, per_frame, slam.finish()
 
-
-def _ate_m(est: np.ndarray, gt: np.ndarray) -> float:
-    # the first pose is anchored to ground truth, so no alignment is needed
-    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +76,8 @@ def test_loop_closure_found_and_reduces_ate(loop_frames, loop_run) -> None:
     assert len(res.loops_accepted) <= len(res.loops_found)
     _, _, res_no = _run(NO_LOOP_CFG, poses, frames)
     assert res_no.loops_accepted == []
-    ate_loop = _ate_m(res.trajectory.T_world_cam, poses)
-    ate_no = _ate_m(res_no.trajectory.T_world_cam, poses)
+    ate_loop = ate_m(res.trajectory.T_world_cam, poses)
+    ate_no = ate_m(res_no.trajectory.T_world_cam, poses)
     assert ate_loop < 0.6 * ate_no
     assert ate_loop < 0.05
     # keyframe poses exposed for re-posing a dense map
@@ -137,7 +135,7 @@ def test_coarse_reference_match_is_close_to_the_precise_one(loop_frames, loop_ru
 def test_rejected_frames_counted_and_predicted(loop_frames) -> None:
     poses, frames = loop_frames
     cfg = replace(NO_LOOP_CFG, relocalise_after_failures=100)
-    slam = SparseSlam(INTR, cfg, T_world_first=poses[0])
+    slam = SparseSlam(ROOM_INTR, cfg, T_world_first=poses[0])
     for f in frames[:3]:
         assert slam.process(f).ok
     flat = RGBDFrame(3, 0.1, np.full_like(frames[0].rgb, 90), frames[3].depth_m)
@@ -224,8 +222,8 @@ def test_a_long_texture_loss_holds_the_last_pose(loop_frames) -> None:
     ``velocity_reset_after_failures`` extrapolate the last motion, the rest keep the last pose, and every pose stays
     a finite rigid transform (unbounded extrapolation once drifted metres and overflowed)."""
     _, frames = loop_frames
-    cfg = replace(SparseSlamConfig(features=CFG), relocalise_after_failures=1000)
-    slam = SparseSlam(INTR, cfg)
+    cfg = replace(SparseSlamConfig(features=FeatureConfig(n_features=600)), relocalise_after_failures=1000)
+    slam = SparseSlam(ROOM_INTR, cfg)
     poses = [slam.process(f).T_world_cam for f in frames[:8]]
     blank = [RGBDFrame(f.index, f.timestamp, np.full_like(f.rgb, 128), f.depth_m) for f in frames[8:]]
     blank = (blank * 3)[:40]
@@ -269,8 +267,8 @@ def test_depth_odometry_needs_the_keyframe_depth_store(tmp_path):
     from surfelslam.pipeline import SlamConfig
 
     with pytest.raises(ValueError, match="edge_refiner"):
-        SparseSlam(INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig())
-    assert not SparseSlam(INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig(enabled=False)).uses_depth
+        SparseSlam(ROOM_INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig())
+    assert not SparseSlam(ROOM_INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig(enabled=False)).uses_depth
     cfg = SlamConfig()
     cfg = replace(cfg, orb=replace(cfg.orb, depth_odometry=DepthOdometryConfig(trust_min_inliers=50)))
     path = tmp_path / "config.toml"

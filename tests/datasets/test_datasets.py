@@ -10,7 +10,6 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from conftest import shared_sequence
 from surfelslam.datasets import (
     LAYOUTS,
     DatasetOptions,
@@ -25,6 +24,8 @@ from surfelslam.errors import ConfigError, DatasetError, GroundTruthError
 from surfelslam.geometry.camera import backproject, project, round_in_image
 from surfelslam.io.images import write_png_depth, write_png_rgb
 from surfelslam.types import Intrinsics, RGBDFrame
+
+from helpers import shared_sequence
 
 W, H = 8, 6
 
