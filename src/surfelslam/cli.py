@@ -9,13 +9,17 @@ Start-up guarantees (:func:`main`):
 * numba caches compiled kernels next to their sources, else in ``~/.cache/numba``; when neither is writable
   (read-only install, no writable HOME) ``NUMBA_CACHE_DIR`` is pointed at a temp folder before numba is imported
   (:func:`numba_cache_fallback`); a user-set ``NUMBA_CACHE_DIR`` is kept.
-* Ctrl-C at any moment prints ``interrupted`` on stderr and exits with 130, without a traceback.
+* Ctrl-C at any moment prints ``interrupted`` on stderr and exits with 130, without a traceback (from the moment
+  this module runs: the ``surfelslam`` package's own imports come before it). The process ends with
+  ``os._exit`` after the exit handlers, skipping the interpreter's slow module teardown.
 * An unexpected exception prints ``error: internal error: <type>: <message> (please report)`` and exits with 1;
   ``SURFELSLAM_DEBUG=1`` shows the traceback instead.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import importlib
 import os
 import signal
@@ -175,8 +179,16 @@ def _build_app() -> Any:
             with formatter.section("Commands"):
                 formatter.write_dl(rows)
 
+        # typer turns a KeyboardInterrupt into a silent exit 130: report it where start-up takes time
+        def make_context(self, *args, **kwargs):
+            try:  # parsing imports typer's value coercion (pydantic): about 0.1 s
+                return super().make_context(*args, **kwargs)
+            except KeyboardInterrupt:
+                report_interrupt()
+                raise typer.Exit(EXIT_INTERRUPTED) from None
+
         def invoke(self, ctx):
-            try:  # importing the command's module can take a second: Ctrl-C there is reported too
+            try:  # importing the command's module takes about a second
                 return super().invoke(ctx)
             except KeyboardInterrupt:
                 report_interrupt()
@@ -247,21 +259,48 @@ def __getattr__(name: str) -> Any:  # ``from surfelslam.cli import app`` builds 
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of the ``surfelslam`` script: no traceback for Ctrl-C or unexpected errors (module docstring)."""
+def run_cli(argv: list[str] | None = None) -> int:
+    """Run the command line and return its exit code (never raises, except with ``SURFELSLAM_DEBUG=1``)."""
     try:
         get_app()(args=argv, prog_name="surfelslam")
+        return 0
+    except SystemExit as exc:
+        if exc.code is None or isinstance(exc.code, int):
+            return exc.code or 0
+        _stderr_line(str(exc.code))
+        return EXIT_INTERNAL_ERROR
     except KeyboardInterrupt:
         report_interrupt()
-        sys.exit(EXIT_INTERRUPTED)
-    except SystemExit:
-        force_exit_on_interrupt()  # the interpreter's shutdown (thread joins) is no place for a traceback
-        raise
+        return EXIT_INTERRUPTED
     except Exception as exc:
         if debug_enabled():
             raise
         _stderr_line(f"error: {internal_error_message(exc)}")
-        sys.exit(EXIT_INTERNAL_ERROR)
+        return EXIT_INTERNAL_ERROR
+
+
+def _end_process(code: int) -> None:
+    """Exit without the interpreter's teardown of every module (numba / LLVM: about 0.4 s), during which a Ctrl-C
+    would kill the process without a word: exit handlers run, the output streams are flushed, then ``os._exit``."""
+    with contextlib.suppress(Exception):
+        atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``surfelslam`` script and ``python -m surfelslam`` (module docstring).
+
+    Called without ``argv`` (as the process's entry point) it ends the process itself (:func:`_end_process`);
+    with ``argv`` it raises SystemExit like any click program.
+    """
+    code = run_cli(argv)
+    force_exit_on_interrupt()  # from here on a Ctrl-C ends the process at once, with a word
+    if argv is None and hasattr(atexit, "_run_exitfuncs"):
+        _end_process(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
