@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+from evo.core.geometry import GeometryException
 from faultkit import assert_one_line, cli, no_temp_files
 
 from surfelslam.errors import EvaluationError, SurfelSlamError
@@ -99,5 +100,6 @@ def test_library_errors_are_typed(gt):
     with pytest.raises(EvaluationError, match="does not move") as err:
         metrics.evaluate(still, gt)
     assert isinstance(err.value, SurfelSlamError) and isinstance(err.value, ValueError)
+    assert isinstance(err.value, GeometryException)  # callers that fall back to another alignment catch this
     with pytest.raises(EvaluationError, match="max_diff must be a finite number"):
         metrics.evaluate(gt, gt, -1.0)

@@ -180,6 +180,11 @@ def associate(
     return from_evo(est_sync), from_evo(gt_sync)
 
 
+class AlignmentError(EvaluationError, GeometryException):
+    """The SE(3) alignment is impossible (degenerate positions). Also evo's GeometryException, which callers that
+    fall back to another alignment catch."""
+
+
 def _motion_words(positions: np.ndarray) -> str | None:
     """``"does not move"`` / ``"moves along one line"`` for positions that cannot anchor a rigid alignment."""
     centred = positions - positions.mean(axis=0)
@@ -191,12 +196,12 @@ def _motion_words(positions: np.ndarray) -> str | None:
     return None
 
 
-def _alignment_error(est_sync: PoseTrajectory3D, gt_sync: PoseTrajectory3D, exc: Exception) -> EvaluationError:
+def _alignment_error(est_sync: PoseTrajectory3D, gt_sync: PoseTrajectory3D, exc: Exception) -> AlignmentError:
     """Why the Umeyama alignment failed, in words (evo says 'Degenerate covariance rank')."""
     why = [f"the {name} {words}" for name, traj in (("estimate", est_sync), ("ground truth", gt_sync))
            if (words := _motion_words(np.asarray(traj.positions_xyz, np.float64))) is not None]
     detail = " and ".join(why) if why else f"{type(exc).__name__}: {exc}"
-    return EvaluationError(
+    return AlignmentError(
         f"cannot align the estimate to the ground truth over the {est_sync.num_poses} associated poses: "
         f"{detail}; the SE(3) alignment of the ATE needs positions spread in at least two directions")
 
@@ -222,6 +227,8 @@ def ate(
 
     Raises:
         GroundTruthError: fewer than 3 poses could be associated.
+        AlignmentError: an EvaluationError and evo GeometryException: the positions cannot anchor the alignment
+            (no motion, motion along one line).
     """
     est_sync, gt_sync = _associate_evo(est, gt, max_diff_s)
     T_align = np.eye(4)
