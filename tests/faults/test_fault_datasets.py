@@ -61,7 +61,7 @@ def test_stamps_that_pair_nothing_much_are_refused(seq):
     """depth.txt in milliseconds: 1 of 10 frames would pair."""
     rows = [r.split() for r in index_rows(seq / "depth.txt")]
     _rewrite(seq / "depth.txt", [f"{float(t) * 1000:.6f} {f}" for t, f in rows])
-    assert_one_line(cli("info", seq), 2, str(seq), "only 1 frames pair", "rgb.txt (10 lines)",
+    assert_one_line(cli("info", seq), 2, str(seq), "only 1 rgb/depth pair within 0.02 s", "rgb.txt (10 lines)",
                     "depth.txt (10 lines)", "unpaired: rgb/", "(t=0.033333)")
 
 

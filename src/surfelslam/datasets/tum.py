@@ -191,7 +191,8 @@ def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> tuple[
     if len(ia) < MIN_PAIRED_FRACTION * listed:
         raise DatasetError(
             root,
-            f"only {len(ia)} frames pair within {max_dt_s} s between {RGB_INDEX} ({len(t_rgb)} lines) and "
+            f"only {len(ia)} rgb/depth pair{'' if len(ia) == 1 else 's'} within {max_dt_s} s between {RGB_INDEX} "
+            f"({len(t_rgb)} lines) and "
             f"{DEPTH_INDEX} ({len(t_depth)} lines), fewer than {MIN_PAIRED_FRACTION:.0%}; unpaired: "
             f"{unpaired_examples(unpaired)}; check that both files use the same clock and units (seconds)",
         )
