@@ -1,27 +1,248 @@
-"""Configuration: nested dataclasses, loadable from and saved to TOML.
+"""Configuration: frozen nested dataclasses, loadable from and saved to TOML, checked in one place.
 
-Every threshold of the system is a field of a dataclass with its unit in the name
-(``dist_thresh_m``, ``angle_thresh_deg``...). Each subsystem owns its config dataclass in its
-own module; :class:`SlamConfig` in :mod:`surfelslam.pipeline` gathers them. This module only
-provides the generic mechanics: ``to_dict``, ``from_dict`` (strict: unknown keys are errors),
-``load_toml`` and ``dumps_toml``.
+Every threshold of the system is a field of a config dataclass with its unit in the name (``dist_thresh_m``,
+``angle_thresh_deg``...). Each subsystem owns its config in its own module; :class:`SlamConfig` in
+:mod:`surfelslam.slam.config` gathers them. This module holds the generic mechanics:
+
+- :func:`setting` declares a field with its default, unit, bounds or choices and a one-line meaning;
+  :func:`check` marks a method as a rule relating several fields;
+- :class:`Config` is the base of every config: lists become tuples and :func:`validate` runs on construction;
+- :func:`validate` checks a config tree; every error is one line naming the full TOML path
+  (``config: [hybrid.loop_icp] sigma_m must be > 0, got -1``);
+- ``to_dict``, ``from_dict`` (strict: unknown keys are errors), ``load_toml``, ``dumps_toml``;
+- :func:`reference_markdown`, the configuration reference page (``make docs``).
 """
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
+import functools
 import math
+import numbers
 import tomllib
 import types
 import typing
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
-from surfelslam.errors import ConfigError
+from surfelslam.errors import ConfigError, ConfigValueError
 
 C = TypeVar("C")
 
+_META = "surfelslam"
+_CHECK = "__config_check__"
+# True while from_dict builds a tree: construction skips validation, from_dict then validates the whole tree
+# with the full TOML paths (a nested table's own __post_init__ does not know where it sits)
+_DEFERRED: contextvars.ContextVar[bool] = contextvars.ContextVar("surfelslam_config_deferred", default=False)
 
+
+@dataclasses.dataclass(frozen=True)
+class Bounds:
+    """What :func:`setting` records in a field's metadata."""
+
+    unit: str | None = None
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+    choices: tuple[Any, ...] | None = None
+    allow_inf: bool = False
+    min_len: int | None = None
+    doc: str = ""
+
+    def describe(self) -> str:
+        """``>= 0``, ``in (0, 180]``, ``one of a, b``... ('' when unbounded)."""
+        if self.choices is not None:
+            return "one of " + ", ".join(str(c) for c in self.choices)
+        lo = (f"[{fmt_value(self.ge)}" if self.ge is not None else f"({fmt_value(self.gt)}" if self.gt is not None
+              else None)
+        hi = (f"{fmt_value(self.le)}]" if self.le is not None else f"{fmt_value(self.lt)})" if self.lt is not None
+              else None)
+        if lo and hi:
+            return f"in {lo}, {hi}"
+        if lo:
+            return (">= " if lo[0] == "[" else "> ") + lo[1:]
+        if hi:
+            return ("<= " if hi[-1] == "]" else "< ") + hi[:-1]
+        return ""
+
+
+def setting(
+    default: Any = dataclasses.MISSING,
+    *,
+    default_factory: Callable[[], Any] | Any = dataclasses.MISSING,
+    unit: str | None = None,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+    choices: tuple[Any, ...] | None = None,
+    allow_inf: bool = False,
+    min_len: int | None = None,
+    doc: str = "",
+) -> Any:
+    """A config field: its default (or ``default_factory``, for nested configs) and what :func:`validate` checks.
+
+    Numbers must be finite (``allow_inf``: +-inf too) and within ``ge`` / ``gt`` / ``le`` / ``lt``; strings one of
+    ``choices``; a tuple field's bounds apply to each element, and it needs at least ``min_len`` of them. ``unit``
+    and ``doc`` (what the setting does, one or two short sentences) go to the configuration reference.
+    """
+    if isinstance(default, list):
+        raise TypeError("setting: use a tuple, not a list, as a default")
+    meta = Bounds(unit, ge, gt, le, lt, None if choices is None else tuple(choices), allow_inf, min_len, doc)
+    return dataclasses.field(default=default, default_factory=default_factory, metadata={_META: meta})
+
+
+def check(fn: Callable[[Any], str | None]) -> Callable[[Any], str | None]:
+    """Mark a config method as a rule relating several fields: it returns ``None`` when the rule holds, else one
+    line saying what is wrong (field names relative to the config's table). Its docstring is the rule's
+    description in the configuration reference."""
+    setattr(fn, _CHECK, True)
+    return fn
+
+
+class Config:
+    """Base of the config dataclasses (each also ``@dataclass(frozen=True)``): lists given for tuple fields
+    become tuples, and the settings are validated when a config is built (its own fields and rules; nested configs
+    validated themselves when they were built)."""
+
+    __slots__ = ()
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            if isinstance(getattr(self, f.name), list):
+                object.__setattr__(self, f.name, tuple(getattr(self, f.name)))
+        if not _DEFERRED.get():
+            _validate(self, type(self).__name__, recurse=False)
+
+
+# ---------------------------------------------------------------------------------------------------- checks
+def fmt_value(v: Any) -> str:
+    """A value as a config file would type it: ``-1`` for -1.0, ``inf``, ``'yes'`` for strings."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return f"{v:.12g}"
+    if isinstance(v, str):
+        return repr(v)
+    if isinstance(v, tuple | list):
+        return "[" + ", ".join(fmt_value(x) for x in v) + "]"
+    return str(v)
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _error(path: str, text: str) -> ConfigValueError:
+    return ConfigValueError(f"config: [{path}] {text}" if path else f"config: {text}")
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+@functools.cache
+def _checks(cls: type) -> tuple[Callable[[Any], str | None], ...]:
+    seen: dict[str, Callable[[Any], str | None]] = {}
+    for klass in reversed(cls.__mro__):
+        for name, val in vars(klass).items():
+            if getattr(val, _CHECK, False):
+                seen[name] = val
+    return tuple(seen.values())
+
+
+def _bounds(f: dataclasses.Field) -> Bounds:
+    return f.metadata.get(_META) or Bounds()
+
+
+def _scalar_problem(v: Any, tp: Any, b: Bounds) -> str | None:
+    """Why ``v`` is not a valid value of type ``tp`` within ``b`` (``None``: it is)."""
+    if tp is bool:
+        ok = isinstance(v, bool) or type(v).__name__ == "bool_"  # numpy's bool too
+        return None if ok else f"must be true or false, got {fmt_value(v)}"
+    if tp is str:
+        if not isinstance(v, str):
+            return f"must be a string, got {fmt_value(v)}"
+        if b.choices is not None and v not in b.choices:
+            return f"must be {b.describe()}, got {fmt_value(v)}"
+        return None
+    if tp is int:
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+            return f"must be an integer, got {fmt_value(v)}"
+    elif tp is float:
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            return f"must be a number, got {fmt_value(v)}"
+        x = float(v)
+        if math.isnan(x) or (math.isinf(x) and not b.allow_inf):
+            rng = b.describe()
+            return f"must be finite{' and ' + rng if rng else ''}, got {fmt_value(x)}"
+    else:
+        return None
+    if b.choices is not None:
+        return None if v in b.choices else f"must be {b.describe()}, got {fmt_value(v)}"
+    if ((b.ge is not None and not v >= b.ge) or (b.gt is not None and not v > b.gt)
+            or (b.le is not None and not v <= b.le) or (b.lt is not None and not v < b.lt)):
+        return f"must be {b.describe()}, got {fmt_value(v)}"
+    return None
+
+
+def _field_problem(name: str, v: Any, tp: Any, b: Bounds) -> str | None:
+    """``'<name...> must be ..., got ...'`` or ``None``."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        if v is None:
+            return None
+        tp = next(a for a in typing.get_args(tp) if a is not type(None))
+        origin = typing.get_origin(tp)
+    if origin is tuple:
+        if not isinstance(v, tuple):
+            return f"{name} must be a list, got {fmt_value(v)}"
+        if b.min_len is not None and len(v) < b.min_len:
+            return f"{name} needs at least {b.min_len} value(s), got {fmt_value(v)}"
+        elem = typing.get_args(tp)[0] if typing.get_args(tp) else Any
+        for i, x in enumerate(v):
+            why = _scalar_problem(x, elem, b)
+            if why:
+                return f"{name}[{i}] {why}"
+        return None
+    why = _scalar_problem(v, tp, b)
+    return f"{name} {why}" if why else None
+
+
+def _validate(cfg: Any, path: str, recurse: bool) -> None:
+    cls = type(cfg)
+    hints = _hints(cls)
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            if recurse:
+                _validate(v, _join(path, f.name), True)
+            continue
+        why = _field_problem(f.name, v, hints.get(f.name, Any), _bounds(f))
+        if why:
+            raise _error(path, why)
+    for rule in _checks(cls):
+        why = rule(cfg)
+        if why:
+            raise _error(path, why)
+
+
+def validate(cfg: Any, path: str = "") -> None:
+    """Check config ``cfg`` and every config nested in it: types, finite numbers, bounds and choices of each field
+    (each element of a tuple field), then the rules of each class (:func:`check`).
+
+    Raises:
+        ConfigValueError: (a :class:`ConfigError`) one line naming the setting by its full TOML path below ``path``,
+            e.g. ``config: [icp] photometric_weight must be finite and >= 0, got inf``.
+    """
+    _validate(cfg, path, recurse=True)
+
+
+# ------------------------------------------------------------------------------------------------- dict / TOML
 def to_dict(cfg: Any) -> dict[str, Any]:
     """Dataclass -> plain nested dict (tuples become lists)."""
     out: dict[str, Any] = {}
@@ -47,7 +268,7 @@ def _coerce(value: Any, tp: Any, where: str, default: Any = None) -> Any:
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"config: [{where}] must be a table")
-        return from_dict(tp, value, where, default if isinstance(default, tp) else None)
+        return _build(tp, value, where, default if isinstance(default, tp) else None)  # type: ignore[arg-type]
     if origin in (tuple, list):
         if not isinstance(value, list | tuple):
             raise ConfigError(f"config: {where} must be a list, got {value!r}")
@@ -74,14 +295,9 @@ def _coerce(value: Any, tp: Any, where: str, default: Any = None) -> Any:
     return value
 
 
-def from_dict(cls: type[C], data: dict[str, Any], where: str = "", base: C | None = None) -> C:
-    """Build dataclass ``cls`` from a (partial) dict; missing keys keep their defaults.
-
-    The defaults are those of ``base`` when given, else of ``cls()``, recursively: a nested table's missing keys
-    keep the values its parent gives that field (a ``default_factory`` with other settings than the nested class's
-    own defaults, e.g. ``orb.loop_icp``), not the nested class's own defaults.
-    """
-    hints = typing.get_type_hints(cls)
+def _build(cls: type[C], data: dict[str, Any], where: str, base: C | None) -> C:
+    """:func:`from_dict` without the final validation (runs with construction-time validation deferred)."""
+    hints = _hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = set(data) - names
     if unknown:
@@ -97,9 +313,28 @@ def from_dict(cls: type[C], data: dict[str, Any], where: str = "", base: C | Non
         sub = f"{where}.{key}" if where else key
         kwargs[key] = _coerce(val, hints[key], sub, None if base is None else getattr(base, key))
     try:
-        return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
+        return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
+    except ConfigError:
+        raise
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"config: [{where or cls.__name__}] {exc}") from exc
+
+
+def from_dict(cls: type[C], data: dict[str, Any], where: str = "", base: C | None = None) -> C:
+    """Build dataclass ``cls`` from a (partial) dict; missing keys keep their defaults; then :func:`validate` it
+    (errors name the full TOML path below ``where``).
+
+    The defaults are those of ``base`` when given, else of ``cls()``, recursively: a nested table's missing keys
+    keep the values its parent gives that field (a ``default_factory`` with other settings than the nested class's
+    own defaults, e.g. ``orb.loop_icp``), not the nested class's own defaults.
+    """
+    token = _DEFERRED.set(True)
+    try:
+        cfg = _build(cls, data, where, base)
+    finally:
+        _DEFERRED.reset(token)
+    validate(cfg, where)
+    return cfg
 
 
 def load_toml(cls: type[C], path: str | Path) -> C:
@@ -116,7 +351,7 @@ def load_toml(cls: type[C], path: str | Path) -> C:
     try:
         return from_dict(cls, data)
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise type(exc)(f"{path}: {exc}") from None
 
 
 def _toml_value(v: Any) -> str:
@@ -156,3 +391,82 @@ def dumps_toml(cfg: Any) -> str:
 
     emit(data, "")
     return "\n".join(lines).rstrip() + "\n"
+
+
+# ---------------------------------------------------------------------------------------------------- reference
+def iter_tables(cfg: Any, path: str = "") -> Iterator[tuple[str, Any]]:
+    """``(toml_path, config)`` of ``cfg`` and every config nested in it, depth first in field order."""
+    yield path, cfg
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from iter_tables(v, _join(path, f.name))
+
+
+def _md(text: str) -> str:
+    return " ".join(text.split()).replace("|", "\\|")
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _type_name(args[0]) + " or none"
+    if origin is tuple:
+        return f"list of {_type_name(typing.get_args(tp)[0])}"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _default_text(v: Any) -> str:
+    if v is None:
+        return "(none)"
+    return f"`{_toml_value(v)}`"
+
+
+def reference_markdown(cls: type) -> str:
+    """The configuration reference page of config class ``cls`` (Markdown): one section per TOML table with its
+    settings (key, default, unit, bounds or choices, meaning) and the rules relating them."""
+    root = cls()
+    out = [
+        "# Configuration reference",
+        "",
+        "Generated from the settings' definitions by `make docs` (`python -m surfelslam.tools.gen_docs`); do not edit.",
+        "Every setting may be given in a TOML file passed with `--config`; missing settings keep the defaults shown.",
+        "A value outside its bounds stops the command with one line naming the setting, e.g.",
+        "`config: [icp] photometric_weight must be finite and >= 0, got inf`. Numbers must be finite unless the",
+        "bounds say `inf` is allowed; a list's bounds apply to each of its values.",
+        "",
+    ]
+    for path, cfg in iter_tables(root):
+        klass = type(cfg)
+        hints = _hints(klass)
+        rows = []
+        for f in dataclasses.fields(cfg):
+            v = getattr(cfg, f.name)
+            if dataclasses.is_dataclass(v):
+                continue
+            b = _bounds(f)
+            bounds = b.describe()
+            extra = []
+            if b.min_len is not None:
+                extra.append(f"at least {b.min_len} values")
+            if b.allow_inf:
+                extra.append("inf allowed")
+            bounds = "; ".join(x for x in [bounds, *extra] if x)
+            rows.append(f"| `{f.name}` | {_default_text(v)} | {b.unit or ''} | {_md(bounds)} | "
+                        f"{_md(b.doc) or '(' + _type_name(hints[f.name]) + ')'} |")
+        subs = [f"`[{_join(path, f.name)}]`" for f in dataclasses.fields(cfg)
+                if dataclasses.is_dataclass(getattr(cfg, f.name))]
+        out.append(f"## `[{path}]`" if path else f"## {klass.__name__} (the file's top level)")
+        out.append("")
+        doc = (klass.__doc__ or "").strip()
+        if doc and not doc.startswith(klass.__name__ + "("):
+            out += [_md(doc), ""]
+        if rows:
+            out += ["| key | default | unit | bounds | meaning |", "|---|---|---|---|---|", *rows, ""]
+        rules = [(r.__doc__ or r.__name__).strip() for r in _checks(klass)]
+        if rules:
+            out += ["Rules:", "", *[f"- {_md(r)}" for r in rules], ""]
+        if subs:
+            out += ["Tables: " + ", ".join(subs) + ".", ""]
+    return "\n".join(out).rstrip() + "\n"

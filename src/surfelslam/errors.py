@@ -41,6 +41,11 @@ class ConfigError(SurfelSlamError):
     """A configuration value or file is invalid."""
 
 
+class ConfigValueError(ConfigError, ValueError):
+    """A setting outside its domain (:func:`surfelslam.config.validate`); also a ValueError, which some configs
+    raised for these before."""
+
+
 class TrackingError(SurfelSlamError):
     """Tracking could not produce a pose (too few inliers, degenerate geometry)."""
 

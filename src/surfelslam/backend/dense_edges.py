@@ -45,11 +45,11 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict, deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from surfelslam.errors import ConfigError
+from surfelslam.config import Config, check, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
 from surfelslam.tracking.features import reprojection_spread_px
@@ -77,87 +77,53 @@ def _edge_icp_config() -> ICPConfig:
 
 
 @dataclass(frozen=True)
-class DenseEdgeConfig:
-    """Dense (ICP) check and refinement of keyframe edges.
+class DenseEdgeConfig(Config):
+    """Dense (ICP) check and refinement of PnP keyframe edges, behind a trust gate (module docstring)."""
 
-    Attributes:
-        enabled: refine every PnP keyframe edge (nearby and loop) by ICP; edges that fail the check are dropped.
-            See the module docstring (better on synthetic data, worse on 7-Scenes, hence the trust gate).
-        max_width_px: keyframe depth is kept (and registered) at the finest pyramid level at most this wide.
-            Edge errors against ground truth (synthetic room, slow, 327 edges; median / max): 160 px 1.1 / 5.6 mm,
-            320 px 0.4 / 1.8 mm; hybrid ATE 0.23 / 0.05 cm (dense 0.21).
-        cached_pyramids: keyframe pyramids kept between checks (least recently used dropped first).
-        max_shift_m, max_shift_deg: ICP may move the edge at most this far from its PnP pose (farther: the
-            two disagree, the edge is dropped).
-        sigma_m: sigma (m and rad) of a refined edge in the pose graph (isotropic): the floor of the
-            data-driven sigma. Refined edges to the keyframes just before the new one (``loop.n_nearby``) are
-            compared with their relative pose by odometry alone (dense odometry over a short span, where it
-            has hardly drifted); the robust spread of those discrepancies (``median |log| / 0.6745`` over the six
-            components of the last ``spread_window_edges`` edges, once ``min_spread_edges`` were seen) is the
-            sigma of every new refined edge when it is larger (noisier depth, weaker geometry). The loop edges'
-            Cauchy scale (``hybrid.loop_robust_scale_m``) is set in units of ``sigma_m`` and so grows with it.
-        max_trusted_residual_rad: the refined edges are trusted while the robust spread of their rotation
-            residuals at the optimum of their own graph is at most this (rad; module docstring): synthetic
-            Kinect-like noise 0.1-0.2 mrad, biased depth 0.4-1.1 mrad. Otherwise the poses come from the PnP
-            edges' graph. Decided at every optimisation, once ``min_spread_edges`` refined edges are in.
-        min_spread_edges: nearby edges needed before their spread is used (``sigma_m`` before), and refined edges
-            needed before the trust gate decides. Until then they are not trusted (the PnP edges' graph is used):
-            trusting them by default took hybrid on 7-Scenes frames 200-239 (6 refined edges, 320x240) from dense's
-            1.94 mm to 2.30 mm; distrusting them costs synthetic runs nothing once a few keyframes are in.
-        spread_window_edges: the spread is taken over this many most recent nearby edges.
-        feature_weight, feature_sigma_px, feature_huber: the edge's PnP inliers enter the ICP as reprojection
-            terms (:class:`~surfelslam.tracking.icp.ReprojectionTerm`, as in the hybrid's joint tracking), so
-            texture holds the directions the two depth maps leave weak (a pair showing two planes slides
-            along their intersection: 2-4 cm on synthetic office pairs without them). A residual of
-            ``max(feature_sigma_px, the inliers' robust reprojection spread)`` costs ``feature_weight``
-            point-to-plane pairs at ``icp.finest_robust_scale_m``; 0 turns the terms off.
-        icp: ICP settings of the keyframe-to-keyframe registration (``levels`` at most the number of halvings
-            left at ``max_width_px``, down to 8 pixels wide).
-        depth_only_nearby: a nearby keyframe pair whose PnP verification fails (too few matches on plain walls) is
-            registered by ICP from the graph's relative pose, by depth alone, with the same check; it becomes an
-            edge of the refined graph only (the PnP edges' graph never sees it). The hybrid's odometry is
-            frame-to-model, so keyframe-to-keyframe ICP is a second measurement where texture gives none:
-            plain-walled office hand-held (320x240) 2.92 -> 1.50 mm (dense 2.82), where one odometry edge 5 mm
-            off was spanned by no verified edge. The orb tracker's odometry is frame-to-keyframe ICP already; it
-            would count the same depth twice (plain office hand-held 0.72 -> 1.21 mm), so ``orb.loop_icp`` has it
-            off.
-        depth_only_max_matches: a depth-only nearby edge only where the PnP verification had fewer good matches
-            than this (texture too poor to verify). Where there are matches but PnP finds too few inliers (a fast
-            textured orbit at 640x480: 220-290 matches, 28-72 inliers), the odometry is the better measurement:
-            those keyframe pairs' depth alone slid 1.5-7 mm where the odometry was 0.3-0.8 mm off. On the plain
-            office hand-held the edges that helped had 5-30 matches.
-    """
+    enabled: bool = setting(True, doc="refine every PnP keyframe edge by ICP between the two keyframes' depth; "
+                            "edges that fail the check are dropped")
+    max_width_px: int = setting(320, unit="px", ge=8, le=65536,
+                                doc="keyframe depth is kept and registered at the finest pyramid level at most this "
+                                    "wide")
+    max_shift_m: float = setting(0.03, unit="m", gt=0, le=10,
+                                 doc="ICP may move the edge at most this far from its PnP pose (farther: dropped)")
+    max_shift_deg: float = setting(3.0, unit="deg", gt=0, le=180, doc="the same bound on the rotation")
+    cached_pyramids: int = setting(8, unit="keyframes", ge=0, le=256,
+                                   doc="keyframe pyramids kept between checks (least recently used dropped first)")
+    sigma_m: float = setting(0.003, unit="m and rad", gt=0, le=10,
+                             doc="pose-graph sigma of a refined edge (isotropic): the floor of the sigma measured "
+                                 "from the nearby edges' spread")
+    max_trusted_residual_rad: float = setting(
+        0.0003, unit="rad", gt=0, le=3.2,
+        doc="the refined edges are trusted while the robust spread of their rotation residuals is at most this "
+            "(biased depth spreads more); else the PnP edges' graph gives the poses")
+    min_spread_edges: int = setting(10, unit="edges", ge=1, le=1_000_000,
+                                    doc="nearby edges needed before their spread is used, and refined edges before "
+                                        "the trust gate decides (untrusted until then)")
+    spread_window_edges: int = setting(200, unit="edges", ge=1, le=1_000_000,
+                                       doc="the spread is taken over this many most recent nearby edges")
+    feature_weight: float = setting(0.1, ge=0, le=1000,
+                                    doc="the edge's PnP inliers enter its ICP as reprojection terms: one costs this "
+                                        "many point-to-plane pairs; 0 = off")
+    feature_sigma_px: float = setting(1.0, unit="px", gt=0, le=100,
+                                      doc="floor of those terms' pixel noise (else their robust reprojection spread)")
+    feature_huber: float = setting(2.0, unit="sigmas", gt=0, le=100, doc="Huber threshold of those terms")
+    icp: ICPConfig = setting(default_factory=_edge_icp_config,
+                             doc="ICP of the keyframe-to-keyframe registration (levels at most the halvings left at "
+                                 "max_width_px)")
+    depth_only_nearby: bool = setting(True, doc="a nearby keyframe pair that PnP cannot verify is registered by ICP "
+                                      "from the graph's relative pose, by depth alone (refined graph only)")
+    depth_only_max_matches: int = setting(100, unit="matches", ge=0, le=1_000_000,
+                                          doc="... only where the PnP verification had fewer good matches than this "
+                                              "(texture too poor to verify)")
 
-    enabled: bool = True
-    max_width_px: int = 320
-    max_shift_m: float = 0.03
-    max_shift_deg: float = 3.0
-    cached_pyramids: int = 8
-    sigma_m: float = 0.003
-    max_trusted_residual_rad: float = 0.0003
-    min_spread_edges: int = 10
-    spread_window_edges: int = 200
-    feature_weight: float = 0.1
-    feature_sigma_px: float = 1.0
-    feature_huber: float = 2.0
-    icp: ICPConfig = field(default_factory=_edge_icp_config)
-    depth_only_nearby: bool = True
-    depth_only_max_matches: int = 100
-
-    def __post_init__(self) -> None:
-        if self.max_width_px < 8:
-            raise ConfigError(f"loop_icp: max_width_px must be >= 8, got {self.max_width_px}")
-        if self.min_spread_edges < 1 or self.spread_window_edges < self.min_spread_edges:
-            raise ConfigError("loop_icp: need 1 <= min_spread_edges <= spread_window_edges, got "
-                              f"{self.min_spread_edges}, {self.spread_window_edges}")
-        if self.cached_pyramids < 0:
-            raise ConfigError(f"loop_icp: cached_pyramids must be >= 0, got {self.cached_pyramids}")
-        if not self.feature_weight >= 0:
-            raise ConfigError(f"loop_icp: feature_weight must be >= 0, got {self.feature_weight}")
-        for name in ("max_shift_m", "max_shift_deg", "sigma_m", "max_trusted_residual_rad",
-                     "feature_sigma_px", "feature_huber"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"loop_icp: {name} must be > 0, got {getattr(self, name)}")
+    @check
+    def _spread_window(self) -> str | None:
+        """min_spread_edges <= spread_window_edges."""
+        if self.spread_window_edges < self.min_spread_edges:
+            return (f"min_spread_edges ({self.min_spread_edges}) must be <= spread_window_edges "
+                    f"({self.spread_window_edges})")
+        return None
 
 
 class DenseEdgeRefiner:

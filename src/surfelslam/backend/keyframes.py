@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.geometry.camera import backproject
 from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import Features
@@ -13,19 +14,22 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 
 @dataclass(frozen=True)
-class MapConfig:
-    """Keyframe clouds and the final map (seeds: voxel grid 0.01-0.02 m, depth 0-4 m).
+class MapConfig(Config):
+    """Keyframe clouds and the sparse trackers' final voxel-filtered map."""
 
-    Attributes:
-        voxel_size_m: voxel edge of the per-keyframe and the final voxel-grid filter.
-        min_depth_m, max_depth_m: pixels outside this depth range are not mapped.
-        pixel_stride: keyframe depth is sampled every ``pixel_stride`` pixels before filtering.
-    """
+    voxel_size_m: float = setting(0.02, unit="m", ge=0.001, le=10,
+                                  doc="voxel edge of the per-keyframe and the final voxel-grid filter")
+    min_depth_m: float = setting(0.0, unit="m", ge=0, le=100, doc="nearer pixels are not mapped")
+    max_depth_m: float = setting(4.0, unit="m", gt=0, le=100, doc="farther pixels are not mapped")
+    pixel_stride: int = setting(2, unit="px", ge=1, le=64,
+                                doc="keyframe depth is sampled every s pixels before filtering")
 
-    voxel_size_m: float = 0.02
-    min_depth_m: float = 0.0
-    max_depth_m: float = 4.0
-    pixel_stride: int = 2
+    @check
+    def _depth_range(self) -> str | None:
+        """min_depth_m < max_depth_m."""
+        if not self.min_depth_m < self.max_depth_m:
+            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
+        return None
 
 
 @dataclass

@@ -2,50 +2,38 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
+from surfelslam.config import Config, setting
 from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, estimate_motion
 from surfelslam.types import Intrinsics
 
 
 @dataclass(frozen=True)
-class LoopConfig:
-    """Loop detection (seeds: 5 nearby and 5 random keyframes, loop motion norm up to 2.0).
+class LoopConfig(Config):
+    """Loop-closure candidates (nearby, random and retrieved keyframes) and their verification."""
 
-    Attributes:
-        n_nearby: the keyframes just before the previous one that are checked (local edges).
-        n_random: keyframes drawn uniformly (seeded) among the older ones.
-        seed: seed of the random draws.
-        n_retrieved: older keyframes proposed by descriptor voting (:mod:`place_recognition`).
-        max_norm_loop: loop edges may span up to this motion norm (m + rad).
-        min_loop_inliers: PnP inliers needed to accept an edge (nearby or loop).
-        min_loop_inlier_ratio: and this fraction of the good matches.
-        min_consistent_matches: before PnP-RANSAC, a candidate's good matches (both ends with depth) must hold a
-            rigidly consistent 3D set of at least this many (``estimate_motion``'s ``min_consistent``; 0 = off).
-            Most candidates do not overlap the new keyframe, yet give 100-170 good matches, on which RANSAC runs
-            its 300 iterations in vain (10-15 ms each, most of a keyframe's loop-check time). Measured with the
-            orb tracker, the accepted edges' consistent sets were at least 16 (7-Scenes 0-499, 320x240; 18 at
-            6x speed; 27-61 on four synthetic sequences), the failed candidates' median 6 (7-Scenes) to 21
-            (synthetic office replay at 3x).
-        retrieval: descriptor-voting parameters.
-    """
-
-    n_nearby: int = 5
-    n_random: int = 5
-    seed: int = 0
-    n_retrieved: int = 3
-    max_norm_loop: float = 2.0
-    min_loop_inliers: int = 30
-    min_loop_inlier_ratio: float = 0.25
-    min_consistent_matches: int = 10
-    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
-
-    def __post_init__(self) -> None:
-        if self.min_consistent_matches < 0:
-            raise ValueError(f"min_consistent_matches must be >= 0, got {self.min_consistent_matches}")
+    n_nearby: int = setting(5, unit="keyframes", ge=0, le=1000,
+                            doc="the keyframes just before the previous one that are checked (local edges)")
+    n_random: int = setting(5, unit="keyframes", ge=0, le=1000,
+                            doc="keyframes drawn uniformly (seeded) among the older ones")
+    seed: int = setting(0, ge=0, le=2**63 - 1, doc="seed of the random draws")
+    n_retrieved: int = setting(3, unit="keyframes", ge=0, le=1000,
+                               doc="older keyframes proposed by descriptor voting")
+    max_norm_loop: float = setting(2.0, unit="m + rad", gt=0, le=100, doc="loop edges may span up to this motion "
+                                   "norm")
+    min_loop_inliers: int = setting(30, unit="inliers", ge=0, le=1_000_000,
+                                    doc="PnP inliers needed to accept an edge (nearby or loop)")
+    min_loop_inlier_ratio: float = setting(0.25, unit="fraction", ge=0, le=1, doc="... and this fraction of the "
+                                           "good matches")
+    min_consistent_matches: int = setting(
+        10, unit="matches", ge=0, le=1_000_000,
+        doc="before PnP-RANSAC a candidate's good matches must hold a rigidly consistent 3D set this large "
+            "(cheap rejection of non-overlapping candidates); 0 = off")
+    retrieval: RetrievalConfig = setting(default_factory=RetrievalConfig, doc="descriptor-voting parameters")
 
 
 @dataclass(frozen=True)

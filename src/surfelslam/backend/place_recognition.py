@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from surfelslam.config import Config, setting
 from surfelslam.kernels import hamming
 
 _DESCRIPTOR_BYTES = 32
@@ -24,21 +25,16 @@ _INITIAL_CAPACITY = 4096
 
 
 @dataclass(frozen=True)
-class RetrievalConfig:
-    """Descriptor-voting parameters.
+class RetrievalConfig(Config):
+    """Keyframe retrieval by descriptor voting."""
 
-    Attributes:
-        max_hamming_bits: a vote needs a nearest-neighbour distance below this (bits of 256).
-        ratio: nearest / second-nearest distance bound (Lowe ratio test).
-        min_votes: keyframes with fewer votes are not returned.
-        max_descriptors_per_keyframe: only the strongest keypoints with valid depth (those that can
-            verify a loop) are stored and queried; bounds the brute-force cost.
-    """
-
-    max_hamming_bits: float = 50.0
-    ratio: float = 0.8
-    min_votes: int = 8
-    max_descriptors_per_keyframe: int = 300
+    max_hamming_bits: float = setting(50.0, unit="bits", gt=0, le=256,
+                                      doc="a vote needs a nearest-neighbour distance below this (of 256 bits)")
+    ratio: float = setting(0.8, gt=0, le=1, doc="nearest / second-nearest distance bound (Lowe ratio test)")
+    min_votes: int = setting(8, unit="votes", ge=0, le=1_000_000, doc="keyframes with fewer votes are not returned")
+    max_descriptors_per_keyframe: int = setting(300, unit="descriptors", ge=1, le=100_000,
+                                                doc="only the strongest keypoints with depth are stored and queried "
+                                                    "(bounds the brute-force cost)")
 
 
 def select_descriptors(descriptors: np.ndarray, response: np.ndarray, valid: np.ndarray, n_max: int) -> np.ndarray:

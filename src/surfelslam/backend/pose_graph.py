@@ -15,65 +15,40 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from surfelslam.config import Config, setting
+
 ROBUST_KERNELS = ("huber", "cauchy", "none")
 EDGE_INFORMATION_MODES = ("isotropic", "estimated")
 EDGE_KINDS = ("odometry", "loop")
 
 
 @dataclass(frozen=True)
-class PoseGraphConfig:
-    """Pose-graph weights and solver settings.
+class PoseGraphConfig(Config):
+    """Pose-graph edge weights, robust kernels and Levenberg-Marquardt settings."""
 
-    Attributes:
-        edge_information: ``"isotropic"``: every edge weighs ``odometry_information`` / ``loop_information``
-            (the seeds). ``"estimated"``: an edge carrying its own ``(6, 6)`` information matrix (the Gauss-Newton
-            Hessian of the RGB-D refinement of its PnP pose: more and better-spread inliers weigh more, and
-            rotation and translation weigh by what the points actually constrain) uses it, scaled by
-            ``estimated_information_scale``; edges without one fall back to the isotropic weights.
-        estimated_information_scale: factor on estimated information matrices (< 1: the Hessian assumes
-            independent residuals, so it is over-confident).
-        estimated_robust_kernel: m-estimator on every edge weighted by an estimated information (odometry too:
-            real data have systematic errors, colour/depth misregistration, that the Hessian does not model, so
-            whitened errors of correct edges reach several units); ``"huber"``, ``"cauchy"`` or ``"none"``.
-        estimated_robust_scale: its scale in whitened units. Measured on the orb tracker (ATE; isotropic /
-            estimated with Cauchy 1 / Huber 3 / no kernel): 7-Scenes frames 0-299 at 320x240 3.01 / 4.70 / 2.90 /
-            2.72 cm; synthetic 320x240 slow 0.37 / 0.31 / 0.38 / 0.39, walking loop 0.55 / 0.35 / 0.21 / 0.22,
-            fast 0.53 / 0.30 / 0.33 / 0.35 cm.
-        odometry_information: isotropic information (1 / sigma^2, sigma in m and rad) of odometry edges.
-        loop_information: the same for loop edges.
-        prior_sigma: sigma (m and rad) of the prior anchoring the first keyframe.
-        robust_kernel: m-estimator on loop edges: ``"huber"``, ``"cauchy"`` or ``"none"``.
-        robust_scale_sigma: the kernel's scale in whitened units (multiples of the edge sigma).
-        robust_odometry: also apply the kernel to odometry edges.
-        max_iterations: Levenberg-Marquardt iterations (seeds: 100).
-        relative_error_tol: LM stops when the relative error decrease is below this.
-    """
-
-    edge_information: str = "estimated"
-    estimated_information_scale: float = 1.0
-    estimated_robust_kernel: str = "huber"
-    estimated_robust_scale: float = 3.0
-    odometry_information: float = 100.0
-    loop_information: float = 100.0
-    prior_sigma: float = 1e-6
-    robust_kernel: str = "cauchy"
-    robust_scale_sigma: float = 1.0
-    robust_odometry: bool = False
-    max_iterations: int = 100
-    relative_error_tol: float = 1e-6
-
-    def __post_init__(self) -> None:
-        if self.edge_information not in EDGE_INFORMATION_MODES:
-            raise ValueError(f"edge_information must be one of {EDGE_INFORMATION_MODES}, got {self.edge_information!r}")
-        if not self.estimated_information_scale > 0:
-            raise ValueError(f"estimated_information_scale must be positive, got {self.estimated_information_scale}")
-        for name in ("robust_kernel", "estimated_robust_kernel"):
-            if getattr(self, name) not in ROBUST_KERNELS:
-                raise ValueError(f"{name} must be one of {ROBUST_KERNELS}, got {getattr(self, name)!r}")
-        if self.odometry_information <= 0 or self.loop_information <= 0 or self.prior_sigma <= 0:
-            raise ValueError("edge information and prior_sigma must be positive")
-        if self.robust_scale_sigma <= 0 or self.estimated_robust_scale <= 0:
-            raise ValueError("robust_scale_sigma and estimated_robust_scale must be positive")
+    edge_information: str = setting(
+        "estimated", choices=EDGE_INFORMATION_MODES,
+        doc="isotropic: every edge weighs odometry_information / loop_information; estimated: an edge with its own "
+            "information matrix (the Hessian of its RGB-D refinement) uses it")
+    estimated_information_scale: float = setting(1.0, gt=0, le=1e6,
+                                                 doc="factor on estimated information matrices (< 1: the Hessian is "
+                                                     "over-confident)")
+    estimated_robust_kernel: str = setting("huber", choices=ROBUST_KERNELS,
+                                           doc="m-estimator on every edge weighted by an estimated information")
+    estimated_robust_scale: float = setting(3.0, unit="whitened", gt=0, le=1e12, doc="its scale")
+    odometry_information: float = setting(100.0, unit="1/sigma^2", gt=0, le=1e16,
+                                          doc="isotropic information of odometry edges (sigma in m and rad)")
+    loop_information: float = setting(100.0, unit="1/sigma^2", gt=0, le=1e16,
+                                      doc="isotropic information of loop edges")
+    prior_sigma: float = setting(1e-6, unit="m and rad", gt=0, le=10,
+                                 doc="sigma of the prior anchoring the first keyframe")
+    robust_kernel: str = setting("cauchy", choices=ROBUST_KERNELS, doc="m-estimator on loop edges")
+    robust_scale_sigma: float = setting(1.0, unit="whitened", gt=0, le=1e12,
+                                        doc="its scale, in multiples of the edge sigma")
+    robust_odometry: bool = setting(False, doc="also apply the kernel to odometry edges")
+    max_iterations: int = setting(100, unit="iterations", ge=1, le=100_000, doc="Levenberg-Marquardt iterations")
+    relative_error_tol: float = setting(1e-6, ge=0, le=1,
+                                        doc="LM stops when the relative error decrease is below this")
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from surfelslam.config import Config, setting
 from surfelslam.errors import ConfigError
 from surfelslam.types import ColourCamera, Intrinsics
 
@@ -53,22 +54,14 @@ def round_in_image(u: np.ndarray, v: np.ndarray, intr: Intrinsics) -> tuple[np.n
 
 
 @dataclass(frozen=True)
-class ColourRegistrationConfig:
-    """Colour of each depth pixel when the sequence's colour camera is separate (:class:`ColourCamera`).
+class ColourRegistrationConfig(Config):
+    """Colour of each depth pixel when the sequence's colour camera is separate (:class:`ColourCamera`)."""
 
-    Attributes:
-        enabled: sample each depth pixel's colour through the sequence's colour camera model (when its layout
-            has one, e.g. 7-Scenes) for the maps' colours; False: the colour pixel at the same ``(u, v)``.
-        fallback_depth_m: depth (m) assumed where the depth pixel is invalid (its colour is then only used by
-            block averaging for a coarser fusion level; the parallax it sets is ``fx * |t| / depth``).
-    """
-
-    enabled: bool = True
-    fallback_depth_m: float = 2.0
-
-    def __post_init__(self) -> None:
-        if not self.fallback_depth_m > 0:
-            raise ConfigError(f"colour_registration: fallback_depth_m must be positive, got {self.fallback_depth_m}")
+    enabled: bool = setting(True, doc="sample each depth pixel's colour through the sequence's colour camera model "
+                            "(when its layout has one, e.g. 7-Scenes); false: the colour pixel at the same (u, v)")
+    fallback_depth_m: float = setting(2.0, unit="m", gt=0, le=100,
+                                      doc="depth assumed where the depth pixel is invalid (sets the parallax of its "
+                                          "colour)")
 
 
 @lru_cache(maxsize=8)

@@ -26,42 +26,38 @@ import cv2
 import numpy as np
 from scipy.optimize import minimize
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.errors import ConfigError
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
 
 @dataclass(frozen=True)
-class ColourFitConfig:
-    """Settings of :func:`fit_colour_camera` (units in the names).
+class ColourFitConfig(Config):
+    """Settings of :func:`fit_colour_camera`: a grid search aligning depth discontinuities with colour edges."""
 
-    Attributes:
-        depth_edge_jump: relative depth difference between neighbouring pixels that marks a discontinuity.
-        canny_low, canny_high: Canny thresholds (grey levels) of the colour edges.
-        blur_sigma_px: Gaussian blur (px) before Canny.
-        max_edge_distance_px: distances to the nearest colour edge are capped here (an edge with no colour
-            counterpart costs this much, whatever the camera).
-        max_points_per_frame: discontinuity pixels kept per frame (evenly strided), for speed.
-        ratio_min, ratio_max, ratio_step: grid of the colour / depth focal-length ratio.
-        offset_max_px, offset_step_px: grid of the principal-point offset (px, both axes).
-        fit_translation: also fit ``tx`` (m), the colour camera's offset along the depth camera's x axis.
-    """
+    depth_edge_jump: float = setting(0.05, unit="fraction", gt=0, le=10,
+                                     doc="relative depth difference between neighbours that marks a discontinuity")
+    canny_low: int = setting(30, unit="grey levels", ge=0, le=1000, doc="lower Canny threshold of the colour edges")
+    canny_high: int = setting(80, unit="grey levels", ge=0, le=1000, doc="upper Canny threshold")
+    blur_sigma_px: float = setting(1.2, unit="px", ge=0, le=50, doc="Gaussian blur before Canny")
+    max_edge_distance_px: float = setting(8.0, unit="px", gt=0, le=1000,
+                                          doc="distances to the nearest colour edge are capped here")
+    max_points_per_frame: int = setting(4000, unit="pixels", ge=1, le=10_000_000,
+                                        doc="discontinuity pixels kept per frame (evenly strided)")
+    ratio_min: float = setting(0.8, gt=0, le=100, doc="smallest colour / depth focal-length ratio tried")
+    ratio_max: float = setting(1.2, gt=0, le=100, doc="largest ratio tried")
+    ratio_step: float = setting(0.02, gt=0, le=100, doc="step of the ratio grid")
+    offset_max_px: float = setting(16.0, unit="px", ge=0, le=1000, doc="largest principal-point offset tried (both "
+                                   "axes)")
+    offset_step_px: float = setting(4.0, unit="px", gt=0, le=1000, doc="step of the offset grid")
+    fit_translation: bool = setting(True, doc="also fit the colour camera's offset along the depth camera's x axis")
 
-    depth_edge_jump: float = 0.05
-    canny_low: int = 30
-    canny_high: int = 80
-    blur_sigma_px: float = 1.2
-    max_edge_distance_px: float = 8.0
-    max_points_per_frame: int = 4000
-    ratio_min: float = 0.8
-    ratio_max: float = 1.2
-    ratio_step: float = 0.02
-    offset_max_px: float = 16.0
-    offset_step_px: float = 4.0
-    fit_translation: bool = True
-
-    def __post_init__(self) -> None:
-        if not 0 < self.ratio_min < self.ratio_max or self.ratio_step <= 0 or self.offset_step_px <= 0:
-            raise ConfigError("colour fit: need 0 < ratio_min < ratio_max and positive grid steps")
+    @check
+    def _ratio_range(self) -> str | None:
+        """ratio_min < ratio_max."""
+        if not self.ratio_min < self.ratio_max:
+            return f"ratio_min ({fmt_value(self.ratio_min)}) must be < ratio_max ({fmt_value(self.ratio_max)})"
+        return None
 
 
 @dataclass(frozen=True)

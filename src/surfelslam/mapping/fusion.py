@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surfelslam.errors import ConfigError
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import fusion as kf
 from surfelslam.mapping.surfel_map import SurfelMap
@@ -57,59 +57,59 @@ from surfelslam.types import Intrinsics
 WEIGHT_MODES = ("keller", "constant")
 
 
-@dataclass
-class FusionConfig:
-    """Fusion settings (units in the names; see the module docstring for the rules)."""
+@dataclass(frozen=True)
+class FusionConfig(Config):
+    """Fusion of a frame into the surfel map (the module docstring describes the rules)."""
 
-    dist_diff_m: float = 0.05
-    angle_diff_deg: float = 45.0
-    weight_mode: str = "keller"
-    radial_weight_sigma: float = 0.6  # in units of the centre-to-corner distance
-    cover_radius_px: int = 1
-    min_depth_m: float = 0.1
-    max_depth_m: float = 4.0
-    new_radius_px: float = 0.75  # new surfel radius, in pixel footprints at its depth (>= 0.71 covers a pixel)
-    radius_min_cos: float = 0.3  # clamps the 1/cos growth of the radius on slanted surfaces
-    max_radius_m: float = 0.05
-    merge_max_radius_ratio: float = 1.5  # Keller's (1 + delta)
-    remove_unstable: bool = True
-    unstable_max_age_frames: int = 30
-    stable_min_hits: int = 5
-    stable_min_confidence: float = 3.0
-    compact_dead_fraction: float = 0.05
-    cull_backfaces: bool = True
-    remove_duplicates: bool = True
-    duplicate_dist_m: float = 0.02
-    duplicate_angle_deg: float = 30.0
-    max_width_px: int = 320  # the pipeline fuses the finest pyramid level at most this wide (0 = full resolution)
+    dist_diff_m: float = setting(0.05, unit="m", gt=0, le=10,
+                                 doc="a map surfel merges a measurement only within this distance")
+    angle_diff_deg: float = setting(45.0, unit="deg", gt=0, le=180,
+                                    doc="... and with normals within this angle (5 deg rejects many correct matches "
+                                        "with Kinect-noise normals)")
+    weight_mode: str = setting("keller", choices=WEIGHT_MODES,
+                               doc="pixel weight: keller (Gaussian in the distance from the principal point) or "
+                                   "constant (confidence = hits)")
+    radial_weight_sigma: float = setting(0.6, unit="corner distances", gt=0, le=100,
+                                         doc="sigma of the keller weight, in units of the centre-to-corner distance")
+    cover_radius_px: int = setting(1, unit="px", ge=0, le=20,
+                                   doc="a pixel adds no surfel when a neighbour within this radius holds a matching "
+                                       "one (0: Keller's strict rule)")
+    min_depth_m: float = setting(0.1, unit="m", gt=0, le=100, doc="nearer pixels are not fused")
+    max_depth_m: float = setting(4.0, unit="m", gt=0, le=100, doc="farther pixels are not fused")
+    new_radius_px: float = setting(0.75, unit="pixel footprints", gt=0, le=100,
+                                   doc="new surfel radius at its depth (>= 0.71 covers a pixel)")
+    radius_min_cos: float = setting(0.3, gt=0, le=1,
+                                    doc="clamps the 1/cos growth of the radius on slanted surfaces")
+    max_radius_m: float = setting(0.05, unit="m", gt=0, le=10, doc="largest surfel radius")
+    merge_max_radius_ratio: float = setting(1.5, ge=1, le=1000,
+                                            doc="a measurement merges only if its radius is at most this times the "
+                                                "surfel's (a farther view must not blur a close one)")
+    remove_unstable: bool = setting(True, doc="remove surfels that stay unconfirmed (the dormant-point and "
+                                    "Keller's rules)")
+    unstable_max_age_frames: int = setting(30, unit="frames", ge=0, le=1_000_000,
+                                           doc="age after which an unconfirmed surfel is removed")
+    stable_min_hits: int = setting(5, unit="frames", ge=0, le=1_000_000,
+                                   doc="a surfel seen in fewer frames by that age is removed")
+    stable_min_confidence: float = setting(3.0, ge=0, le=1e6,
+                                           doc="surfels in view below this confidence, not updated for "
+                                               "unstable_max_age_frames, are removed")
+    compact_dead_fraction: float = setting(0.05, unit="fraction", ge=0, lt=1,
+                                           doc="removed surfels are compacted away once they exceed this share of "
+                                               "the map")
+    cull_backfaces: bool = setting(True, doc="skip surfels whose normal faces away from the camera")
+    remove_duplicates: bool = setting(True, doc="flag near-copies of a surfel that a measurement merged into (else "
+                                      "revisits keep adding them)")
+    duplicate_dist_m: float = setting(0.02, unit="m", ge=0, le=10, doc="near-copies are within this distance")
+    duplicate_angle_deg: float = setting(30.0, unit="deg", gt=0, le=180, doc="... and this normal angle")
+    max_width_px: int = setting(320, unit="px", ge=0, le=65536,
+                                doc="fuse the finest pyramid level at most this wide; 0 = full resolution")
 
-    def __post_init__(self) -> None:
-        if self.max_width_px < 0:
-            raise ConfigError(f"fusion: max_width_px must be >= 0, got {self.max_width_px}")
-        if self.weight_mode not in WEIGHT_MODES:
-            raise ConfigError(f"fusion: weight_mode must be one of {WEIGHT_MODES}, got {self.weight_mode!r}")
-        if self.dist_diff_m <= 0:
-            raise ConfigError(f"fusion: dist_diff_m must be > 0, got {self.dist_diff_m}")
-        if not 0 < self.angle_diff_deg <= 180:
-            raise ConfigError(f"fusion: angle_diff_deg must be in (0, 180], got {self.angle_diff_deg}")
-        if self.radial_weight_sigma <= 0:
-            raise ConfigError(f"fusion: radial_weight_sigma must be > 0, got {self.radial_weight_sigma}")
-        if self.cover_radius_px < 0:
-            raise ConfigError(f"fusion: cover_radius_px must be >= 0, got {self.cover_radius_px}")
-        if not 0 < self.min_depth_m < self.max_depth_m:
-            raise ConfigError(
-                f"fusion: need 0 < min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}"
-            )
-        if self.new_radius_px <= 0 or self.max_radius_m <= 0 or not 0 < self.radius_min_cos <= 1:
-            raise ConfigError("fusion: new_radius_px, max_radius_m must be > 0 and radius_min_cos in (0, 1]")
-        if self.merge_max_radius_ratio < 1:
-            raise ConfigError(f"fusion: merge_max_radius_ratio must be >= 1, got {self.merge_max_radius_ratio}")
-        if self.unstable_max_age_frames < 0 or self.stable_min_hits < 0:
-            raise ConfigError("fusion: unstable_max_age_frames and stable_min_hits must be >= 0")
-        if self.duplicate_dist_m < 0 or not 0 < self.duplicate_angle_deg <= 180:
-            raise ConfigError("fusion: duplicate_dist_m must be >= 0 and duplicate_angle_deg in (0, 180]")
-        if not 0 <= self.compact_dead_fraction < 1:
-            raise ConfigError(f"fusion: compact_dead_fraction must be in [0, 1), got {self.compact_dead_fraction}")
+    @check
+    def _depth_range(self) -> str | None:
+        """min_depth_m < max_depth_m."""
+        if not self.min_depth_m < self.max_depth_m:
+            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
+        return None
 
 
 @dataclass

@@ -11,41 +11,37 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.errors import ConfigError
 from surfelslam.kernels import render as kr
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.types import Intrinsics
 
 
-@dataclass
-class RenderConfig:
-    """Rendering settings.
+@dataclass(frozen=True)
+class RenderConfig(Config):
+    """Rendering the surfel map into a camera (the ICP target)."""
 
-    ``min_confidence``: only surfels with at least this confidence are drawn (stable surfels), EXCEPT
-    surfels first seen within the last ``young_age_frames`` frames of the map's latest fused frame: they
-    are drawn regardless, so a young map (or a newly explored region) still renders while it gathers
-    confidence. 0 draws everything.
-    """
+    min_depth_m: float = setting(0.1, unit="m", gt=0, le=100, doc="nearer surfels are not drawn")
+    max_depth_m: float = setting(8.0, unit="m", gt=0, le=100, doc="farther surfels are not drawn")
+    max_splat_radius_px: float = setting(2.0, unit="px", ge=0, le=50, doc="cap of a surfel's footprint radius on "
+                                         "screen")
+    min_confidence: float = setting(0.0, ge=0, le=1e6,
+                                    doc="only surfels with at least this confidence are drawn, except young ones "
+                                        "(young_age_frames); 0 draws everything")
+    young_age_frames: int = setting(10, unit="frames", ge=0, le=1_000_000,
+                                    doc="surfels first seen within this many frames of the latest fused one are drawn "
+                                        "whatever their confidence (a young map still renders)")
+    cull_backfaces: bool = setting(True, doc="skip surfels whose normal faces away from the camera")
+    vertex: str = setting("centre", choices=("centre", "disc"),
+                          doc="a pixel's point: the winning surfel's centre, or its disc point on the pixel ray")
 
-    min_depth_m: float = 0.1
-    max_depth_m: float = 8.0
-    max_splat_radius_px: float = 2.0  # cap of a surfel's footprint radius on screen
-    min_confidence: float = 0.0
-    young_age_frames: int = 10
-    cull_backfaces: bool = True  # skip surfels whose normal faces away from the camera
-    vertex: str = "centre"  # "centre": the winning surfel's centre; "disc": its disc point on the pixel ray
-
-    def __post_init__(self) -> None:
-        if not 0 < self.min_depth_m < self.max_depth_m:
-            raise ConfigError(
-                f"render: need 0 < min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}"
-            )
-        if self.max_splat_radius_px < 0:
-            raise ConfigError(f"render: max_splat_radius_px must be >= 0, got {self.max_splat_radius_px}")
-        if self.vertex not in ("centre", "disc"):
-            raise ConfigError(f"render: vertex must be 'centre' or 'disc', got {self.vertex!r}")
-        if self.young_age_frames < 0:
-            raise ConfigError(f"render: young_age_frames must be >= 0, got {self.young_age_frames}")
+    @check
+    def _depth_range(self) -> str | None:
+        """min_depth_m < max_depth_m."""
+        if not self.min_depth_m < self.max_depth_m:
+            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
+        return None
 
 
 @dataclass

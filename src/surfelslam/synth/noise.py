@@ -20,34 +20,57 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.types import Intrinsics
 
 _REFERENCE_WIDTH_PX = 640  # hole sizes and the disparity focal length refer to a 640-pixel-wide sensor image
 
 
 @dataclass(frozen=True)
-class KinectNoiseConfig:
-    min_depth_m: float = 0.4  # nearer -> invalid (0)
-    max_depth_m: float = 4.5  # farther -> invalid (0)
-    axial_sigma_base_m: float = 0.0012  # sigma_z(z) = base + quad * (z - offset)^2
-    axial_sigma_quad_per_m: float = 0.0019
-    axial_sigma_offset_m: float = 0.4
-    baseline_m: float = 0.075  # Kinect v1 projector-camera baseline
-    # focal length of the disparity (sensor) camera; None = the image's |fx| scaled to a 640-pixel width,
-    # so quantisation does not depend on the rendered image size
-    disparity_focal_px: float | None = None
-    disparity_step_px: float = 0.125  # 1/8 sub-pixel disparity steps; 0 disables quantisation
-    # fixed disparity error (px of the disparity camera) at the image corners, growing with r^2 from the centre
-    # (r = 1 at the corners); positive = nearer. 0 disables
-    disparity_distortion_px: float = 0.0
-    grazing_angle_deg: float = 78.0  # drop pixels whose ray-normal angle exceeds this
-    edge_jump_rel: float = 0.04  # a neighbour differing by more than this fraction of z marks an edge
-    edge_dropout_prob: float = 0.5  # probability of dropping an edge pixel
-    holes_per_frame_mean: float = 6.0  # Poisson mean of random holes per frame
-    hole_radius_min_px: int = 2  # (for a 640-pixel-wide image)
-    hole_radius_max_px: int = 7
-    rgb_blur_sigma_px: float = 0.5  # 0 disables
-    rgb_noise_sigma: float = 2.0  # Gaussian noise on 0..255 intensities
+class KinectNoiseConfig(Config):
+    """Kinect-like depth and colour noise of the synthetic sequences (axial noise, disparity steps, holes, edges)."""
+
+    min_depth_m: float = setting(0.4, unit="m", ge=0, le=100, doc="nearer -> invalid (0)")
+    max_depth_m: float = setting(4.5, unit="m", gt=0, le=100, doc="farther -> invalid (0)")
+    axial_sigma_base_m: float = setting(0.0012, unit="m", ge=0, le=1,
+                                        doc="sigma_z(z) = base + quad * (z - offset)^2")
+    axial_sigma_quad_per_m: float = setting(0.0019, unit="1/m", ge=0, le=1, doc="quad of that rule")
+    axial_sigma_offset_m: float = setting(0.4, unit="m", ge=0, le=100, doc="offset of that rule")
+    baseline_m: float = setting(0.075, unit="m", gt=0, le=10, doc="projector-camera baseline (Kinect v1)")
+    disparity_focal_px: float | None = setting(
+        None, unit="px", gt=0, le=1e6,
+        doc="focal length of the disparity camera; none: the image's |fx| scaled to a 640-pixel width")
+    disparity_step_px: float = setting(0.125, unit="px", ge=0, le=100, doc="disparity quantisation step; 0 = off")
+    disparity_distortion_px: float = setting(
+        0.0, unit="px", ge=-100, le=100,
+        doc="fixed disparity error at the image corners, growing with r^2 from the centre; positive = nearer; 0 = off")
+    grazing_angle_deg: float = setting(78.0, unit="deg", gt=0, le=90, doc="drop pixels whose ray-normal angle "
+                                       "exceeds this")
+    edge_jump_rel: float = setting(0.04, unit="fraction", ge=0, le=10,
+                                   doc="a neighbour differing by more than this fraction of z marks an edge")
+    edge_dropout_prob: float = setting(0.5, ge=0, le=1, doc="probability of dropping an edge pixel")
+    holes_per_frame_mean: float = setting(6.0, ge=0, le=10_000, doc="Poisson mean of random holes per frame")
+    hole_radius_min_px: int = setting(2, unit="px", ge=0, le=1000, doc="smallest hole radius (for a 640-pixel-wide "
+                                      "image)")
+    hole_radius_max_px: int = setting(7, unit="px", ge=0, le=1000, doc="largest hole radius")
+    rgb_blur_sigma_px: float = setting(0.5, unit="px", ge=0, le=50, doc="colour blur; 0 = off")
+    rgb_noise_sigma: float = setting(2.0, unit="grey levels", ge=0, le=255, doc="Gaussian noise on 0..255 "
+                                     "intensities")
+
+    @check
+    def _depth_range(self) -> str | None:
+        """min_depth_m < max_depth_m."""
+        if not self.min_depth_m < self.max_depth_m:
+            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
+        return None
+
+    @check
+    def _hole_radii(self) -> str | None:
+        """hole_radius_min_px <= hole_radius_max_px."""
+        if self.hole_radius_min_px > self.hole_radius_max_px:
+            return (f"hole_radius_min_px ({self.hole_radius_min_px}) must be <= hole_radius_max_px "
+                    f"({self.hole_radius_max_px})")
+        return None
 
 
 def frame_rng(seed: int, frame_index: int) -> np.random.Generator:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from surfelslam.errors import ConfigError
+from surfelslam.config import Config, check, setting
 
 TEXTURE_KINDS = ("wallpaper", "wood", "plaster", "checker", "blobs", "fabric", "books", "metal", "poster")
 TEXTURE_STYLES = ("rich", "plain")
@@ -36,18 +36,21 @@ _PLAIN_DETAIL = 0.02  # +- fraction of its fine-scale detail
 
 
 @dataclass(frozen=True)
-class TextureConfig:
-    size_px: int = 1024  # texture side S (texels); a power of two (the renderer wraps with a bit mask)
-    texel_m: float = 0.004  # metres per texel: 1024 texels cover 4.1 m before repeating
-    style: str = "rich"  # "rich" (texture everywhere) or "plain" (flat paint but for wood, books and posters)
+class TextureConfig(Config):
+    """Procedural textures of the synthetic scenes."""
 
-    def __post_init__(self) -> None:
-        if self.style not in TEXTURE_STYLES:
-            raise ConfigError(f"unknown texture style {self.style!r}; known: {', '.join(TEXTURE_STYLES)}")
-        if self.size_px < 2 or self.size_px & (self.size_px - 1):
-            raise ConfigError(f"texture size_px must be a power of two >= 2, got {self.size_px}")
-        if self.texel_m <= 0:
-            raise ConfigError(f"texture texel_m must be positive, got {self.texel_m}")
+    size_px: int = setting(1024, unit="texels", ge=2, le=16384,
+                           doc="texture side, a power of two (the renderer wraps with a bit mask)")
+    texel_m: float = setting(0.004, unit="m", gt=0, le=10, doc="metres per texel")
+    style: str = setting("rich", choices=TEXTURE_STYLES,
+                         doc="rich (texture everywhere) or plain (flat paint but for wood, books and posters)")
+
+    @check
+    def _power_of_two(self) -> str | None:
+        """size_px is a power of two."""
+        if self.size_px & (self.size_px - 1):
+            return f"size_px must be a power of two, got {self.size_px}"
+        return None
 
 
 def value_noise(rng: np.random.Generator, size_px: int, cell_px: int) -> np.ndarray:

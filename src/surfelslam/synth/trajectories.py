@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from surfelslam.config import Config, setting
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert as se3_invert
@@ -37,20 +38,26 @@ _REPLAY_MAX_DT_S = 0.02  # sample times may lie this far (s) past the first / la
 
 
 @dataclass(frozen=True)
-class TrajectoryConfig:
-    slow_step_deg: float = 0.5  # heading advance per frame of "slow" (the progress angle)
-    fast_factor: float = 3.0  # "fast" = "slow" curve at this many times the step
-    wobble_m: float = 0.3  # horizontal eye wobble amplitude around the orbit
-    bob_m: float = 0.1  # vertical eye bob amplitude
-    target_sway_rad: float = 0.25  # look direction sway around the heading
-    target_bob_m: float = 0.3  # look-at height sway
-    roll_deg: float = 3.0  # roll amplitude
-    loop_look_ahead_deg: float = 35.0  # "loop": heading = outward direction + this (towards the walk direction)
-    loop_look_distance_m: float = 1.8
-    jitter_trans_m: float = 0.003  # "handheld": std of the translation jitter per axis
-    jitter_rot_deg: float = 0.3  # "handheld": std of the rotation jitter per axis
-    jitter_smooth_s: float = 0.12  # "handheld": Gaussian smoothing of the white jitter (band limit)
-    wall_sway_m: float = 0.35  # "wall" scenes: lateral sway amplitude
+class TrajectoryConfig(Config):
+    """Shape of the synthetic camera paths (orbit, loop, hand-held jitter, wall sway)."""
+
+    slow_step_deg: float = setting(0.5, unit="deg", gt=0, le=90, doc="heading advance per frame of slow (the "
+                                   "progress angle)")
+    fast_factor: float = setting(3.0, gt=0, le=100, doc="fast = the slow curve at this many times the step")
+    wobble_m: float = setting(0.3, unit="m", ge=0, le=10, doc="horizontal eye wobble amplitude around the orbit")
+    bob_m: float = setting(0.1, unit="m", ge=0, le=10, doc="vertical eye bob amplitude")
+    target_sway_rad: float = setting(0.25, unit="rad", ge=0, le=3.2, doc="look direction sway around the heading")
+    target_bob_m: float = setting(0.3, unit="m", ge=0, le=10, doc="look-at height sway")
+    roll_deg: float = setting(3.0, unit="deg", ge=0, le=180, doc="roll amplitude")
+    loop_look_ahead_deg: float = setting(35.0, unit="deg", ge=-180, le=180,
+                                         doc="loop: heading = outward direction + this (towards the walk direction)")
+    loop_look_distance_m: float = setting(1.8, unit="m", gt=0, le=100, doc="loop: distance of the look-at point")
+    jitter_trans_m: float = setting(0.003, unit="m", ge=0, le=1, doc="handheld: std of the translation jitter per "
+                                    "axis")
+    jitter_rot_deg: float = setting(0.3, unit="deg", ge=0, le=45, doc="handheld: std of the rotation jitter per axis")
+    jitter_smooth_s: float = setting(0.12, unit="s", ge=0, le=10,
+                                     doc="handheld: Gaussian smoothing of the white jitter (band limit)")
+    wall_sway_m: float = setting(0.35, unit="m", ge=0, le=10, doc="wall scenes: lateral sway amplitude")
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, roll_rad: np.ndarray | float = 0.0) -> np.ndarray:

@@ -142,11 +142,14 @@ def register(app: typer.Typer) -> None:
             pair_feature_config,
             register_pair,
         )
-        from surfelslam.tracking.retime import RetimeConfig
+        from surfelslam.tracking.retime import RETIME_MODES, RetimeConfig
         from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
             raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
+        if retime_colour not in RETIME_MODES:
+            raise ConfigError(f"--retime-colour (colour re-timing) must be one of {', '.join(RETIME_MODES)}, "
+                              f"got {retime_colour!r}")
         if photometric not in PHOTOMETRIC_MODES:
             raise ConfigError(f"--photometric must be one of {', '.join(PHOTOMETRIC_MODES)}, got {photometric!r}")
         sq = open_sequence(seq, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))

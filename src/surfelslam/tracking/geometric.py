@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from surfelslam.errors import ConfigError
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import fpfh as kf
 from surfelslam.kernels.voxel import voxel_keys
@@ -39,51 +39,37 @@ N_ANGLES = 3  # the pair features binned: the normals' twist, and two cosines
 
 
 @dataclass(frozen=True)
-class GeometricGuessConfig:
-    """FPFH guess settings.
+class GeometricGuessConfig(Config):
+    """A pose guess from depth alone: FPFH descriptors on voxel-sampled clouds, mutual matches, rigid consensus."""
 
-    Attributes:
-        voxel_m: voxel size of the sampled clouds (m). 7-Scenes pairs 90 frames apart at 320x240 (an Open3D
-            prototype of these steps): ICP from the guess reaches the ICP-from-GT result on 10 of 12 pairs at 4 cm,
-            9 at 5 cm, 7 at 2 cm.
-        min_normal_agreement: a voxel whose mean unit normal is shorter than this (its pixels' normals disagree:
-            an edge or a corner) is dropped.
-        feature_radius_m: neighbours within this distance (m) enter a point's histogram (5 voxels). Memory and
-            time grow with ``(feature_radius_m / voxel_m)^2`` per point (every neighbour pair is held at once).
-        bins: bins per angle (3 angles: a ``3 * bins`` descriptor).
-        min_neighbours: points with fewer neighbours have no descriptor.
-        consensus_abs_tol_m, consensus_rel_tol: two matches are consistent when their 3D distances in the two
-            clouds differ by at most ``abs + rel * distance`` (voxel means move by up to a voxel between views).
-        consensus_seeds: the consistent set is grown from this many best-connected matches.
-        inlier_dist_m: after the consensus fit, the matches within this distance (m) are refitted.
-        refit_iterations: rounds of that refit.
-        min_inliers: fewer inliers: no guess.
-    """
+    voxel_m: float = setting(0.04, unit="m", ge=0.005, le=1, doc="voxel size of the sampled clouds")
+    min_normal_agreement: float = setting(0.7, ge=0, lt=1,
+                                          doc="a voxel whose mean unit normal is shorter than this (an edge or a "
+                                              "corner) is dropped")
+    feature_radius_m: float = setting(0.20, unit="m", gt=0, le=10,
+                                      doc="neighbours within this distance enter a point's histogram (time and memory "
+                                          "grow with (feature_radius_m / voxel_m)^2)")
+    bins: int = setting(11, ge=2, le=64, doc="bins per angle (a 3 * bins descriptor)")
+    min_neighbours: int = setting(8, unit="points", ge=1, le=10_000, doc="points with fewer neighbours have no "
+                                  "descriptor")
+    consensus_abs_tol_m: float = setting(0.04, unit="m", gt=0, le=10,
+                                         doc="two matches are consistent when their 3D distances in the two clouds "
+                                             "differ by at most abs + rel * distance")
+    consensus_rel_tol: float = setting(0.05, unit="fraction", ge=0, le=1, doc="the rel of that rule")
+    consensus_seeds: int = setting(10, ge=1, le=10_000, doc="the consistent set is grown from this many "
+                                   "best-connected matches")
+    inlier_dist_m: float = setting(0.06, unit="m", gt=0, le=10,
+                                   doc="after the consensus fit, the matches within this distance are refitted")
+    refit_iterations: int = setting(3, ge=0, le=1000, doc="rounds of that refit")
+    min_inliers: int = setting(10, unit="matches", ge=3, le=1_000_000, doc="fewer inliers: no guess")
 
-    voxel_m: float = 0.04
-    min_normal_agreement: float = 0.7
-    feature_radius_m: float = 0.20
-    bins: int = 11
-    min_neighbours: int = 8
-    consensus_abs_tol_m: float = 0.04
-    consensus_rel_tol: float = 0.05
-    consensus_seeds: int = 10
-    inlier_dist_m: float = 0.06
-    refit_iterations: int = 3
-    min_inliers: int = 10
-
-    def __post_init__(self) -> None:
-        for name in ("voxel_m", "feature_radius_m", "consensus_abs_tol_m", "inlier_dist_m"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"geometric guess: {name} must be > 0, got {getattr(self, name)}")
-        if not 0 <= self.min_normal_agreement < 1:
-            raise ConfigError(f"geometric guess: min_normal_agreement must be in [0, 1), got "
-                              f"{self.min_normal_agreement}")
-        if self.bins < 2 or self.min_neighbours < 1 or self.consensus_seeds < 1 or self.min_inliers < 3:
-            raise ConfigError("geometric guess: need bins >= 2, min_neighbours >= 1, consensus_seeds >= 1 and "
-                              "min_inliers >= 3")
-        if self.refit_iterations < 0 or self.consensus_rel_tol < 0:
-            raise ConfigError("geometric guess: refit_iterations and consensus_rel_tol must be >= 0")
+    @check
+    def _radius_in_voxels(self) -> str | None:
+        """feature_radius_m <= 20 voxel_m (every neighbour pair is held at once)."""
+        if self.feature_radius_m > 20 * self.voxel_m:
+            return (f"feature_radius_m ({fmt_value(self.feature_radius_m)}) must be <= 20 voxel_m "
+                    f"({fmt_value(20 * self.voxel_m)})")
+        return None
 
 
 @dataclass

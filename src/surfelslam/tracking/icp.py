@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.kernels import icp as kicp
@@ -28,120 +29,79 @@ SOLVERS = ("cholesky", "lu", "qr", "pinv")
 _MIN_INLIERS_PER_STEP = 6  # a 6-DoF step needs at least 6 constraints
 
 
-@dataclass
-class ICPConfig:
-    """Settings of :func:`icp`. Per-level tuples: index = pyramid level, 0 = finest.
+@dataclass(frozen=True)
+class ICPConfig(Config):
+    """Settings of :func:`icp`: coarse-to-fine point-to-plane ICP with optional photometric term.
 
-    Attributes:
-        levels: pyramid levels used (<= the pyramids' depth); 1 = full resolution only.
-        iterations: maximum Gauss-Newton iterations per level.
-        dist_thresh_m: association gate ``|p' - q|`` per level.
-        angle_thresh_deg: association gate on the angle between ``R n_p`` and ``n_q`` per level.
-        solver: ``cholesky | lu | qr | pinv`` (see :func:`solve`); ``cholesky`` runs in numba
-            (:func:`surfelslam.kernels.icp.gauss_newton_step`, tested equal to scipy's ``cho_solve``).
-        robust_kernel: ``none | huber | tukey``, applied to the point-to-plane residual.
-        robust_scale_m: Huber threshold / Tukey cut-off (m) at the coarser levels (level >= 1).
-        finest_robust_scale_m: the same at the finest level (m). It is smaller: once the coarse levels have
-            aligned the frames, residuals beyond a few mm are mostly depth noise and edge pixels.
-        depth_weight_ref_m: depth-dependent weighting at the finest level (0 = off). Kinect axial noise grows
-            with z^2, so each pair's residual is measured in units of ``s = (z / depth_weight_ref_m)^2``
-            (``z`` = depth of the transformed source point in the target camera): the robust weight is taken
-            of ``b / s`` (``finest_robust_scale_m`` holds at this depth) and the pair's weight is divided by
-            ``s^2`` (inverse noise variance). Coarse levels stay unweighted: down-weighting far points there
-            shrinks the basin of convergence for rotations.
-        min_update_norm: a level stops when the twist norm ``|xi|`` (rad + m) falls below this.
-        min_relative_residual_change: the finest level stops when the weighted mean squared residual changes
-            by less than this fraction between iterations.
-        coarse_min_relative_residual_change: the same rule at the coarser levels (they only need to bring
-            the estimate into the finest level's basin: a looser rule saves iterations there).
-        min_inliers: minimum inlier count at the finest level (coarser levels need ``min_inliers / 4^l``,
-            at least 6).
-        min_inlier_fraction: minimum inliers / valid source points at the finest level (below it the
-            result is reported as not converged; coarse levels only need the inlier count).
-        max_condition_number: the finest-level normal matrix (rotation columns scaled by the mean inlier
-            depth) with a larger eigenvalue ratio marks the problem degenerate.
-        weak_direction_ratio: degeneracy-aware update (solution remapping, Zhang, Kaess & Singh, ICRA 2016).
-            At every iteration, eigen-directions of the scaled normal matrix whose eigenvalue is smaller than
-            the largest one divided by this ratio are not updated: the estimate keeps the initial guess (the
-            constant-velocity prediction) along them. Point-to-plane ICP otherwise slides along such
-            directions (a wall with a parallel cabinet face constrains the translation along them only
-            through a few edge pixels, and small biases there move the estimate by centimetres per frame).
-            0 = off. Well-conditioned views have finest-level ratios of about 20-150; at 1000 only directions
-            constrained about 30x more weakly than that are frozen (measured: a synthetic walking loop lost
-            at frame 165 is tracked to 0.74 cm ATE, 7-Scenes unchanged; 100-400 froze too often and cost
-            accuracy on 7-Scenes).
-        max_translation_m, max_rotation_deg: a correction ``T T_init^-1`` larger than this is rejected
-            as implausible.
-        finest_source_stride_px: at the finest level only source pixels ``[::s, ::s]`` are associated
-            (the target keeps its full resolution); 1 uses every pixel.
-        photometric_weight: joint photometric term (:mod:`surfelslam.tracking.photometric`, used when the caller
-            passes one): an intensity residual of ``photometric_sigma`` costs as much as this many
-            point-to-plane pairs with a residual of the level's robust scale.
-        photometric_sigma: intensity noise, [0, 1] intensity scale (the residual unit).
-        photometric_huber: Huber threshold of the intensity residual, in units of ``photometric_sigma``.
-        photometric_brightness_offset: re-estimate a global brightness offset between the two views at every
-            iteration (auto-exposure).
+    Per-level tuples are indexed by pyramid level, 0 = finest.
     """
 
-    levels: int = 4
-    iterations: tuple[int, ...] = (10, 8, 10, 40)
-    dist_thresh_m: tuple[float, ...] = (0.1, 0.2, 0.4, 1.0)
-    angle_thresh_deg: tuple[float, ...] = (30.0, 45.0, 60.0, 90.0)
-    solver: str = "cholesky"
-    robust_kernel: str = "huber"
-    robust_scale_m: float = 0.02
-    min_update_norm: float = 2e-4
-    min_relative_residual_change: float = 3e-3
-    coarse_min_relative_residual_change: float = 3e-3
-    min_inliers: int = 500
-    min_inlier_fraction: float = 0.25
-    max_condition_number: float = 1e4
-    weak_direction_ratio: float = 1000.0
-    max_translation_m: float = 0.5
-    max_rotation_deg: float = 30.0
-    finest_source_stride_px: int = 2
-    finest_robust_scale_m: float = 0.005
-    depth_weight_ref_m: float = 1.5
-    photometric_weight: float = 0.1
-    photometric_sigma: float = 0.02
-    photometric_huber: float = 2.0
-    photometric_brightness_offset: bool = True
+    levels: int = setting(4, ge=1, le=10, doc="pyramid levels used (at most the pyramids' depth); 1 = full "
+                          "resolution only")
+    iterations: tuple[int, ...] = setting((10, 8, 10, 40), unit="iterations", ge=1, le=1000, min_len=1,
+                                          doc="maximum Gauss-Newton iterations per level")
+    dist_thresh_m: tuple[float, ...] = setting((0.1, 0.2, 0.4, 1.0), unit="m", gt=0, le=100, min_len=1,
+                                               doc="association gate on the point distance, per level")
+    angle_thresh_deg: tuple[float, ...] = setting((30.0, 45.0, 60.0, 90.0), unit="deg", gt=0, le=180, min_len=1,
+                                                  doc="association gate on the angle between the normals, per level")
+    solver: str = setting("cholesky", choices=SOLVERS, doc="linear solver of the normal equations (cholesky runs "
+                          "in numba)")
+    robust_kernel: str = setting("huber", choices=tuple(kicp.ROBUST_KINDS),
+                                 doc="m-estimator on the point-to-plane residual")
+    robust_scale_m: float = setting(0.02, unit="m", gt=0, le=10,
+                                    doc="Huber threshold / Tukey cut-off at the coarser levels (level >= 1)")
+    min_update_norm: float = setting(2e-4, unit="rad + m", ge=0, le=1,
+                                     doc="a level stops when the update's twist norm falls below this")
+    min_relative_residual_change: float = setting(
+        3e-3, unit="fraction", ge=0, le=1,
+        doc="the finest level stops when the mean squared residual changes by less than this fraction")
+    coarse_min_relative_residual_change: float = setting(
+        3e-3, unit="fraction", ge=0, le=1,
+        doc="the same rule at the coarser levels (they only need to reach the finest level's basin)")
+    min_inliers: int = setting(500, unit="pairs", ge=0, le=10_000_000,
+                               doc="inliers needed at the finest level (coarser levels: this / 4^level, at least 6)")
+    min_inlier_fraction: float = setting(0.25, unit="fraction", ge=0, le=1,
+                                         doc="inliers / valid source points needed at the finest level")
+    max_condition_number: float = setting(
+        1e4, ge=1, allow_inf=True,
+        doc="a finest-level normal matrix (rotation scaled by the mean depth) with a larger eigenvalue ratio marks "
+            "the problem degenerate; inf: never")
+    weak_direction_ratio: float = setting(
+        1000.0, ge=0, le=1e12,
+        doc="degeneracy-aware update: eigen-directions weaker than the strongest / this keep the predicted pose "
+            "(ICP would slide along them); 0 = off")
+    max_translation_m: float = setting(0.5, unit="m", gt=0, le=100,
+                                       doc="a correction of the initial pose larger than this is rejected")
+    max_rotation_deg: float = setting(30.0, unit="deg", gt=0, le=180,
+                                      doc="a correction of the initial pose larger than this is rejected")
+    finest_source_stride_px: int = setting(2, unit="px", ge=1, le=64,
+                                           doc="at the finest level only every s-th source pixel (both axes) is "
+                                               "associated; 1 = every pixel")
+    finest_robust_scale_m: float = setting(0.005, unit="m", gt=0, le=10,
+                                           doc="robust scale at the finest level (smaller: residuals beyond a few mm "
+                                               "there are mostly noise and edges)")
+    depth_weight_ref_m: float = setting(
+        1.5, unit="m", ge=0, le=100,
+        doc="finest level: residuals are measured in units of (z / this)^2 (axial noise grows with z^2); 0 = off")
+    photometric_weight: float = setting(
+        0.1, ge=0, le=1000,
+        doc="joint photometric term: an intensity residual of photometric_sigma costs this many point-to-plane "
+            "pairs at the level's robust scale")
+    photometric_sigma: float = setting(0.02, unit="intensity", gt=0, le=1,
+                                       doc="intensity noise on the [0, 1] scale (the residual unit)")
+    photometric_huber: float = setting(2.0, unit="sigmas", gt=0, le=100,
+                                       doc="Huber threshold of the intensity residual, in photometric_sigma")
+    photometric_brightness_offset: bool = setting(True, doc="re-estimate a global brightness offset between the "
+                                                  "two views at every iteration (auto-exposure)")
 
-    def __post_init__(self) -> None:
-        if self.levels < 1:
-            raise ConfigError(f"icp: levels must be >= 1, got {self.levels}")
+    @check
+    def _one_value_per_level(self) -> str | None:
+        """iterations, dist_thresh_m and angle_thresh_deg have at least levels values."""
         for name in ("iterations", "dist_thresh_m", "angle_thresh_deg"):
-            vals = tuple(getattr(self, name))
-            setattr(self, name, vals)
+            vals = getattr(self, name)
             if len(vals) < self.levels:
-                raise ConfigError(f"icp: {name} needs one value per level ({self.levels}), got {list(vals)}")
-        if any(i < 1 for i in self.iterations):
-            raise ConfigError(f"icp: iterations must be >= 1, got {list(self.iterations)}")
-        if any(not d > 0 for d in self.dist_thresh_m):
-            raise ConfigError(f"icp: dist_thresh_m must be > 0, got {list(self.dist_thresh_m)}")
-        if any(not 0 < a <= 180 for a in self.angle_thresh_deg):
-            raise ConfigError(f"icp: angle_thresh_deg must be in (0, 180], got {list(self.angle_thresh_deg)}")
-        if self.solver not in SOLVERS:
-            raise ConfigError(f"icp: solver must be one of {SOLVERS}, got {self.solver!r}")
-        if self.robust_kernel not in kicp.ROBUST_KINDS:
-            raise ConfigError(f"icp: robust_kernel must be one of {tuple(kicp.ROBUST_KINDS)}, "
-                              f"got {self.robust_kernel!r}")
-        for name in ("robust_scale_m", "finest_robust_scale_m"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"icp: {name} must be > 0, got {getattr(self, name)}")
-        if not self.depth_weight_ref_m >= 0:
-            raise ConfigError(f"icp: depth_weight_ref_m must be >= 0 (0 = off), got {self.depth_weight_ref_m}")
-        if self.finest_source_stride_px < 1:
-            raise ConfigError(f"icp: finest_source_stride_px must be >= 1, got {self.finest_source_stride_px}")
-        if not self.weak_direction_ratio >= 0:
-            raise ConfigError(f"icp: weak_direction_ratio must be >= 0 (0 = off), got {self.weak_direction_ratio}")
-        if not self.photometric_weight >= 0:
-            raise ConfigError(f"icp: photometric_weight must be >= 0, got {self.photometric_weight}")
-        for name in ("photometric_sigma", "photometric_huber"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"icp: {name} must be > 0, got {getattr(self, name)}")
-        if not 0 <= self.min_inlier_fraction <= 1:
-            raise ConfigError(f"icp: min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction}")
+                return f"{name} needs one value per level (levels = {self.levels}), got {fmt_value(vals)}"
+        return None
 
 
 def pairwise_config() -> ICPConfig:

@@ -21,55 +21,41 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.errors import ConfigError
 from surfelslam.kernels import preprocess as kp
 from surfelslam.types import Intrinsics
 
 
-@dataclass
-class PreprocessConfig:
-    """Depth preprocessing settings.
+@dataclass(frozen=True)
+class PreprocessConfig(Config):
+    """Depth preprocessing: valid depth range, bilateral filter, vertex/normal pyramid."""
 
-    Attributes:
-        min_depth_m, max_depth_m: depths outside this range are treated as invalid.
-        bilateral: smooth depth with an edge-preserving bilateral filter before back-projection.
-        bilateral_radius_px: half-size of the filter window (window ``2r+1`` square).
-        bilateral_sigma_px: spatial standard deviation of the filter (pixels).
-        bilateral_sigma_depth_m: range standard deviation; neighbours more than 3 sigma away in depth
-            get no weight.
-        pyramid_levels: number of levels (1 = full resolution only).
-        normal_max_depth_jump_m: a normal is invalid when a 4-neighbour's depth differs from the
-            pixel's by more than this at level 0; doubled at each coarser level (pixels twice as wide).
-        pyramid_max_depth_diff_m: 2x2 block averaging only merges points within this depth of a reference
-            point when building level 1; doubled at each coarser level. The reference is the block's first valid
-            pixel for raw depth (``first_level > 0``: unbiased under sensor noise, see
-            :func:`surfelslam.kernels.preprocess.downsample_depth`) and its nearest point for the bilateral-filtered
-            vertex maps of the coarser levels (the first-pixel reference there was tried: mixed, within 0.2 mm).
-    """
+    min_depth_m: float = setting(0.1, unit="m", ge=0, le=100, doc="nearer depths are invalid")
+    max_depth_m: float = setting(5.0, unit="m", gt=0, le=100, doc="farther depths are invalid")
+    bilateral: bool = setting(True, doc="smooth depth with an edge-preserving bilateral filter before "
+                              "back-projection")
+    bilateral_radius_px: int = setting(1, unit="px", ge=0, le=20,
+                                       doc="half-size of the filter window (a 2r+1 square)")
+    bilateral_sigma_px: float = setting(1.5, unit="px", gt=0, le=50, doc="spatial standard deviation of the filter")
+    bilateral_sigma_depth_m: float = setting(0.03, unit="m", gt=0, le=10,
+                                             doc="range standard deviation; neighbours more than 3 sigma away in "
+                                                 "depth get no weight")
+    pyramid_levels: int = setting(4, ge=1, le=12, doc="pyramid levels built (1 = full resolution only)")
+    normal_max_depth_jump_m: float = setting(
+        0.05, unit="m", gt=0, le=10,
+        doc="a normal is invalid where a 4-neighbour's depth differs by more than this (level 0; doubled per level)")
+    pyramid_max_depth_diff_m: float = setting(
+        0.05, unit="m", gt=0, le=10,
+        doc="2x2 block averaging only merges points within this depth of the block's reference point (level 1; "
+            "doubled per level)")
 
-    min_depth_m: float = 0.1
-    max_depth_m: float = 5.0
-    bilateral: bool = True
-    bilateral_radius_px: int = 1
-    bilateral_sigma_px: float = 1.5
-    bilateral_sigma_depth_m: float = 0.03
-    pyramid_levels: int = 4
-    normal_max_depth_jump_m: float = 0.05
-    pyramid_max_depth_diff_m: float = 0.05
-
-    def __post_init__(self) -> None:
-        if not (0 <= self.min_depth_m < self.max_depth_m):
-            raise ConfigError(
-                f"preprocess: need 0 <= min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}"
-            )
-        if self.pyramid_levels < 1:
-            raise ConfigError(f"preprocess: pyramid_levels must be >= 1, got {self.pyramid_levels}")
-        if self.bilateral_radius_px < 0:
-            raise ConfigError(f"preprocess: bilateral_radius_px must be >= 0, got {self.bilateral_radius_px}")
-        for name in ("bilateral_sigma_px", "bilateral_sigma_depth_m", "normal_max_depth_jump_m",
-                     "pyramid_max_depth_diff_m"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"preprocess: {name} must be > 0, got {getattr(self, name)}")
+    @check
+    def _depth_range(self) -> str | None:
+        """min_depth_m < max_depth_m."""
+        if not self.min_depth_m < self.max_depth_m:
+            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
+        return None
 
 
 @dataclass

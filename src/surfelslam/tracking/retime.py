@@ -28,48 +28,39 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.geometry.camera import backproject, pixel_grid, project
 from surfelslam.types import Intrinsics
 
+RETIME_MODES = ("auto", "off")
+
 
 @dataclass(frozen=True)
-class RetimeConfig:
-    """When colour is re-timed.
+class RetimeConfig(Config):
+    """When colour is re-timed to its depth image's time (a constant-velocity model over the offset)."""
 
-    Attributes:
-        mode: ``auto`` (where a frame's colour and depth stamps differ by at least ``min_offset_s``), ``off``.
-        min_offset_s: smaller colour - depth offsets are left alone (s). 1 ms: at 0.5 m/s, 0.5 mm of motion.
-        max_offset_s: larger offsets are not re-timed (s): the frames were paired across a gap, and a constant
-            velocity over it is no model. 0.05 s (TUM pairs colour and depth within 0.02 s).
-        max_velocity_lag_s: the velocity used must be measured within this of the middle of the colour - depth
-            interval (s): between two neighbour pairs it is interpolated (lag 0); one pair alone is used only
-            when the middle of its interval is this close. 0.015 s: at 30 Hz with colour 12 ms early, the previous
-            frame's pair (10.7 ms) is used, the next frame's (22.7 ms) is not: on a synthetic hand-held orbit it
-            gave 0.4 and 1.1 mm where the colour as taken gives 0.8 and both pairs 0.0.
-    """
+    mode: str = setting("auto", choices=RETIME_MODES,
+                        doc="auto: where a frame's colour and depth stamps differ by at least min_offset_s; off")
+    min_offset_s: float = setting(0.001, unit="s", ge=0, le=10, doc="smaller colour - depth offsets are left alone")
+    max_offset_s: float = setting(0.05, unit="s", ge=0, le=10,
+                                  doc="larger offsets are not re-timed (frames paired across a gap)")
+    max_velocity_lag_s: float = setting(0.015, unit="s", ge=0, le=10,
+                                        doc="the velocity used must be measured within this of the middle of the "
+                                            "colour - depth interval")
 
-    mode: str = "auto"
-    min_offset_s: float = 0.001
-    max_offset_s: float = 0.05
-    max_velocity_lag_s: float = 0.015
-
-    def __post_init__(self) -> None:
-        if self.mode not in RETIME_MODES:
-            raise ConfigError(f"colour re-timing mode must be one of {', '.join(RETIME_MODES)}, got {self.mode!r}")
-        if not self.max_velocity_lag_s >= 0:
-            raise ConfigError(f"colour re-timing: max_velocity_lag_s must be >= 0, got {self.max_velocity_lag_s}")
-        if not 0 <= self.min_offset_s <= self.max_offset_s:
-            raise ConfigError(f"colour re-timing: need 0 <= min_offset_s <= max_offset_s, got {self.min_offset_s}, "
-                              f"{self.max_offset_s}")
+    @check
+    def _offset_range(self) -> str | None:
+        """min_offset_s <= max_offset_s."""
+        if not self.min_offset_s <= self.max_offset_s:
+            return (f"min_offset_s ({fmt_value(self.min_offset_s)}) must be <= max_offset_s "
+                    f"({fmt_value(self.max_offset_s)})")
+        return None
 
     def applies(self, offset_s: float) -> bool:
         """Whether a frame whose colour stamp minus depth stamp is ``offset_s`` is re-timed."""
         return self.mode == "auto" and self.min_offset_s <= abs(offset_s) <= self.max_offset_s
-
-
-RETIME_MODES = ("auto", "off")
 
 
 @dataclass(frozen=True)
