@@ -15,11 +15,11 @@ from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config
 from surfelslam.tracking.features import (
     FeatureConfig,
-    _keypoint_depth,
     bucket_keypoints,
     estimate_motion,
     extract,
     feature_guess,
+    keypoint_depth,
     match,
     on_occluding_contour,
     refine_rgbd,
@@ -73,28 +73,28 @@ def test_plane_fit_depth_averages_noise_and_respects_edges() -> None:
     truth = 1.0 / (0.5 + 0.0004 * (uv[:, 0] - 160.0) - 0.0003 * (uv[:, 1] - 120.0))
     plane_cfg, median_cfg = FeatureConfig(), FeatureConfig(depth_plane_radius_px=0)
     # exact plane: the fit returns the depth at the sub-pixel keypoint (the 3x3 median is off by the slope)
-    np.testing.assert_allclose(_keypoint_depth(depth, uv, plane_cfg), truth, rtol=1e-6)  # float32 depth
+    np.testing.assert_allclose(keypoint_depth(depth, uv, plane_cfg), truth, rtol=1e-6)  # float32 depth
     # disparity-like noise and quantisation: several times closer to the truth than the 3x3 median
     noisy = 1.0 / (np.round((inv_true + rng.normal(0, 0.002, inv_true.shape)) / 0.004) * 0.004)
     noisy = noisy.astype(np.float32)
-    err_plane = np.sqrt(np.mean((_keypoint_depth(noisy, uv, plane_cfg) - truth) ** 2))
-    err_median = np.sqrt(np.mean((_keypoint_depth(noisy, uv, median_cfg) - truth) ** 2))
+    err_plane = np.sqrt(np.mean((keypoint_depth(noisy, uv, plane_cfg) - truth) ** 2))
+    err_median = np.sqrt(np.mean((keypoint_depth(noisy, uv, median_cfg) - truth) ** 2))
     assert err_plane < 0.4 * err_median, (err_plane, err_median)
     # a depth edge: foreground at 1 m on the left half; keypoints next to it keep their own side's depth
     step = np.where(uu < 160, 1.0, 2.0).astype(np.float32)
     near = np.array([[157.0, 100.0], [162.0, 100.0]], np.float32)
     no_edge_test = replace(plane_cfg, depth_edge_rel=0.0)
-    np.testing.assert_allclose(_keypoint_depth(step, near, no_edge_test), [1.0, 2.0], rtol=1e-9)
+    np.testing.assert_allclose(keypoint_depth(step, near, no_edge_test), [1.0, 2.0], rtol=1e-9)
     # by default keypoints within depth_edge_radius_px (3) of the edge sit on an occluding contour: no depth;
     # (pixels 157-162 by their nearest pixel), farther they keep it, and a 5 % step (below depth_edge_rel, 10 %)
     # is no contour
     band = np.array([[156.4, 100.0], [156.6, 100.0], [162.4, 100.0], [162.6, 100.0]], np.float32)
-    z = _keypoint_depth(step, band, plane_cfg)
+    z = keypoint_depth(step, band, plane_cfg)
     assert np.isnan(z[1:3]).all() and np.allclose(z[[0, 3]], [1.0, 2.0]), z
     assert on_occluding_contour(step, band, plane_cfg).tolist() == [False, True, True, False]
     assert not on_occluding_contour(step, band, no_edge_test).any()
     mild = np.where(uu < 160, 1.0, 1.05).astype(np.float32)
-    assert np.isfinite(_keypoint_depth(mild, near, plane_cfg)).all()
+    assert np.isfinite(keypoint_depth(mild, near, plane_cfg)).all()
 
 
 def test_invalid_depth_gives_nan_points() -> None:

@@ -117,12 +117,12 @@ def test_warped_windows_with_a_negative_focal_length() -> None:
 def test_a_point_whose_plane_passes_through_the_current_camera_is_not_tracked() -> None:
     """``R + t (0, 0, 1/z)`` is singular when the current camera lies on the point's fronto-parallel plane: that
     point is dropped, the others are tracked, and nothing raises."""
-    from surfelslam.tracking.features import _lk_warped
+    from surfelslam.tracking.features import lk_warped
 
     intr = default_intrinsics(160, 120)
     grey = np.clip(_texture(120, 160, 3), 0, 255).astype(np.uint8)
     T = make_T(np.eye(3), [0.0, 0.0, -1.0])  # the current camera 1 m ahead of the reference
     uv = np.array([[80.0, 60.0], [70.0, 50.0]])
     z = np.array([1.0, 3.0])  # the first point's plane holds the current camera
-    found, back, ok = _lk_warped(grey, grey, uv, uv, z, T, intr, 5)
+    found, back, ok = lk_warped(grey, grey, uv, uv, z, T, intr, 5)
     assert not ok[0] and np.all(np.isfinite(found))

@@ -155,13 +155,6 @@ class Preprocessor:
     def new_pyramid(self) -> FramePyramid:
         return FramePyramid.empty(self.intrinsics, self.cfg.pyramid_levels)
 
-    def filter_depth(self, depth_m: np.ndarray) -> np.ndarray:
-        """Range-clipped (and, if configured, bilateral-filtered) depth ``(H, W)`` float32.
-
-        Returns an internal buffer that the next call overwrites.
-        """
-        return self._filter(_check_depth(depth_m, self.intrinsics), 0)
-
     def _filter(self, depth_m: np.ndarray, level: int) -> np.ndarray:
         c = self.cfg
         out = self._filtered[level]

@@ -1,0 +1,166 @@
+"""The keyframes' pose graph of the sparse SLAM: odometry and verified loop edges, the optional graph of dense-refined
+edges and its trust gate, and the rigid move that joins a new segment to the older map."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from surfelslam.backend.dense_edges import DenseEdgeRefiner
+from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
+from surfelslam.backend.sparse_slam.results import LoopCheck
+from surfelslam.geometry.se3 import invert, orthonormalize
+from surfelslam.types import PoseArray
+
+
+class KeyframeGraph:
+    """Keyframe poses and the graph(s) that optimise them.
+
+    With an edge refiner a second graph holds the refined edges (the first the PnP ones); each optimisation checks the
+    refined edges' consistency there and takes its poses from the trusted graph.
+
+    Args:
+        cfg: pose-graph weights and solver (both graphs).
+        refiner: the dense check of keyframe edges, or ``None`` (one graph, of PnP edges).
+        refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
+    """
+
+    def __init__(self, cfg: PoseGraphConfig, refiner: DenseEdgeRefiner | None,
+                 refined_robust_scale: float | None) -> None:
+        self._refiner = refiner
+        self._refined_robust_scale = refined_robust_scale
+        self._graph = PoseGraph(cfg)
+        self._graph_refined = None if refiner is None else PoseGraph(cfg)
+        self._pose_buf = PoseArray()  # current estimates T_world_kf
+        self._odometry: list[np.ndarray] = []  # T_world_kf chained from odometry edges alone (never optimised)
+        self.refined_trusted = False  # until enough refined edges show they are consistent (DenseEdgeRefiner.trusted)
+        self.refined_residual_rad: float | None = None
+        self._open_bridges: list[int] = []  # first keyframes of segments no loop edge has joined to the old map
+        self.loops_found: list[tuple[int, int, int]] = []
+        self.loops_accepted: list[tuple[int, int, int]] = []
+        self.n_nearby_edges = 0
+        self.n_dense_refined = 0  # edges refined by the dense check
+        self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
+        self.n_depth_only_edges = 0  # nearby edges from depth alone where PnP could not verify (refined graph only)
+        self.n_segments_merged = 0  # segments moved onto the older map by a loop edge
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(K, 4, 4)`` current estimates ``T_world_kf`` (a view: writes go to the graph's pose store)."""
+        return self._pose_buf.poses
+
+    def __len__(self) -> int:
+        return len(self._pose_buf)
+
+    def add_node(self, T_world_kf: np.ndarray, prev_kf: int | None, T_prev_new: np.ndarray | None) -> int:
+        """Add a keyframe at ``T_world_kf`` ``(4, 4)``, reached from keyframe ``prev_kf`` by the odometry
+        ``T_prev_new`` (``None``: the first keyframe or a dense pose); returns its id. The edge is added separately
+        (:meth:`add_edge`)."""
+        kf_id = self._graph.add_node(T_world_kf)
+        if self._graph_refined is not None:
+            self._graph_refined.add_node(T_world_kf)
+        self._pose_buf.append(T_world_kf)
+        self._odometry.append(np.asarray(T_world_kf, np.float64).copy() if prev_kf is None or T_prev_new is None
+                             else self._odometry[prev_kf] @ T_prev_new)
+        return kf_id
+
+    def start_segment(self, kf_id: int) -> None:
+        """Keyframe ``kf_id`` starts a new segment (after a long loss): the first accepted edge from it or a later
+        keyframe to one before it moves the segment onto the older map (:meth:`merge_segment`)."""
+        self._open_bridges.append(kf_id)
+
+    def apply_loop_checks(self, kf_id: int, checked: list[LoopCheck], min_inliers: int) -> int:
+        """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older (non-nearby) keyframe or
+        joins the newest segment to the keyframes before it (which first moves the segment, :meth:`merge_segment`).
+
+        ``min_inliers``: PnP inliers of a far candidate to count as a loop found. Returns the loops accepted."""
+        n_loops = 0
+        # (inliers, edge) of the best accepted edge (nearby or not) from the newest segment to a keyframe before it
+        bridging: tuple[int, PoseEdge] | None = None
+        b = self._open_bridges[-1] if self._open_bridges else None
+        for check in checked:
+            cand, res, refined = check.candidate, check.result, check.refined_T_cur_ref
+            far = cand.source != "nearby"
+            if far and res.reason != "too_few_matches" and res.n_inliers >= min_inliers \
+                    and res.reason != "motion_too_large":
+                self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
+            if check.depth_only:
+                self.n_depth_only_edges += 1
+                self.add_edge(None, PoseEdge(cand.kf_id, kf_id, invert(refined), "loop",
+                                             robust_scale=self._refined_robust_scale))
+                continue
+            if not res.ok:
+                continue
+            # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
+            pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
+            if check.dense_rejected:  # in the PnP edges' graph only
+                self.n_dense_rejected += 1
+                added = self.add_edge(pnp, dense_rejected=True)
+            elif refined is not None:
+                self.n_dense_refined += 1
+                T_i_j = invert(refined)
+                if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
+                    odo = self._odometry
+                    self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
+                # weighed by the refined edges' sigma (isotropic), set when it enters their graph
+                added = self.add_edge(pnp, PoseEdge(pnp.i, pnp.j, T_i_j, "loop",
+                                                    robust_scale=self._refined_robust_scale))
+            else:
+                added = self.add_edge(pnp)
+            if added and far:
+                self.loops_accepted.append((cand.kf_id, kf_id, res.n_inliers))
+                n_loops += 1
+            elif added:
+                self.n_nearby_edges += 1
+            crosses = b is not None and cand.kf_id < b <= kf_id
+            if added and crosses and (bridging is None or res.n_inliers > bridging[0]):
+                bridging = (res.n_inliers, pnp)
+        if bridging is not None:
+            self.merge_segment(bridging[1].i, bridging[1].j, bridging[1].T_i_j)
+        if n_loops > 0 or bridging is not None:
+            self.optimise()
+        return n_loops
+
+    def optimise(self) -> None:
+        """Optimise, and take the poses from the refined edges' graph when it is trusted, else from the PnP one."""
+        if self._graph_refined is None:
+            self.poses[:] = self._graph.optimise()
+            return
+        poses = self._graph_refined.optimise()
+        self.refined_residual_rad = self._refiner.residual_spread(self._graph_refined.edges, poses)
+        self.refined_trusted = self._refiner.trusted(self.refined_residual_rad)
+        self.poses[:] = poses if self.refined_trusted else self._graph.optimise()
+
+    def add_edge(self, pnp: PoseEdge | None, refined: PoseEdge | None = None, dense_rejected: bool = False) -> bool:
+        """Add an edge: ``pnp`` (odometry or PnP-verified; ``None``: a depth-only edge, in the refined graph only)
+        and, with an edge refiner, its refined version (``None``: none, the same edge in both graphs) unless
+        ``dense_rejected`` (the dense check rejected it: in the PnP graph only). Returns whether the graph that is
+        trusted now got an edge."""
+        if pnp is not None:
+            self._graph.add_edge(pnp)
+        if self._graph_refined is None:
+            return True
+        if dense_rejected:
+            return not self.refined_trusted
+        if refined is None:
+            self._graph_refined.add_edge(pnp)
+            return True
+        self._graph_refined.add_edge(replace(refined, information=self._refiner.edge_sigma() ** -2))
+        return True
+
+    def merge_segment(self, i: int, j: int, T_i_j: np.ndarray) -> None:
+        """An edge ``i -> j`` from the newest segment (keyframe ``j``) to a keyframe ``i`` before it: move the
+        segment rigidly so that the edge holds (the graph's start; the optimisation does the rest)."""
+        if not self._open_bridges or not i < self._open_bridges[-1] <= j:
+            return
+        b = self._open_bridges.pop()
+        poses = self.poses
+        C = orthonormalize(poses[i] @ T_i_j @ invert(poses[j]))
+        for k in range(b, len(self)):
+            T = orthonormalize(C @ poses[k])
+            poses[k] = T
+            for g in (self._graph, self._graph_refined):
+                if g is not None:
+                    g.set_pose(k, T)
+        self.n_segments_merged += 1

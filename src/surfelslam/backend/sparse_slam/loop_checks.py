@@ -1,0 +1,115 @@
+"""Loop checks of the sparse SLAM: each new keyframe's loop candidates verified by PnP (and the dense check), inline
+or in a background thread, and the descriptor index that retrieves candidates (also for relocalisation)."""
+
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import numpy as np
+
+from surfelslam.backend.dense_edges import DenseEdgeRefiner
+from surfelslam.backend.keyframes import Keyframe
+from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
+from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
+from surfelslam.backend.sparse_slam.results import LoopCheck
+from surfelslam.geometry.se3 import invert
+from surfelslam.tracking.features import FeatureConfig, Features
+from surfelslam.types import Intrinsics
+
+
+class LoopChecker:
+    """Verifies the loop candidates of new keyframes and keeps the retrieval index.
+
+    Args:
+        intr: intrinsics of the keyframes.
+        features_cfg: ORB / matching / PnP settings.
+        loop_cfg: loop-candidate selection and verification.
+        refiner: the dense check of keyframe edges, or ``None``.
+        keyframes: the SLAM's keyframes (append-only; read here, never changed: a keyframe's features are fixed once
+            it is added).
+    """
+
+    def __init__(self, intr: Intrinsics, features_cfg: FeatureConfig, loop_cfg: LoopConfig,
+                 refiner: DenseEdgeRefiner | None, keyframes: list[Keyframe]) -> None:
+        self._intr = intr
+        self._features_cfg = features_cfg
+        self._loop_cfg = loop_cfg
+        self._refiner = refiner
+        self._kfs = keyframes
+        self._index = DescriptorIndex(loop_cfg.retrieval)
+        self._rng = np.random.default_rng(loop_cfg.seed)
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
+
+    def query_descriptors(self, feats: Features) -> np.ndarray:
+        """The descriptors of ``feats`` that enter the retrieval index and its queries."""
+        n_max = self._loop_cfg.retrieval.max_descriptors_per_keyframe
+        return select_descriptors(feats.descriptors, feats.response, feats.valid, n_max)
+
+    def add_to_index(self, feats: Features) -> None:
+        """Add a keyframe without loop checks (the first one) to the retrieval index."""
+        self._index.add(self.query_descriptors(feats))
+
+    def retrieve(self, feats: Features, n: int) -> list[int]:
+        """Ids of the (at most) ``n`` indexed keyframes that share the most descriptors with ``feats``. The index
+        holds every keyframe only once the pending checks are collected (:meth:`collect`)."""
+        return [k for k, _ in self._index.query(self.query_descriptors(feats), n)]
+
+    def _nearby_poses(self, kf_id: int, poses_world_kf: np.ndarray) -> dict[int, np.ndarray]:
+        """Copies of ``T_world_kf`` of keyframe ``kf_id`` and its nearby loop candidates (:func:`loop_candidates`)."""
+        return {k: poses_world_kf[k].copy() for k in range(max(0, kf_id - 1 - self._loop_cfg.n_nearby), kf_id + 1)}
+
+    def check(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray) -> tuple[int, list[LoopCheck]]:
+        """Verify keyframe ``kf_id``'s loop candidates now; ``poses_world_kf``: the keyframe poses ``(K, 4, 4)``."""
+        return self._check(kf_id, feats, self._nearby_poses(kf_id, poses_world_kf))
+
+    def submit(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray) -> None:
+        """:meth:`check` in the background thread; :meth:`collect` returns the result. The nearby poses are copied
+        here, on the caller's thread."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
+        self._pending = self._pool.submit(self._check, kf_id, feats, self._nearby_poses(kf_id, poses_world_kf))
+
+    def collect(self) -> tuple[int, list[LoopCheck]] | None:
+        """Wait for the background loop checks of the last keyframe, if any: ``(kf_id, checks)``, or ``None``."""
+        if self._pending is None:
+            return None
+        pending, self._pending = self._pending, None
+        return pending.result()
+
+    def shutdown(self) -> None:
+        """Stop the background thread (after :meth:`collect`)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def _check(self, kf_id: int, feats: Features, poses: dict[int, np.ndarray]) -> tuple[int, list[LoopCheck]]:
+        """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
+
+        ``poses``: the :meth:`_nearby_poses` of ``kf_id`` when it was added (the start of depth-only nearby edges).
+
+        Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
+        the only user of the index and the candidate generator between two :meth:`collect`.
+        Returns ``(kf_id, checks)``.
+        """
+        q = self.query_descriptors(feats)
+        checked = []
+        for cand in loop_candidates(kf_id, q, self._index, self._rng, self._loop_cfg):
+            res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg)
+            refined = None
+            if res.ok and self._refiner is not None:
+                inl = res.pairs[res.inlier_mask]
+                uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
+                refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
+                                               self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
+            elif (not res.ok and cand.source == "nearby" and self._refiner is not None
+                  and self._refiner.cfg.depth_only_nearby
+                  and res.n_good < self._refiner.cfg.depth_only_max_matches):
+                # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
+                refined = self._refiner.refine(cand.kf_id, kf_id, invert(poses[kf_id]) @ poses[cand.kf_id])
+                if refined is not None:
+                    checked.append(LoopCheck(cand, res, refined, depth_only=True))
+                continue
+            checked.append(LoopCheck(cand, res, refined, res.ok and self._refiner is not None and refined is None))
+        self._index.add(q)
+        return kf_id, checked

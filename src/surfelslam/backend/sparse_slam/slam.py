@@ -1,0 +1,469 @@
+"""The sparse SLAM itself (:class:`SparseSlam`): per-frame ORB/PnP tracking against the reference keyframe, keyframe
+decisions, relocalisation and re-initialisation (see :mod:`surfelslam.backend.sparse_slam`)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from surfelslam.backend.dense_edges import DenseEdgeRefiner
+from surfelslam.backend.keyframes import Keyframe, keyframe_cloud
+from surfelslam.backend.loops import verify_edge
+from surfelslam.backend.pose_graph import PoseEdge
+from surfelslam.backend.sparse_slam.config import DepthOdometryConfig, SparseSlamConfig, features_for_width
+from surfelslam.backend.sparse_slam.depth_odometry import register_depth
+from surfelslam.backend.sparse_slam.graph import KeyframeGraph
+from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
+from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, SparseFrameResult, SparseSlamResult
+from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
+from surfelslam.kernels.voxel import voxel_filter
+from surfelslam.tracking.features import Features, MotionResult, estimate_motion, extract
+from surfelslam.tracking.preprocess import FramePyramid
+from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+
+
+class SparseSlam:
+    """Frame-by-frame sparse SLAM (see the package docstring, :mod:`surfelslam.backend.sparse_slam`).
+
+    Args:
+        intr: intrinsics of the frames that will be processed (``fy`` may be negative).
+        cfg: settings.
+        T_world_first: pose of the first frame (default identity).
+        edge_refiner: optional dense check of keyframe edges (:mod:`~surfelslam.backend.dense_edges`): every
+            PnP-verified edge (nearby or loop) is refined by ICP between the keyframes' depth maps, or dropped when
+            that fails. While the refined edges are not consistent enough to be trusted, the poses come from the PnP
+            edges' graph.
+        refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
+        cloud_rgb: the colour of each depth pixel of a frame for the keyframe clouds, ``(H, W, 3)`` uint8 (``None``:
+            ``frame.rgb``; e.g. colour sampled through a separate colour camera).
+        refine_edges: use ``edge_refiner`` for the keyframe edges (False: it only serves the depth odometry).
+        depth_odometry: register frames to the reference keyframe by ICP too (package docstring; needs
+            ``edge_refiner``, which keeps the keyframes' depth); ``None`` or disabled: PnP alone.
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
+                 T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None,
+                 refined_robust_scale: float | None = None,
+                 cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None, refine_edges: bool = True,
+                 depth_odometry: DepthOdometryConfig | None = None) -> None:
+        self.intr = intr
+        self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
+        # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement only
+        self._coarse_features = replace(self.cfg.features, projection_search=False, rgbd_refine_iterations=0)
+        self._depth_cfg = depth_odometry if depth_odometry is not None and depth_odometry.enabled else None
+        if self._depth_cfg is not None and edge_refiner is None:
+            raise ValueError("depth odometry needs an edge_refiner (the keyframes' depth store)")
+        self._store = edge_refiner  # keyframe depth (edge refinement and depth odometry)
+        self._refiner = edge_refiner if refine_edges else None
+        # frames whose PnP pose ICP refined / that ICP tracked from the prediction (of them: PnP rejected) / where
+        # ICP failed (the PnP pose or the rejection stands)
+        self.depth_counts = {"refined": 0, "from_prediction": 0, "rescued": 0, "icp_failed": 0}
+        self._cloud_rgb = cloud_rgb
+        self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
+        self._kfs: list[Keyframe] = []
+        self._graph = KeyframeGraph(self.cfg.graph, self._refiner, refined_robust_scale)
+        self._loops = LoopChecker(intr, self.cfg.features, self.cfg.loop, self._refiner, self._kfs)
+        self._ref_kf = -1
+        # per processed frame: timestamp, reference keyframe, pose relative to it
+        self._timestamps: list[float] = []
+        self._frame_kf: list[int] = []
+        self._T_kf_cam: list[np.ndarray] = []
+        self._velocity = np.eye(4)  # T_prev_last: last inter-frame motion (camera frame)
+        self._n_failures = 0
+        self.rejected: Counter[str] = Counter()
+        self._unreported_loops = 0  # loops applied since the last frame result
+        self.n_reinitialisations = 0  # segments started after a long loss
+        self._lost: list[tuple[int, Features]] = []  # (frame slot, features) of the lost frames in a row
+        self.n_lost_placed = 0  # lost frames placed afterwards against the keyframe of a new segment
+
+    # --- state -------------------------------------------------------------------------------------
+
+    @property
+    def dense_edge_sigma_m(self) -> float | None:
+        """Sigma (m and rad) that new dense-refined edges get now; ``None`` without an edge refiner."""
+        return None if self._refiner is None else self._refiner.edge_sigma()
+
+    @property
+    def dense_edge_spread_m(self) -> float | None:
+        """Robust spread (m and rad) of the dense-refined nearby edges against the odometry (``None`` without an
+        edge refiner or before enough edges)."""
+        return None if self._refiner is None else self._refiner.spread()
+
+    @property
+    def dense_edges_trusted(self) -> bool | None:
+        """Whether the poses come from the graph of dense-refined edges (else from the PnP edges' graph);
+        ``None`` without an edge refiner."""
+        return None if self._refiner is None else self._graph.refined_trusted
+
+    @property
+    def dense_edge_residual_rad(self) -> float | None:
+        """Robust spread (rad) of the refined edges' rotation residuals at the last optimisation of their graph
+        (``None`` without an edge refiner or before one)."""
+        return self._graph.refined_residual_rad
+
+    # edge counts (:class:`KeyframeGraph`)
+
+    @property
+    def loops_found(self) -> list[tuple[int, int, int]]:
+        """``[(kf_old, kf_new, n_inliers)]`` older-keyframe candidates whose PnP succeeded."""
+        return self._graph.loops_found
+
+    @property
+    def loops_accepted(self) -> list[tuple[int, int, int]]:
+        """The subset of :attr:`loops_found` that became graph edges."""
+        return self._graph.loops_accepted
+
+    @property
+    def n_nearby_edges(self) -> int:
+        """Accepted edges to nearby keyframes."""
+        return self._graph.n_nearby_edges
+
+    @property
+    def n_dense_refined(self) -> int:
+        """Edges refined by the dense check."""
+        return self._graph.n_dense_refined
+
+    @property
+    def n_dense_rejected(self) -> int:
+        """PnP-verified edges the dense check dropped."""
+        return self._graph.n_dense_rejected
+
+    @property
+    def n_depth_only_edges(self) -> int:
+        """Nearby edges from depth alone where PnP could not verify (refined graph only)."""
+        return self._graph.n_depth_only_edges
+
+    @property
+    def n_segments_merged(self) -> int:
+        """Segments started after a long loss (:attr:`n_reinitialisations`) moved onto the older map by a loop edge."""
+        return self._graph.n_segments_merged
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._kfs)
+
+    @property
+    def _kf_poses(self) -> np.ndarray:
+        return self._graph.poses
+
+    def keyframe_poses(self) -> np.ndarray:
+        """Current (optimised) keyframe poses ``T_world_kf`` ``(K, 4, 4)``; ids = keyframe ids."""
+        return self._kf_poses.copy()
+
+    def keyframe_frame_indices(self) -> np.ndarray:
+        """``(K,)`` frame index of each keyframe."""
+        return np.array([k.frame_index for k in self._kfs], dtype=np.int64)
+
+    def _last_pose(self) -> np.ndarray:
+        return self._kf_poses[self._frame_kf[-1]] @ self._T_kf_cam[-1]
+
+    def _predict(self) -> np.ndarray:
+        """Constant-velocity prediction of the next ``T_world_cam``."""
+        return orthonormalize(self._last_pose() @ self._velocity)
+
+    # --- processing ----------------------------------------------------------------------------------
+
+    def features(self, frame: RGBDFrame) -> Features:
+        """ORB features of ``frame`` with this SLAM's settings (thread-safe: no state is touched).
+
+        Pass them as ``feats`` to :meth:`process`, :meth:`relocalise` or
+        :meth:`pose_guess_against_last_keyframe` so a frame is extracted once (possibly ahead, in another thread).
+        """
+        return extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
+
+    @property
+    def uses_depth(self) -> bool:
+        """Whether frames are registered by ICP too (depth odometry), i.e. :meth:`process` uses a
+        :meth:`depth_pyramid`."""
+        return self._depth_cfg is not None
+
+    def depth_pyramid(self, frame: RGBDFrame) -> FramePyramid | None:
+        """The frame's depth pyramid for the depth odometry (thread-safe; ``None`` without depth odometry).
+
+        Pass it as ``depth_pyramid`` to :meth:`process` so it can be built ahead, in another thread."""
+        return None if self._depth_cfg is None else self._store.frame_pyramid(frame.depth_m)
+
+    def process(self, frame: RGBDFrame, T_world_cam_dense: np.ndarray | None = None,
+                feats: Features | None = None, depth_pyramid: FramePyramid | None = None) -> SparseFrameResult:
+        """Track one frame; may add a keyframe, loop edges and re-optimise the graph.
+
+        Args:
+            frame: the next frame (any resolution matching ``intr``).
+            T_world_cam_dense: optional pose from another tracker (hybrid mode). When given it is the
+                frame's pose and the odometry measurement of a new keyframe, and no PnP runs here (the
+                keyframe decision uses that pose; the hybrid tracker does its own PnP check).
+            feats: the frame's :meth:`features`, when already extracted.
+            depth_pyramid: the frame's :meth:`depth_pyramid`, when already built.
+        """
+        feats = self.features(frame) if feats is None else feats
+        if not self._kfs:
+            T0 = self._T_world_first if T_world_cam_dense is None else np.asarray(T_world_cam_dense, np.float64)
+            self._add_keyframe(frame, feats, T0, None, None)
+            self._record(frame.timestamp, 0, np.eye(4), None)
+            return SparseFrameResult(T0.copy(), True, True, None, 0, 0)
+
+        T_pred = self._predict()
+        T_world_kf = self._kf_poses[self._ref_kf]
+        ref = self._kfs[self._ref_kf]
+        relocalised = False
+        res = None
+        information = None  # of the measurement behind a new keyframe's edge (None: a dense pose, isotropic)
+        if T_world_cam_dense is None:
+            T_pred_cur_ref = invert(T_pred) @ T_world_kf
+            res = estimate_motion(ref.features, feats, self.intr, self.cfg.features, T_init_cur_ref=T_pred_cur_ref)
+            if self._depth_cfg is not None:
+                pyr = self.depth_pyramid(frame) if depth_pyramid is None else depth_pyramid
+                res = self._with_depth(res, T_pred_cur_ref, pyr)
+        if T_world_cam_dense is not None:
+            T_world_cam = np.asarray(T_world_cam_dense, np.float64)
+            T_kf_cam = invert(T_world_kf) @ T_world_cam
+            ok = True
+        elif res.ok:
+            T_kf_cam = invert(res.T_cur_ref)
+            T_world_cam = T_world_kf @ T_kf_cam
+            ok = True
+            information = res.information
+        else:
+            ok = False
+            self.rejected[res.reason or "pnp_failed"] += 1
+            self._n_failures += 1
+            reloc = None
+            if self._n_failures >= self.cfg.relocalise_after_failures:
+                reloc = self._relocalise_features(feats)
+            if reloc is None and self._may_reinitialise(feats):
+                return self._reinitialise(frame, feats, res)
+            if reloc is None:
+                extrapolate = (self.cfg.rejected_pose == "constant_velocity"
+                               and self._n_failures <= self.cfg.velocity_reset_after_failures)
+                T_world_cam = T_pred if extrapolate else self._last_pose()
+                if self.cfg.reinit_after_failures > 0:  # a new segment may place it later (_reinitialise)
+                    self._lost.append((len(self._timestamps), feats))
+                    del self._lost[: max(0, len(self._lost) - self.cfg.reinit_after_failures)]  # the last ones
+                self._record(frame.timestamp, self._ref_kf, invert(T_world_kf) @ T_world_cam, T_world_cam)
+                return SparseFrameResult(T_world_cam.copy(), False, False, res.reason, res.n_inliers, 0)
+            # Relocalised: the keyframe rule below applies as to a tracked frame. From the keyframe it was found
+            # against, the next frames are as far as this one (up to relocalise_max_norm), beyond the odometry's
+            # motion bound, so without a keyframe here every one of them was rejected and relocalised again.
+            T_world_cam, self._ref_kf, reloc_res = reloc
+            relocalised = True
+            T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+            information = reloc_res.information
+
+        self._n_failures = 0
+        self._lost = []
+        is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
+        if is_kf:
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
+            T_world_cam = self._kf_poses[-1]
+            self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
+        else:
+            self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+        if relocalised:
+            self._velocity = np.eye(4)  # the motion across the loss is unknown
+            return SparseFrameResult(T_world_cam.copy(), is_kf, False, res.reason, res.n_inliers, 0, True)
+        loops_added, self._unreported_loops = self._unreported_loops, 0
+        return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
+                                 loops_added)
+
+    def _with_depth(self, res: MotionResult, T_pred_cur_ref: np.ndarray, source: FramePyramid) -> MotionResult:
+        """``res`` (PnP against the reference keyframe) with its pose registered by ICP of the frame's depth
+        ``source`` to the keyframe's (:func:`.depth_odometry.register_depth`); ``res`` itself when ICP fails."""
+        out, outcome = register_depth(res, T_pred_cur_ref, source, self._store, self._ref_kf,
+                                      self._kfs[self._ref_kf].features, self._depth_cfg,
+                                      self.cfg.features.max_motion_norm)
+        self.depth_counts[outcome] += 1
+        if outcome == "from_prediction":
+            self.depth_counts["rescued"] += int(not res.ok)
+        return out
+
+    def _may_reinitialise(self, feats: Features) -> bool:
+        n = self.cfg.reinit_after_failures
+        return n > 0 and self._n_failures >= n and np.count_nonzero(feats.valid) >= self.cfg.reinit_min_keypoints
+
+    def _reinitialise(self, frame: RGBDFrame, feats: Features, res: MotionResult) -> SparseFrameResult:
+        """Start a new segment at this (lost) frame: a keyframe at the last pose, joined to the reference keyframe
+        by a weak edge (``reinit_sigma_*``); tracking goes on against it, and the frames lost just before it that
+        PnP places against it join it."""
+        T_world_cam = self._last_pose()
+        T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+        # information in gtsam's tangent order (rotation, translation)
+        info = np.diag([self.cfg.reinit_sigma_rad ** -2] * 3 + [self.cfg.reinit_sigma_m ** -2] * 3)
+        self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, info)
+        kf = self.n_keyframes - 1
+        self._graph.start_segment(kf)
+        self.n_reinitialisations += 1
+        self._n_failures = 0
+        # the frames lost just before are mostly close to this one: placed by PnP against it, they join the segment
+        for slot, lost in self._lost:
+            r = estimate_motion(self._kfs[kf].features, lost, self.intr, self.cfg.features)
+            if r.ok:
+                self._frame_kf[slot], self._T_kf_cam[slot] = kf, invert(r.T_cur_ref)
+                self.n_lost_placed += 1
+        self._lost = []
+        T_world_cam = self._kf_poses[-1]
+        self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
+        self._velocity = np.eye(4)  # the motion across the loss is unknown
+        return SparseFrameResult(T_world_cam.copy(), True, False, res.reason, res.n_inliers, 0)
+
+    def _record(self, timestamp: float, kf: int, T_kf_cam: np.ndarray, T_world_cam: np.ndarray | None) -> None:
+        if T_world_cam is not None and self._timestamps:
+            self._velocity = invert(self._last_pose()) @ T_world_cam
+        self._timestamps.append(float(timestamp))
+        self._frame_kf.append(kf)
+        self._T_kf_cam.append(np.asarray(T_kf_cam, np.float64).copy())
+
+    def _add_keyframe(self, frame: RGBDFrame, feats: Features, T_world_cam: np.ndarray,
+                      prev_kf: int | None, T_prev_new: np.ndarray | None,
+                      information: np.ndarray | None = None) -> None:
+        """Add a keyframe and its odometry edge, and start its loop checks (the previous keyframe's are applied
+        first: they may move ``prev_kf``, and the new keyframe is placed by its odometry from there).
+
+        ``information``: ``(6, 6)`` of the odometry measurement (the PnP's, see ``MotionResult.information``), or
+        ``None`` (a dense pose: isotropic weight)."""
+        if prev_kf is not None:
+            T_prev_before = self._kf_poses[prev_kf].copy()
+        self._collect_loop_checks()
+        if prev_kf is not None and not np.array_equal(self._kf_poses[prev_kf], T_prev_before):
+            # the graph moved the previous keyframe: keep the new one's pose relative to it
+            T_world_cam = orthonormalize(self._kf_poses[prev_kf] @ invert(T_prev_before) @ T_world_cam)
+        kf_id = self._graph.add_node(T_world_cam, prev_kf, T_prev_new)
+        if self._store is not None:
+            self._store.add_keyframe(kf_id, frame.depth_m)
+        xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map,
+                                  None if self._cloud_rgb is None else self._cloud_rgb(frame))
+        # a keyframe is only ever the reference side of a pair: it keeps its grey image (sub-pixel tracking)
+        # but not the depth image (only the current side's depth is used)
+        self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
+        self._ref_kf = kf_id
+        if prev_kf is not None and T_prev_new is not None:
+            self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry", information_matrix=information))
+        if prev_kf is None:
+            self._loops.add_to_index(feats)
+            return
+        if self.cfg.background_loop_checks:
+            self._loops.submit(kf_id, feats, self._kf_poses)
+        else:
+            self._apply_loop_checks(*self._loops.check(kf_id, feats, self._kf_poses))
+
+    def _apply_loop_checks(self, kf_id: int, checked: list[LoopCheck]) -> None:
+        """Add the verified edges of keyframe ``kf_id`` to the graph (:meth:`KeyframeGraph.apply_loop_checks`)."""
+        self._unreported_loops += self._graph.apply_loop_checks(kf_id, checked, self.cfg.features.min_inliers)
+
+    def _collect_loop_checks(self) -> None:
+        """Wait for the background loop checks of the last keyframe, if any, and apply them."""
+        done = self._loops.collect()
+        if done is not None:
+            self._apply_loop_checks(*done)
+
+    # --- queries for the dense pipeline ---------------------------------------------------------------
+
+    def _relocalise_features(self, feats: Features) -> tuple[np.ndarray, int, MotionResult] | None:
+        self._collect_loop_checks()  # the retrieval index must hold every keyframe
+        cands = self._loops.retrieve(feats, self.cfg.loop.n_retrieved)
+        last = self.n_keyframes - 1
+        if last >= 0 and last not in cands:
+            cands.append(last)
+        loop_cfg = replace(self.cfg.loop, max_norm_loop=self.cfg.relocalise_max_norm)
+        best: tuple[np.ndarray, int, MotionResult] | None = None
+        for k in cands:
+            res = verify_edge(self._kfs[k].features, feats, self.intr, self.cfg.features, loop_cfg)
+            if res.ok and (best is None or res.n_inliers > best[2].n_inliers):
+                best = (self._kf_poses[k] @ invert(res.T_cur_ref), k, res)
+        return best
+
+    def relocalise(self, frame: RGBDFrame, feats: Features | None = None) -> tuple[np.ndarray, int] | None:
+        """Pose of ``frame`` found by retrieval over all keyframes + PnP verification.
+
+        Returns:
+            ``(T_world_cam (4, 4), kf_id)`` of the best-verified keyframe, or ``None``. State is unchanged.
+        """
+        feats = self.features(frame) if feats is None else feats
+        best = self._relocalise_features(feats)
+        return None if best is None else (best[0], best[1])
+
+    def pose_guess_against_last_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
+                                         feats: Features | None = None) -> np.ndarray | None:
+        """PnP pose ``T_world_cam`` of ``frame`` against the reference keyframe (an ICP initial guess).
+
+        Args:
+            T_world_cam_pred: optional prediction used as PnP initial guess.
+
+        Returns:
+            ``(4, 4)`` or ``None`` when a rejection rule fired. State is unchanged.
+        """
+        m = self.match_reference_keyframe(frame, T_world_cam_pred, feats)
+        return None if m is None else m.T_world_cam
+
+    def match_reference_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
+                                 feats: Features | None = None, coarse: bool = False) -> KeyframeMatch | None:
+        """PnP pose of ``frame`` against the reference keyframe, with the inlier correspondences.
+
+        ``coarse``: PnP-RANSAC and its inlier refinement only, without search by projection and the joint RGB-D
+        refinement (:func:`~surfelslam.tracking.features.estimate_motion`; same rejection rules): enough for a
+        sanity check or an ICP start, at a third to half the cost.
+
+        Returns:
+            :class:`KeyframeMatch` (poses and points in the graph's world frame), or ``None`` when there is no
+            keyframe yet or a rejection rule fired. State is unchanged.
+        """
+        if not self._kfs:
+            return None
+        feats = self.features(frame) if feats is None else feats
+        kf = self._ref_kf
+        T_world_kf = self._kf_poses[kf]
+        init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
+        ref = self._kfs[kf].features
+        fcfg = self._coarse_features if coarse else self.cfg.features
+        res = estimate_motion(ref, feats, self.intr, fcfg, init)
+        if not res.ok or res.uv_cur is None:
+            return None
+        inl = res.inlier_mask
+        pts_kf = ref.points_cam[res.pairs[inl, 0]].astype(np.float64)
+        return KeyframeMatch(T_world_kf @ invert(res.T_cur_ref), kf, transform_points(T_world_kf, pts_kf),
+                             res.uv_cur[inl].astype(np.float64))
+
+    # --- results -------------------------------------------------------------------------------------
+
+    def trajectory(self) -> Trajectory:
+        """Current estimate of every processed frame's pose."""
+        kf = np.asarray(self._frame_kf, dtype=np.int64)
+        T = self._kf_poses[kf] @ np.asarray(self._T_kf_cam).reshape(-1, 4, 4)
+        return Trajectory(np.asarray(self._timestamps), T)
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe clouds in the world frame, joined and voxel-filtered: ``(xyz (M, 3) f32, rgb (M, 3) u8)``."""
+        if not self._kfs:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+        n = sum(len(k.cloud_xyz_cam) for k in self._kfs)
+        xyz = np.empty((n, 3), np.float32)
+        rgb = np.empty((n, 3), np.uint8)
+        i = 0
+        for k, T in zip(self._kfs, self._kf_poses, strict=True):
+            m = len(k.cloud_xyz_cam)
+            xyz[i : i + m] = transform_points(T, k.cloud_xyz_cam.astype(np.float64))
+            rgb[i : i + m] = k.cloud_rgb
+            i += m
+        out_xyz, out_rgb, _ = voxel_filter(xyz, rgb, self.cfg.map.voxel_size_m)
+        return out_xyz, out_rgb
+
+    def finish(self) -> SparseSlamResult:
+        """Optimise the graph once more and return trajectory, keyframes, loops and the map."""
+        self._collect_loop_checks()
+        self._loops.shutdown()
+        if self.n_keyframes > 1:
+            self._graph.optimise()
+        xyz, rgb = self.map_points()
+        return SparseSlamResult(
+            trajectory=self.trajectory(),
+            keyframe_indices=self.keyframe_frame_indices(),
+            keyframe_poses=self.keyframe_poses(),
+            loops_found=list(self.loops_found),
+            loops_accepted=list(self.loops_accepted),
+            n_nearby_edges=self.n_nearby_edges,
+            rejected=dict(self.rejected),
+            map_xyz=xyz,
+            map_rgb=rgb,
+        )
