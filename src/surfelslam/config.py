@@ -314,8 +314,8 @@ def _build(cls: type[C], data: dict[str, Any], where: str, base: C | None) -> C:
         kwargs[key] = _coerce(val, hints[key], sub, None if base is None else getattr(base, key))
     try:
         return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
-    except ConfigError:
-        raise
+    except ConfigError as exc:  # raised by the class's own __post_init__ (one not derived from Config)
+        raise ConfigError(f"config: [{where or cls.__name__}] {exc}") from exc
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"config: [{where or cls.__name__}] {exc}") from exc
 
@@ -407,6 +407,29 @@ def _md(text: str) -> str:
     return " ".join(text.split()).replace("|", "\\|")
 
 
+def _summary(doc: str | None) -> str:
+    """A class docstring up to its ``Attributes:`` section."""
+    return (doc or "").split("Attributes:")[0].strip()
+
+
+def _attribute_docs(doc: str | None) -> dict[str, str]:
+    """``name -> text`` of a Google-style ``Attributes:`` section (the fallback meaning of a field declared without
+    :func:`setting`)."""
+    out: dict[str, str] = {}
+    if not doc or "Attributes:" not in doc:
+        return out
+    name = None
+    for line in doc.split("Attributes:", 1)[1].splitlines():
+        stripped = line.strip()
+        head, sep, rest = stripped.partition(": ")
+        if sep and head.isidentifier() and len(line) - len(line.lstrip()) <= 8:
+            name = head
+            out[name] = rest
+        elif name and stripped:
+            out[name] += " " + stripped
+    return out
+
+
 def _type_name(tp: Any) -> str:
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
@@ -440,6 +463,7 @@ def reference_markdown(cls: type) -> str:
     for path, cfg in iter_tables(root):
         klass = type(cfg)
         hints = _hints(klass)
+        attr_docs = _attribute_docs(klass.__doc__)
         rows = []
         for f in dataclasses.fields(cfg):
             v = getattr(cfg, f.name)
@@ -454,13 +478,13 @@ def reference_markdown(cls: type) -> str:
                 extra.append("inf allowed")
             bounds = "; ".join(x for x in [bounds, *extra] if x)
             rows.append(f"| `{f.name}` | {_default_text(v)} | {b.unit or ''} | {_md(bounds)} | "
-                        f"{_md(b.doc) or '(' + _type_name(hints[f.name]) + ')'} |")
+                        f"{_md(b.doc or attr_docs.get(f.name, '')) or '(' + _type_name(hints[f.name]) + ')'} |")
         subs = [f"`[{_join(path, f.name)}]`" for f in dataclasses.fields(cfg)
                 if dataclasses.is_dataclass(getattr(cfg, f.name))]
         out.append(f"## `[{path}]`" if path else f"## {klass.__name__} (the file's top level)")
         out.append("")
-        doc = (klass.__doc__ or "").strip()
-        if doc and not doc.startswith(klass.__name__ + "("):
+        doc = _summary(klass.__doc__)
+        if doc and not doc.startswith(klass.__name__ + "("):  # not dataclass's generated signature
             out += [_md(doc), ""]
         if rows:
             out += ["| key | default | unit | bounds | meaning |", "|---|---|---|---|---|", *rows, ""]
