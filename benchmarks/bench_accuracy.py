@@ -5,7 +5,7 @@
 * Synthetic sequences (room scene, Kinect-like noise, written to a temporary folder in TUM layout and read back
   through the dataset reader like real data): ``slow`` (orbit across the room), ``walking loop`` (one lap round
   the room), ``fast`` (the ``slow`` path at 3x speed: a third of the frames over the same path).
-* Every run goes through :func:`surfelslam.tools.run.run_sequence` (what ``surfelslam run`` does: background
+* Every run goes through :func:`surfelslam.slam.runner.run_sequence` (what ``surfelslam run`` does: background
   reading, warm-up excluded from FPS, ``metrics.json`` with the per-stage breakdown, ATE/RPE against the ground
   truth); the row is built from the ``metrics.json`` written by the run.
 * Open3D side by side (:mod:`open3d_slam`): the first ``n`` frames of a sequence through Open3D's
@@ -20,9 +20,9 @@ from pathlib import Path
 
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.errors import SurfelSlamError
-from surfelslam.pipeline import SlamConfig
+from surfelslam.slam import SlamConfig
+from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
-from surfelslam.tools.run import run_sequence
 
 SYNTH_SCENE = "room"
 SYNTH_NOISE = "kinect"

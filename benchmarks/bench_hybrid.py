@@ -6,7 +6,7 @@ Trackers: ``geometric`` is the dense tracker with ``tracking.photometric = "off"
 * Fast motion: synthetic sequences at 320x240 with Kinect-like noise for several scenes and seeds, "the same
   motion at 3x speed" two ways: ``fast`` (the ``slow`` orbit at 3x the step, 100 frames) and ``handheld`` (the
   orbit with hand jitter) read with ``stride`` 3. Every run goes through ``surfelslam run``
-  (:func:`surfelslam.tools.run.run_sequence`); ATE RMSE from its ``metrics.json``.
+  (:func:`surfelslam.slam.runner.run_sequence`); ATE RMSE from its ``metrics.json``.
 * Colour taken before depth: the same synthetic scenes with each frame's colour rendered one trajectory step before
   its depth (a 60 Hz trajectory, colour from the even poses and depth from the odd ones), as with a sensor whose
   colour and depth are not simultaneous (TUM: up to 20 ms apart). The features then measure a slightly different
@@ -32,12 +32,13 @@ import numpy as np
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.geometry import se3
 from surfelslam.io.atomic import write_text_atomic
-from surfelslam.pipeline import SlamConfig, TrackingConfig, build_slam
+from surfelslam.slam import SlamConfig, build_slam
+from surfelslam.slam.config import TrackingConfig
+from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.render import render
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, generate_sequence, make_frame, noise_config
-from surfelslam.tools.run import run_sequence
 from surfelslam.tracking.icp import pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.tracking.registration import register_pair

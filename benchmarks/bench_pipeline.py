@@ -45,7 +45,7 @@ from surfelslam.geometry import se3
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.kernels import fusion as kf
 from surfelslam.kernels import threads
-from surfelslam.pipeline import DenseSlam, SlamConfig, warm_up
+from surfelslam.slam import DenseSlam, SlamConfig, warm_up
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import TrajectoryConfig, make_trajectory
 from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config

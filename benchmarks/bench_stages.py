@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.datasets import DatasetOptions, open_sequence
-from surfelslam.pipeline import SlamConfig
+from surfelslam.slam import SlamConfig
 from surfelslam.tracking.features import estimate_motion, extract
 
 PAIR_GAP = 5  # frames between the two frames of an ORB pair

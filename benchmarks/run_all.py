@@ -50,7 +50,8 @@ import surfelslam  # noqa: E402
 from surfelslam.datasets import DatasetOptions, open_sequence  # noqa: E402
 from surfelslam.io.jsonio import json_default  # noqa: E402
 from surfelslam.kernels import threads  # noqa: E402
-from surfelslam.pipeline import SlamConfig, apply_compute, warm_up  # noqa: E402
+from surfelslam.slam import SlamConfig, warm_up  # noqa: E402
+from surfelslam.slam.config import apply_compute  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
 RESULTS = HERE / "results"

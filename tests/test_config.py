@@ -45,7 +45,7 @@ def test_a_partial_nested_table_keeps_its_parents_defaults():
     class's own defaults (``[orb.loop_icp] enabled = false`` once reset the orb tracker's feature weight)."""
     got = from_dict(WithFactory, {"coarse": {"dist_thresh_m": 0.3}}).coarse
     assert got == Inner(0.3, (8, 4))
-    from surfelslam.pipeline import SlamConfig
+    from surfelslam.slam import SlamConfig
 
     cfg = from_dict(SlamConfig, {"orb": {"loop_icp": {"enabled": False}}, "hybrid": {"loop_icp": {"icp": {
         "robust_scale_m": 0.03}}}})

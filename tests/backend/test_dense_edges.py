@@ -182,7 +182,7 @@ def test_config_errors_name_the_field():
 
 def test_loop_icp_settings_round_trip_through_config_toml(tmp_path):
     from surfelslam.config import dumps_toml, load_toml
-    from surfelslam.pipeline import SlamConfig
+    from surfelslam.slam import SlamConfig
 
     cfg = SlamConfig()
     cfg = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, enabled=True, sigma_m=0.004,

@@ -264,7 +264,7 @@ def test_depth_odometry_needs_the_keyframe_depth_store(tmp_path):
     from surfelslam.backend.sparse_slam import DepthOdometryConfig
     from surfelslam.config import dumps_toml, load_toml
     from surfelslam.errors import ConfigError
-    from surfelslam.pipeline import SlamConfig
+    from surfelslam.slam import SlamConfig
 
     with pytest.raises(ValueError, match="edge_refiner"):
         SparseSlam(ROOM_INTR, SparseSlamConfig(), depth_odometry=DepthOdometryConfig())

@@ -228,7 +228,7 @@ def test_cli_writes_plots_and_json(cli, traj_files, tmp_path):
     r = CliRunner().invoke(cli, ["eval", str(est_path), str(gt_path), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "ATE RMSE" in r.output
-    for name in ("trajectory.png", "ate_errors.png"):
+    for name in ("eval_trajectory.png", "eval_ate_errors.png"):  # names `run` never writes
         data = (out / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     saved = json.loads((out / "eval.json").read_text())

@@ -132,7 +132,7 @@ def _wider_camera_frames(n: int):
 def _run(intr, tracker, frames, camera, enabled=True):
     from dataclasses import replace
 
-    from surfelslam.pipeline import SlamConfig, build_slam
+    from surfelslam.slam import SlamConfig, build_slam
 
     cfg = SlamConfig()
     if not enabled:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from surfelslam.geometry import se3
-from surfelslam.pipeline import DenseSlam, SlamConfig
+from surfelslam.slam import DenseSlam, SlamConfig
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config

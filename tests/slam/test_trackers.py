@@ -12,12 +12,13 @@ import pytest
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
-from surfelslam.pipeline import TRACKERS, HybridSlam, SlamConfig, TrackingConfig, build_slam
+from surfelslam.slam import TRACKERS, HybridSlam, SlamConfig, build_slam
+from surfelslam.slam.config import TrackingConfig
+from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_frames, noise_config
-from surfelslam.tools.run import run_sequence
 from surfelslam.types import RGBDFrame
 
 from helpers import INTR, ate_m
@@ -271,7 +272,7 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     from surfelslam.datasets.sevenscenes import SevenScenesSequence
     from surfelslam.datasets.tum import TumSequence
     from surfelslam.errors import ConfigError
-    from surfelslam.pipeline import HybridConfig
+    from surfelslam.slam.config import HybridConfig
 
     assert SevenScenesSequence.colour_registered is False and TumSequence.colour_registered is True
     with pytest.raises(ConfigError, match="joint_features"):

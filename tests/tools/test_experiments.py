@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from surfelslam.cli import app
 from surfelslam.datasets import open_sequence
 from surfelslam.datasets.base import DatasetOptions
-from surfelslam.pipeline import TRACKERS, SlamConfig
+from surfelslam.slam import TRACKERS, SlamConfig
 from surfelslam.tools.experiments import (
     EXPECTED_TRACKERS,
     FEATURES_SETTING,
@@ -78,7 +78,7 @@ def test_sections_in_order_and_figures_exist(experiment):
 
 
 def test_fusion_numbers_match_run_sequence(experiment, tmp_path):
-    from surfelslam.tools.run import run_sequence
+    from surfelslam.slam.runner import run_sequence
 
     seq_dir, out, report = experiment
     seq_runs = open_sequence(seq_dir, DatasetOptions(end=FRAMES))

@@ -11,7 +11,8 @@ from surfelslam.geometry import se3
 from surfelslam.kernels import icp as kicp
 from surfelslam.kernels import photometric as kph
 from surfelslam.kernels.threads import set_parallel
-from surfelslam.pipeline import DenseSlam, HybridSlam, SlamConfig, TrackingConfig
+from surfelslam.slam import DenseSlam, HybridSlam, SlamConfig
+from surfelslam.slam.config import TrackingConfig
 from surfelslam.synth import make_scene, render
 from surfelslam.synth.trajectories import look_at
 from surfelslam.tracking.icp import ICPConfig, icp, photometric_term

@@ -265,6 +265,20 @@ class SurfelMap:
         self.mark_dead(mask)
         return self.compact()
 
+    def transform_surfels(self, R: np.ndarray, t: np.ndarray) -> None:
+        """Move every surfel by its own rigid transform: ``R`` ``(size, 3, 3)`` and ``t`` ``(size, 3)`` float32
+        (positions ``R p + t``, normals ``R n``), then rebuild the culling blocks and their grouping (a pose-graph
+        correction of the map)."""
+        n = self._size
+        if R.shape != (n, 3, 3) or t.shape != (n, 3):
+            raise ValueError(f"transform_surfels: R must be ({n}, 3, 3) and t ({n}, 3), got {R.shape} and {t.shape}")
+        if n == 0:
+            return
+        self.position[:] = np.einsum("nij,nj->ni", R, self.position) + t
+        self.normal[:] = np.einsum("nij,nj->ni", R, self.normal)
+        self._assign_blocks(0, n)  # positions moved: new culling blocks and a fresh grouping
+        self.rebuild_index()
+
     # ------------------------------------------------------------------ block index
     def _assign_blocks(self, start: int, stop: int) -> None:
         if stop <= start:

@@ -29,8 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     out = Path(argv[0] if argv else "out/demo")
     try:
+        from surfelslam.slam.runner import run_sequence
         from surfelslam.synth.writer import generate_sequence
-        from surfelslam.tools.run import print_summary, run_sequence
+        from surfelslam.tools.run import print_summary
 
         seq_dir = out / "sequence"
         if not (seq_dir / "INFO.txt").is_file():
@@ -41,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             console.print(f"[bold]1/3 synth[/]: reusing {escape(str(seq_dir))}")
         seq = open_sequence(seq_dir, DatasetOptions(downsample=DEMO_DOWNSAMPLE))
-        from surfelslam.pipeline import SlamConfig
+        from surfelslam.slam import SlamConfig
 
         cfg = SlamConfig()
         console.print(f"[bold]2/3 run[/]: dense frame-to-model SLAM on {seq.intrinsics.width}x{seq.intrinsics.height} "

@@ -296,7 +296,7 @@ def section_solvers(pyramids, pairs):
 
 def _run(seq_runs, out_dir: Path, cfg, tracker: str, poses: str | None, opts: ExperimentOptions,
          figures: bool) -> dict:
-    from surfelslam.tools.run import run_sequence
+    from surfelslam.slam.runner import run_sequence
 
     return run_sequence(seq_runs, out_dir, cfg, tracker, poses=poses, progress=opts.progress, figures=figures)
 
@@ -447,7 +447,7 @@ def section_features(seq, out_dir: Path, pairs, cfg):
 def section_trajectories(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, dense_metrics: dict,
                          has_gt: bool):
     from surfelslam.eval.metrics import ate
-    from surfelslam.pipeline import TRACKERS
+    from surfelslam.slam import TRACKERS
     from surfelslam.types import Trajectory
     from surfelslam.viz.experiment_figures import plot_trajectories
 
@@ -594,7 +594,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """The seeds' experiments (ICP pairs, solvers, fusion, dormant rule, features, trackers) -> report.md."""
         from surfelslam.datasets import open_sequence
-        from surfelslam.tools.run import load_config
+        from surfelslam.slam.runner import load_config
 
         opts = ExperimentOptions(frames=frames, pair_start=pair_start, pair_gaps=parse_gaps(pair_gaps),
                                  progress=progress)

@@ -77,7 +77,7 @@ def register(app: typer.Typer) -> None:
         from surfelslam.datasets import describe, open_sequence
 
         opts = dataset_options(intrinsics, depth_scale, start, end, stride, downsample)
-        d = describe(open_sequence(seq, opts))
+        d = describe(open_sequence(seq, opts, plausibility="warn"))  # info diagnoses: it warns, run refuses
         if json_out:
             typer.echo(json.dumps(d, indent=2))
         else:

@@ -1,0 +1,117 @@
+"""Sparse keyframe SLAM (tracker ``orb``).
+
+Sparse SLAM (:class:`OrbSlam`, tracker ``orb``) wraps :class:`surfelslam.backend.SparseSlam`: ORB/PnP
+odometry against the last keyframe, loop closure, pose graph; the map is the voxel-filtered keyframe cloud
+and the written trajectory is the optimised one.
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+from surfelslam.backend.dense_edges import DenseEdgeRefiner
+from surfelslam.backend.sparse_slam import (
+    SparseSlam,
+)
+from surfelslam.slam.config import SlamConfig
+from surfelslam.slam.dense import warm_up
+from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer, prepared_for
+from surfelslam.slam.mapper import frame_colour_at_depth
+from surfelslam.slam.protocol import register_tracker
+from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
+
+
+def sparse_metrics(sparse: SparseSlam, res) -> dict:
+    return {
+        "keyframes": int(len(res.keyframe_indices)),
+        "loops_found": len(res.loops_found),
+        "loops_accepted": len(res.loops_accepted),
+        "nearby_edges": int(res.n_nearby_edges),
+        "reinitialisations": int(sparse.n_reinitialisations),
+        "segments_merged": int(sparse.n_segments_merged),
+        "lost_frames_placed": int(sparse.n_lost_placed),
+        "sparse_rejected": dict(res.rejected),
+        "edges_dense_refined": int(sparse.n_dense_refined),
+        "edges_dense_rejected": int(sparse.n_dense_rejected),
+        "edge_sigma_m": sparse.dense_edge_sigma_m,
+        "edge_spread_m": sparse.dense_edge_spread_m,
+        "edges_refined_trusted": sparse.dense_edges_trusted,
+        "edge_residual_rad": sparse.dense_edge_residual_rad,
+        "depth_only_edges": sparse.n_depth_only_edges,
+    }
+
+
+def loop_stamps(res, stamp_of_frame: dict[int, float]) -> list[tuple[float, float]]:
+    kf_frames = res.keyframe_indices
+    return [(stamp_of_frame[int(kf_frames[i])], stamp_of_frame[int(kf_frames[j])]) for i, j, _ in res.loops_accepted]
+
+
+@register_tracker("orb")
+class OrbSlam:
+    """Tracker ``orb``: :class:`SparseSlam` behind the pipeline interface (``process`` / ``finish`` / ``warmup``).
+
+    No surfel map: the map is the voxel-filtered keyframe cloud, and the trajectory written at the end is
+    the pose-graph-optimised one (``SlamResult.trajectory_override``). With ``orb.depth_odometry`` (default) each
+    frame's depth is registered to the reference keyframe's as well, and with ``orb.loop_icp`` the keyframe
+    edges are refined by ICP behind a trust gate (:class:`OrbConfig`).
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
+                 colour_camera: ColourCamera | None = None):
+        del colour_registered  # features see the colour image either way
+        self.intr = intr
+        self.cfg = cfg
+        cloud_rgb = None if colour_camera is None else partial(frame_colour_at_depth, intr=intr, cam=colour_camera,
+                                                               cfg=cfg.colour_registration)
+        oc = cfg.orb
+        store = None
+        if oc.loop_icp.enabled or oc.depth_odometry.enabled:  # the keyframes' depth is kept for either
+            store = DenseEdgeRefiner(intr, cfg.preprocess, oc.loop_icp)
+        self.sparse = SparseSlam(intr, cfg.sparse, cloud_rgb=cloud_rgb, edge_refiner=store,
+                                 refine_edges=oc.loop_icp.enabled, depth_odometry=oc.depth_odometry)
+        self._stamp_of_frame: dict[int, float] = {}
+        self.failures = 0
+        self.relocalisations = 0
+
+    def warmup(self) -> None:
+        """Compile the preprocessing and ICP kernels when depth is used (else nothing: OpenCV and gtsam are
+        precompiled)."""
+        if self.sparse.uses_depth or self.cfg.orb.loop_icp.enabled:
+            warm_up(self.cfg)
+
+    def prepare(self, frame: RGBDFrame) -> PreparedFrame:
+        """ORB extraction and the depth pyramid, for another thread to do ahead (see :meth:`DenseSlam.prepare`)."""
+        c0, t0 = time.thread_time(), time.perf_counter()
+        feats = self.sparse.features(frame)
+        t1 = time.perf_counter()
+        timings = {"orb_extract": (t1 - t0) * 1e3}
+        pyr = self.sparse.depth_pyramid(frame)
+        if pyr is not None:
+            timings["preprocess"] = (time.perf_counter() - t1) * 1e3
+        return PreparedFrame(frame, pyramid=pyr, features=feats, timings_ms=timings,
+                             cpu_ms=(time.thread_time() - c0) * 1e3)
+
+    def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
+        t = StageTimer(prepared)
+        p = prepared_for(frame, prepared)
+        feats = None if p is None else p.features
+        r = self.sparse.process(frame, feats=feats, depth_pyramid=None if p is None else p.pyramid)
+        t.lap("orb")
+        self._stamp_of_frame[frame.index] = frame.timestamp
+        if not r.ok:
+            self.failures += 1
+        self.relocalisations += int(r.relocalised)
+        return FrameResult(frame.index, frame.timestamp, r.T_world_cam.copy(), r.ok or r.relocalised, False,
+                           r.reason, t.ms, self.sparse.n_keyframes)
+
+    def finish(self) -> SlamResult:
+        res = self.sparse.finish()
+        metrics = {"tracking_failures": self.failures,
+                   "tracking_failure_reasons": dict(res.rejected),
+                   "relocalisations": self.relocalisations,
+                   "depth_odometry": dict(self.sparse.depth_counts) if self.sparse.uses_depth else None,
+                   **sparse_metrics(self.sparse, res)}
+        return SlamResult(len(res.map_xyz), metrics, None, trajectory_override=res.trajectory,
+                          loop_stamps=loop_stamps(res, self._stamp_of_frame),
+                          points_xyz=res.map_xyz, points_rgb=res.map_rgb)
