@@ -13,6 +13,7 @@ then 10 at level 2, 8 at level 1 and 10 at level 0.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 import scipy.linalg
@@ -148,6 +149,17 @@ class ReprojectionTerm:
                                      self.sigma_px, self.huber, self.weight, stats)
 
 
+class ICPStatus(StrEnum):
+    """How a registration ended. ``converged`` and ``max_iterations`` give a usable pose; the others do not."""
+
+    CONVERGED = "converged"
+    MAX_ITERATIONS = "max_iterations"  # still refined at the finest level when its iterations ran out: usable
+    TOO_FEW_INLIERS = "too_few_inliers"
+    SOLVER = "solver"  # the linear system could not be solved
+    DEGENERATE = "degenerate"  # ill-conditioned finest-level system (one plane, two planes, a corridor)
+    IMPLAUSIBLE_MOTION = "implausible_motion"
+
+
 @dataclass
 class LevelInfo:
     """What happened at one pyramid level (statistics of its last linearisation)."""
@@ -177,6 +189,8 @@ class ICPResult:
         condition_number: eigenvalue ratio of the scaled finest-level normal matrix.
         levels: per-level details, coarsest first.
         reason: why ``converged`` is False (``None`` when converged).
+        status: the same as a :class:`ICPStatus` (the first rule that fired, in the order of ``reason``).
+        motion_m, motion_deg: size of the correction ``T T_init^-1`` (m, deg).
     """
 
     T_target_source: np.ndarray
@@ -189,6 +203,9 @@ class ICPResult:
     condition_number: float
     levels: list[LevelInfo] = field(default_factory=list)
     reason: str | None = None
+    status: ICPStatus = ICPStatus.CONVERGED
+    motion_m: float = 0.0
+    motion_deg: float = 0.0
 
 
 def solve(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky",
@@ -269,80 +286,94 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
     if T0.shape != (4, 4):
         raise ConfigError(f"icp: T_init must be 4x4, got {T0.shape}")
     T = T0.copy()
-    T_next = np.empty((4, 4))
-    robust = kicp.ROBUST_KINDS[cfg.robust_kernel]
     stats = np.zeros(kicp.N_STATS)
     infos: list[LevelInfo] = []
-    total_iters = 0
-    fine_stop = "max_iterations"
     for lvl in range(n_levels - 1, -1, -1):
-        src, tgt = source[lvl], target[lvl]
-        ti = tgt.intrinsics
-        cos_thr = float(np.cos(np.radians(cfg.angle_thresh_deg[lvl])))
-        # inlier count needed to take a step (coarse levels have 4x fewer pixels per level)
-        stride = cfg.finest_source_stride_px if lvl == 0 else 1
-        need = max(cfg.min_inliers / 4.0**lvl / stride**2, _MIN_INLIERS_PER_STEP)
-        scale = cfg.finest_robust_scale_m if lvl == 0 else cfg.robust_scale_m
-        depth_ref = cfg.depth_weight_ref_m if lvl == 0 else 0.0
-        rel_change = cfg.min_relative_residual_change if lvl == 0 else cfg.coarse_min_relative_residual_change
-        prev_mse = np.inf
-        stop = "max_iterations"
-        upd = np.inf
-        its = 0
+        T, info = _register_level(source[lvl], target[lvl], lvl, T, cfg, stats, reprojection, photometric)
+        infos.append(info)
+    return _verdict(T, T0, stats, infos, cfg)
+
+
+def _register_level(src, tgt, lvl: int, T: np.ndarray, cfg: ICPConfig, stats: np.ndarray,
+                    reprojection: ReprojectionTerm | None,
+                    photometric: PhotometricTerm | None) -> tuple[np.ndarray, LevelInfo]:
+    """Gauss-Newton iterations at pyramid level ``lvl`` from ``T``; ``stats`` holds the last linearisation."""
+    ti = tgt.intrinsics
+    T_next = np.empty((4, 4))
+    robust = kicp.ROBUST_KINDS[cfg.robust_kernel]
+    cos_thr = float(np.cos(np.radians(cfg.angle_thresh_deg[lvl])))
+    # inlier count needed to take a step (coarse levels have 4x fewer pixels per level)
+    stride = cfg.finest_source_stride_px if lvl == 0 else 1
+    need = max(cfg.min_inliers / 4.0**lvl / stride**2, _MIN_INLIERS_PER_STEP)
+    scale = cfg.finest_robust_scale_m if lvl == 0 else cfg.robust_scale_m
+    depth_ref = cfg.depth_weight_ref_m if lvl == 0 else 0.0
+    rel_change = cfg.min_relative_residual_change if lvl == 0 else cfg.coarse_min_relative_residual_change
+    prev_mse = np.inf
+    stop = "max_iterations"
+    upd = np.inf
+    its = 0
+    frozen = 0
+    for _ in range(cfg.iterations[lvl]):
+        kicp.accumulate_normal_equations(src.vertex, src.normal, tgt.vertex, tgt.normal, T,
+                                         ti.fx, ti.fy, ti.cx, ti.cy, cfg.dist_thresh_m[lvl], cos_thr,
+                                         robust, scale, stats, stride, depth_ref)
+        if reprojection is not None:
+            reprojection.add_to(stats, T)
+        if photometric is not None:
+            photometric.add_to(stats, T, lvl, src.vertex, tgt.vertex, ti.fx, ti.fy, ti.cx, ti.cy,
+                               cfg.dist_thresh_m[lvl], scale, stride)
+        n_in = stats[29]
+        if n_in < need:
+            stop = "too_few_inliers"
+            break
         frozen = 0
-        for _ in range(cfg.iterations[lvl]):
-            kicp.accumulate_normal_equations(src.vertex, src.normal, tgt.vertex, tgt.normal, T,
-                                             ti.fx, ti.fy, ti.cx, ti.cy, cfg.dist_thresh_m[lvl], cos_thr,
-                                             robust, scale, stats, stride, depth_ref)
-            if reprojection is not None:
-                reprojection.add_to(stats, T)
-            if photometric is not None:
-                photometric.add_to(stats, T, lvl, src.vertex, tgt.vertex, ti.fx, ti.fy, ti.cx, ti.cy,
-                                   cfg.dist_thresh_m[lvl], scale, stride)
-            n_in = stats[29]
-            if n_in < need:
-                stop = "too_few_inliers"
+        if cfg.weak_direction_ratio > 0:
+            frozen, upd = kicp.remapped_gauss_newton_step(stats, stats[30] / n_in, cfg.weak_direction_ratio,
+                                                          T, T_next)
+        if frozen:
+            T, T_next = T_next, T
+        elif cfg.solver == "cholesky":
+            upd = kicp.gauss_newton_step(stats, T, T_next)
+            if not upd >= 0.0:
+                stop = "solver"
                 break
-            frozen = 0
-            if cfg.weak_direction_ratio > 0:
-                frozen, upd = kicp.remapped_gauss_newton_step(stats, stats[30] / n_in, cfg.weak_direction_ratio,
-                                                              T, T_next)
-            if frozen:
-                T, T_next = T_next, T
-            elif cfg.solver == "cholesky":
-                upd = kicp.gauss_newton_step(stats, T, T_next)
-                if not upd >= 0.0:
-                    stop = "solver"
-                    break
-                T, T_next = T_next, T
-            else:
-                AtA, Atb = kicp.unpack_normal_equations(stats)
-                try:
-                    xi = solve(AtA, Atb, cfg.solver)
-                except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
-                    stop = "solver"
-                    break
-                if not np.all(np.isfinite(xi)):
-                    stop = "solver"
-                    break
-                T = se3.exp(xi) @ T
-                upd = float(np.linalg.norm(xi))
-            its += 1
-            mse = stats[27] / n_in
-            if upd < cfg.min_update_norm:
-                stop = "update"
+            T, T_next = T_next, T
+        else:
+            T_solved = _solve_step(stats, T, cfg.solver)
+            if T_solved is None:
+                stop = "solver"
                 break
-            if abs(prev_mse - mse) <= rel_change * mse:
-                stop = "residual"
-                break
-            prev_mse = mse
-        total_iters += its
-        n_in = int(stats[29])
-        infos.append(LevelInfo(lvl, its, n_in, n_in / max(stats[31], 1.0),
-                               float(np.sqrt(stats[28] / max(stats[29], 1.0))), upd, stop, frozen))
-        if lvl == 0:
-            fine_stop = stop
+            T, upd = T_solved
+        its += 1
+        mse = stats[27] / n_in
+        if upd < cfg.min_update_norm:
+            stop = "update"
+            break
+        if abs(prev_mse - mse) <= rel_change * mse:
+            stop = "residual"
+            break
+        prev_mse = mse
+    n_in = int(stats[29])
+    return T, LevelInfo(lvl, its, n_in, n_in / max(stats[31], 1.0),
+                        float(np.sqrt(stats[28] / max(stats[29], 1.0))), upd, stop, frozen)
+
+
+def _solve_step(stats: np.ndarray, T: np.ndarray, method: str) -> tuple[np.ndarray, float] | None:
+    """One Gauss-Newton step by a scipy/numpy solver: ``(exp(xi) T, |xi|)``, or ``None`` when it fails."""
+    AtA, Atb = kicp.unpack_normal_equations(stats)
+    try:
+        xi = solve(AtA, Atb, method)
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(xi)):
+        return None
+    return se3.exp(xi) @ T, float(np.linalg.norm(xi))
+
+
+def _verdict(T: np.ndarray, T0: np.ndarray, stats: np.ndarray, infos: list[LevelInfo], cfg: ICPConfig) -> ICPResult:
+    """The result of a registration ending at ``T`` from ``T0``: conditioning, plausibility and status."""
     fine = infos[-1]
+    fine_stop = fine.stop
     mean_depth = stats[30] / max(stats[29], 1.0)
     AtA, _ = kicp.unpack_normal_equations(stats)
     cond = condition_number(AtA, mean_depth) if fine.inliers > 0 else float("inf")
@@ -350,52 +381,55 @@ def icp(source: FramePyramid, target: FramePyramid, T_init: np.ndarray | None = 
     dT = T @ se3.invert(T0)
     dt_m = float(np.linalg.norm(dT[:3, 3]))
     dr_deg = se3.rotation_angle_deg(dT[:3, :3])
-    reason = None
+    reason, status = None, ICPStatus.CONVERGED
     if fine_stop == "too_few_inliers" or fine.inlier_fraction < cfg.min_inlier_fraction:
         reason = (f"too few inliers at the finest level ({fine.inliers}, "
                   f"{100 * fine.inlier_fraction:.1f}% of valid source points)")
+        status = ICPStatus.TOO_FEW_INLIERS
     elif fine_stop == "solver":
-        reason = "the linear system could not be solved (singular)"
+        reason, status = "the linear system could not be solved (singular)", ICPStatus.SOLVER
     elif degenerate:
         reason = f"degenerate geometry (condition number {cond:.3g} > {cfg.max_condition_number:.3g})"
+        status = ICPStatus.DEGENERATE
     elif dt_m > cfg.max_translation_m or dr_deg > cfg.max_rotation_deg:
         reason = (f"implausible motion ({dt_m:.3f} m, {dr_deg:.1f} deg; limits {cfg.max_translation_m} m, "
                   f"{cfg.max_rotation_deg} deg)")
+        status = ICPStatus.IMPLAUSIBLE_MOTION
     elif fine_stop == "max_iterations":
         reason = f"not converged after {fine.iterations} iterations at the finest level"
+        status = ICPStatus.MAX_ITERATIONS
     return ICPResult(
         T_target_source=T,
         inliers=fine.inliers,
         inlier_fraction=fine.inlier_fraction,
         rmse_m=fine.rmse_m,
-        iterations=total_iters,
+        iterations=sum(i.iterations for i in infos),
         converged=reason is None,
         degenerate=bool(degenerate),
         condition_number=cond,
         levels=infos,
         reason=reason,
+        status=status,
+        motion_m=dt_m,
+        motion_deg=dr_deg,
     )
 
 
 def icp_failure(res: ICPResult) -> str | None:
-    """Category of a tracking failure, or ``None`` when the result can be used.
+    """Category of a tracking failure (an :class:`ICPStatus` value), or ``None`` when the result can be used.
 
     Running out of iterations at the finest level is *not* a failure (the estimate is still refined);
     too few inliers (count or fraction of the valid source points), an unsolvable or degenerate system, and
-    implausible motion are.
+    implausible motion are. An ill-conditioned system counts as degenerate even when another rule fired first.
     """
-    if res.converged:
+    if res.converged or res.status is ICPStatus.MAX_ITERATIONS:
         return None
     if res.degenerate:
-        return "degenerate"
-    stop = res.levels[-1].stop if res.levels else "solver"
-    if stop in ("too_few_inliers", "solver"):
+        return ICPStatus.DEGENERATE.value
+    stop = res.levels[-1].stop if res.levels else ICPStatus.SOLVER.value
+    if stop in (ICPStatus.TOO_FEW_INLIERS, ICPStatus.SOLVER):
         return stop
-    if res.reason and res.reason.startswith("too few inliers"):  # the finest level's inlier fraction rule
-        return "too_few_inliers"
-    if res.reason and res.reason.startswith("implausible"):
-        return "implausible_motion"
-    return None
+    return res.status.value
 
 
 def photometric_term(source: IntensityPyramid, target: IntensityPyramid, cfg: ICPConfig) -> PhotometricTerm:
