@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surfelslam.errors import ConfigError
+from surfelslam.config import Config, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import render as kr
 from surfelslam.kernels import surfels as ks
@@ -51,27 +51,19 @@ _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
-@dataclass
-class MapConfig:
+@dataclass(frozen=True)
+class MapConfig(Config):
     """Storage and culling-index settings of a :class:`SurfelMap`."""
 
-    initial_capacity: int = 65536
-    block_size_m: float = 0.25  # edge of the cubic culling blocks (0.5: 16% more candidates on revisits)
-    block_margin_m: float = 0.1  # blocks' boxes are grown by this much in the frustum test
-    index_max_tail: int = 131072  # rebuild the block grouping when this many surfels are ungrouped
-    reorder_every_rows: int = 32768  # regroup rows by block in memory once this many more are checked (0 = off)
-
-    def __post_init__(self) -> None:
-        if self.initial_capacity < 1:
-            raise ConfigError(f"map: initial_capacity must be >= 1, got {self.initial_capacity}")
-        if self.block_size_m <= 0:
-            raise ConfigError(f"map: block_size_m must be > 0, got {self.block_size_m}")
-        if self.block_margin_m < 0:
-            raise ConfigError(f"map: block_margin_m must be >= 0, got {self.block_margin_m}")
-        if self.index_max_tail < 0:
-            raise ConfigError(f"map: index_max_tail must be >= 0, got {self.index_max_tail}")
-        if self.reorder_every_rows < 0:
-            raise ConfigError(f"map: reorder_every_rows must be >= 0 (0 = off), got {self.reorder_every_rows}")
+    initial_capacity: int = setting(65536, unit="surfels", ge=1, le=1 << 26,
+                                    doc="surfels allocated up front (the arrays grow as needed)")
+    block_size_m: float = setting(0.25, unit="m", ge=0.01, le=100, doc="edge of the cubic culling blocks")
+    block_margin_m: float = setting(0.1, unit="m", ge=0, le=100, doc="blocks' boxes are grown by this much in the "
+                                    "frustum test")
+    index_max_tail: int = setting(131072, unit="surfels", ge=0, le=1 << 30,
+                                  doc="rebuild the block grouping when this many surfels are ungrouped")
+    reorder_every_rows: int = setting(32768, unit="surfels", ge=0, le=1 << 30,
+                                      doc="regroup rows by block in memory once this many more are checked; 0 = off")
 
 
 def _pack_keys(ijk: np.ndarray) -> np.ndarray:
