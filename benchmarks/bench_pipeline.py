@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -97,9 +98,9 @@ def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: 
     intr = default_intrinsics(width, width * 3 // 4)
     gt, lap, description = trajectory(style, n_frames, lap, seed)
     cfg = SlamConfig()
-    cfg.fusion.remove_duplicates = remove_duplicates
+    cfg = replace(cfg, fusion=replace(cfg.fusion, remove_duplicates=remove_duplicates))
     if parallel is not None:
-        cfg.compute.parallel_kernels = parallel
+        cfg = replace(cfg, compute=replace(cfg.compute, parallel_kernels=parallel))
     warm_up(cfg)
     slam = DenseSlam(intr, cfg)
     wall = np.zeros(n_frames)
