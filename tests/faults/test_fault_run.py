@@ -12,6 +12,7 @@ import cv2
 import pytest
 from faultkit import assert_one_line, cli, index_rows, no_temp_files
 
+from surfelslam.io.run_folder import staging_path
 from surfelslam.io.trajectory import TumAppender, read_tum
 
 RUN = ("--poses", "gt", "--no-figures", "--no-progress")
@@ -70,9 +71,11 @@ def test_disk_full_mid_run_names_the_trajectory_and_keeps_it_valid(seq, tmp_path
     monkeypatch.setattr(TumAppender, "_write_fn", staticmethod(full_after_five_poses))
     out = tmp_path / "run"
     res = cli("run", seq, "-o", out, *RUN)
-    assert_one_line(res, 2, str(out / "trajectory.txt"), "No space left on device", "keeps the 5 poses")
-    assert len(read_tum(out / "trajectory.txt")) == 5
-    assert (out / "trajectory.txt").read_text().endswith("\n")
+    partial = staging_path(out) / "trajectory.txt"  # the run writes there until it is complete
+    assert_one_line(res, 2, str(partial), "No space left on device", "keeps the 5 poses")
+    assert len(read_tum(partial)) == 5
+    assert partial.read_text().endswith("\n")
+    assert not (out / "trajectory.txt").exists() and not (out / ".lock").exists()
     assert no_temp_files(out)
 
 

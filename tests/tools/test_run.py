@@ -13,6 +13,7 @@ from surfelslam.cli import app
 from surfelslam.config import load_toml
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.io.ply import read_ply
+from surfelslam.io.run_folder import staging_path
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.scenes import make_scene
@@ -78,7 +79,7 @@ def test_given_trajectory_file_skips_frames_without_a_pose(synth_seq, tmp_path):
     assert np.allclose(written.T_world_cam, gt.T_world_cam[keep], atol=1e-6)
 
 
-def test_killed_run_keeps_every_finished_frame(synth_seq, tmp_path, monkeypatch):
+def test_killed_run_keeps_every_finished_frame_in_its_staging_folder(synth_seq, tmp_path, monkeypatch):
     import surfelslam.slam.given as pipeline
 
     calls = {"n": 0}
@@ -94,7 +95,8 @@ def test_killed_run_keeps_every_finished_frame(synth_seq, tmp_path, monkeypatch)
     seq = open_sequence(synth_seq)
     with pytest.raises(KeyboardInterrupt):
         run_sequence(seq, tmp_path / "run", SlamConfig(), "dense", poses="gt", progress=False, figures=False)
-    traj = Trajectory.read_tum(tmp_path / "run" / "trajectory.txt")
+    assert not (tmp_path / "run" / "trajectory.txt").exists()  # nothing handed over
+    traj = Trajectory.read_tum(staging_path(tmp_path / "run") / "trajectory.txt")
     assert len(traj) == 7
     assert np.allclose(traj.T_world_cam, seq.ground_truth.T_world_cam[:7], atol=1e-6)
 
@@ -128,7 +130,8 @@ def test_run_bad_input_is_one_line(tmp_path):
     cfg.write_text("[sparse.loop]\nmin_consistent_matches = -1\n")
     res = runner.invoke(app, ["run", str(tmp_path), "--config", str(cfg)])
     assert res.exit_code == 2
-    assert f"{cfg}: config: [sparse.loop] min_consistent_matches must be in [0, 1000000], got -1" in res.output
+    assert f"{cfg}: config: [sparse.loop] min_consistent_matches must be " in res.output
+    assert "got -1" in res.output
 
 
 def test_config_file_overrides_defaults(synth_seq, tmp_path):

@@ -9,6 +9,7 @@ from surfelslam.backend.sparse_slam import (
     DepthOdometryConfig,
     SparseSlamConfig,
 )
+from surfelslam.config import check, setting
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.camera import ColourRegistrationConfig
@@ -94,6 +95,12 @@ class TrackingConfig:
             after the gap; with it, the fourth frame after the gap is tracked again, within 3 mm. The hybrid
             tracker uses it (rendered at its current pose) when its PnP relocalisation finds no pose (no texture).
         shape_guess: settings of that guess.
+        fuse_weak_frames: a degenerate registration (one plane, two planes, a corridor) still gives the pose along
+            the directions the view constrains, the prediction along the others (``icp.weak_direction_ratio``), and
+            the frame is fused; off: such frames are refused, not fused, and the pose is the prediction.
+        relocalise_max_speed_m_s, relocalise_max_rate_deg_s: a relocalised pose further from the last tracked pose
+            than these speeds (m/s, deg/s) allow in the time since it, plus ``relocalise_slack_m`` (m) and
+            ``relocalise_slack_deg`` (deg), is refused: a wrong match, not a camera motion.
     """
 
     constant_velocity: bool = True
@@ -103,6 +110,11 @@ class TrackingConfig:
     photometric: str = "auto"
     relocalise_after_failures: int = 3
     shape_guess: GeometricGuessConfig = field(default_factory=GeometricGuessConfig)
+    fuse_weak_frames: bool = True
+    relocalise_max_speed_m_s: float = 1.0
+    relocalise_max_rate_deg_s: float = 120.0
+    relocalise_slack_m: float = 0.1
+    relocalise_slack_deg: float = 10.0
 
     def __post_init__(self) -> None:
         if self.relocalise_after_failures < 0:
@@ -283,15 +295,10 @@ class OrbConfig:
 
 @dataclass
 class SlamConfig:
-    """Every setting of a run; saved as ``config.toml`` next to the outputs, which is the whole recipe.
+    """Every setting of a run, with its tracker and dataset options (``[dataset]``, the ``--start`` ...
+    ``--depth-scale`` options; unset ones are left out): saved as ``config.toml``, the whole recipe of the run."""
 
-    Attributes:
-        tracker: the tracker, one of :data:`surfelslam.slam.TRACKERS` (``--tracker``).
-        dataset: how the sequence is read (``--start``, ``--end``, ``--stride``, ``--downsample``,
-            ``--intrinsics``, ``--depth-scale``); unset (``None``) values are left out of the TOML file.
-    """
-
-    tracker: str = "dense"
+    tracker: str = setting("dense", doc="The tracker: dense, orb or hybrid (the registered ones; --tracker).")
     dataset: DatasetOptions = field(default_factory=DatasetOptions)
     io: IOConfig = field(default_factory=IOConfig)
     compute: ComputeConfig = field(default_factory=ComputeConfig)
@@ -307,12 +314,17 @@ class SlamConfig:
     orb: OrbConfig = field(default_factory=OrbConfig)
     colour_registration: ColourRegistrationConfig = field(default_factory=ColourRegistrationConfig)
 
-    def __post_init__(self) -> None:
+    @check
+    def _tracker_registered(self) -> str | None:
+        """``tracker`` is one of the registered trackers (``dense``, ``orb``, ``hybrid``)."""
         from surfelslam.slam.protocol import registered  # the registry imports this module
 
         trackers = [name for name in registered() if name != "given"]
         if trackers and self.tracker not in trackers:
-            raise ConfigError(f"config: tracker must be one of {', '.join(trackers)}, got {self.tracker!r}")
+            return f"tracker must be one of {', '.join(trackers)}, got {self.tracker!r}"
+        return None
+
+    def __post_init__(self) -> None:
         if self.preprocess.pyramid_levels < self.icp.levels:
             raise ConfigError(
                 f"config: preprocess.pyramid_levels ({self.preprocess.pyramid_levels}) must be >= icp.levels "

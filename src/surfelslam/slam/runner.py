@@ -2,48 +2,219 @@
 
 :func:`run_sequence` reads frames (decoded, and prepared by the tracker, in a background thread), tracks them,
 streams the trajectory to ``trajectory.txt`` and writes ``config.toml``, ``metrics.json``, ``map.ply`` and the
-figures. It is what ``surfelslam run``, the experiments and the benchmarks call; it prints nothing.
+figures. Everything is checked before anything is written, and the outputs go through the run folder policy of
+:mod:`surfelslam.io.run_folder` (lock, staging folder, hand-over). It is what ``surfelslam run``, the experiments
+and the benchmarks call; it prints nothing.
+
+:func:`load_config` builds the run's :class:`SlamConfig` from a TOML file or preset and ``--set KEY=VALUE``
+overrides.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import json
+import re
 import time
-from dataclasses import asdict
+import tomllib
+import types
+import typing
+from collections.abc import Callable, Sequence
+from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from surfelslam.config import dumps_toml, load_toml
+from surfelslam.config import dumps_toml, from_dict, load_toml
 from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
 from surfelslam.io.prefetch import prefetch_frames
+from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
-from surfelslam.slam import SlamConfig, build_slam, poses_for_mapping
+from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
+
+#: Preset configurations: ``--config NAME`` reads ``configs/NAME.toml`` of the source tree.
+PRESETS_DIR = Path(__file__).resolve().parents[3] / "configs"
+_PRESET_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+#: Unpaired images listed (with their reasons) in ``metrics.json``; ``frames_unpaired`` counts them all.
+UNPAIRED_IN_METRICS = 10
 
 
-def load_config(path: Path | None) -> SlamConfig:
-    return SlamConfig() if path is None else load_toml(SlamConfig, path)
+# ------------------------------------------------------------------------------------------------ configuration
+def preset_names() -> list[str]:
+    """Names of the preset configurations (``configs/*.toml``), sorted."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.toml")) if PRESETS_DIR.is_dir() else []
 
 
-def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str | None = None,
-                 progress: bool = True, figures: bool = True) -> dict:
+def resolve_config_path(config: str | Path) -> Path:
+    """The file ``--config`` names: an existing file, else the preset ``configs/<config>.toml`` for a bare name.
+
+    Raises:
+        ConfigError: a bare name that is neither a file nor a preset (the message lists the presets).
+    """
+    path = Path(config)
+    if path.exists() or not _PRESET_NAME.match(str(config)):
+        return path  # a file (or a path that load_toml reports as missing)
+    preset = PRESETS_DIR / f"{config}.toml"
+    if preset.is_file():
+        return preset
+    names = preset_names()
+    listed = f"presets: {', '.join(names)}" if names else f"no presets in {PRESETS_DIR}"
+    raise ConfigError(f"--config {config}: no such file, and not a preset ({listed})")
+
+
+def _leaf_paths(cls: type, prefix: str = "") -> list[str]:
+    out = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = _unwrap_optional(hints[f.name])
+        path = f"{prefix}{f.name}"
+        out += _leaf_paths(tp, path + ".") if dataclasses.is_dataclass(tp) else [path]
+    return out
+
+
+def _unwrap_optional(tp: Any) -> Any:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return args[0] if len(args) == 1 else tp
+    return tp
+
+
+def parse_set(item: str, cls: type = SlamConfig) -> dict[str, Any]:
+    """``"icp.min_inliers=300"`` -> ``{"icp": {"min_inliers": 300}}``, the key checked against ``cls``.
+
+    The value is read as a TOML value (``300``, ``0.5``, ``true``, ``"text"``, ``[1, 2]``); anything else is taken
+    as a bare string (``tracking.photometric=off``).
+
+    Raises:
+        ConfigError: not ``KEY=VALUE``, an unknown key (the message names its full path and close matches), or a
+            key that is a table.
+    """
+    key, sep, text = item.partition("=")
+    key = key.strip()
+    parts = key.split(".")
+    if not sep or not all(parts):
+        raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set icp.min_inliers=300")
+    tp: Any = cls
+    for i, name in enumerate(parts):
+        here = ".".join(parts[:i])
+        if not dataclasses.is_dataclass(tp):
+            raise ConfigError(f"--set {item}: unknown setting {key} ({here} is a setting, not a table)")
+        names = [f.name for f in dataclasses.fields(tp)]
+        if name not in names:
+            close = difflib.get_close_matches(key, _leaf_paths(cls), n=3, cutoff=0.6)
+            hint = f"did you mean {_or_list(close)}?" if close else (
+                f"[{here}] has {', '.join(names)}" if here else f"the top level has {', '.join(names)}")
+            raise ConfigError(f"--set {item}: unknown setting {key} ({hint})")
+        tp = _unwrap_optional(typing.get_type_hints(tp)[name])
+    if dataclasses.is_dataclass(tp):
+        first = dataclasses.fields(tp)[0].name
+        raise ConfigError(f"--set {item}: {key} is a table, not a setting (set its keys, e.g. {key}.{first}=...)")
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    nested: dict[str, Any] = {parts[-1]: value}
+    for name in reversed(parts[:-1]):
+        nested = {name: nested}
+    return nested
+
+
+def _or_list(items: list[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
+
+
+def _merge(into: dict[str, Any], more: dict[str, Any]) -> dict[str, Any]:
+    for k, v in more.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
+    return into
+
+
+def apply_sets(cfg: SlamConfig, sets: Sequence[str]) -> SlamConfig:
+    """``cfg`` with the ``--set KEY=VALUE`` overrides applied (later ones win)."""
+    if not sets:
+        return cfg
+    merged: dict[str, Any] = {}
+    for item in sets:
+        _merge(merged, parse_set(item))
+    try:
+        return from_dict(SlamConfig, merged, base=cfg)
+    except ConfigError as exc:
+        for item in sets:  # name the override at fault when it fails alone
+            try:
+                from_dict(SlamConfig, parse_set(item), base=cfg)
+            except ConfigError as alone:
+                raise ConfigError(f"--set {item}: {alone}") from None
+        raise ConfigError(f"--set {' --set '.join(sets)}: {exc}") from None
+
+
+def load_config(path: str | Path | None = None, sets: Sequence[str] = ()) -> SlamConfig:
+    """The defaults, overridden by the TOML file or preset ``path`` (:func:`resolve_config_path`), overridden by
+    the ``--set`` items."""
+    cfg = SlamConfig() if path is None else load_toml(SlamConfig, resolve_config_path(path))
+    return apply_sets(cfg, sets)
+
+
+def _now() -> str:
+    return datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+# ------------------------------------------------------------------------------------------------ the run
+def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None, poses: str | None = None,
+                 progress: bool = True, figures: bool = True, *, overwrite: bool = True,
+                 on_start: Callable[[Path], None] | None = None,
+                 before_commit: Callable[[Path], None] | None = None) -> dict:
     """Run the pipeline on an opened sequence and write every output into ``out_dir``.
+
+    ``tracker`` overrides ``cfg.tracker``. The written ``config.toml`` is ``cfg`` with the tracker and the
+    sequence's dataset options: the whole recipe. Everything (tracker, config, ``poses``, ``out_dir``) is checked
+    before anything is written; ``out_dir`` holding a previous run is refused unless ``overwrite`` (the default
+    here; ``surfelslam run`` passes its ``--overwrite``). The run writes into ``out_dir/.partial-<pid>/`` and hands
+    its files over at the end (:mod:`surfelslam.io.run_folder`). ``on_start(staging_folder)`` is called once the
+    folder is locked, ``before_commit(staging_folder)`` after every output is written, before the hand-over (to
+    add files to the run).
 
     Returns the metrics dict (also written as ``metrics.json``).
     """
+    tracker = cfg.tracker if tracker is None else tracker
+    if tracker not in TRACKERS:
+        raise ConfigError(f"tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
     if len(seq) == 0:
         raise ConfigError(f"{seq.root}: the selection has no frames (check --start/--end/--stride)")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out_dir / "config.toml", dumps_toml(cfg))
-
+    cfg = dataclasses.replace(cfg, tracker=tracker, dataset=seq.options)
+    recipe = dumps_toml(cfg)
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
     slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given",
                       colour_registered=getattr(seq, "colour_registered", True),
                       colour_camera=getattr(seq, "colour_camera", None))
+    folder = RunFolder(out_dir, overwrite=overwrite)
+    folder.check()  # nothing written yet
+    with folder:
+        stage = folder.open()
+        started = _now()
+        if on_start is not None:
+            on_start(stage)
+        write_text_atomic(stage / "config.toml", recipe)
+        metrics = _run(seq, stage, cfg, slam, tracker, given, poses, progress, figures)
+        metrics.update(complete=True, started=started, finished=_now())
+        write_text_atomic(stage / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
+        if before_commit is not None:
+            before_commit(stage)
+        folder.commit()
+    return metrics
+
+
+def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: str | None, progress: bool,
+         figures: bool) -> dict:
+    """The loop proper, writing into the staging folder ``out_dir``; everything but ``metrics.json``."""
     t_warm = time.perf_counter()
     slam.warmup()
     warmup_s = time.perf_counter() - t_warm
@@ -103,9 +274,13 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
         "frames_processed": n_done,
         "frames_skipped": len(skipped),
         "skipped": skipped,
+        "frames_unpaired": len(seq.unpaired),
+        "unpaired": [{"file": str(u.file), "timestamp": u.timestamp, "reason": u.reason}
+                     for u in seq.unpaired[:UNPAIRED_IN_METRICS]],
+        "warnings": list(seq.warnings),
         "resolution": [seq.intrinsics.width, seq.intrinsics.height],
         "downsample": seq.options.downsample,
-        "dataset_options": asdict(seq.options),
+        "dataset_options": dataclasses.asdict(seq.options),
         "fps": n_done / wall_s if wall_s > 0 else 0.0,
         "wall_s": wall_s,
         "warmup_s": warmup_s,
@@ -129,7 +304,6 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str, poses: str |
             metrics["eval"] = evaluate(est, seq.ground_truth)
         except Exception as exc:  # noqa: BLE001 - evaluation problems must not lose the run's outputs
             metrics["eval_error"] = str(exc)
-    write_text_atomic(out_dir / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
     result.write_map(out_dir / "map.ply")
     if figures:
         _write_figures(out_dir, seq, result, metrics)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
+import inspect
 import re
 import sys
 from collections.abc import Callable
@@ -90,7 +92,8 @@ def handle_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-# Dataset options, shared by every command that reads a sequence.
+# Dataset options, shared by every command that reads a sequence: one definition (the ``...Opt`` annotations) and one
+# way to declare them (:func:`with_dataset_options`, which hands the command one :class:`DatasetOptionsArgs`).
 SeqArg = Annotated[Path, typer.Argument(help="Sequence folder (TUM, ICL-NUIM, 7-Scenes or plain rgb/ + depth/).")]
 IntrinsicsOpt = Annotated[
     str | None, typer.Option("--intrinsics", help="fx,fy,cx,cy at full resolution (overrides the layout's default).")
@@ -98,10 +101,64 @@ IntrinsicsOpt = Annotated[
 DepthScaleOpt = Annotated[
     float | None, typer.Option("--depth-scale", help="Raw depth units per metre (TUM 5000, millimetres 1000).")
 ]
-StartOpt = Annotated[int, typer.Option("--start", help="First frame position (0-based).")]
-EndOpt = Annotated[int | None, typer.Option("--end", help="One past the last frame position.")]
-StrideOpt = Annotated[int, typer.Option("--stride", help="Keep every N-th frame.")]
-DownsampleOpt = Annotated[int, typer.Option("--downsample", help="Sample images [::N, ::N] (intrinsics / N).")]
+StartOpt = Annotated[int | None, typer.Option("--start", help="First frame position (0-based). Default 0.")]
+EndOpt = Annotated[int | None, typer.Option("--end", help="One past the last frame position. Default: the end.")]
+StrideOpt = Annotated[int | None, typer.Option("--stride", help="Keep every N-th frame. Default 1.")]
+DownsampleOpt = Annotated[
+    int | None, typer.Option("--downsample", help="Sample images [::N, ::N] (intrinsics / N). Default 1.")
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetOptionsArgs:
+    """The dataset options as typed on the command line; ``None``: not given (the default, or a config file's
+    ``[dataset]`` value, applies: :meth:`resolve`)."""
+
+    intrinsics: str | None = None
+    depth_scale: float | None = None
+    start: int | None = None
+    end: int | None = None
+    stride: int | None = None
+    downsample: int | None = None
+
+    def given(self) -> dict[str, Any]:
+        """The options given, as :class:`DatasetOptions` fields (``--intrinsics`` parsed)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
+        if "intrinsics" in out:
+            out["intrinsics"] = parse_intrinsics(out["intrinsics"])
+        return out
+
+    def resolve(self, base: DatasetOptions | None = None) -> DatasetOptions:
+        """The options given override ``base`` (e.g. a config file's ``[dataset]``; default: the defaults)."""
+        return dataclasses.replace(DatasetOptions() if base is None else base, **self.given())
+
+
+_DATASET_PARAMS = tuple(
+    inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=annotation)
+    for name, annotation in (("intrinsics", IntrinsicsOpt), ("depth_scale", DepthScaleOpt), ("start", StartOpt),
+                             ("end", EndOpt), ("stride", StrideOpt), ("downsample", DownsampleOpt))
+)
+
+
+def with_dataset_options(fn: F) -> F:
+    """Give command ``fn`` the dataset options ``--intrinsics --depth-scale --start --end --stride --downsample``
+    (the same names, help and defaults in every command); ``fn`` receives them as one ``dataset:
+    DatasetOptionsArgs`` argument. Apply below ``@handle_errors``."""
+    sig = inspect.signature(fn, eval_str=True)
+    if "dataset" not in sig.parameters:
+        raise TypeError(f"{fn.__name__} needs a 'dataset: DatasetOptionsArgs' parameter")
+    params = [p for p in sig.parameters.values() if p.name != "dataset"] + list(_DATASET_PARAMS)
+    names = [p.name for p in _DATASET_PARAMS]
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        given = {name: kwargs.pop(name, None) for name in names}
+        return fn(*args, dataset=DatasetOptionsArgs(**given), **kwargs)
+
+    new_sig = sig.replace(parameters=params)
+    wrapper.__signature__ = new_sig  # type: ignore[attr-defined]
+    wrapper.__annotations__ = {p.name: p.annotation for p in params}
+    return wrapper  # type: ignore[return-value]
 
 
 def parse_intrinsics(text: str | None) -> tuple[float, float, float, float] | None:
@@ -119,9 +176,10 @@ def parse_intrinsics(text: str | None) -> tuple[float, float, float, float] | No
 def dataset_options(
     intrinsics: str | None = None,
     depth_scale: float | None = None,
-    start: int = 0,
+    start: int | None = 0,
     end: int | None = None,
-    stride: int = 1,
-    downsample: int = 1,
+    stride: int | None = 1,
+    downsample: int | None = 1,
 ) -> DatasetOptions:
-    return DatasetOptions(parse_intrinsics(intrinsics), depth_scale, start, end, stride, downsample)
+    """:class:`DatasetOptions` from the command-line values (``None``: the default)."""
+    return DatasetOptionsArgs(intrinsics, depth_scale, start, end, stride, downsample).resolve()

@@ -137,10 +137,11 @@ def register(app: typer.Typer) -> None:
         max_diff: Annotated[
             float, typer.Option("--max-diff", help="Max timestamp difference for association [s].")
         ] = metrics.DEFAULT_MAX_DIFF_S,
-        no_plots: Annotated[bool, typer.Option("--no-plots", help="Skip the PNG figures.")] = False,
+        figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")] = True,
+        no_plots: Annotated[bool, typer.Option("--no-plots", hidden=True, help="Old name of --no-figures.")] = False,
     ) -> None:
         """ATE (SE(3)-aligned, TUM protocol) and RPE per frame and per second, computed with evo."""
-        res = run_eval(est, gt, out, max_diff, plots=not no_plots)
+        res = run_eval(est, gt, out, max_diff, plots=figures and not no_plots)
         console.print(results_table(res, f"{est.name} vs {gt}"))
         for f in res["files"].values():
             console.print(f"wrote {f}", highlight=False, markup=False)

@@ -29,16 +29,11 @@ import typer
 from surfelslam.errors import ConfigError
 from surfelslam.io.jsonio import json_default
 from surfelslam.tools.common import (
-    DepthScaleOpt,
-    DownsampleOpt,
-    EndOpt,
-    IntrinsicsOpt,
+    DatasetOptionsArgs,
     SeqArg,
-    StartOpt,
-    StrideOpt,
     console,
-    dataset_options,
     handle_errors,
+    with_dataset_options,
 )
 
 # Trackers the report always lists (with "not built yet" when pipeline.TRACKERS lacks them).
@@ -575,8 +570,10 @@ def parse_gaps(text: str) -> tuple[int, ...]:
 def register(app: typer.Typer) -> None:
     @app.command("experiments")
     @handle_errors
+    @with_dataset_options
     def experiments_cmd(
         seq_path: SeqArg,
+        dataset: DatasetOptionsArgs,
         out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (report.md, PNGs, runs/).")] = Path(
             "out/experiments"),
         config: Annotated[Path | None, typer.Option("--config", help="TOML configuration file.")] = None,
@@ -585,12 +582,6 @@ def register(app: typer.Typer) -> None:
         pair_start: Annotated[int, typer.Option("--pair-start", help="Source frame of the ICP/feature pairs.")] = 10,
         pair_gaps: Annotated[str, typer.Option("--pair-gaps", help="Frame gaps of the pairs, comma list.")] = "40,90",
         progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
-        intrinsics: IntrinsicsOpt = None,
-        depth_scale: DepthScaleOpt = None,
-        start: StartOpt = 0,
-        end: EndOpt = None,
-        stride: StrideOpt = 1,
-        downsample: DownsampleOpt = 2,
     ) -> None:
         """The seeds' experiments (ICP pairs, solvers, fusion, dormant rule, features, trackers) -> report.md."""
         from surfelslam.datasets import open_sequence
@@ -599,12 +590,13 @@ def register(app: typer.Typer) -> None:
         opts = ExperimentOptions(frames=frames, pair_start=pair_start, pair_gaps=parse_gaps(pair_gaps),
                                  progress=progress)
         cfg = load_config(config)
-        dopts = dataset_options(intrinsics, depth_scale, start, end, stride, downsample)
+        dopts = dataset.resolve()
         seq = open_sequence(seq_path, dopts)
         if len(seq) == 0:
             raise ConfigError(f"{seq_path}: the selection has no frames (check --start/--end/--stride)")
-        run_end = start + frames * stride
-        seq_runs = open_sequence(seq_path, replace(dopts, end=run_end if end is None else min(end, run_end)))
+        run_end = dopts.start + frames * dopts.stride
+        seq_runs = open_sequence(seq_path, replace(dopts, end=run_end if dopts.end is None else min(dopts.end,
+                                                                                                   run_end)))
         t0 = time.perf_counter()
         res = run_experiments(seq, seq_runs, out, cfg, opts)
         console.print(f"wrote {out / 'report.md'} in {time.perf_counter() - t0:.0f} s "

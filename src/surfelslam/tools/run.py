@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -14,26 +15,27 @@ from surfelslam.errors import ConfigError
 from surfelslam.slam import TRACKERS
 from surfelslam.slam.runner import load_config, run_sequence
 from surfelslam.tools.common import (
-    DepthScaleOpt,
-    DownsampleOpt,
-    EndOpt,
-    IntrinsicsOpt,
+    DatasetOptionsArgs,
     SeqArg,
-    StartOpt,
-    StrideOpt,
     console,
-    dataset_options,
     handle_errors,
+    with_dataset_options,
 )
 
 TRACKER_HELP = ("dense: frame-to-model ICP; orb: sparse ORB/PnP odometry + loop-closing pose graph (map = "
                 "keyframe cloud); hybrid: dense ICP + PnP initial guesses, relocalisation and loop-corrected "
-                "trajectory and surfel map. One of " + ", ".join(TRACKERS) + ".")
+                "trajectory and surfel map. One of " + ", ".join(TRACKERS) + ". Default: the --config file's, "
+                "else dense.")
+#: Skipped frames quoted under the summary (``metrics.json`` lists them all).
+SUMMARY_EXAMPLES = 5
 
 
 def print_summary(metrics: dict, out_dir: Path) -> None:
     t = Table(title=f"surfelslam run -> {escape(str(out_dir))}", show_header=False)
-    t.add_row("frames", f"{metrics['frames_processed']} processed, {metrics['frames_skipped']} skipped")
+    frames = f"{metrics['frames_processed']} processed, {metrics['frames_skipped']} skipped"
+    if metrics.get("frames_unpaired"):
+        frames += f", {metrics['frames_unpaired']} unpaired images left out"
+    t.add_row("frames", frames)
     t.add_row("tracking failures", str(metrics.get("tracking_failures", 0)))
     t.add_row("FPS", f"{metrics['fps']:.1f}  (JIT warm-up {metrics['warmup_s']:.1f} s excluded)")
     stages = "  ".join(f"{k} {v['mean']:.1f}" for k, v in metrics["stage_ms"].items())
@@ -50,45 +52,85 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
         if k in metrics:
             t.add_row(k.replace("_", " "), str(metrics[k]))
     console.print(t)
-    for s in metrics["skipped"][:5]:
+    for s in metrics["skipped"][:SUMMARY_EXAMPLES]:
         console.print(f"[yellow]skipped frame {s['position']}:[/] {escape(s['reason'])}", highlight=False,
                       soft_wrap=True)
+    if metrics.get("frames_unpaired"):
+        u = metrics["unpaired"][0]
+        more = metrics["frames_unpaired"] - 1
+        console.print(f"[yellow]unpaired:[/] {metrics['frames_unpaired']} listed images without a partner, e.g. "
+                      f"{escape(u['file'])}: {escape(u['reason'])}" + (f" (and {more} more, see metrics.json)"
+                                                                        if more else ""),
+                      highlight=False, soft_wrap=True)
+    for w in metrics.get("warnings", []):
+        console.print(f"[yellow]warning:[/] {escape(w)}", highlight=False, soft_wrap=True)
+
+
+def resolve_run_config(config: str | None, sets: list[str] | None, tracker: str | None,
+                       dataset: DatasetOptionsArgs):
+    """The run's settings: the command-line flags, over ``--set``, over the ``--config`` file (or preset), over
+    the defaults."""
+    if tracker is not None and tracker not in TRACKERS:
+        raise ConfigError(f"--tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
+    cfg = load_config(config, sets or ())
+    return replace(cfg, tracker=cfg.tracker if tracker is None else tracker, dataset=dataset.resolve(cfg.dataset))
 
 
 def register(app: typer.Typer) -> None:
     @app.command("run")
     @handle_errors
+    @with_dataset_options
     def run_cmd(
         seq_path: SeqArg,
+        dataset: DatasetOptionsArgs,
         out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out/run"),
-        config: Annotated[Path | None, typer.Option("--config", help="TOML configuration file.")] = None,
-        tracker: Annotated[str, typer.Option("--tracker", help=TRACKER_HELP)] = "dense",
+        overwrite: Annotated[bool, typer.Option(
+            "--overwrite", help="Replace the previous run in --out (only the run's own files are removed).")] = False,
+        config: Annotated[str | None, typer.Option(
+            "--config", help="TOML configuration file (e.g. a previous run's config.toml: the whole recipe), or a "
+                             "preset name (configs/NAME.toml: fast, accurate).")] = None,
+        sets: Annotated[list[str] | None, typer.Option(
+            "--set", metavar="KEY=VALUE", help="Override one setting, e.g. --set icp.min_inliers=300 --set "
+                                               "tracking.photometric=off (repeatable; a TOML value or a bare "
+                                               "string).")] = None,
+        tracker: Annotated[str | None, typer.Option("--tracker", help=TRACKER_HELP)] = None,
         poses: Annotated[str | None, typer.Option(
             "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")] = None,
         figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")] = True,
         progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
-        intrinsics: IntrinsicsOpt = None,
-        depth_scale: DepthScaleOpt = None,
-        start: StartOpt = 0,
-        end: EndOpt = None,
-        stride: StrideOpt = 1,
-        downsample: DownsampleOpt = 1,
         rerun: Annotated[bool, typer.Option(
             "--rerun", help="Also write OUT/run.rrd, a Rerun recording (needs rerun-sdk; see `surfelslam rerun`)."
         )] = False,
     ) -> None:
-        """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures."""
-        if tracker not in TRACKERS:
-            raise ConfigError(f"--tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
+        """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
+
+        Settings come from the command-line flags, then --set, then the --config file, then the defaults.
+        config.toml records all of them (tracker and dataset options too): `surfelslam run SEQ --config
+        OUT/config.toml` repeats the run. A --out folder that holds a previous run needs --overwrite; the run
+        writes into OUT/.partial-PID/ and moves its files into OUT when complete.
+        """
+        cfg = resolve_run_config(config, sets, tracker, dataset)
         if rerun:
             from surfelslam.viz.rerun_export import require_rerun
 
             require_rerun()  # before the run, not after it
-        cfg = load_config(config)
-        seq = open_sequence(seq_path, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
-        metrics = run_sequence(seq, out, cfg, tracker, poses=poses, progress=progress, figures=figures)
-        print_summary(metrics, out)
-        if rerun:
-            from surfelslam.tools.export_rerun import export_run, print_export
+        seq = open_sequence(seq_path, cfg.dataset)
+        exported = []
 
-            print_export(*export_run(out, seq=seq))
+        def started(stage: Path) -> None:
+            console.print(f"run -> {escape(str(out))} (writing into {escape(str(stage))} until complete)",
+                          highlight=False)
+
+        def export(stage: Path) -> None:
+            from surfelslam.tools.export_rerun import export_run
+
+            exported.append(export_run(stage, seq=seq))
+
+        metrics = run_sequence(seq, out, cfg, poses=poses, progress=progress, figures=figures, overwrite=overwrite,
+                               on_start=started, before_commit=export if rerun else None)
+        print_summary(metrics, out)
+        if exported:
+            from surfelslam.tools.export_rerun import print_export
+
+            summary, notes = exported[0]
+            print_export(replace(summary, path=out / Path(summary.path).name), notes)
