@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-fast bench lint clean
+.PHONY: demo test test-fast bench lint docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -38,6 +38,10 @@ bench: $(STAMP)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) || true
 	$(PY) -m pip install --quiet -e ".[dev,bench]" || echo "open3d not installable here: benchmarks run without the side-by-side"
 	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
+
+# the configuration reference, generated from the settings' metadata (a test checks the committed page is current)
+docs: $(STAMP)
+	$(PY) -m surfelslam.tools.gen_docs docs/config_reference.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

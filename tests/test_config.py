@@ -1,8 +1,20 @@
-from dataclasses import dataclass, field
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import pytest
 
-from surfelslam.config import dumps_toml, from_dict, load_toml
+from surfelslam.config import (
+    Config,
+    dumps_toml,
+    from_dict,
+    iter_tables,
+    load_toml,
+    reference_markdown,
+    validate,
+)
 from surfelslam.errors import ConfigError
 
 
@@ -61,3 +73,139 @@ def test_bad_toml_names_file(tmp_path):
     p.write_text("a = = 1")
     with pytest.raises(ConfigError, match="broken.toml"):
         load_toml(Outer, p)
+
+
+# ------------------------------------------------------------------------------------- the real configuration
+BAD_VALUES = [  # (TOML text, the full path and setting the one-line error must name)
+    ("[icp]\nphotometric_weight = inf\n", "[icp] photometric_weight must be finite"),
+    ("[preprocess]\nbilateral_radius_px = 100000\n", "[preprocess] bilateral_radius_px must be"),
+    ("[icp]\nmin_inliers = -5\n", "[icp] min_inliers must be"),
+    ("[io]\nprefetch_frames = -1\n", "[io] prefetch_frames must be"),
+    ("[hybrid.loop_icp]\nsigma_m = -1\n", "[hybrid.loop_icp] sigma_m must be > 0, got -1"),
+    ("[orb.loop_icp]\nsigma_m = -1\n", "[orb.loop_icp] sigma_m must be > 0, got -1"),
+    ("[hybrid.loop_icp.icp]\niterations = [10, 0, 10]\n", "[hybrid.loop_icp.icp] iterations[1] must be"),
+    ("[icp]\ndist_thresh_m = [0.1, 0.2]\n", "[icp] dist_thresh_m needs one value per level"),
+    ("[fusion]\ndist_diff_m = nan\n", "[fusion] dist_diff_m must be finite"),
+    ("[fusion]\nweight_mode = \"linear\"\n", "[fusion] weight_mode must be one of keller, constant"),
+    ("[render]\nmin_depth_m = 5.0\nmax_depth_m = 1.0\n", "[render] min_depth_m (5) must be < max_depth_m (1)"),
+    ("[preprocess]\npyramid_levels = 2\n", "[preprocess] pyramid_levels (2) must be >= [icp] levels (4)"),
+    ("[sparse.features]\nmin_inliers = -5\n", "[sparse.features] min_inliers must be"),
+    ("[sparse.loop.retrieval]\nratio = 2.0\n", "[sparse.loop.retrieval] ratio must be <= 1, got 2"),
+    ("[tracking.shape_guess]\nbins = 1\n", "[tracking.shape_guess] bins must be"),
+    ("[tracking]\nphotometric = \"yes\"\n", "[tracking] photometric must be one of auto, on, off, got 'yes'"),
+    ("[hybrid]\njoint_weight = -inf\n", "[hybrid] joint_weight must be finite"),
+]
+
+
+@pytest.mark.parametrize(("text", "message"), BAD_VALUES)
+def test_a_bad_value_is_one_line_naming_its_full_toml_path(tmp_path, text, message):
+    from surfelslam.slam import SlamConfig
+
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_toml(SlamConfig, path)
+    msg = str(info.value)
+    assert message in msg and msg.startswith(f"{path}: config: ") and "\n" not in msg
+
+
+def test_configs_built_in_python_are_checked_too():
+    from surfelslam.backend.dense_edges import DenseEdgeConfig
+    from surfelslam.tracking.icp import ICPConfig
+    from surfelslam.tracking.preprocess import PreprocessConfig
+
+    with pytest.raises(ConfigError, match=r"\[ICPConfig\] photometric_weight must be finite"):
+        ICPConfig(photometric_weight=math.inf)
+    with pytest.raises(ConfigError, match="min_inliers"):
+        ICPConfig(min_inliers=-5)
+    with pytest.raises(ConfigError, match="bilateral_radius_px"):
+        PreprocessConfig(bilateral_radius_px=100000)
+    with pytest.raises(ConfigError, match="sigma_m"):
+        replace(DenseEdgeConfig(), sigma_m=-1.0)
+    with pytest.raises(ConfigError, match="iterations must be a list"):
+        ICPConfig(iterations=5)  # type: ignore[arg-type]
+    assert ICPConfig(iterations=[1, 2, 3, 4]).iterations == (1, 2, 3, 4)  # lists become tuples
+    cfg = from_dict(ICPConfig, {"levels": 2, "iterations": [3, 3]}, "hybrid.loop_icp.icp")
+    assert cfg.levels == 2 and cfg.iterations == (3, 3)
+    with pytest.raises(ConfigError, match=r"\[hybrid.loop_icp.icp\] levels"):
+        from_dict(ICPConfig, {"levels": 0}, "hybrid.loop_icp.icp")
+    with pytest.raises(ConfigError, match=r"\[icp\] max_rotation_deg must be > 0, got 0"):
+        from_dict(ICPConfig, {"max_rotation_deg": 0}, "icp")
+
+
+def test_every_config_is_frozen_and_round_trips_through_toml(tmp_path):
+    from surfelslam.slam import SlamConfig
+
+    cfg = SlamConfig()
+    validate(cfg)
+    for path, sub in iter_tables(cfg):
+        assert type(sub).__dataclass_params__.frozen, path or "SlamConfig"  # type: ignore[attr-defined]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.icp.levels = 3  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.hybrid.loop_icp.icp.levels = 3  # type: ignore[misc]
+    path = tmp_path / "config.toml"
+    path.write_text(dumps_toml(cfg))
+    assert load_toml(SlamConfig, path) == cfg
+
+
+def test_every_setting_has_a_meaning_and_every_number_a_bound():
+    """Each field of a :class:`Config` is declared with :func:`setting`: a doc line, and numbers with bounds."""
+    from surfelslam.slam import SlamConfig
+
+    for path, sub in iter_tables(SlamConfig()):
+        if not isinstance(sub, Config):
+            continue
+        hints = typing.get_type_hints(type(sub))
+        for f in dataclasses.fields(sub):
+            meta = f.metadata.get("surfelslam")
+            where = f"[{path}] {f.name}"
+            assert meta is not None and meta.doc, where
+            assert "\n" not in meta.doc and len(meta.doc) < 300, where
+            tp = hints[f.name]
+            args = typing.get_args(tp)
+            if float in (tp, *args) or int in (tp, *args):
+                assert meta.choices or (meta.ge, meta.gt) != (None, None), where
+                assert meta.choices or meta.allow_inf or (meta.le, meta.lt) != (None, None), where
+
+
+def test_config_docstrings_are_short():
+    from surfelslam.slam import SlamConfig
+
+    for path, sub in iter_tables(SlamConfig()):
+        if isinstance(sub, Config):
+            assert len((type(sub).__doc__ or "").strip().splitlines()) <= 3, path
+
+
+def test_reference_page_covers_every_setting_and_is_current():
+    from surfelslam.slam import SlamConfig
+    from surfelslam.tools.gen_docs import reference_text
+
+    text = reference_markdown(SlamConfig)
+    sections = {}
+    for block in text.split("\n## ")[1:]:
+        head, _, body = block.partition("\n")
+        sections[head] = body
+    for path, sub in iter_tables(SlamConfig()):
+        head = f"`[{path}]`" if path else "SlamConfig (the file's top level)"
+        assert head in sections, head
+        for f in dataclasses.fields(sub):
+            if not dataclasses.is_dataclass(getattr(sub, f.name)):
+                assert f"| `{f.name}` |" in sections[head], f"{head} {f.name}"
+    committed = Path(__file__).resolve().parents[1] / "docs" / "config_reference.md"
+    assert committed.read_text() == reference_text(), "docs/config_reference.md is stale: run `make docs`"
+
+
+@pytest.mark.parametrize("name", ["fast", "accurate"])
+def test_presets_load(name):
+    from surfelslam.slam import SlamConfig
+
+    path = Path(__file__).resolve().parents[1] / "configs" / f"{name}.toml"
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("#") and lines[1].startswith("#")
+    cfg = load_toml(SlamConfig, path)
+    assert cfg != SlamConfig()
+    if name == "accurate":
+        assert cfg.tracking.max_width_px == 0 and cfg.fusion.max_width_px == 0
+    else:
+        assert cfg.tracking.photometric == "off"

@@ -20,6 +20,7 @@ import dataclasses
 import functools
 import math
 import numbers
+import re
 import tomllib
 import types
 import typing
@@ -85,9 +86,10 @@ def setting(
 ) -> Any:
     """A config field: its default (or ``default_factory``, for nested configs) and what :func:`validate` checks.
 
-    Numbers must be finite (``allow_inf``: +-inf too) and within ``ge`` / ``gt`` / ``le`` / ``lt``; strings one of
-    ``choices``; a tuple field's bounds apply to each element, and it needs at least ``min_len`` of them. ``unit``
-    and ``doc`` (what the setting does, one or two short sentences) go to the configuration reference.
+    Numbers must be finite (``allow_inf``: +inf too, whatever the upper bound) and within ``ge`` / ``gt`` / ``le`` /
+    ``lt``; strings one of ``choices``; a tuple field's bounds apply to each element, and it needs at least
+    ``min_len`` of them. ``unit`` and ``doc`` (what the setting does, one or two short sentences) go to the
+    configuration reference.
     """
     if isinstance(default, list):
         raise TypeError("setting: use a tuple, not a list, as a default")
@@ -177,16 +179,19 @@ def _scalar_problem(v: Any, tp: Any, b: Bounds) -> str | None:
         if isinstance(v, bool) or not isinstance(v, numbers.Real):
             return f"must be a number, got {fmt_value(v)}"
         x = float(v)
-        if math.isnan(x) or (math.isinf(x) and not b.allow_inf):
-            rng = b.describe()
-            return f"must be finite{' and ' + rng if rng else ''}, got {fmt_value(x)}"
+        if b.allow_inf and x == math.inf:
+            return None
+        if math.isnan(x) or math.isinf(x):
+            rng = (" and " + b.describe() if b.describe() else "") + (" (or inf)" if b.allow_inf else "")
+            return f"must be finite{rng}, got {fmt_value(x)}"
     else:
         return None
     if b.choices is not None:
         return None if v in b.choices else f"must be {b.describe()}, got {fmt_value(v)}"
-    if ((b.ge is not None and not v >= b.ge) or (b.gt is not None and not v > b.gt)
-            or (b.le is not None and not v <= b.le) or (b.lt is not None and not v < b.lt)):
-        return f"must be {b.describe()}, got {fmt_value(v)}"
+    if (b.ge is not None and not v >= b.ge) or (b.gt is not None and not v > b.gt):  # the bound it breaks
+        return f"must be {Bounds(ge=b.ge, gt=b.gt).describe()}, got {fmt_value(v)}"
+    if (b.le is not None and not v <= b.le) or (b.lt is not None and not v < b.lt):
+        return f"must be {Bounds(le=b.le, lt=b.lt).describe()}, got {fmt_value(v)}"
     return None
 
 
@@ -404,7 +409,9 @@ def iter_tables(cfg: Any, path: str = "") -> Iterator[tuple[str, Any]]:
 
 
 def _md(text: str) -> str:
-    return " ".join(text.split()).replace("|", "\\|")
+    """Docstring text as one Markdown table cell / paragraph (Sphinx roles and double backticks to code spans)."""
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"`\1`", " ".join(text.split()))
+    return text.replace("``", "`").replace("|", "\\|")
 
 
 def _summary(doc: str | None) -> str:
@@ -455,9 +462,9 @@ def reference_markdown(cls: type) -> str:
         "",
         "Generated from the settings' definitions by `make docs` (`python -m surfelslam.tools.gen_docs`); do not edit.",
         "Every setting may be given in a TOML file passed with `--config`; missing settings keep the defaults shown.",
-        "A value outside its bounds stops the command with one line naming the setting, e.g.",
-        "`config: [icp] photometric_weight must be finite and >= 0, got inf`. Numbers must be finite unless the",
-        "bounds say `inf` is allowed; a list's bounds apply to each of its values.",
+        "A value of the wrong type or outside its bounds, or a broken rule, stops the command with one line naming",
+        "the setting by its table, e.g. `config: [icp] min_inliers must be >= 0, got -5`. Numbers must be finite",
+        "(`or inf`: also `inf`); a list's bounds apply to each of its values.",
         "",
     ]
     for path, cfg in iter_tables(root):
@@ -472,10 +479,10 @@ def reference_markdown(cls: type) -> str:
             b = _bounds(f)
             bounds = b.describe()
             extra = []
-            if b.min_len is not None:
+            if b.min_len is not None and b.min_len > 1:
                 extra.append(f"at least {b.min_len} values")
             if b.allow_inf:
-                extra.append("inf allowed")
+                extra.append("or inf")
             bounds = "; ".join(x for x in [bounds, *extra] if x)
             rows.append(f"| `{f.name}` | {_default_text(v)} | {b.unit or ''} | {_md(bounds)} | "
                         f"{_md(b.doc or attr_docs.get(f.name, '')) or '(' + _type_name(hints[f.name]) + ')'} |")

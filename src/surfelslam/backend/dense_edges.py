@@ -78,7 +78,8 @@ def _edge_icp_config() -> ICPConfig:
 
 @dataclass(frozen=True)
 class DenseEdgeConfig(Config):
-    """Dense (ICP) check and refinement of PnP keyframe edges, behind a trust gate (module docstring)."""
+    """Dense (ICP) check and refinement of PnP keyframe edges, behind a trust gate
+    (:mod:`surfelslam.backend.dense_edges`)."""
 
     enabled: bool = setting(True, doc="refine every PnP keyframe edge by ICP between the two keyframes' depth; "
                             "edges that fail the check are dropped")

@@ -34,7 +34,7 @@ _MIN_INLIERS_PER_STEP = 6  # a 6-DoF step needs at least 6 constraints
 class ICPConfig(Config):
     """Settings of :func:`icp`: coarse-to-fine point-to-plane ICP with optional photometric term.
 
-    Per-level tuples are indexed by pyramid level, 0 = finest.
+    Per-level lists are indexed by pyramid level, 0 = finest.
     """
 
     levels: int = setting(4, ge=1, le=10, doc="pyramid levels used (at most the pyramids' depth); 1 = full "
