@@ -105,6 +105,22 @@ def check(fn: Callable[[Any], str | None]) -> Callable[[Any], str | None]:
     return fn
 
 
+def ordered(low: str, high: str, *, strict: bool = True) -> Callable[[Any], str | None]:
+    """A :func:`check` rule ``low < high`` (``strict=False``: ``<=``) between two fields of a config, e.g.
+    ``_depth_range = ordered("min_depth_m", "max_depth_m")`` in its class body."""
+    op = "<" if strict else "<="
+
+    def rule(cfg: Any) -> str | None:
+        a, b = getattr(cfg, low), getattr(cfg, high)
+        if a < b or (not strict and a == b):
+            return None
+        return f"{low} ({fmt_value(a)}) must be {op} {high} ({fmt_value(b)})"
+
+    rule.__doc__ = f"{low} {op} {high}."
+    rule.__name__ = f"_{low}_{'lt' if strict else 'le'}_{high}"
+    return check(rule)
+
+
 class Config:
     """Base of the config dataclasses (each also ``@dataclass(frozen=True)``): lists given for tuple fields
     become tuples, and the settings are validated when a config is built (its own fields and rules; nested configs

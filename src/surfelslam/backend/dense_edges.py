@@ -49,7 +49,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from surfelslam.config import Config, check, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
 from surfelslam.tracking.features import reprojection_spread_px
@@ -118,13 +118,7 @@ class DenseEdgeConfig(Config):
                                           doc="... only where the PnP verification had fewer good matches than this "
                                               "(texture too poor to verify)")
 
-    @check
-    def _spread_window(self) -> str | None:
-        """min_spread_edges <= spread_window_edges."""
-        if self.spread_window_edges < self.min_spread_edges:
-            return (f"min_spread_edges ({self.min_spread_edges}) must be <= spread_window_edges "
-                    f"({self.spread_window_edges})")
-        return None
+    _spread_window = ordered("min_spread_edges", "spread_window_edges", strict=False)
 
 
 class DenseEdgeRefiner:

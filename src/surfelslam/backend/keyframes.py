@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry.camera import backproject
 from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import Features
@@ -24,12 +24,7 @@ class MapConfig(Config):
     pixel_stride: int = setting(2, unit="px", ge=1, le=64,
                                 doc="keyframe depth is sampled every s pixels before filtering")
 
-    @check
-    def _depth_range(self) -> str | None:
-        """min_depth_m < max_depth_m."""
-        if not self.min_depth_m < self.max_depth_m:
-            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
-        return None
+    _depth_range = ordered("min_depth_m", "max_depth_m")
 
 
 @dataclass

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from scipy.optimize import minimize
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.errors import ConfigError
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
@@ -52,12 +52,7 @@ class ColourFitConfig(Config):
     offset_step_px: float = setting(4.0, unit="px", gt=0, le=1000, doc="step of the offset grid")
     fit_translation: bool = setting(True, doc="also fit the colour camera's offset along the depth camera's x axis")
 
-    @check
-    def _ratio_range(self) -> str | None:
-        """ratio_min < ratio_max."""
-        if not self.ratio_min < self.ratio_max:
-            return f"ratio_min ({fmt_value(self.ratio_min)}) must be < ratio_max ({fmt_value(self.ratio_max)})"
-        return None
+    _ratio_range = ordered("ratio_min", "ratio_max")
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import fusion as kf
 from surfelslam.mapping.surfel_map import SurfelMap
@@ -104,12 +104,7 @@ class FusionConfig(Config):
     max_width_px: int = setting(320, unit="px", ge=0, le=65536,
                                 doc="fuse the finest pyramid level at most this wide; 0 = full resolution")
 
-    @check
-    def _depth_range(self) -> str | None:
-        """min_depth_m < max_depth_m."""
-        if not self.min_depth_m < self.max_depth_m:
-            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
-        return None
+    _depth_range = ordered("min_depth_m", "max_depth_m")
 
 
 @dataclass

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.errors import ConfigError
 from surfelslam.kernels import render as kr
 from surfelslam.mapping.surfel_map import SurfelMap
@@ -36,12 +36,7 @@ class RenderConfig(Config):
     vertex: str = setting("centre", choices=("centre", "disc"),
                           doc="a pixel's point: the winning surfel's centre, or its disc point on the pixel ray")
 
-    @check
-    def _depth_range(self) -> str | None:
-        """min_depth_m < max_depth_m."""
-        if not self.min_depth_m < self.max_depth_m:
-            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
-        return None
+    _depth_range = ordered("min_depth_m", "max_depth_m")
 
 
 @dataclass

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.types import Intrinsics
 
 _REFERENCE_WIDTH_PX = 640  # hole sizes and the disparity focal length refer to a 640-pixel-wide sensor image
@@ -57,20 +57,8 @@ class KinectNoiseConfig(Config):
     rgb_noise_sigma: float = setting(2.0, unit="grey levels", ge=0, le=255, doc="Gaussian noise on 0..255 "
                                      "intensities")
 
-    @check
-    def _depth_range(self) -> str | None:
-        """min_depth_m < max_depth_m."""
-        if not self.min_depth_m < self.max_depth_m:
-            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
-        return None
-
-    @check
-    def _hole_radii(self) -> str | None:
-        """hole_radius_min_px <= hole_radius_max_px."""
-        if self.hole_radius_min_px > self.hole_radius_max_px:
-            return (f"hole_radius_min_px ({self.hole_radius_min_px}) must be <= hole_radius_max_px "
-                    f"({self.hole_radius_max_px})")
-        return None
+    _depth_range = ordered("min_depth_m", "max_depth_m")
+    _hole_radii = ordered("hole_radius_min_px", "hole_radius_max_px", strict=False)
 
 
 def frame_rng(seed: int, frame_index: int) -> np.random.Generator:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.errors import ConfigError
 from surfelslam.kernels import preprocess as kp
 from surfelslam.types import Intrinsics
@@ -50,12 +50,7 @@ class PreprocessConfig(Config):
         doc="2x2 block averaging only merges points within this depth of the block's reference point (level 1; "
             "doubled per level)")
 
-    @check
-    def _depth_range(self) -> str | None:
-        """min_depth_m < max_depth_m."""
-        if not self.min_depth_m < self.max_depth_m:
-            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
-        return None
+    _depth_range = ordered("min_depth_m", "max_depth_m")
 
 
 @dataclass

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.geometry.camera import backproject, pixel_grid, project
@@ -50,13 +50,7 @@ class RetimeConfig(Config):
                                         doc="the velocity used must be measured within this of the middle of the "
                                             "colour - depth interval")
 
-    @check
-    def _offset_range(self) -> str | None:
-        """min_offset_s <= max_offset_s."""
-        if not self.min_offset_s <= self.max_offset_s:
-            return (f"min_offset_s ({fmt_value(self.min_offset_s)}) must be <= max_offset_s "
-                    f"({fmt_value(self.max_offset_s)})")
-        return None
+    _offset_range = ordered("min_offset_s", "max_offset_s", strict=False)
 
     def applies(self, offset_s: float) -> bool:
         """Whether a frame whose colour stamp minus depth stamp is ``offset_s`` is re-timed."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from surfelslam.config import Config, check, fmt_value, setting
+from surfelslam.config import Config, ordered, setting
 
 MATCHING_MODES = ("crosscheck", "ratio")
 DETECTORS = ("orb", "sift")
@@ -102,12 +102,7 @@ class FeatureConfig(Config):
     consensus_rel_tol: float = setting(0.05, unit="fraction", ge=0, le=1, doc="the rel of that rule")
     consensus_seeds: int = setting(10, ge=1, le=10_000, doc="consistent sets grown; the largest is kept")
 
-    @check
-    def _depth_range(self) -> str | None:
-        """min_depth_m < max_depth_m."""
-        if not self.min_depth_m < self.max_depth_m:
-            return f"min_depth_m ({fmt_value(self.min_depth_m)}) must be < max_depth_m ({fmt_value(self.max_depth_m)})"
-        return None
+    _depth_range = ordered("min_depth_m", "max_depth_m")
 
 
 def with_max_motion_norm(cfg: FeatureConfig, max_motion_norm: float) -> FeatureConfig:
