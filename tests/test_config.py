@@ -209,3 +209,22 @@ def test_presets_load(name):
         assert cfg.tracking.max_width_px == 0 and cfg.fusion.max_width_px == 0
     else:
         assert cfg.tracking.photometric == "off"
+
+
+def test_every_config_class_is_a_frozen_config():
+    """Every ``*Config`` dataclass of the library derives from :class:`Config` (checked on construction) and is
+    frozen (settings change by ``dataclasses.replace``)."""
+    import importlib
+    import pkgutil
+
+    found = []
+    for sub in ("backend", "geometry", "mapping", "slam", "synth", "tracking"):
+        pkg = importlib.import_module(f"surfelslam.{sub}")
+        for info in pkgutil.walk_packages(pkg.__path__, f"surfelslam.{sub}."):
+            module = importlib.import_module(info.name)
+            for name, obj in vars(module).items():
+                if (name.endswith("Config") and isinstance(obj, type) and dataclasses.is_dataclass(obj)
+                        and obj.__module__ == module.__name__):
+                    found.append(obj)
+                    assert issubclass(obj, Config) and obj.__dataclass_params__.frozen, obj  # type: ignore[attr-defined]
+    assert len(found) >= 27
