@@ -94,6 +94,8 @@ BAD_VALUES = [  # (TOML text, the full path and setting the one-line error must 
     ("[tracking.shape_guess]\nbins = 1\n", "[tracking.shape_guess] bins must be"),
     ("[tracking]\nphotometric = \"yes\"\n", "[tracking] photometric must be one of auto, on, off, got 'yes'"),
     ("[hybrid]\njoint_weight = -inf\n", "[hybrid] joint_weight must be finite"),
+    ("[icp]\nphotometric_weight = \"x\"\n", "[icp] photometric_weight must be a number, got 'x'"),
+    ("[hybrid.loop_icp.icp]\niterations = [1, 2.5]\n", "[hybrid.loop_icp.icp] iterations must be an integer"),
 ]
 
 

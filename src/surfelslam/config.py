@@ -278,6 +278,12 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return out
 
 
+def _setting_path(where: str) -> str:
+    """``hybrid.loop_icp.sigma_m`` -> ``[hybrid.loop_icp] sigma_m`` (a top-level key stays as it is)."""
+    table, _, key = where.rpartition(".")
+    return f"[{table}] {key}" if table else key
+
+
 def _coerce(value: Any, tp: Any, where: str, default: Any = None) -> Any:
     """``value`` as type ``tp``; ``default`` is the field's default (a nested table fills its missing keys from it)."""
     origin = typing.get_origin(tp)
@@ -292,26 +298,26 @@ def _coerce(value: Any, tp: Any, where: str, default: Any = None) -> Any:
         return _build(tp, value, where, default if isinstance(default, tp) else None)  # type: ignore[arg-type]
     if origin in (tuple, list):
         if not isinstance(value, list | tuple):
-            raise ConfigError(f"config: {where} must be a list, got {value!r}")
+            raise ConfigError(f"config: {_setting_path(where)} must be a list, got {value!r}")
         args = typing.get_args(tp)
         elem = args[0] if args else Any
         items = [_coerce(v, elem, where) for v in value]
         return tuple(items) if origin is tuple else items
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"config: {where} must be a number, got {value!r}")
+            raise ConfigError(f"config: {_setting_path(where)} must be a number, got {value!r}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"config: {where} must be an integer, got {value!r}")
+            raise ConfigError(f"config: {_setting_path(where)} must be an integer, got {value!r}")
         return value
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"config: {where} must be true or false, got {value!r}")
+            raise ConfigError(f"config: {_setting_path(where)} must be true or false, got {value!r}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"config: {where} must be a string, got {value!r}")
+            raise ConfigError(f"config: {_setting_path(where)} must be a string, got {value!r}")
         return value
     return value
 
