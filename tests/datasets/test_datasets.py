@@ -347,7 +347,7 @@ def test_plain_folder_needs_camera_from_options_or_info(tmp_path):
 
 
 def test_layouts_registry_order_and_descriptions():
-    assert list(LAYOUTS) == ["7scenes", "synthetic", "icl", "tum", "folder"]
+    assert list(LAYOUTS) == ["7scenes", "synthetic", "icl", "tum", "folder", "rosbag"]
     for name, cls in LAYOUTS.items():
         assert cls.layout == name and len(cls.expects) > 10
 

@@ -31,6 +31,10 @@ class DatasetOptions:
         end: one past the last frame position (``None``: to the end).
         stride: keep every ``stride``-th frame.
         downsample: image sampling factor ``[::n, ::n]`` (intrinsics divided by n).
+        rgb_topic: the colour image topic of a ROS bag / MCAP file (``None``: found by message type and name).
+        depth_topic: the depth image topic of a ROS bag / MCAP file (``None``: found by message type and name).
+        camera_info_topic: the ``CameraInfo`` topic giving the intrinsics of a bag (``None``: found by type and name).
+        gt: ground truth replacing the sequence's own: a TUM trajectory file, or a bag's pose topic.
     """
 
     intrinsics: tuple[float, float, float, float] | None = None
@@ -39,6 +43,10 @@ class DatasetOptions:
     end: int | None = None
     stride: int = 1
     downsample: int = 1
+    rgb_topic: str | None = None
+    depth_topic: str | None = None
+    camera_info_topic: str | None = None
+    gt: str | None = None
 
     def __post_init__(self) -> None:
         if self.start < 0:
@@ -173,17 +181,28 @@ class RGBDSequence:
         return np.array([e.timestamp if e.depth_timestamp is None else e.depth_timestamp for e in self.entries],
                         dtype=np.float64)
 
+    def read_depth_raw(self, i: int) -> np.ndarray:
+        """The raw depth image of selected frame ``i`` (the files' resolution and units); FrameError if unreadable."""
+        from surfelslam.io.images import read_depth_raw
+
+        return read_depth_raw(self.entries[i].depth_path)
+
+    def _read_images(self, i: int, e: FrameEntry) -> tuple[np.ndarray, np.ndarray]:
+        """``(raw depth, rgb)`` of selected frame ``i`` at the files' resolution (adapters that do not read image
+        files override this); FrameError naming what is unreadable."""
+        from surfelslam.io.images import read_rgb
+
+        # depth first: without it there is no frame, and its message names the depth file
+        return self.read_depth_raw(i), read_rgb(e.rgb_path)
+
     def __getitem__(self, i: int) -> RGBDFrame:
         if not -len(self) <= i < len(self):
             raise IndexError(f"frame {i} out of range for a sequence of {len(self)} frames")
         i = i % len(self)
         e = self.entries[i]
-        from surfelslam.io.images import read_depth_raw, read_rgb
-
         full = self.full_intrinsics
-        try:  # depth first: without it there is no frame, and its message names the depth file
-            raw = read_depth_raw(e.depth_path)
-            rgb = read_rgb(e.rgb_path)
+        try:
+            raw, rgb = self._read_images(i, e)
         except FrameError as exc:
             if exc.index is None:
                 exc.index = i  # the position in the selection, for runs that skip and count bad frames

@@ -65,6 +65,9 @@ def intrinsics_findings(seq: RGBDSequence) -> list[Finding]:
     if kind == "option":
         return [Finding(seq.root, f"--intrinsics {values}: {what}; give fx,fy,cx,cy in pixels at the files' "
                                   f"resolution ({w}x{h})", True)]
+    if kind == "topic":  # a bag's CameraInfo
+        return [Finding(seq.root, f"intrinsics {values} from the {seq.intrinsics_source}: {what}; override them with "
+                                  f"--intrinsics (fx,fy,cx,cy at {w}x{h})", True)]
     if kind == "file":
         source = seq.root / seq.intrinsics_source
         return [Finding(source, f"intrinsics {values}: {what}; fix the file or override it with --intrinsics "
@@ -79,13 +82,11 @@ def _sample_positions(n: int, k: int = DEPTH_SAMPLE_FRAMES) -> list[int]:
 
 def depth_findings(seq: RGBDSequence) -> list[Finding]:
     """The median valid depth of a few frames outside :data:`PLAUSIBLE_DEPTH_RANGE_M`, or no valid depth."""
-    from surfelslam.io.images import read_depth_raw
-
     medians, read = [], []
     for i in _sample_positions(len(seq.entries)):
         path = seq.entries[i].depth_path
         try:
-            raw = read_depth_raw(path)
+            raw = seq.read_depth_raw(i)
         except FrameError:
             continue  # reported when the frame is loaded
         read.append(path)

@@ -9,6 +9,11 @@ come before plain TUM:
                  icl / living_room / office
 4. ``tum``       any of ``rgb.txt``, ``depth.txt``, ``associations.txt``
 5. ``folder``    ``rgb/`` and ``depth/`` with numbered images (camera from options or INFO.txt)
+6. ``rosbag``    a ROS 1 ``.bag``, a ROS 2 bag folder (``metadata.yaml``), or an ``.mcap`` / ``.db3`` file
+                 (a file path is only ever a bag: :mod:`surfelslam.datasets.rosbag`)
+
+``DatasetOptions.gt`` (``--gt FILE``) replaces any layout's ground truth by a TUM trajectory file (for a bag it may
+also name a pose topic).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from surfelslam.datasets.folder import FolderSequence
 from surfelslam.datasets.icl import IclSequence
 from surfelslam.datasets.metadata import read_metadata
 from surfelslam.datasets.plausibility import check_plausibility
+from surfelslam.datasets.rosbag import RosbagSequence, is_bag, looks_like_bag
 from surfelslam.datasets.sevenscenes import SevenScenesSequence
 from surfelslam.datasets.tum import SyntheticSequence, TumSequence
 from surfelslam.errors import ConfigError, DatasetError, GroundTruthError
@@ -30,7 +36,7 @@ from surfelslam.types import RGBDFrame, Trajectory
 #: Adapter name -> adapter class, in detection order.
 LAYOUTS: dict[str, type[RGBDSequence]] = {
     cls.layout: cls
-    for cls in (SevenScenesSequence, SyntheticSequence, IclSequence, TumSequence, FolderSequence)
+    for cls in (SevenScenesSequence, SyntheticSequence, IclSequence, TumSequence, FolderSequence, RosbagSequence)
 }
 
 #: Median valid depth of one frame outside this range (metres) suggests a wrong depth scale.
@@ -49,7 +55,9 @@ def detect_layout(path: str | Path) -> str:
     """
     root = Path(path)
     if not root.exists():
-        raise DatasetError(root, "sequence folder not found")
+        raise DatasetError(root, "bag not found" if looks_like_bag(root) else "sequence folder not found")
+    if is_bag(root):
+        return RosbagSequence.layout
     if not root.is_dir():
         raise DatasetError(root, "not a folder (give the sequence folder)")
     if not any(root.iterdir()):
@@ -88,9 +96,15 @@ def open_sequence(
         layout = detect_layout(root)
     elif layout not in LAYOUTS:
         raise ConfigError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
-    elif not root.is_dir():
+    elif not (root.is_dir() or (layout == RosbagSequence.layout and root.is_file())):
         raise DatasetError(root, "sequence folder not found")
     seq = LAYOUTS[layout].open(root, options)  # type: ignore[attr-defined]
+    if options.gt is not None and layout != RosbagSequence.layout:  # the bag reader takes a file or a topic
+        from surfelslam.datasets.tum import read_ground_truth_file
+
+        if not Path(options.gt).is_file():
+            raise DatasetError(Path(options.gt), "--gt: ground-truth file not found")
+        seq.ground_truth = read_ground_truth_file(Path(options.gt))
     if len(seq) == 0:
         raise ConfigError(
             f"{root}: the selection (--start {options.start} --end {options.end} --stride {options.stride}) "

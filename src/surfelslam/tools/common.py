@@ -94,7 +94,8 @@ def handle_errors(fn: F) -> F:
 
 # Dataset options, shared by every command that reads a sequence: one definition (the ``...Opt`` annotations) and one
 # way to declare them (:func:`with_dataset_options`, which hands the command one :class:`DatasetOptionsArgs`).
-SeqArg = Annotated[Path, typer.Argument(help="Sequence folder (TUM, ICL-NUIM, 7-Scenes or plain rgb/ + depth/).")]
+SeqArg = Annotated[Path, typer.Argument(help="Sequence folder (TUM, ICL-NUIM, 7-Scenes or plain rgb/ + depth/), "
+                                              "or a ROS bag: .bag, .mcap, or a ROS 2 bag folder.")]
 IntrinsicsOpt = Annotated[
     str | None, typer.Option("--intrinsics", help="fx,fy,cx,cy at full resolution (overrides the layout's default).")
 ]
@@ -107,6 +108,15 @@ StrideOpt = Annotated[int | None, typer.Option("--stride", help="Keep every N-th
 DownsampleOpt = Annotated[
     int | None, typer.Option("--downsample", help="Sample images [::N, ::N] (intrinsics / N). Default 1.")
 ]
+RgbTopicOpt = Annotated[str | None, typer.Option(
+    "--rgb-topic", help="ROS bags: the colour image topic (default: found by type and name).")]
+DepthTopicOpt = Annotated[str | None, typer.Option(
+    "--depth-topic", help="ROS bags: the depth image topic (default: found by type and name).")]
+CameraInfoTopicOpt = Annotated[str | None, typer.Option(
+    "--camera-info-topic", help="ROS bags: the CameraInfo topic giving the intrinsics (default: the one beside "
+                                "the depth topic).")]
+GtOpt = Annotated[str | None, typer.Option(
+    "--gt", help="Ground truth replacing the sequence's own: a TUM trajectory file (or a bag's pose topic).")]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,6 +130,10 @@ class DatasetOptionsArgs:
     end: int | None = None
     stride: int | None = None
     downsample: int | None = None
+    rgb_topic: str | None = None
+    depth_topic: str | None = None
+    camera_info_topic: str | None = None
+    gt: str | None = None
 
     def given(self) -> dict[str, Any]:
         """The options given, as :class:`DatasetOptions` fields (``--intrinsics`` parsed)."""
@@ -136,14 +150,16 @@ class DatasetOptionsArgs:
 _DATASET_PARAMS = tuple(
     inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=annotation)
     for name, annotation in (("intrinsics", IntrinsicsOpt), ("depth_scale", DepthScaleOpt), ("start", StartOpt),
-                             ("end", EndOpt), ("stride", StrideOpt), ("downsample", DownsampleOpt))
+                             ("end", EndOpt), ("stride", StrideOpt), ("downsample", DownsampleOpt),
+                             ("rgb_topic", RgbTopicOpt), ("depth_topic", DepthTopicOpt),
+                             ("camera_info_topic", CameraInfoTopicOpt), ("gt", GtOpt))
 )
 
 
 def with_dataset_options(fn: F) -> F:
     """Give command ``fn`` the dataset options ``--intrinsics --depth-scale --start --end --stride --downsample``
-    (the same names, help and defaults in every command); ``fn`` receives them as one ``dataset:
-    DatasetOptionsArgs`` argument. Apply below ``@handle_errors``."""
+    and ``--rgb-topic --depth-topic --camera-info-topic --gt`` (the same names, help and defaults in every command);
+    ``fn`` receives them as one ``dataset: DatasetOptionsArgs`` argument. Apply below ``@handle_errors``."""
     sig = inspect.signature(fn, eval_str=True)
     if "dataset" not in sig.parameters:
         raise TypeError(f"{fn.__name__} needs a 'dataset: DatasetOptionsArgs' parameter")

@@ -1,4 +1,5 @@
-"""``surfelslam info SEQ``: what was detected in a sequence folder (layout, frames, camera, ground truth)."""
+"""``surfelslam info SEQ``: what was detected in a sequence folder or bag (layout, frames, camera, ground truth; a bag's
+topics)."""
 
 from __future__ import annotations
 
@@ -10,15 +11,19 @@ from rich.markup import escape
 from rich.table import Table
 
 from surfelslam.tools.common import (
+    CameraInfoTopicOpt,
+    DatasetOptionsArgs,
     DepthScaleOpt,
+    DepthTopicOpt,
     DownsampleOpt,
     EndOpt,
+    GtOpt,
     IntrinsicsOpt,
+    RgbTopicOpt,
     SeqArg,
     StartOpt,
     StrideOpt,
     console,
-    dataset_options,
     handle_errors,
 )
 
@@ -53,6 +58,17 @@ def info_table(d: dict) -> Table:
         ("first frame depth", "no valid pixel" if med is None else
          f"median {med:.3f} m, {100 * d['first_frame_valid_depth_fraction']:.1f}% valid"),
     ]
+    if "topics" in d:  # a bag
+        rows.insert(1, ("bag", d["bag_format"]))
+        for t in d["topics"]:
+            rate = "" if t["rate_hz"] is None else f", {t['rate_hz']:g} Hz"
+            role = f"  <- {t['role']}" if t["role"] else ""
+            rows.append(("topic", f"{t['topic']}  {t['type'].replace('/msg/', '/')}  ({t['count']} messages{rate})"
+                                  f"{role}"))
+        if d.get("ground_truth_source"):
+            rows.append(("ground truth from", d["ground_truth_source"]))
+    for w in d.get("warnings", []) if "topics" in d else []:
+        rows.append(("warning", w))
     if d["depth_scale_warning"]:
         rows.append(("warning", d["depth_scale_warning"]))
     for k, v in rows:
@@ -71,12 +87,20 @@ def register(app: typer.Typer) -> None:
         end: EndOpt = None,
         stride: StrideOpt = 1,
         downsample: DownsampleOpt = 1,
+        rgb_topic: RgbTopicOpt = None,
+        depth_topic: DepthTopicOpt = None,
+        camera_info_topic: CameraInfoTopicOpt = None,
+        gt: GtOpt = None,
         json_out: Annotated[bool, typer.Option("--json", help="Print the information as JSON.")] = False,
     ) -> None:
-        """Show the detected layout, frames, resolution, intrinsics, depth scale and ground-truth coverage."""
+        """Show the detected layout, frames, resolution, intrinsics, depth scale and ground-truth coverage.
+
+        For a ROS bag or MCAP file, also its topics with message counts and rates, and which are read.
+        """
         from surfelslam.datasets import describe, open_sequence
 
-        opts = dataset_options(intrinsics, depth_scale, start, end, stride, downsample)
+        opts = DatasetOptionsArgs(intrinsics, depth_scale, start, end, stride, downsample, rgb_topic, depth_topic,
+                                  camera_info_topic, gt).resolve()
         d = describe(open_sequence(seq, opts, plausibility="warn"))  # info diagnoses: it warns, run refuses
         if json_out:
             typer.echo(json.dumps(d, indent=2))
