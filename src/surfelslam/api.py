@@ -17,7 +17,7 @@ Everything here is a thin layer over :mod:`surfelslam.slam` (the trackers and th
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +29,8 @@ from surfelslam.datasets.registry import open_sequence as _open_sequence
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
 from surfelslam.eval.metrics import evaluate as _evaluate
-from surfelslam.slam import DEFAULT_TRACKER, TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
+from surfelslam.slam import TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
+from surfelslam.slam.segments import segments_report, tracking_segments
 from surfelslam.tracking.icp import ICPConfig
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.tracking.registration import PairRegistration, register_pair
@@ -109,7 +110,7 @@ class Slam:
 
     Args:
         intrinsics: the depth camera (``Intrinsics(fx, fy, cx, cy, width, height)``); frames must have its size.
-        tracker: one of :data:`surfelslam.slam.TRACKERS` (default ``dense``).
+        tracker: one of :data:`surfelslam.slam.TRACKERS`; default: the config's ``tracker`` (``dense``).
         config: a :class:`SlamConfig`, a nested dict of settings, or a TOML file; default settings otherwise.
         colour_registered: whether colour pixels see the same rays as depth pixels (photometric and feature terms
             are used only then, by default).
@@ -117,14 +118,16 @@ class Slam:
         warmup: compile the numba kernels now (else on the first frame).
     """
 
-    def __init__(self, intrinsics: Intrinsics, tracker: str = DEFAULT_TRACKER,
+    def __init__(self, intrinsics: Intrinsics, tracker: str | None = None,
                  config: SlamConfig | dict | str | Path | None = None, *, colour_registered: bool = True,
                  colour_camera: ColourCamera | None = None, warmup: bool = True):
+        cfg = _as_config(config)
+        tracker = cfg.tracker if tracker is None else tracker
         if tracker not in TRACKERS:
             raise ConfigError(f"tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
         self.intrinsics = intrinsics
         self.tracker_name = tracker
-        self.config = _as_config(config)
+        self.config = replace(cfg, tracker=tracker)
         self.tracker: Tracker = build_slam(intrinsics, self.config, tracker, colour_registered, colour_camera)
         if warmup:
             self.tracker.warmup()
@@ -169,7 +172,9 @@ class Slam:
             stamps = np.array([r.timestamp for r in self._results], np.float64)
             poses = np.array([r.T_world_cam for r in self._results], np.float64).reshape(-1, 4, 4)
             traj = Trajectory(stamps, poses)
-        return SlamRun(traj, res.surfel_map, res.metrics, self.config, self.tracker_name, res, self._results)
+        frames = [(r.index, r.timestamp, r.status, r.reason) for r in self._results]
+        metrics = {**res.metrics, **segments_report(tracking_segments(frames))}
+        return SlamRun(traj, res.surfel_map, metrics, self.config, self.tracker_name, res, self._results)
 
 
 def register(source: RGBDFrame, target: RGBDFrame, intrinsics: Intrinsics, init: str = "auto",

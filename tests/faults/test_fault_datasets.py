@@ -166,9 +166,14 @@ def test_depth_file_listed_but_missing_is_a_frame_error(seq):
 
 
 # ------------------------------------------------------------------------------------------ plausibility
+# `run` refuses an implausible camera or depth scale (one line naming the option); `info` only warns (below).
+def run_cli(seq, *args):
+    return cli("run", seq, "--out", str(seq.parent / "run_out"), *args)
+
+
 @pytest.mark.parametrize("scale, median", [("1", "is 1.2e+04 m"), ("1000000", "is 0.012 m")])
 def test_depth_scale_far_off_names_the_option(seq, scale, median):
-    line = assert_one_line(cli("info", seq, "--depth-scale", scale), 2, str(seq),
+    line = assert_one_line(run_cli(seq, "--depth-scale", scale), 2, str(seq),
                            f"--depth-scale {scale} units per metre (from --depth-scale)", "outside 0.1-20 m")
     assert "median valid depth" in line and median in line
 
@@ -176,13 +181,13 @@ def test_depth_scale_far_off_names_the_option(seq, scale, median):
 def test_depth_scale_from_info_txt_is_named_too(seq):
     info = (seq / "INFO.txt").read_text().replace("depth scale     : 5000", "depth scale     : 5")
     (seq / "INFO.txt").write_text(info)
-    assert_one_line(cli("info", seq), 2, "--depth-scale 5 units per metre (from INFO.txt)")
+    assert_one_line(run_cli(seq), 2, "--depth-scale 5 units per metre (from INFO.txt)")
 
 
 def test_empty_depth_everywhere_is_refused(seq):
     for row in index_rows(seq / "depth.txt"):
         cv2.imwrite(str(seq / row.split()[1]), np.zeros((120, 160), np.uint16))
-    assert_one_line(cli("info", seq), 2, str(seq), "no valid depth pixel", "--depth-scale 5000")
+    assert_one_line(run_cli(seq), 2, str(seq), "no valid depth pixel", "--depth-scale 5000")
 
 
 @pytest.mark.parametrize("intr, what", [
@@ -192,14 +197,14 @@ def test_empty_depth_everywhere_is_refused(seq):
     ("131,1e9,80,60", "fy = 1000000000 px is outside"),
 ])
 def test_impossible_intrinsics_name_the_option(seq, intr, what):
-    assert_one_line(cli("info", seq, "--intrinsics", intr), 2,
+    assert_one_line(run_cli(seq, "--intrinsics", intr), 2,
                     f"--intrinsics {intr.replace('1e9', '1000000000')}", what)
 
 
 def test_impossible_intrinsics_in_info_txt_name_the_file(seq):
     info = (seq / "INFO.txt").read_text().replace("cx=79.5", "cx=795")
     (seq / "INFO.txt").write_text(info)
-    assert_one_line(cli("info", seq), 2, str(seq / "INFO.txt"), "principal point (795, 59.5)",
+    assert_one_line(run_cli(seq), 2, str(seq / "INFO.txt"), "principal point (795, 59.5)",
                     "override it with --intrinsics")
 
 
@@ -209,6 +214,11 @@ def test_layout_default_intrinsics_that_do_not_fit_only_warn(seq):
     s = open_sequence(seq)
     assert s.intrinsics_kind == "default"
     assert len(s.warnings) == 1 and "give --intrinsics" in s.warnings[0] and "160x120" in s.warnings[0]
+
+
+def test_info_warns_where_run_refuses(seq):
+    res = cli("info", seq, "--depth-scale", "1")
+    assert res.exit_code == 0 and "1 units per metre" in res.output, res.output
 
 
 def test_warn_policy_records_instead_of_refusing(seq):

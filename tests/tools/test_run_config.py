@@ -132,7 +132,7 @@ def test_sets_apply_together_and_the_last_wins():
     fewer = base.icp.levels - 1
     # a rule relating two settings (enough pyramid levels for ICP) holds only with both overrides applied, so the
     # overrides are applied together
-    with pytest.raises(ConfigError, match=f"^--set preprocess.pyramid_levels={fewer}: .*must be >= icp.levels"):
+    with pytest.raises(ConfigError, match=rf"^--set preprocess.pyramid_levels={fewer}: .*must be >= \[icp\] levels"):
         apply_sets(base, [f"preprocess.pyramid_levels={fewer}"])
     cfg = apply_sets(base, [f"preprocess.pyramid_levels={fewer}", f"icp.levels={fewer}", "icp.min_inliers=5",
                             "icp.min_inliers=7"])

@@ -30,11 +30,11 @@ import numpy as np
 from surfelslam.geometry import se3
 from surfelslam.mapping.render import render
 from surfelslam.slam.config import SlamConfig
-from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer, prepared_for
+from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.mapper import FusingMapper
 from surfelslam.slam.protocol import register_tracker
 from surfelslam.tracking.geometric import geometric_guess
-from surfelslam.tracking.icp import ICPResult, icp, icp_failure, photometric_term
+from surfelslam.tracking.icp import ICPResult, ICPStatus, icp, icp_failure, photometric_term
 from surfelslam.tracking.photometric import (
     IntensityPyramid,
     PhotometricTerm,
@@ -75,7 +75,9 @@ class DenseSlam(FusingMapper):
         self.failures = 0
         self.failures_in_a_row = 0
         self.failure_reasons: dict[str, int] = {}
-        self.relocalisations = {"tried": 0, "tracked": 0}
+        self.relocalisations = {"tried": 0, "tracked": 0, "refused_implausible": 0}
+        self.t_last_tracked = 0.0  # timestamp (s) of the last tracked frame
+        self.weak_frames = 0  # frames registered with weak directions held at the prediction
 
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of ``T_world_cam`` for the next frame."""
@@ -143,6 +145,7 @@ class DenseSlam(FusingMapper):
         if self.T_world_cam is None:  # the first frame defines the world frame
             self.T_world_cam = np.eye(4)
             self.T_world_last_tracked = self.T_world_cam.copy()
+            self.t_last_tracked = frame.timestamp
             self._fuse(frame, self.T_world_cam)
             t.lap("fuse")
             self._retire_source()
@@ -160,23 +163,26 @@ class DenseSlam(FusingMapper):
                 T_init = f2f.T_target_source
         res = icp(self.track_source, target, T_init=T_init, cfg=self.cfg.icp, photometric=self.photometric_term())
         t.lap("icp")
-        failure = icp_failure(res)
+        failure = self.failure_of(res)
+        status = FrameStatus.WEAK if failure is None and res.degenerate else FrameStatus.TRACKED
         T_ref = T_prev
         n_reloc = self.cfg.tracking.relocalise_after_failures
         if failure is not None and n_reloc > 0 and self.failures_in_a_row >= n_reloc:
-            found = self._relocalise_shape()
+            found = self._relocalise_shape(timestamp=frame.timestamp)
             t.lap("relocalise")
             if found is not None:
                 res, failure, T_ref = found[0], None, found[1]
+                status = FrameStatus.RELOCALISED
         if failure is None:
             step, T_new = self._step_and_pose(T_ref, res)
-            self.velocity = step if T_ref is T_prev else np.eye(4)  # a relocalised frame has no known velocity
-            self.T_world_last_tracked = T_new.copy()
-            self.failures_in_a_row = 0
+            # a relocalised frame has no known velocity; a weak one knows it only along the constrained directions
+            self.velocity = step if status is FrameStatus.TRACKED else np.eye(4)
+            self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
         else:
             T_new = T_pred
+            status = FrameStatus.LOST
             self.failures += 1
             self.failures_in_a_row += 1
             self.failure_reasons[failure] = self.failure_reasons.get(failure, 0) + 1
@@ -185,7 +191,48 @@ class DenseSlam(FusingMapper):
         self.T_world_cam = T_new
         self._retire_source()
         return FrameResult(frame.index, frame.timestamp, T_new.copy(), failure is None, failure is None,
-                           res.reason, t.ms, self.map.n_alive, res)
+                           res.reason, t.ms, self.map.n_alive, res, status)
+
+    def failure_of(self, res: ICPResult) -> str | None:
+        """Why ``res`` cannot be used (an :class:`~surfelslam.tracking.icp.ICPStatus` value), or ``None``.
+
+        A degenerate result (one plane, two planes, a corridor) is usable when ``tracking.fuse_weak_frames`` is on
+        and everything else about it holds: ICP kept the prediction along the weak directions
+        (``icp.weak_direction_ratio``) and registered the frame along the others, so the pose and the map stay
+        updated where the view constrains them instead of freezing until the view improves.
+        """
+        failure = icp_failure(res)
+        if failure != ICPStatus.DEGENERATE or not self.cfg.tracking.fuse_weak_frames:
+            return failure
+        icfg = self.cfg.icp
+        usable = (icfg.weak_direction_ratio > 0 and res.levels[-1].stop not in (ICPStatus.TOO_FEW_INLIERS,
+                                                                               ICPStatus.SOLVER)
+                  and res.inlier_fraction >= icfg.min_inlier_fraction
+                  and res.motion_m <= icfg.max_translation_m and res.motion_deg <= icfg.max_rotation_deg)
+        return None if usable else failure
+
+    def _mark_tracked(self, T_world_cam: np.ndarray, timestamp: float, status: FrameStatus) -> None:
+        """Bookkeeping of a registered frame: the last tracked pose and time, the failure streak, weak counts."""
+        self.T_world_last_tracked = T_world_cam.copy()
+        self.t_last_tracked = timestamp
+        self.failures_in_a_row = 0
+        if status is FrameStatus.WEAK:
+            self.weak_frames += 1
+
+    def plausible_jump(self, T_world_new: np.ndarray, timestamp: float) -> bool:
+        """Whether a relocalised pose is reachable from the last tracked one in the time since it
+        (``tracking.relocalise_max_speed_m_s`` / ``_max_rate_deg_s`` plus a slack): a relocalisation that would
+        move the camera faster than a hand-held or robot camera moves is refused rather than followed."""
+        tc = self.cfg.tracking
+        if self.T_world_last_tracked is None:
+            return True
+        dt_s = max(timestamp - self.t_last_tracked, 0.0)
+        d_m, d_deg = se3.pose_error(T_world_new, self.T_world_last_tracked)
+        ok = (d_m <= tc.relocalise_slack_m + tc.relocalise_max_speed_m_s * dt_s
+              and d_deg <= tc.relocalise_slack_deg + tc.relocalise_max_rate_deg_s * dt_s)
+        if not ok:
+            self.relocalisations["refused_implausible"] += 1
+        return ok
 
     @staticmethod
     def _step_and_pose(T_ref: np.ndarray, res: ICPResult) -> tuple[np.ndarray, np.ndarray]:
@@ -196,9 +243,11 @@ class DenseSlam(FusingMapper):
         step = se3.orthonormalize(res.T_target_source)
         return step, se3.orthonormalize(T_ref @ step)
 
-    def _relocalise_shape(self, T_world_render: np.ndarray | None = None) -> tuple[ICPResult, np.ndarray] | None:
+    def _relocalise_shape(self, T_world_render: np.ndarray | None = None,
+                          timestamp: float | None = None) -> tuple[ICPResult, np.ndarray] | None:
         """The current source against the map rendered at ``T_world_render`` (default: the last tracked pose),
-        from the shape-feature guess: ``(ICP result, T_world_render)`` when ICP from the guess succeeds, else
+        from the shape-feature guess: ``(ICP result, T_world_render)`` when ICP from the guess succeeds and, with
+        the frame's ``timestamp``, the pose is reachable from the last tracked one (:meth:`plausible_jump`); else
         ``None``."""
         self.relocalisations["tried"] += 1
         T_ref = self.T_world_last_tracked if T_world_render is None else T_world_render
@@ -211,6 +260,8 @@ class DenseSlam(FusingMapper):
         res = icp(src, target, T_init=g.T_target_source, cfg=self.cfg.icp, photometric=self.photometric_term())
         if icp_failure(res) is not None:
             return None
+        if timestamp is not None and not self.plausible_jump(self._step_and_pose(T_ref, res)[1], timestamp):
+            return None
         self.relocalisations["tracked"] += 1
         return res, T_ref
 
@@ -218,6 +269,8 @@ class DenseSlam(FusingMapper):
         return self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons,
                              "relocalisations_tried": self.relocalisations["tried"],
                              "relocalisations": self.relocalisations["tracked"],
+                             "relocalisations_refused": self.relocalisations["refused_implausible"],
+                             "weak_frames": self.weak_frames,
                              "photometric": self.photometric})
 
     def warmup(self) -> None:

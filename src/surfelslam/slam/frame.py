@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -28,9 +29,20 @@ from surfelslam.tracking.preprocess import (
 from surfelslam.types import RGBDFrame, Trajectory
 
 
+class FrameStatus(StrEnum):
+    """How a frame's pose was obtained."""
+
+    TRACKED = "tracked"  # registered to the map (or the keyframes) and fused
+    WEAK = "weak"  # registered along the directions the view constrains, the prediction along the others; fused
+    RELOCALISED = "relocalised"  # registered after a loss, from a verified relocalisation guess; fused
+    BRIDGED = "bridged"  # not registered: the pose comes from the features (PnP) alone; not fused
+    LOST = "lost"  # not registered: the pose is the motion prediction; not fused
+
+
 @dataclass
 class FrameResult:
-    """What the pipeline did with one frame."""
+    """What the pipeline did with one frame (``status``: :class:`FrameStatus`; derived from ``tracked`` if not
+    given)."""
 
     index: int
     timestamp: float
@@ -41,6 +53,11 @@ class FrameResult:
     timings_ms: dict[str, float]
     map_points: int
     icp: ICPResult | None = None
+    status: FrameStatus | None = None
+
+    def __post_init__(self) -> None:
+        if self.status is None:
+            self.status = FrameStatus.TRACKED if self.tracked else FrameStatus.LOST
 
 
 @dataclass

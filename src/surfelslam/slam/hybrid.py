@@ -47,11 +47,11 @@ from surfelslam.backend.sparse_slam import (
 from surfelslam.geometry import se3
 from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.dense import DenseSlam
-from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer, prepared_for
+from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.protocol import register_tracker
 from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_inliers, reprojection_spread_px
-from surfelslam.tracking.icp import ICPResult, ReprojectionTerm, icp, icp_failure
+from surfelslam.tracking.icp import ICPResult, ReprojectionTerm, icp
 from surfelslam.tracking.photometric import (
     colour_switch,
 )
@@ -68,6 +68,7 @@ class _Localised:
     T_new: np.ndarray | None = None
     guess: np.ndarray | None = None
     from_prev: bool = False
+    relocalised: bool = False  # the result comes from a relocalisation (after too many failures)
 
 
 @register_tracker("hybrid")
@@ -137,7 +138,7 @@ class HybridSlam(DenseSlam):
         term = self._reprojection_term(T_render, match)
         res = icp(self.track_source, target, T_init=se3.orthonormalize(T_init_rel), cfg=self.cfg.icp,
                   reprojection=term, photometric=self.photometric_term())
-        return res, icp_failure(res), self._step_and_pose(T_render, res)[1]
+        return res, self.failure_of(res), self._step_and_pose(T_render, res)[1]
 
     def _reprojection_term(self, T_render: np.ndarray, match: KeyframeMatch | None) -> ReprojectionTerm | None:
         h = self.cfg.hybrid
@@ -166,6 +167,7 @@ class HybridSlam(DenseSlam):
         self._stamp_of_frame[frame.index] = frame.timestamp
         if self.T_world_cam is None:
             T_new = np.eye(4)
+            self._mark_tracked(T_new, frame.timestamp, FrameStatus.TRACKED)
             self._fuse(frame, T_new)
             t.lap("fuse")
             self._after_tracking(frame, T_new, True, t)
@@ -178,13 +180,13 @@ class HybridSlam(DenseSlam):
             loc = self._relocalise(frame, T_prev, t)
         else:
             loc = self._localise(frame, T_prev, T_pred, t)
-        tracked, T_new, failure = self._fuse_or_count(frame, loc, T_prev, T_pred, t)
+        tracked, T_new, failure, status = self._fuse_or_count(frame, loc, T_prev, T_pred, t)
         self._after_tracking(frame, T_new, tracked, t)
         self._retire_source()
         res = loc.res
         return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), tracked, tracked,
                            None if res is None else res.reason if tracked else failure, t.ms, self.map.n_alive,
-                           res)
+                           res, status)
 
     def _relocalise(self, frame: RGBDFrame, T_prev: np.ndarray, t: StageTimer) -> _Localised:
         """After too many failures: PnP against every keyframe, then ICP from that pose; else the shape guess."""
@@ -196,17 +198,20 @@ class HybridSlam(DenseSlam):
             found = (se3.orthonormalize(se3.invert(self._correction(found[1])) @ found[0]), found[1])
             loc.res, loc.failure, loc.T_new = self._icp_from(found[0], np.eye(4))
             t.lap("icp")
+            if loc.failure is None and not self.plausible_jump(loc.T_new, frame.timestamp):
+                loc.failure = "relocalisation_implausible"
             if loc.failure is None:
                 self.counts["relocalisations_tracked"] += 1
                 self.velocity = np.eye(4)
             loc.guess = found[0]
         if (loc.res is None or loc.failure is not None) and self.cfg.tracking.relocalise_after_failures > 0:
-            shape = self._relocalise_shape(T_prev)  # no PnP pose (no texture): from the depth alone
+            shape = self._relocalise_shape(T_prev, frame.timestamp)  # no PnP pose (no texture): from the depth alone
             t.lap("relocalise")
             if shape is not None:
                 loc.res, loc.failure = shape[0], None
                 loc.T_new = se3.orthonormalize(T_prev @ loc.res.T_target_source)
                 self.velocity = np.eye(4)
+        loc.relocalised = True
         return loc
 
     def _localise(self, frame: RGBDFrame, T_prev: np.ndarray, T_pred: np.ndarray, t: StageTimer) -> _Localised:
@@ -255,27 +260,30 @@ class HybridSlam(DenseSlam):
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, f2, T2, False
 
     def _fuse_or_count(self, frame: RGBDFrame, loc: _Localised, T_prev: np.ndarray, T_pred: np.ndarray,
-                       t: StageTimer) -> tuple[bool, np.ndarray, str | None]:
+                       t: StageTimer) -> tuple[bool, np.ndarray, str | None, FrameStatus]:
         """A tracked frame updates the velocity and is fused; a failed one is counted and posed at the PnP guess
-        or the prediction. Returns ``(tracked, T_world_cam, failure)``."""
+        (bridged) or the prediction (lost). Returns ``(tracked, T_world_cam, failure, status)``."""
         res, failure, T_new = loc.res, loc.failure, loc.T_new
         tracked = res is not None and failure is None
         if tracked:
             if self.failures_in_a_row < self.cfg.hybrid.relocalise_after_failures:
                 self.velocity = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
                                  else se3.orthonormalize(se3.invert(T_prev) @ T_new))
-            self.failures_in_a_row = 0
+            status = (FrameStatus.RELOCALISED if loc.relocalised else
+                      FrameStatus.WEAK if res.degenerate else FrameStatus.TRACKED)
+            self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
         else:
             failure = failure or "relocalisation_failed"
+            status = FrameStatus.BRIDGED if loc.guess is not None else FrameStatus.LOST
             T_new = loc.guess if loc.guess is not None else T_pred
             self.failures += 1
             self.failures_in_a_row += 1
             self.failure_reasons[failure] = self.failure_reasons.get(failure, 0) + 1
             if self.failures_in_a_row >= self.cfg.tracking.max_failures_in_a_row_before_reset_velocity:
                 self.velocity = np.eye(4)
-        return tracked, T_new, failure
+        return tracked, T_new, failure, status
 
     def _after_tracking(self, frame: RGBDFrame, T_new: np.ndarray, tracked: bool, t: StageTimer) -> None:
         """Feed the sparse back end, anchor the frame, apply large pose-graph corrections to the dense state."""
@@ -395,6 +403,8 @@ class HybridSlam(DenseSlam):
                             "photometric": self.photometric, "joint_features": self.joint, **self.counts,
                             "shape_relocalisations_tried": self.relocalisations["tried"],
                             "shape_relocalisations": self.relocalisations["tracked"],
+                            "relocalisations_refused": self.relocalisations["refused_implausible"],
+                            "weak_frames": self.weak_frames,
                             # recovered frames by either route, the key every tracker reports
                             "relocalisations": self.counts["relocalisations_tracked"] + self.relocalisations["tracked"],
                             **sparse_metrics(self.sparse, res)})

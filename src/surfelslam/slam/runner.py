@@ -37,6 +37,7 @@ from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
+from surfelslam.slam.segments import segments_report, tracking_segments
 
 #: Preset configurations: ``--config NAME`` reads ``configs/NAME.toml`` of the source tree.
 PRESETS_DIR = Path(__file__).resolve().parents[3] / "configs"
@@ -225,6 +226,7 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
     skipped: list[dict] = []
     stage_ms: dict[str, list[float]] = {"read": []}
     frame_ms: list[float] = []
+    statuses: list[tuple[int, float, str, str | None]] = []  # per frame: index, stamp, status, reason
     n_done = 0
     bar = tqdm(total=len(seq), unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
     t_start = time.perf_counter()
@@ -249,6 +251,7 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
                 else:
                     res = slam.process(frame, prepared=item.prepared)
                 traj_out.append(frame.timestamp, res.T_world_cam)
+                statuses.append((res.index, res.timestamp, res.status, res.reason))
                 n_done += 1
                 stage_ms["read"].append(item.read_ms)
                 for k, v in res.timings_ms.items():
@@ -291,6 +294,7 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
         "map_points": result.map_points,
         "compression_ratio": result.map_points / max(n_done * seq.intrinsics.width * seq.intrinsics.height, 1),
         **result.metrics,
+        **segments_report(tracking_segments(statuses)),
     }
     if result.loop_stamps:
         # keyframe timestamps (s) of each accepted loop edge, for viewers (`surfelslam rerun`)

@@ -26,7 +26,7 @@ PRIM_BOX = 1
 PRIM_CYLINDER = 2
 PRIM_SPHERE = 3
 
-SCENES = ["room", "office", "plane"]
+SCENES = ["room", "office", "plane", "corridor"]
 
 _TEX = ("wallpaper", "wood", "plaster", "checker", "blobs", "fabric", "books", "metal", "poster")
 T_WALLPAPER, T_WOOD, T_PLASTER, T_CHECKER, T_BLOBS, T_FABRIC, T_BOOKS, T_METAL, T_POSTER = range(len(_TEX))
@@ -36,8 +36,9 @@ T_WALLPAPER, T_WOOD, T_PLASTER, T_CHECKER, T_BLOBS, T_FABRIC, T_BOOKS, T_METAL, 
 class ViewHint:
     """Where trajectories may go in a scene (all world frame, metres).
 
-    ``kind`` is ``"room"`` (the camera may turn all the way round) or ``"wall"`` (it keeps facing one
-    surface). ``centre``: middle of the free space the camera moves in. ``orbit_radius_m``: radius of the
+    ``kind`` is ``"room"`` (the camera may turn all the way round), ``"wall"`` (it keeps facing one
+    surface) or ``"corridor"`` (it walks along ``facing``, looking ahead).
+    ``centre``: middle of the free space the camera moves in. ``orbit_radius_m``: radius of the
     slow orbit (positive: the eye is behind the centre and looks across the room; negative: the eye is
     ahead of the centre and looks out at the nearer walls). ``loop_radii_m``: (x, y) semi-axes of the
     walking loop. ``eye_height_m``: mean camera height. ``look_distance_m``: how far ahead the look-at
@@ -52,6 +53,7 @@ class ViewHint:
     look_distance_m: float
     look_height_m: float
     facing: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    ceiling_facing: tuple[float, float, float] = (0.0, -1.0, 0.0)  # "upward": towards a wall bare up to the ceiling
 
 
 @dataclass
@@ -330,7 +332,7 @@ def _office(b: _Builder) -> ViewHint:
     b.box((1.0, 4.4, 0.7 + 0.12), (0.22, 0.18, 0.12), T_METAL, "printer", R=yaw(-35.0))
     n = np.array([-np.cos(np.radians(15)), 0.0, np.sin(np.radians(15))])
     b.quad((lx - 0.15, 4.3, 0.55), n, 0.4, 0.55, T_CHECKER, "leaning_board")
-    return ViewHint("room", (3.0, 2.6, 1.4), -1.0, (1.1, 0.7), 1.5, 2.4, 0.7)
+    return ViewHint("room", (3.0, 2.6, 1.4), -1.0, (1.1, 0.7), 1.5, 2.4, 0.7, ceiling_facing=(-1.0, 0.0, 0.0))
 
 
 def _plane(b: _Builder) -> ViewHint:
@@ -339,7 +341,22 @@ def _plane(b: _Builder) -> ViewHint:
     return ViewHint("wall", (1.5, 0.0, 1.5), 0.15, (0.25, 0.15), 1.5, 1.5, 1.5, facing=(-1.0, 0.0, 0.0))
 
 
-_BUILDERS = {"room": _room, "office": _office, "plane": _plane}
+def _corridor(b: _Builder) -> ViewHint:
+    """A corridor 16 x 1.8 x 2.5 m along x: two long plain walls, floor and ceiling, with a door frame every 4 m
+    and a few fittings. Away from the end walls the geometry leaves translation along the corridor nearly free:
+    the near-degenerate case where ICP slides and only the fittings (and texture) hold the pose."""
+    lx, ly, lz = 16.0, 1.8, 2.5
+    b.room_shell(lx, ly, lz, wall_tex=(T_POSTER, T_POSTER, T_PLASTER, T_PLASTER), floor_tex=T_CHECKER)
+    for i, x in enumerate(np.arange(2.0, lx - 1.0, 4.0)):
+        side = (0.02, ly - 0.02)[i % 2]
+        b.box((x, side, 1.0), (0.45, 0.02, 1.0), T_WOOD, f"door{i}")
+        b.box((x + 1.3, (ly - 0.03, 0.03)[i % 2], 1.5), (0.2, 0.03, 0.15), T_BLOBS, f"sign{i}")
+    for i, x in enumerate(np.arange(3.0, lx - 1.0, 5.0)):
+        b.box((x, ly / 2, lz - 0.03), (0.6, 0.15, 0.03), T_METAL, f"light{i}")
+    return ViewHint("corridor", (lx / 2, ly / 2, 1.4), 4.5, (0.2, 0.1), 1.5, 2.5, 1.3, facing=(1.0, 0.0, 0.0))
+
+
+_BUILDERS = {"room": _room, "office": _office, "plane": _plane, "corridor": _corridor}
 
 
 def make_scene(name: str, seed: int = 0, texture_cfg: TextureConfig = TextureConfig()) -> Scene:
@@ -350,5 +367,5 @@ def make_scene(name: str, seed: int = 0, texture_cfg: TextureConfig = TextureCon
     view = _BUILDERS[name](b)
     textures = make_texture_bank(_TEX, seed, texture_cfg)
     lx = view.centre
-    light = (lx[0] - 0.4, lx[1] + 0.3, 2.5) if view.kind == "room" else (2.0, 0.5, 2.5)
+    light = (lx[0] - 0.4, lx[1] + 0.3, 2.5) if view.kind in ("room", "corridor") else (2.0, 0.5, 2.5)
     return b.build(name, textures, texture_cfg.texel_m, light, view)

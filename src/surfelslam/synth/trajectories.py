@@ -31,7 +31,8 @@ from surfelslam.geometry.se3 import invert as se3_invert
 from surfelslam.synth.scenes import Scene
 from surfelslam.types import Trajectory
 
-STYLES = ["slow", "fast", "handheld", "loop"]
+STYLES = ["slow", "fast", "handheld", "loop", "upward"]
+UPWARD_LOOK_M, UPWARD_RISE_M = 1.6, 1.5  # "upward": the look-at point is this far ahead and up (about 43 deg)
 REPLAY_HEADINGS = 8  # headings (evenly spaced) tried for a replayed motion in a "room" scene
 _REPLAY_MAX_GAP_S = 0.1  # a recorded motion may not have a gap longer than this (s) where it is replayed
 _REPLAY_MAX_DT_S = 0.02  # sample times may lie this far (s) past the first / last recorded stamp
@@ -109,6 +110,36 @@ def _orbit_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryC
     return eye, target
 
 
+def _corridor_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig):
+    """Walk back and forth along the corridor (``orbit_radius_m`` each way), looking ahead along ``facing``."""
+    v = scene.view
+    c = np.asarray(v.centre)
+    f = np.asarray(v.facing, np.float64)
+    lat = np.cross([0.0, 0.0, 1.0], f)
+    along = v.orbit_radius_m * np.sin(theta)
+    eye = (c + along[:, None] * f + (v.loop_radii_m[0] * np.sin(2.3 * theta + ph[0]))[:, None] * lat)
+    eye[:, 2] = v.eye_height_m + cfg.bob_m * np.sin(3.1 * theta + ph[1])
+    target = eye + v.look_distance_m * f + (0.4 * np.sin(1.7 * theta + ph[3]))[:, None] * lat
+    target[:, 2] = v.look_height_m + 0.2 * np.sin(2.9 * theta + ph[4])
+    return eye, target
+
+
+def _upward_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig):
+    """Look up at the ceiling and one wall (their edge about ``look_distance_m`` ahead), moving sideways along
+    that wall: two planes that leave the translation along their intersection to the texture and the motion
+    prior."""
+    v = scene.view
+    c = np.asarray(v.centre)
+    f = np.asarray(v.ceiling_facing if v.kind == "room" else v.facing, np.float64)
+    lat = np.cross([0.0, 0.0, 1.0], f)
+    side = 0.8 * np.sin(theta)
+    eye = c + side[:, None] * lat + (cfg.wobble_m * 0.3 * np.sin(2.1 * theta + ph[0]))[:, None] * f
+    eye[:, 2] = v.eye_height_m + cfg.bob_m * np.sin(2.7 * theta + ph[2])
+    target = eye + UPWARD_LOOK_M * f
+    target[:, 2] = eye[:, 2] + UPWARD_RISE_M + 0.15 * np.sin(1.9 * theta + ph[4])
+    return eye, target
+
+
 def _loop_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig):
     v = scene.view
     c = np.asarray(v.centre)
@@ -164,10 +195,19 @@ def make_trajectory(
     k = np.arange(n_frames, dtype=np.float64)
     theta0 = ph[7]
     roll_phase = ph[6]
-    if style == "loop":
+    if style == "loop" and scene.view.kind != "corridor":
         theta = theta0 + 2.0 * np.pi * k / n_frames
         eye, target = _loop_rig(scene, theta, ph, cfg)
         roll = np.radians(cfg.roll_deg) * 0.5 * np.sin(2.0 * theta + roll_phase)
+    elif style == "upward":
+        theta = theta0 + np.radians(cfg.slow_step_deg) * k
+        eye, target = _upward_rig(scene, theta, ph, cfg)
+        roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
+    elif scene.view.kind == "corridor":
+        step = np.radians(cfg.slow_step_deg) * (cfg.fast_factor if style == "fast" else 1.0)
+        theta = theta0 + step * k
+        eye, target = _corridor_rig(scene, theta, ph, cfg)
+        roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
     else:
         step = np.radians(cfg.slow_step_deg) * (cfg.fast_factor if style == "fast" else 1.0)
         theta = theta0 + step * k

@@ -14,6 +14,7 @@ from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.slam import TRACKERS
 from surfelslam.slam.runner import load_config, run_sequence
+from surfelslam.slam.segments import Segment
 from surfelslam.tools.common import (
     DatasetOptionsArgs,
     SeqArg,
@@ -28,6 +29,9 @@ TRACKER_HELP = ("dense: frame-to-model ICP; orb: sparse ORB/PnP odometry + loop-
                 "else dense.")
 #: Skipped frames quoted under the summary (``metrics.json`` lists them all).
 SUMMARY_EXAMPLES = 5
+
+
+SEGMENT_MIN_FRAMES_SHOWN = 5  # weak stretches shorter than this (frames) are only in metrics.json
 
 
 def print_summary(metrics: dict, out_dir: Path) -> None:
@@ -64,6 +68,16 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
                       highlight=False, soft_wrap=True)
     for w in metrics.get("warnings", []):
         console.print(f"[yellow]warning:[/] {escape(w)}", highlight=False, soft_wrap=True)
+    segs = metrics.get("tracking_segments", [])
+    shown = [s for s in segs if s["kind"] == "lost" or s["frames"] >= SEGMENT_MIN_FRAMES_SHOWN]
+    for s in shown[:SUMMARY_EXAMPLES]:
+        console.print(f"[yellow]{escape(Segment(**s).describe())}[/]", highlight=False, soft_wrap=True)
+    if len(shown) > SUMMARY_EXAMPLES:
+        console.print(f"[yellow]... and {len(shown) - SUMMARY_EXAMPLES} more segments (metrics.json)[/]")
+    if metrics.get("lost_at_end"):
+        last = [s for s in segs if s["kind"] == "lost"][-1]
+        console.print(f"[bold red]the run ended lost[/] (from frame {last['first_frame']}): the poses after it are "
+                      "predictions, not measurements", highlight=False, soft_wrap=True)
 
 
 def resolve_run_config(config: str | None, sets: list[str] | None, tracker: str | None,

@@ -15,7 +15,7 @@ def register(app: typer.Typer) -> None:
     @handle_errors
     def synth(
         out: Annotated[Path, typer.Argument(help="Output folder (created; existing frames are overwritten).")],
-        scene: Annotated[str, typer.Option("--scene", help="Scene: room, office or plane.")] = "room",
+        scene: Annotated[str, typer.Option("--scene", help="Scene: room, office, plane or corridor.")] = "room",
         texture: Annotated[str, typer.Option(
             "--texture", help="rich (texture everywhere) or plain (flat painted walls, fabric and cabinets; "
                               "texture only on wood, books and posters, as in real rooms).")] = "rich",
@@ -25,7 +25,7 @@ def register(app: typer.Typer) -> None:
                             "distortion) or none (exact).")] = "kinect",
         seed: Annotated[int, typer.Option("--seed", help="Seed of textures, motion jitter and noise.")] = 0,
         trajectory: Annotated[
-            str, typer.Option("--trajectory", help="Motion: slow, fast, handheld or loop.")
+            str, typer.Option("--trajectory", help="Motion: slow, fast, handheld, loop or upward (ceiling, one wall).")
         ] = "slow",
         width: Annotated[int, typer.Option("--width", help="Image width (intrinsics scaled from 640).")] = 640,
         height: Annotated[int, typer.Option("--height", help="Image height (intrinsics scaled from 480).")] = 480,
