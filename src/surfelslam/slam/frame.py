@@ -102,6 +102,8 @@ class SlamResult:
     points_rgb: np.ndarray | None = None  # (M, 3) uint8
 
     def map_arrays(self) -> dict[str, np.ndarray] | None:
+        """The map as arrays (position, normal, colour, confidence, first_seen; plus radius for a surfel map),
+        or None without a map."""
         if self.surfel_map is None:
             if self.points_xyz is None:
                 return None
@@ -111,7 +113,7 @@ class SlamResult:
                     "first_seen": np.zeros(n, np.int32)}
         m = self.surfel_map
         return {"position": m.position, "normal": m.normal, "colour": m.colour,
-                "confidence": m.confidence, "first_seen": m.first_seen}
+                "confidence": m.confidence, "first_seen": m.first_seen, "radius": m.radius}
 
     def write_map(self, path: str | Path) -> None:
         if self.surfel_map is not None:

@@ -337,4 +337,5 @@ def _write_figures(out_dir: Path, seq, result, metrics: dict) -> None:
     cloud = result.map_arrays()
     if cloud is not None and len(cloud["position"]):
         save_map_figures(out_dir, cloud["position"], cloud["normal"], cloud["colour"], cloud["confidence"],
-                         cloud["first_seen"], est.T_world_cam[0], title=f"{metrics['tracker']} map")
+                         cloud["first_seen"], est.T_world_cam[0], title=f"{metrics['tracker']} map",
+                         trajectory_T_world_cam=est.T_world_cam, radius=cloud.get("radius"))

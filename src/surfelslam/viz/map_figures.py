@@ -1,125 +1,370 @@
-"""Figures of a fused map: point renders coloured by normal, confidence and time.
+"""Figures of a fused map: shaded surfel splats from a framing camera and from the top.
 
-These are for pictures only (not the tracking path): a vectorised numpy z-buffer splat of every
-point, with a top view and a view from the first camera.
+For pictures only (not the tracking path). The surfels are projected in numpy and splatted as depth-tested
+discs (:mod:`surfelslam.kernels.splat`) once per view; each colour mode (normal, confidence, time, RGB) then
+just recolours the same index image. Surfels facing away from the viewer are culled, so walls between the
+virtual camera and the room's inside do not hide it (the map's normals face the cameras that saw them).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from matplotlib import colormaps
+from matplotlib import colormaps, patheffects
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
+from surfelslam.kernels.splat import splat_discs
+from surfelslam.viz import style
 from surfelslam.viz.save import new_figure, save_figure
 
 COLOUR_MODES = ("normal", "confidence", "time", "rgb")
+IMAGE_SIZE_PX = (800, 600)  # (width, height) of one rendered panel
+FIGURE_SIZE_PX = (1600, 1200)
+BACKGROUND = 1.0  # white
+AMBIENT = 0.45  # Lambert shading: brightness of a surfel lit edge-on
+FIXED_RADIUS_PX = 1.5  # splat radius of points without a radius (the ORB keyframe cloud)
+MAX_RADIUS_PX = 16.0
+RADIUS_SCALE = 1.5  # splats drawn larger than the fusion radius: closes the gaps seen at oblique angles
+ELEVATION_DEG = 35.0  # the framing camera looks down at the map by this angle
+FIT_PERCENTILE = 0.2  # framing ignores this percentage of outlying surfels on each side
+MARGIN = 0.04  # fraction of the image kept free on each side
 
 
-def _zbuffer(u: np.ndarray, v: np.ndarray, depth: np.ndarray, width: int,
-             height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest point per pixel. Returns ``(pixel_flat_index (K,), point_index (K,))``."""
-    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (depth > 0)
-    idx = np.flatnonzero(inside)
-    pix = v[idx] * width + u[idx]
-    order = np.lexsort((depth[idx], pix))
-    pix_sorted = pix[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = pix_sorted[1:] != pix_sorted[:-1]
-    return pix_sorted[first], idx[order[first]]
+def _rotate(R: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """``(N, K)`` float64 ``xyz @ R.T`` for ``R`` ``(K, 3)``, by columns: a BLAS matmul of an ``(N, 3)`` array is
+    slower and, with its threads spinning on a busy machine, several times slower."""
+    x, y, z = (np.asarray(xyz[:, k], np.float64) for k in range(3))
+    return np.column_stack([R[i, 0] * x + R[i, 1] * y + R[i, 2] * z for i in range(len(R))])
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v)
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """A virtual camera: ``p_cam = R_cam_world @ p_world + t_cam_world``; x right, y down, z into the image.
+
+    Perspective (``u = f_px x / z + cx``) unless ``px_per_m`` is set (orthographic: ``u = px_per_m x + cx``).
+    """
+
+    R_cam_world: np.ndarray  # (3, 3)
+    t_cam_world: np.ndarray  # (3,)
+    width: int
+    height: int
+    cx: float
+    cy: float
+    f_px: float = 0.0
+    px_per_m: float | None = None
+    light_cam: np.ndarray = field(default_factory=lambda: _unit([-0.35, -0.6, -0.72]))  # surface -> light
+
+    def to_cam(self, xyz_world: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` world points -> ``(N, 3)`` float64 camera-frame points."""
+        return _rotate(self.R_cam_world, xyz_world) + self.t_cam_world
+
+    def to_pixels(self, xyz_world: np.ndarray, p_cam: np.ndarray | None = None,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(N, 3)`` world points (or their ``p_cam``) -> ``(u_px, v_px, depth_m)`` each ``(N,)`` float64."""
+        p = self.to_cam(xyz_world) if p_cam is None else p_cam
+        if self.px_per_m is not None:
+            return self.px_per_m * p[:, 0] + self.cx, self.px_per_m * p[:, 1] + self.cy, p[:, 2]
+        z = np.where(p[:, 2] > 1e-9, p[:, 2], 1e-9)
+        return self.f_px * p[:, 0] / z + self.cx, self.f_px * p[:, 1] / z + self.cy, p[:, 2]
+
+
+def _subsample(xyz: np.ndarray, n_max: int = 50_000) -> np.ndarray:
+    return np.asarray(xyz[:: max(1, len(xyz) // n_max)], np.float64)
+
+
+def _range(a: np.ndarray) -> tuple[float, float]:
+    lo, hi = np.percentile(a, [FIT_PERCENTILE, 100 - FIT_PERCENTILE]) if len(a) else (-1.0, 1.0)
+    return float(lo), float(hi) if hi > lo else float(lo) + 1e-3
+
+
+def up_axis(position: np.ndarray, poses: np.ndarray | None, normal: np.ndarray | None = None) -> np.ndarray:
+    """World 'up' ``(3,)``: a hint, refined by the map's floor / ceiling normals when it has them.
+
+    The hint is minus the cameras' mean y axis (cameras are held roughly upright, but pitched) when they agree,
+    else the map's smallest-variance axis signed towards the cameras. The refinement averages the normals
+    within a shrinking cone around the hint (floors point up, ceilings down), which removes the pitch.
+    """
+    pts = _subsample(position)
+    if len(pts) == 0:
+        return np.array([0.0, 0.0, 1.0]) if poses is None or not len(poses) else _unit(-poses[:, :3, 1].mean(axis=0))
+    if poses is not None and len(poses) and np.linalg.norm(poses[:, :3, 1].mean(axis=0)) > 0.5:
+        up = -poses[:, :3, 1].mean(axis=0)
+    elif len(pts) >= 3:
+        up = np.linalg.eigh(np.cov((pts - pts.mean(axis=0)).T))[1][:, 0]
+        hint = poses[:, :3, 3].mean(axis=0) - pts.mean(axis=0) if poses is not None and len(poses) else up
+        up = up if hint @ up >= 0 else -up
+    else:
+        up = np.array([0.0, 0.0, 1.0])
+    up = up / np.linalg.norm(up)
+    nrm = None if normal is None else _subsample(normal)
+    if nrm is None or not (np.abs(nrm) > 0).any():
+        nrm = _sample_normals(position)
+    for cone_deg in (45.0, 30.0, 20.0):
+        if nrm is None:
+            break
+        c = _rotate(up[None], nrm)[:, 0]
+        near = np.abs(c) > np.cos(np.radians(cone_deg))
+        if near.sum() < max(50, 0.02 * len(nrm)):
+            break
+        m = (nrm[near] * np.sign(c[near])[:, None]).sum(axis=0)
+        up = m / np.linalg.norm(m)
+    return up
+
+
+def _sample_normals(position: np.ndarray, n_sample: int = 4000, k: int = 12) -> np.ndarray | None:
+    """Unsigned normals ``(S, 3)`` of a point cloud at ``S <= n_sample`` points (PCA of ``k`` neighbours)."""
+    if len(position) < 4 * k:
+        return None
+    from scipy.spatial import cKDTree
+
+    pts = _subsample(position, 200_000)
+    sample = pts[:: max(1, len(pts) // n_sample)]
+    nb = pts[cKDTree(pts).query(sample, k=k)[1]]
+    nb -= nb.mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("ski,skj->sij", nb, nb))[1][:, :, 0]
+
+
+def _horizontal_axes(pts: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The map's major and minor horizontal axes (PCA of the points in the plane normal to ``up``)."""
+    a = _unit(np.cross(up, [1.0, 0, 0] if abs(up[0]) < 0.9 else [0, 1.0, 0]))
+    b = np.cross(up, a)
+    q = _rotate(np.stack([a, b]), pts - pts.mean(axis=0)) if len(pts) > 2 else np.eye(2)
+    w = np.linalg.eigh(np.cov(q.T))[1][:, 1]
+    major = w[0] * a + w[1] * b
+    return major, np.cross(up, major)
+
+
+def perspective_view(position: np.ndarray, poses: np.ndarray | None, normal: np.ndarray | None = None,
+                     width: int | None = None, height: int | None = None, vfov_deg: float = 45.0) -> ViewCamera:
+    """A camera behind and above the map, looking along the trajectory's mean viewing direction tilted down by
+    ``ELEVATION_DEG``, at the distance where the map fits ``vfov_deg``; focal and principal point then frame
+    the map's projection exactly (with ``MARGIN``)."""
+    width, height = width or IMAGE_SIZE_PX[0], height or IMAGE_SIZE_PX[1]
+    pts = _subsample(position)
+    up = up_axis(position, poses, normal)
+    look = poses[:, :3, 2].mean(axis=0) if poses is not None and len(poses) else np.zeros(3)
+    look = look - (look @ up) * up
+    if np.linalg.norm(look) < 0.1:
+        look = _horizontal_axes(pts, up)[1]
+    look /= np.linalg.norm(look)
+    el = np.radians(ELEVATION_DEG)
+    fwd = np.cos(el) * look - np.sin(el) * up
+    down = -(up - (up @ fwd) * fwd)
+    down /= np.linalg.norm(down)
+    R = np.stack([np.cross(down, fwd), down, fwd])
+    centre = np.median(pts, axis=0) if len(pts) else np.zeros(3)
+    q = _rotate(R, pts - centre)
+    ty = np.tan(np.radians(vfov_deg) / 2)
+    need = np.maximum(np.abs(q[:, 0]) / (ty * width / height), np.abs(q[:, 1]) / ty) - q[:, 2]
+    dist = max(float(np.percentile(need, 100 - FIT_PERCENTILE)) if len(q) else 1.0, 0.1)
+    z = q[:, 2] + dist
+    front = z > 0.05 * dist
+    a0, a1 = _range(q[front, 0] / z[front])
+    b0, b1 = _range(q[front, 1] / z[front])
+    f = min(width * (1 - 2 * MARGIN) / (a1 - a0), height * (1 - 2 * MARGIN) / (b1 - b0))
+    t = -R @ (centre - dist * fwd)
+    return ViewCamera(R, t, width, height, width / 2 - f * (a0 + a1) / 2, height / 2 - f * (b0 + b1) / 2, f)
+
+
+def top_view(position: np.ndarray, poses: np.ndarray | None, normal: np.ndarray | None = None,
+             width: int | None = None, height: int | None = None) -> ViewCamera:
+    """Orthographic camera looking down ``-up``, the map's major horizontal axis along the image's x, scaled so
+    the map and the trajectory fit."""
+    width, height = width or IMAGE_SIZE_PX[0], height or IMAGE_SIZE_PX[1]
+    pts = _subsample(position)
+    up = up_axis(position, poses, normal)
+    x_axis, _ = _horizontal_axes(pts, up)
+    R = np.stack([x_axis, np.cross(-up, x_axis), -up])
+    (x0, x1), (y0, y1) = _range((q := _rotate(R, pts))[:, 0]), _range(q[:, 1])
+    if poses is not None and len(poses):  # the whole trajectory is drawn, so it must fit
+        qt = poses[:, :3, 3] @ R.T
+        x0, x1 = min(x0, qt[:, 0].min()), max(x1, qt[:, 0].max())
+        y0, y1 = min(y0, qt[:, 1].min()), max(y1, qt[:, 1].max())
+    s = min(width * (1 - 2 * MARGIN) / (x1 - x0), height * (1 - 2 * MARGIN) / (y1 - y0))
+    return ViewCamera(R, np.zeros(3), width, height, width / 2 - s * (x0 + x1) / 2, height / 2 - s * (y0 + y1) / 2,
+                      px_per_m=s, light_cam=_unit([-0.3, -0.4, -0.87]))
+
+
+def render(cam: ViewCamera, position: np.ndarray, normal: np.ndarray, radius_m: np.ndarray | None = None,
+           radius_scale: float = RADIUS_SCALE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Splat the surfels: ``(index (H, W) int32, -1 = background; depth (H, W) float64; shade (N,) float32)``.
+
+    ``radius_m`` ``(N,)`` times ``radius_scale`` sizes each disc; without it every point is ``FIXED_RADIUS_PX``.
+    Zero normals (points without one) are never culled and are drawn unshaded.
+    """
+    p_cam = cam.to_cam(position)
+    u, v, z = cam.to_pixels(position, p_cam)
+    n = _rotate(cam.R_cam_world, normal)
+    has_n = np.einsum("ij,ij->i", n, n) > 0.25
+    m_per_px = np.full(len(z), 1.0 / cam.px_per_m) if cam.px_per_m is not None else np.abs(z) / cam.f_px
+    facing = (n[:, 2] if cam.px_per_m is not None else np.einsum("ij,ij->i", n, p_cam)) <= 0
+    keep = (~has_n | facing) & ((z > 1e-3) | (cam.px_per_m is not None))
+    if radius_m is None:
+        r_px = np.full(len(z), FIXED_RADIUS_PX)
+    else:
+        r_px = np.clip(radius_scale * np.asarray(radius_m, np.float64) / m_per_px, 0.5, MAX_RADIUS_PX)
+    nz = np.where(np.abs(n[:, 2]) > 0.1, n[:, 2], np.where(n[:, 2] < 0, -0.1, 0.1))
+    slope_u = np.where(has_n, -n[:, 0] / nz * m_per_px, 0.0)
+    slope_v = np.where(has_n, -n[:, 1] / nz * m_per_px, 0.0)
+    idx = np.flatnonzero(keep)
+    depth = np.full((cam.height, cam.width), np.inf)
+    index = np.full((cam.height, cam.width), -1, np.int32)
+    splat_discs(u[idx], v[idx], z[idx], r_px[idx], slope_u[idx], slope_v[idx], (r_px * m_per_px)[idx],
+                depth, index)
+    hit = index >= 0
+    index[hit] = idx[index[hit]]
+    lambert = np.abs(_rotate(cam.light_cam[None], n)[:, 0])
+    shade = np.where(has_n, AMBIENT + (1 - AMBIENT) * lambert, 1.0).astype(np.float32)
+    return index, depth, shade
 
 
 def point_colours(mode: str, normal: np.ndarray, confidence: np.ndarray, first_seen: np.ndarray,
-                  rgb: np.ndarray) -> tuple[np.ndarray, str | None]:
-    """``(N, 3)`` float colours in [0, 1] for a colour mode, plus a colour-bar label (or None)."""
+                  colour: np.ndarray) -> tuple[np.ndarray, ScalarMappable | None, str]:
+    """``(N, 3)`` float colours in [0, 1] for a colour mode, the colour bar's mappable (or None) and a note for
+    the title when the mode carries no information (no normals, every value equal: uniform grey)."""
+    grey = np.full((len(normal), 3), 0.7, np.float32)
     if mode == "normal":
-        return np.clip((normal + 1.0) * 0.5, 0, 1), None
+        if not (np.abs(normal) > 0).any():
+            return grey, None, "none in this map"
+        return np.clip((normal + 1.0) * 0.5, 0, 1), None, ""
     if mode == "rgb":
-        return rgb.astype(np.float32) / 255.0, None
+        return np.clip(np.asarray(colour, np.float32) / 255.0, 0, 1), None, ""
+    if mode not in ("confidence", "time"):
+        raise ValueError(f"unknown colour mode {mode!r}; known: {COLOUR_MODES}")
+    values = np.asarray(confidence if mode == "confidence" else first_seen, np.float64)
+    lo, hi = (float(values.min()), float(values.max())) if len(values) else (0.0, 0.0)
+    if hi <= lo:
+        return grey, None, f"all {lo:g}"
     if mode == "confidence":
-        hi = float(np.percentile(confidence, 98)) if len(confidence) else 1.0
-        return colormaps["viridis"](np.clip(confidence / max(hi, 1e-9), 0, 1))[:, :3], "confidence"
-    if mode == "time":
-        span = max(int(first_seen.max()) if len(first_seen) else 1, 1)
-        return colormaps["plasma"](first_seen / span)[:, :3], "first seen (frame)"
-    raise ValueError(f"unknown colour mode {mode!r}; known: {COLOUR_MODES}")
+        hi = max(float(np.percentile(values, 98)), lo + 1e-6 * (hi - lo))
+    sm = ScalarMappable(Normalize(lo, hi), colormaps["viridis" if mode == "confidence" else "plasma"])
+    return sm.to_rgba(values)[:, :3].astype(np.float32), sm, ""
 
 
-def render_points(xyz_cam: np.ndarray, colours: np.ndarray, fx: float, cx: float, cy: float, width: int,
-                  height: int, orthographic_scale: float | None = None) -> np.ndarray:
-    """Splat camera-frame points ``(N, 3)`` into an ``(H, W, 3)`` float image (white background).
-
-    Perspective with focal ``fx`` unless ``orthographic_scale`` (pixels per metre) is given.
-    """
-    z = xyz_cam[:, 2]
-    if orthographic_scale is None:
-        zs = np.where(z > 0, z, 1.0)
-        u = np.floor(fx * xyz_cam[:, 0] / zs + cx + 0.5).astype(np.int64)
-        v = np.floor(fx * xyz_cam[:, 1] / zs + cy + 0.5).astype(np.int64)
-        depth = z
-    else:
-        u = np.floor(orthographic_scale * xyz_cam[:, 0] + cx + 0.5).astype(np.int64)
-        v = np.floor(orthographic_scale * xyz_cam[:, 1] + cy + 0.5).astype(np.int64)
-        depth = z - z.min() + 1.0
-    img = np.ones((height * width, 3), dtype=np.float32)
-    pix, pts = _zbuffer(u, v, depth, width, height)
-    img[pix] = colours[pts]
-    return img.reshape(height, width, 3)
+def pixel_shade(index: np.ndarray, depth: np.ndarray, shade: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 brightness: each pixel's surfel shade, darkened along depth edges (outlines)."""
+    hit = index >= 0
+    out = np.zeros(index.shape, np.float32)
+    out[hit] = shade[index[hit]]
+    z = np.where(hit, depth, 1e30)  # background: far away (finite, so differences stay finite)
+    step = 0.03 * float(np.median(depth[hit])) if hit.any() else 1.0
+    edge = np.zeros(index.shape, bool)
+    jump_v = ~(np.abs(np.diff(z, axis=0)) <= step)
+    jump_u = ~(np.abs(np.diff(z, axis=1)) <= step)
+    edge[1:] |= jump_v
+    edge[:-1] |= jump_v
+    edge[:, 1:] |= jump_u
+    edge[:, :-1] |= jump_u
+    out[edge & hit] *= 0.7
+    return out
 
 
-def view_top(xyz_world: np.ndarray, T_world_cam0: np.ndarray, size_px: int = 800) -> tuple[np.ndarray, dict]:
-    """Points in a 'top' camera looking down the first camera's up axis (camera y is down, so up = -y0).
-
-    Returns camera-frame points and the orthographic projection parameters.
-    """
-    R0 = T_world_cam0[:3, :3]
-    down = R0[:, 1]                     # first camera's y axis (pointing down in the world)
-    right = R0[:, 0]
-    fwd = np.cross(down, right)          # completes a right-handed frame: x=right, y=fwd-ish, z=down
-    R_world_top = np.column_stack([right, -fwd, down])
-    centre = np.median(xyz_world, axis=0) if len(xyz_world) else np.zeros(3)
-    pts = (xyz_world - centre) @ R_world_top
-    extent = np.percentile(np.abs(pts[:, :2]), 99, axis=0).max() if len(pts) else 1.0
-    scale = 0.45 * size_px / max(extent, 1e-3)
-    return pts, {"orthographic_scale": scale, "cx": size_px / 2, "cy": size_px / 2, "fx": 0.0}
+def compose(index: np.ndarray, brightness: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` float32 image: surfel colours ``(N, 3)`` times :func:`pixel_shade`, white background."""
+    img = np.full((*index.shape, 3), BACKGROUND, np.float32)
+    hit = index >= 0
+    img[hit] = colours[index[hit]] * brightness[hit, None]
+    return img
 
 
-def view_first_camera(xyz_world: np.ndarray, T_world_cam0: np.ndarray, width: int = 640,
-                      height: int = 480, pull_back_m: float = 0.5) -> tuple[np.ndarray, dict]:
-    """Points in the first camera, pulled back along its optical axis to show more of the map."""
-    T = T_world_cam0.copy()
-    T[:3, 3] -= pull_back_m * T[:3, 2]
-    R, t = T[:3, :3], T[:3, 3]
-    pts = (xyz_world - t) @ R
-    return pts, {"fx": 0.8 * width * 0.5, "cx": width / 2, "cy": height / 2, "orthographic_scale": None}
+def _normal_key(cam: ViewCamera, size_px: int = 64) -> np.ndarray:
+    """``(S, S, 4)`` RGBA image of a sphere seen by ``cam``, coloured like the normal mode: the colour key."""
+    a = (np.arange(size_px) + 0.5) / size_px * 2 - 1
+    x, y = np.meshgrid(a, a)
+    inside = x * x + y * y < 1
+    n_cam = np.stack([x, y, -np.sqrt(np.clip(1 - x * x - y * y, 0, 1))], axis=-1)
+    rgba = np.zeros((size_px, size_px, 4), np.float32)
+    shade = AMBIENT + (1 - AMBIENT) * np.abs(n_cam @ cam.light_cam)
+    rgba[..., :3] = np.clip((n_cam @ cam.R_cam_world + 1) * 0.5, 0, 1) * shade[..., None]
+    rgba[..., 3] = inside
+    return rgba
 
 
-def save_map_figures(out_dir: str | Path, xyz: np.ndarray, normal: np.ndarray, rgb: np.ndarray,
+def _nice_length_m(span_m: float) -> float:
+    """A 1-2-5 length near a fifth of ``span_m``."""
+    target = max(span_m / 5, 1e-6)
+    base = 10 ** np.floor(np.log10(target))
+    return float(base * min((1, 2, 5, 10), key=lambda k: abs(k * base - target)))
+
+
+_TITLES = {"normal": "by normal (world xyz as RGB)", "confidence": "by confidence",
+           "time": "by time (frame first seen)", "rgb": "by colour"}
+_BAR_LABELS = {"confidence": "confidence (accumulated weight)", "time": "first seen (frame index)"}
+
+
+def map_figure(cam: ViewCamera, position: np.ndarray, normal: np.ndarray, colour: np.ndarray,
+               confidence: np.ndarray, first_seen: np.ndarray, radius: np.ndarray | None = None,
+               trajectory_T_world_cam: np.ndarray | None = None, title: str = "") -> Figure:
+    """A 2x2 figure (one panel per colour mode) of one view; the trajectory and a scale bar on orthographic views."""
+    index, depth, shade = render(cam, position, normal, radius)
+    brightness = pixel_shade(index, depth, shade)
+    fig = new_figure((FIGURE_SIZE_PX[0] / style.DPI, FIGURE_SIZE_PX[1] / style.DPI))
+    fig.subplots_adjust(left=0.01, right=0.93, bottom=0.02, top=0.92, wspace=0.12, hspace=0.1)
+    fig.suptitle(title, fontsize=style.TITLE_FONTSIZE + 1)
+    traj_px = None
+    if cam.px_per_m is not None and trajectory_T_world_cam is not None and len(trajectory_T_world_cam):
+        traj_px = cam.to_pixels(trajectory_T_world_cam[:, :3, 3])[:2]
+    for k, mode in enumerate(COLOUR_MODES):
+        ax = fig.add_subplot(2, 2, k + 1)
+        colours, sm, note = point_colours(mode, normal, confidence, first_seen, colour)
+        ax.imshow(compose(index, brightness, colours), interpolation="antialiased")
+        panel_title = f"{_TITLES[mode].split(' (')[0]} ({note})" if note else _TITLES[mode]
+        ax.set_title(panel_title, fontsize=style.TITLE_FONTSIZE)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if sm is not None:
+            cbar = fig.colorbar(sm, cax=ax.inset_axes((1.015, 0.05, 0.03, 0.9)),
+                                extend="max" if mode == "confidence" and confidence.max() > sm.norm.vmax else "neither")
+            cbar.set_label(_BAR_LABELS[mode], fontsize=style.LABEL_FONTSIZE)
+            cbar.ax.tick_params(labelsize=style.LABEL_FONTSIZE)
+        if mode == "normal" and not note:
+            key = ax.inset_axes((0.0, 0.0, 0.12, 0.12 * cam.width / cam.height))
+            key.imshow(_normal_key(cam))
+            key.set_axis_off()
+        if traj_px is not None:
+            halo = [patheffects.withStroke(linewidth=3.5, foreground="white")]
+            ax.plot(*traj_px, color="black", lw=style.LINE_WIDTH, path_effects=halo, label="camera path")
+            ax.plot(traj_px[0][0], traj_px[1][0], "o", color=style.START_COLOR, ms=8, mec="white", label="start")
+            ax.plot(traj_px[0][-1], traj_px[1][-1], "s", color=style.END_COLOR, ms=8, mec="white", label="end")
+            if k == 0:
+                ax.legend(loc="best", fontsize=style.LABEL_FONTSIZE, framealpha=0.85)
+        if cam.px_per_m is not None:
+            length_m = _nice_length_m(cam.width / cam.px_per_m)
+            ax.add_artist(AnchoredSizeBar(ax.transData, length_m * cam.px_per_m,
+                                          f"{length_m:g} m", "lower right", pad=0.6, sep=4, frameon=True,
+                                          size_vertical=3, fontproperties={"size": style.LABEL_FONTSIZE}))
+        ax.set_xlim(-0.5, cam.width - 0.5)
+        ax.set_ylim(cam.height - 0.5, -0.5)
+    return fig
+
+
+def save_map_figures(out_dir: str | Path, position: np.ndarray, normal: np.ndarray, colour: np.ndarray,
                      confidence: np.ndarray, first_seen: np.ndarray, T_world_cam0: np.ndarray,
-                     prefix: str = "map", title: str = "") -> list[Path]:
-    """Write ``{prefix}_{top,camera}.png``: one row per view, one panel per colour mode."""
+                     prefix: str = "map", title: str = "", trajectory_T_world_cam: np.ndarray | None = None,
+                     radius: np.ndarray | None = None) -> list[Path]:
+    """Write ``{prefix}_camera.png`` (framing perspective view) and ``{prefix}_top.png`` (top view with the
+    trajectory), each 2x2 colour modes. Arrays ``(N, 3)`` / ``(N,)``; ``colour`` RGB in [0, 255]; poses
+    ``(M, 4, 4)`` (``T_world_cam0`` alone when no trajectory is given); ``radius`` metres or None."""
     out_dir = Path(out_dir)
+    poses = np.asarray(trajectory_T_world_cam if trajectory_T_world_cam is not None else T_world_cam0[None])
+    poses = poses[np.isfinite(poses).all(axis=(1, 2))]
+    position = np.asarray(position, np.float32)
+    n = f"{len(position):,} {'surfels' if radius is not None else 'points'}"
+    head = f"{title}: " if title else ""
+    views = {"camera": (perspective_view(position, poses, normal), f"{head}view from behind and above the map ({n})"),
+             "top": (top_view(position, poses, normal), f"{head}top view, looking down ({n})")}
     written = []
-    views = {
-        "top": view_top(xyz, T_world_cam0),
-        "camera": view_first_camera(xyz, T_world_cam0),
-    }
-    modes = ("normal", "confidence", "time", "rgb")
-    for view_name, (pts, p) in views.items():
-        w = h = 800 if view_name == "top" else None
-        if view_name == "camera":
-            w, h = 640, 480
-        fig = new_figure((4.2 * len(modes), 4.2 * h / w + 0.6))
-        for k, mode in enumerate(modes):
-            cols, label = point_colours(mode, normal, confidence, first_seen, rgb)
-            img = render_points(pts, cols, p["fx"], p["cx"], p["cy"], w, h, p["orthographic_scale"])
-            ax = fig.add_subplot(1, len(modes), k + 1)
-            ax.imshow(img, interpolation="nearest")
-            ax.set_title(f"{view_name} view, coloured by {mode}", fontsize=9)
-            ax.set_axis_off()
-        fig.suptitle(f"{title} ({len(xyz):,} points)" if title else f"{len(xyz):,} points", fontsize=10)
-        fig.tight_layout()
-        path = out_dir / f"{prefix}_{view_name}.png"
-        save_figure(fig, path)
-        written.append(path)
+    for name, (cam, fig_title) in views.items():
+        fig = map_figure(cam, position, normal, colour, confidence, first_seen, radius, poses, fig_title)
+        written.append(save_figure(fig, out_dir / f"{prefix}_{name}.png"))
     return written
