@@ -172,7 +172,8 @@ def _now() -> str:
 def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None, poses: str | None = None,
                  progress: bool = True, figures: bool = True, *, overwrite: bool = True,
                  on_start: Callable[[Path], None] | None = None,
-                 before_commit: Callable[[Path], None] | None = None) -> dict:
+                 before_commit: Callable[[Path], None] | None = None,
+                 on_frame: Callable[[Any, Any, Any], None] | None = None) -> dict:
     """Run the pipeline on an opened sequence and write every output into ``out_dir``.
 
     ``tracker`` overrides ``cfg.tracker``. The written ``config.toml`` is ``cfg`` with the tracker and the
@@ -181,7 +182,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     here; ``surfelslam run`` passes its ``--overwrite``). The run writes into ``out_dir/.partial-<pid>/`` and hands
     its files over at the end (:mod:`surfelslam.io.run_folder`). ``on_start(staging_folder)`` is called once the
     folder is locked, ``before_commit(staging_folder)`` after every output is written, before the hand-over (to
-    add files to the run).
+    add files to the run). ``on_frame(frame, result, tracker)`` is called on the tracking thread after each frame
+    is tracked (a live viewer: :mod:`surfelslam.viz.live`; it must return quickly).
 
     Returns the metrics dict (also written as ``metrics.json``).
     """
@@ -204,7 +206,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
         if on_start is not None:
             on_start(stage)
         write_text_atomic(stage / "config.toml", recipe)
-        metrics = _run(seq, stage, cfg, slam, tracker, given, poses, progress, figures)
+        metrics = _run(seq, stage, cfg, slam, tracker, given, poses, progress, figures, on_frame)
         metrics.update(complete=True, started=started, finished=_now())
         write_text_atomic(stage / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
         if before_commit is not None:
@@ -214,7 +216,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
 
 
 def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: str | None, progress: bool,
-         figures: bool) -> dict:
+         figures: bool, on_frame: Callable[[Any, Any, Any], None] | None = None) -> dict:
     """The loop proper, writing into the staging folder ``out_dir``; everything but ``metrics.json``."""
     t_warm = time.perf_counter()
     slam.warmup()
@@ -251,6 +253,8 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
                 else:
                     res = slam.process(frame, prepared=item.prepared)
                 traj_out.append(frame.timestamp, res.T_world_cam)
+                if on_frame is not None:
+                    on_frame(frame, res, slam)
                 statuses.append((res.index, res.timestamp, res.status, res.reason))
                 n_done += 1
                 stage_ms["read"].append(item.read_ms)

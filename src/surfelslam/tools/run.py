@@ -115,6 +115,14 @@ def register(app: typer.Typer) -> None:
         rerun: Annotated[bool, typer.Option(
             "--rerun", help="Also write OUT/run.rrd, a Rerun recording (needs rerun-sdk; see `surfelslam rerun`)."
         )] = False,
+        viewer: Annotated[str | None, typer.Option(
+            "--viewer", metavar="spawn|connect[=ADDR]|serve|save=FILE",
+            help="Show the run live in Rerun (needs rerun-sdk): spawn a viewer, connect to one (HOST:PORT), serve "
+                 "a web viewer, or save a recording while running.")] = None,
+        viewer_images_every: Annotated[int, typer.Option(
+            "--viewer-images-every", help="Live viewer: log the images every N frames.")] = 5,
+        viewer_map_every: Annotated[int, typer.Option(
+            "--viewer-map-every", help="Live viewer: log the map (subsampled) every N frames.")] = 30,
     ) -> None:
         """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
 
@@ -130,6 +138,12 @@ def register(app: typer.Typer) -> None:
             require_rerun()  # before the run, not after it
         seq = open_sequence(seq_path, cfg.dataset)
         exported = []
+        from surfelslam.viz.live import finish_viewer, viewer_for_run
+
+        def note(text: str) -> None:
+            console.print(escape(text), style="yellow", highlight=False, soft_wrap=True)
+
+        live = viewer_for_run(viewer, seq, viewer_images_every, viewer_map_every, warn=note)
 
         def started(stage: Path) -> None:
             console.print(f"run -> {escape(str(out))} (writing into {escape(str(stage))} until complete)",
@@ -140,9 +154,15 @@ def register(app: typer.Typer) -> None:
 
             exported.append(export_run(stage, seq=seq))
 
-        metrics = run_sequence(seq, out, cfg, poses=poses, progress=progress, figures=figures, overwrite=overwrite,
-                               on_start=started, before_commit=export if rerun else None)
+        try:
+            metrics = run_sequence(seq, out, cfg, poses=poses, progress=progress, figures=figures,
+                                   overwrite=overwrite, on_start=started, before_commit=export if rerun else None,
+                                   on_frame=live)
+        except BaseException:
+            finish_viewer(live, None, warn=note, wait_when_serving=False)
+            raise
         print_summary(metrics, out)
+        finish_viewer(live, out, warn=note)
         if exported:
             from surfelslam.tools.export_rerun import print_export
 
