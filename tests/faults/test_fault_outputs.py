@@ -13,7 +13,7 @@ import pytest
 
 from surfelslam.errors import InputError, OutputError
 from surfelslam.io import atomic
-from surfelslam.io.atomic import atomic_open, write_bytes_atomic, write_text_atomic
+from surfelslam.io.atomic import atomic_open, write_text_atomic
 from surfelslam.io.ply import read_ply, write_points_ply
 from surfelslam.io.trajectory import TumAppender, read_tum, write_tum
 from surfelslam.types import Trajectory
@@ -36,7 +36,7 @@ def _write_png_figure(path: Path) -> None:
 
 WRITERS = {
     "config.toml": lambda p: write_text_atomic(p, "[io]\n"),
-    "metrics.json": lambda p: write_bytes_atomic(p, b"{}\n"),
+    "metrics.json": lambda p: write_text_atomic(p, "{}\n"),
     "map.ply": lambda p: write_points_ply(p, np.zeros((3, 3)), np.zeros((3, 3), np.uint8)),
     "map_top.png": _write_png_figure,
     "groundtruth.txt": lambda p: write_tum(Trajectory(np.arange(2.0), np.tile(np.eye(4), (2, 1, 1))), p),

@@ -96,8 +96,3 @@ def atomic_open(path: str | Path, mode: str = "w") -> Iterator[IO]:
 def write_text_atomic(path: str | Path, text: str) -> None:
     with atomic_open(path, "w") as fh:
         fh.write(text)
-
-
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    with atomic_open(path, "wb") as fh:
-        fh.write(data)
