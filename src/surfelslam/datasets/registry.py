@@ -12,6 +12,8 @@ come before plain TUM:
 6. ``rosbag``    a ROS 1 ``.bag``, a ROS 2 bag folder (``metadata.yaml``), or an ``.mcap`` / ``.db3`` file
                  (a file path is only ever a bag: :mod:`surfelslam.datasets.rosbag`)
 
+``realsense`` (when no file or folder has that name) is the live camera (:mod:`surfelslam.datasets.realsense`).
+
 ``DatasetOptions.gt`` (``--gt FILE``) replaces any layout's ground truth by a TUM trajectory file (for a bag it may
 also name a pose topic).
 """
@@ -27,6 +29,7 @@ from surfelslam.datasets.folder import FolderSequence
 from surfelslam.datasets.icl import IclSequence
 from surfelslam.datasets.metadata import read_metadata
 from surfelslam.datasets.plausibility import check_plausibility
+from surfelslam.datasets.realsense import is_realsense
 from surfelslam.datasets.rosbag import RosbagSequence, is_bag, looks_like_bag
 from surfelslam.datasets.sevenscenes import SevenScenesSequence
 from surfelslam.datasets.tum import SyntheticSequence, TumSequence
@@ -92,6 +95,10 @@ def open_sequence(
     """
     options = DatasetOptions() if options is None else options
     root = Path(path)
+    if layout is None and is_realsense(root):
+        from surfelslam.datasets.realsense import open_realsense
+
+        return open_realsense(options)  # type: ignore[return-value]  # frames are read once: no sampling here
     if layout is None:
         layout = detect_layout(root)
     elif layout not in LAYOUTS:

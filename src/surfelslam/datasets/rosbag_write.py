@@ -79,30 +79,10 @@ def write_bag(seq_folder: str | Path, out_path: str | Path, format: str = "ros1"
     if depth_encoding == "auto":
         depth_encoding = "16UC1" if seq.depth_scale == MM_DEPTH_SCALE else "32FC1"
 
-    from rosbags.typesys import Stores, get_typestore
-
     ros1 = format == "ros1"
-    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    T = ts.types
-    serialize = ts.serialize_ros1 if ros1 else ts.serialize_cdr
-    seq_no = [0]
-
-    def header(t: float):
-        sec, nsec = seconds_to_stamp(t)
-        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
-        seq_no[0] += 1
-        if ros1:
-            return T["std_msgs/msg/Header"](seq=seq_no[0], stamp=stamp, frame_id=FRAME_ID)
-        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=FRAME_ID)
-
-    def image(t: float, arr: np.ndarray, encoding: str):
-        h, w = arr.shape[:2]
-        data = np.ascontiguousarray(arr).view(np.uint8).reshape(-1)
-        return T[IMAGE](header=header(t), height=h, width=w, encoding=encoding, is_bigendian=0,
-                        step=data.size // h, data=data)
-
-    def compressed(t: float, fmt: str, data: bytes):
-        return T[COMPRESSED](header=header(t), format=fmt, data=np.frombuffer(data, np.uint8))
+    msgs = _Messages(ros1)
+    ts, serialize = msgs.ts, msgs.serialize
+    image, compressed = msgs.image, msgs.compressed
 
     def colour_msg(t: float, rgb: np.ndarray):
         import cv2
@@ -131,34 +111,12 @@ def write_bag(seq_folder: str | Path, out_path: str | Path, format: str = "ros1"
         return COMPRESSED, compressed(t, "16UC1; compressedDepth png", head + buf.tobytes())
 
     def camera_info(t: float):
-        intr = seq.full_intrinsics
-        K = np.array([intr.fx, 0, intr.cx, 0, intr.fy, intr.cy, 0, 0, 1], np.float64)
-        P = np.array([intr.fx, 0, intr.cx, 0, 0, intr.fy, intr.cy, 0, 0, 0, 1, 0], np.float64)
-        R = np.eye(3).reshape(-1)
-        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        names = ("D", "K", "R", "P") if ros1 else ("d", "k", "r", "p")
-        kw = dict(zip(names, (np.zeros(5), K, R, P), strict=True))
-        return T[CAMERA_INFO](header=header(t), height=intr.height, width=intr.width, distortion_model="plumb_bob",
-                              binning_x=0, binning_y=0, roi=roi, **kw)
+        return msgs.camera_info(t, seq.full_intrinsics)
 
     def pose(t: float, M: np.ndarray):
-        from scipy.spatial.transform import Rotation
+        return msgs.pose(t, M)
 
-        x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
-        P = T["geometry_msgs/msg/Point"](x=float(M[0, 3]), y=float(M[1, 3]), z=float(M[2, 3]))
-        Q = T["geometry_msgs/msg/Quaternion"](x=float(x), y=float(y), z=float(z), w=float(w))
-        return T[POSE](header=header(t), pose=T["geometry_msgs/msg/Pose"](position=P, orientation=Q))
-
-    if ros1:
-        from rosbags.rosbag1 import Writer as Writer1
-
-        writer = Writer1(out)
-    else:
-        from rosbags.rosbag2 import StoragePlugin
-        from rosbags.rosbag2 import Writer as Writer2
-
-        writer = Writer2(out, version=9,
-                         storage_plugin=StoragePlugin.MCAP if format == "mcap" else StoragePlugin.SQLITE3)
+    writer = _writer(out, format)
     colour_type = IMAGE if colour_encoding in ("rgb8", "bgr8") else COMPRESSED
     depth_type = COMPRESSED if depth_encoding == "compressedDepth" else IMAGE
     messages: list[tuple[int, str, float, object]] = []  # (receive ns, topic, stamp, builder) per message
@@ -196,3 +154,109 @@ def write_bag(seq_folder: str | Path, out_path: str | Path, format: str = "ros1"
 def _ns(t: float) -> int:
     sec, nsec = seconds_to_stamp(t)
     return sec * 1_000_000_000 + nsec
+
+
+def _writer(out: Path, format: str):  # noqa: A002
+    """rosbags' writer for ``format`` (not opened)."""
+    if format == "ros1":
+        from rosbags.rosbag1 import Writer as Writer1
+
+        return Writer1(out)
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    return Writer2(out, version=9, storage_plugin=StoragePlugin.MCAP if format == "mcap" else StoragePlugin.SQLITE3)
+
+
+class _Messages:
+    """Builds the messages written (ROS 1 or ROS 2 types from rosbags' type stores) and serialises them."""
+
+    def __init__(self, ros1: bool):
+        from rosbags.typesys import Stores, get_typestore
+
+        self.ros1 = ros1
+        self.ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        self.T = self.ts.types
+        self.serialize = self.ts.serialize_ros1 if ros1 else self.ts.serialize_cdr
+        self._seq = 0
+
+    def header(self, t: float):
+        T = self.T
+        sec, nsec = seconds_to_stamp(t)
+        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+        self._seq += 1
+        if self.ros1:
+            return T["std_msgs/msg/Header"](seq=self._seq, stamp=stamp, frame_id=FRAME_ID)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=FRAME_ID)
+
+    def image(self, t: float, arr: np.ndarray, encoding: str):
+        h, w = arr.shape[:2]
+        data = np.ascontiguousarray(arr).view(np.uint8).reshape(-1)
+        return self.T[IMAGE](header=self.header(t), height=h, width=w, encoding=encoding, is_bigendian=0,
+                             step=data.size // h, data=data)
+
+    def compressed(self, t: float, fmt: str, data: bytes):
+        return self.T[COMPRESSED](header=self.header(t), format=fmt, data=np.frombuffer(data, np.uint8))
+
+    def camera_info(self, t: float, intr):
+        T = self.T
+        K = np.array([intr.fx, 0, intr.cx, 0, intr.fy, intr.cy, 0, 0, 1], np.float64)
+        P = np.array([intr.fx, 0, intr.cx, 0, 0, intr.fy, intr.cy, 0, 0, 0, 1, 0], np.float64)
+        R = np.eye(3).reshape(-1)
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        names = ("D", "K", "R", "P") if self.ros1 else ("d", "k", "r", "p")
+        kw = dict(zip(names, (np.zeros(5), K, R, P), strict=True))
+        return T[CAMERA_INFO](header=self.header(t), height=intr.height, width=intr.width,
+                              distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **kw)
+
+    def pose(self, t: float, M: np.ndarray):
+        from scipy.spatial.transform import Rotation
+
+        T = self.T
+        x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
+        P = T["geometry_msgs/msg/Point"](x=float(M[0, 3]), y=float(M[1, 3]), z=float(M[2, 3]))
+        Q = T["geometry_msgs/msg/Quaternion"](x=float(x), y=float(y), z=float(z), w=float(w))
+        return T[POSE](header=self.header(t), pose=T["geometry_msgs/msg/Pose"](position=P, orientation=Q))
+
+
+class BagRecorder:
+    """Records frames to a new bag as they come (``surfelslam run realsense --record out.bag``): colour ``rgb8``,
+    depth ``32FC1`` (the metres tracked, exactly) and a ``CameraInfo`` per frame, on :func:`write_bag`'s topics.
+    ``format``: ``ros1`` (``.bag``), ``ros2`` or ``mcap`` (a ROS 2 bag folder). Call :meth:`close` at the end (the
+    ROS 1 index, the ROS 2 metadata and the MCAP summary are written then).
+    """
+
+    def __init__(self, out_path: str | Path, intrinsics, format: str | None = None):  # noqa: A002
+        out = Path(out_path)
+        format = format or ("ros1" if out.suffix.lower() == ".bag" else "mcap")
+        if format not in FORMATS:
+            raise ConfigError(f"bag format must be one of {', '.join(FORMATS)}, got {format!r}")
+        if out.exists():
+            raise OutputError(out, "already exists (the bag writers only create new bags)")
+        self.path, self.intrinsics = out, intrinsics
+        self._msgs = _Messages(format == "ros1")
+        self._writer = _writer(out, format)
+        try:
+            self._writer.open()
+        except Exception as exc:  # noqa: BLE001 - rosbags' writer errors, OS errors
+            raise OutputError(out, f"cannot create the bag ({exc})") from None
+        ts = self._msgs.ts
+        self._conns = {t: self._writer.add_connection(t, ty, typestore=ts)
+                       for t, ty in ((RGB_TOPIC, IMAGE), (DEPTH_TOPIC, IMAGE), (INFO_TOPIC, CAMERA_INFO))}
+        self.frames = 0
+        self._open = True
+
+    def __call__(self, rgb: np.ndarray, depth_m: np.ndarray, timestamp: float) -> None:
+        """Write one frame: ``(H, W, 3)`` uint8 colour, ``(H, W)`` depth in metres, its stamp (s)."""
+        m = self._msgs
+        ns = _ns(timestamp)
+        for topic, msgtype, msg in ((RGB_TOPIC, IMAGE, m.image(timestamp, np.asarray(rgb, np.uint8), "rgb8")),
+                                    (DEPTH_TOPIC, IMAGE, m.image(timestamp, np.asarray(depth_m, "<f4"), "32FC1")),
+                                    (INFO_TOPIC, CAMERA_INFO, m.camera_info(timestamp, self.intrinsics))):
+            self._writer.write(self._conns[topic], ns, m.serialize(msg, msgtype))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._open:
+            self._open = False
+            self._writer.close()

@@ -177,3 +177,110 @@ def track_source(slam, source: FrameSource, on_frame: Callable[[RGBDFrame, objec
         if on_frame is not None:
             on_frame(frame, res)
     return slam.finish()
+
+
+class DeviceSequence:
+    """A live :class:`Device` as a sequence of known length for the run loop (``surfelslam run realsense``).
+
+    Device frames are read in order as ``seq[0]``, ``seq[1]`` ... are asked for (the run loop's reader thread does);
+    the selection options apply to the device's frames: the first ``start`` are dropped (auto-exposure settling),
+    then every ``stride``-th is kept until ``end`` device frames were read (``end`` is required: a live stream has no
+    end of its own); ``downsample`` samples the images. ``record(rgb, depth_m, timestamp)`` gets each kept frame at
+    the device's resolution (e.g. a :class:`~surfelslam.datasets.rosbag_write.BagRecorder`); ``on_close`` is called
+    once, after the last frame or by :meth:`close`. Random access and going back raise FrameError.
+    """
+
+    layout = "live"
+    colour_registered = True
+    colour_camera = None
+    intrinsics_kind = "device"
+
+    def __init__(self, device: Device, options: DatasetOptions, name: str = "device",
+                 record: Callable[[np.ndarray, np.ndarray, float], None] | None = None,
+                 on_close: Callable[[], None] | None = None, ground_truth: Trajectory | None = None):
+        if options.end is None:
+            raise ConfigError(f"{name}: a live camera needs --end N (how many of its frames to read)")
+        self.device = device
+        self.options = options
+        self.root = Path(name)
+        self.full_intrinsics = device.intrinsics
+        self.intrinsics = device.intrinsics.scaled(options.downsample)
+        self.depth_scale = float(device.depth_scale)
+        self.intrinsics_source = self.depth_scale_source = f"the {name} device"
+        self.ground_truth = ground_truth
+        self.unpaired: list[UnpairedFrame] = []
+        self.warnings: list[str] = []
+        self._keep = range(options.start, options.end, options.stride)
+        self._read = 0  # device frames read so far
+        self._next = 0  # next position to hand out
+        self._record, self._on_close = record, on_close
+        self._closed = False
+        self._stamps: list[float] = []
+
+    def __len__(self) -> int:
+        return len(self._keep)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Stamps of the frames handed out so far."""
+        return np.array(self._stamps, np.float64)
+
+    def __getitem__(self, i: int) -> RGBDFrame:
+        if not 0 <= i < len(self):
+            raise IndexError(f"frame {i} out of range for {len(self)} frames")
+        if i != self._next:
+            raise FrameError(self.root, f"frame {i}: a live camera's frames are read once, in order "
+                                        f"(the next is {self._next})", index=i)
+        want = self._keep[i]
+        got = None
+        while self._read <= want:
+            got = None if self._closed else self.device.read()
+            if got is None:
+                self.close()
+                raise FrameError(self.root, f"the device stream ended after {self._read} frames", index=i)
+            self._read += 1
+        assert got is not None
+        rgb, raw, t = got
+        intr = self.full_intrinsics
+        if rgb.shape != (intr.height, intr.width, 3) or raw.shape != (intr.height, intr.width):
+            raise FrameError(self.root, f"device frame {want}: {rgb.shape} colour / {raw.shape} depth, expected "
+                                        f"{intr.width}x{intr.height}", index=i)
+        depth = np.asarray(raw).astype(np.float32) / np.float32(self.depth_scale)
+        depth[np.asarray(raw) == 0] = 0.0
+        depth = clean_depth(depth)
+        rgb = np.ascontiguousarray(rgb, np.uint8)
+        if self._record is not None:
+            self._record(rgb, depth, float(t))
+        self._next += 1
+        self._stamps.append(float(t))
+        if self._next == len(self):
+            self.close()
+        f = self.options.downsample
+        if f > 1:
+            rgb, depth = np.ascontiguousarray(rgb[::f, ::f]), np.ascontiguousarray(depth[::f, ::f])
+        return RGBDFrame(i, float(t), rgb, depth)
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        for i in range(self._next, len(self)):
+            yield self[i]
+
+    def close(self) -> None:
+        """Stop the device and finish the recording (once)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.device.close()
+        finally:
+            if self._on_close is not None:
+                self._on_close()
+
+    def info(self) -> dict:
+        intr = self.intrinsics
+        return {"layout": self.layout, "root": str(self.root), "frames": len(self), "frames_total": len(self),
+                "images_unpaired": 0, "unpaired": [], "warnings": list(self.warnings),
+                "resolution": [intr.width, intr.height],
+                "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
+                "depth_scale": self.depth_scale, "downsample": self.options.downsample,
+                "ground_truth_poses": 0 if self.ground_truth is None else len(self.ground_truth),
+                "frames_with_ground_truth": 0, "colour_registered": True, "colour_camera": None}

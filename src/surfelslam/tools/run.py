@@ -123,6 +123,9 @@ def register(app: typer.Typer) -> None:
             "--viewer-images-every", help="Live viewer: log the images every N frames.")] = 5,
         viewer_map_every: Annotated[int, typer.Option(
             "--viewer-map-every", help="Live viewer: log the map (subsampled) every N frames.")] = 30,
+        record: Annotated[Path | None, typer.Option(
+            "--record", help="With the live camera (SEQ = realsense): also write the frames to this bag (.bag: "
+                             "ROS 1, else a ROS 2 MCAP bag folder).")] = None,
     ) -> None:
         """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
 
@@ -136,7 +139,12 @@ def register(app: typer.Typer) -> None:
             from surfelslam.viz.rerun_export import require_rerun
 
             require_rerun()  # before the run, not after it
-        seq = open_sequence(seq_path, cfg.dataset)
+        if record is not None:
+            from surfelslam.datasets.realsense import open_realsense
+
+            seq = open_realsense(cfg.dataset, record=record, path=seq_path)
+        else:
+            seq = open_sequence(seq_path, cfg.dataset)
         exported = []
         from surfelslam.viz.live import finish_viewer, viewer_for_run
 
@@ -161,6 +169,9 @@ def register(app: typer.Typer) -> None:
         except BaseException:
             finish_viewer(live, None, warn=note, wait_when_serving=False)
             raise
+        finally:
+            if hasattr(seq, "close"):  # a bag, a live camera (and its recording)
+                seq.close()
         print_summary(metrics, out)
         finish_viewer(live, out, warn=note)
         if exported:
