@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-fast bench lint docs clean
+.PHONY: demo test test-fast warmup bench lint docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -23,12 +23,18 @@ $(VIZ_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[dev,viz]" || echo "rerun-sdk not installable here: the rerun export tests skip"
 	touch $(VIZ_STAMP)
 
-# The suite runs on every core (pytest-xdist). numba's on-disk cache is shared by the workers: numba writes each
-# cache file to a temporary name and renames it, so two workers compiling the same kernel both end with a valid file.
-# The slowest (whole-sequence) tests are scheduled first (tests/conftest.py), and idle workers steal queued tests.
+# The suite runs on every core (pytest-xdist). The numba kernels are compiled first, once, by two warm-up processes
+# side by side (surfelslam.warmup: dense and sparse parts), so the workers load them from numba's on-disk cache
+# instead of each compiling the same kernels; a kernel a worker still compiles is written to a temporary name and
+# renamed by numba, so workers never read a torn cache file. The slowest (whole-sequence) tests are scheduled first
+# (tests/conftest.py), and idle workers steal queued tests.
 PYTEST_WORKERS ?= auto
-test: $(STAMP) $(VIZ_STAMP)
+test: $(STAMP) $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
+
+warmup: $(STAMP)
+	@$(PY) -m surfelslam.warmup dense & dense=$$!; $(PY) -m surfelslam.warmup sparse; sparse=$$?; \
+	wait $$dense; exit $$(( $$? || sparse ))
 
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).
 test-fast: $(STAMP)

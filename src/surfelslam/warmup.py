@@ -1,0 +1,77 @@
+"""Compile (or load from numba's on-disk cache) the JIT kernels ahead of a session, in parts.
+
+numba compiles a kernel on its first call and caches it beside the source. A fresh checkout has no cache, and
+processes that start together (test workers, batch jobs) would each compile the same kernels. Warming up first, one
+process per part running at the same time, compiles each kernel once::
+
+    python -m surfelslam.warmup dense & python -m surfelslam.warmup sparse & wait
+
+``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
+working resolution and reduced from a larger input. ``sparse``: the synthetic renderer and the feature side (ORB
+matching, PnP and its consensus fallback, the keyframe cloud's voxel filter, the shape-feature guess).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+_SMALL = (80, 60)  # px: numba compiles for types, not sizes, so tiny frames compile what a real run uses
+
+
+def _dense() -> None:
+    from surfelslam.slam import SlamConfig, build_slam
+    from surfelslam.slam.dense import warm_up
+    from surfelslam.types import Intrinsics, RGBDFrame
+
+    cfg = SlamConfig()
+    warm_up(cfg)  # tracking and fusion at the input's resolution
+    # tracking and fusion at a block-averaged level of the input (640x480 input worked on at 320x240)
+    half = replace(cfg, tracking=replace(cfg.tracking, max_width_px=32), fusion=replace(cfg.fusion, max_width_px=32))
+    warm_up(half)
+    intr = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    v, u = np.mgrid[0:48, 0:64].astype(np.float32)
+    depth = (1.5 + 0.004 * u + 0.002 * v).astype(np.float32)
+    mapper = build_slam(intr, cfg, "given")
+    mapper.process(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), depth), T_world_cam=np.eye(4))
+
+
+def _sparse() -> None:
+    from surfelslam.slam import SlamConfig, build_slam
+    from surfelslam.synth.scenes import make_scene
+    from surfelslam.synth.trajectories import make_trajectory
+    from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config
+    from surfelslam.tracking.geometric import geometric_guess
+    from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+
+    intr = default_intrinsics(*_SMALL)
+    scene = make_scene("room")
+    frames = list(iter_frames(scene, make_trajectory("slow", 6, scene), intr, noise_config("kinect")))
+    cfg = SlamConfig()
+    cfg = replace(cfg, orb=replace(cfg.orb, depth_odometry=replace(cfg.orb.depth_odometry, enabled=False),
+                                   loop_icp=replace(cfg.orb.loop_icp, enabled=False)))
+    orb = build_slam(intr, cfg, "orb")
+    for f in frames:
+        orb.process(f)
+    orb.finish()
+    pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
+    a, b = (pre.process(f.depth_m, out=pre.new_pyramid())[0] for f in (frames[0], frames[-1]))
+    geometric_guess(a.vertex, a.normal, b.vertex, b.normal)
+
+
+PARTS = {"dense": _dense, "sparse": _sparse}
+
+
+def warm(*parts: str) -> None:
+    """Compile the kernels of ``parts`` (default: every part, one after the other)."""
+    for name in parts or tuple(PARTS):
+        PARTS[name]()
+
+
+if __name__ == "__main__":
+    unknown = [p for p in sys.argv[1:] if p not in PARTS]
+    if unknown:
+        raise SystemExit(f"error: unknown warm-up part(s) {', '.join(unknown)}; known: {', '.join(PARTS)}")
+    warm(*sys.argv[1:])
