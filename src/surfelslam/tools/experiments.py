@@ -1,4 +1,5 @@
-"""``surfelslam experiments SEQ --out DIR``: the seeds' experiments on one sequence, as ``DIR/report.md`` + PNGs.
+"""``surfelslam experiments SEQ --out DIR``: the reference assignment's experiments on one
+sequence, as ``DIR/report.md`` + PNGs.
 
 Sections (every number comes from this run; ``DIR/results.json`` holds the same numbers):
 
@@ -8,7 +9,7 @@ Sections (every number comes from this run; ``DIR/results.json`` holds the same 
 3. fusion with ground-truth poses vs dense-tracker poses;
 4. the dormant-point rule on / off;
 5. feature odometry (ORB + PnP-RANSAC) on a pair;
-6. every tracker of ``pipeline.TRACKERS`` against the ground truth.
+6. every tracker of ``surfelslam.slam.TRACKERS`` against the ground truth.
 """
 
 from __future__ import annotations
@@ -36,11 +37,9 @@ from surfelslam.tools.common import (
     with_dataset_options,
 )
 
-# Trackers the report always lists (with "not built yet" when pipeline.TRACKERS lacks them).
-EXPECTED_TRACKERS = ("dense", "orb", "hybrid")
-# The seeds' dormant-rule values (surfels older than 20 frames seen in fewer than 15 are removed).
-SEEDS_DORMANT_MAX_AGE_FRAMES = 20
-SEEDS_DORMANT_MIN_HITS = 15
+# The reference assignment's dormant-rule values (surfels older than 20 frames seen in fewer than 15 are removed).
+REFERENCE_DORMANT_MAX_AGE_FRAMES = 20
+REFERENCE_DORMANT_MIN_HITS = 15
 SOLVER_TIMEIT_NUMBER = 10
 SOLVER_TIMEIT_REPEAT = 7
 SOLVER_PAIR_GATE_M = 0.17
@@ -84,9 +83,10 @@ def after_figures(s: int, t: int) -> list[tuple[str, str]]:
 
 
 def icp_settings():
-    """``[(name, ICPConfig)]``: the seeds' single-level setting at 0.07 m and 0.17 m, and the defaults.
+    """``[(name, ICPConfig)]``: the reference assignment's single-level setting at 0.07 m and
+    0.17 m, and the defaults.
 
-    The seeds' setting: one level, 10 fixed iterations, every source pixel, no angle gate, no robust kernel.
+    The reference setting: one level, 10 fixed iterations, every source pixel, no angle gate, no robust kernel.
     """
     from surfelslam.tracking.icp import ICPConfig
 
@@ -152,10 +152,10 @@ def section_icp_pairs(seq, out_dir: Path, pairs, scaled: bool, opts: ExperimentO
     lines.append(f"Pairs (source->target, positions in the selection): {pair_txt}."
                  + (f" The selection has {len(seq)} frames, too few for {opts.pair_start}->"
                     f"{opts.pair_start}+{max(opts.pair_gaps)}: the gaps were scaled down." if scaled else ""))
-    lines.append("ICP registers the source frame onto the target frame from the identity. Settings: the seeds' "
-                 "single level (10 fixed iterations, every pixel, no angle gate, no robust kernel) with a 0.07 m "
-                 "and a 0.17 m association gate, and the coarse-to-fine defaults (4 levels, every 2nd pixel at the "
-                 "finest level, hence fewer inliers), and `register --init features` (the `register` ICP "
+    lines.append("ICP registers the source frame onto the target frame from the identity. Settings: the reference "
+                 "assignment's single level (10 fixed iterations, every pixel, no angle gate, no robust kernel) with "
+                 "a 0.07 m and a 0.17 m association gate, and the coarse-to-fine defaults (4 levels, every 2nd "
+                 "pixel at the finest level, hence fewer inliers), and `register --init features` (the `register` ICP "
                  "settings started from the image-feature guess, else the shape-feature guess; the start used is "
                  "named in brackets). Residual = "
                  "point-to-plane RMS over the inliers at the end (mean squared residual in brackets).")
@@ -341,14 +341,15 @@ def section_dormant(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, dense
     cfg_off = replace(cfg, fusion=replace(f, remove_unstable=False))
     variants.append(("off", "dormant_off", _run(seq_runs, out_dir / "runs" / "dormant_off", cfg_off, "dense", None,
                                                  opts, True)))
-    cfg_seeds = replace(cfg, fusion=replace(f, remove_unstable=True,
-                                            unstable_max_age_frames=SEEDS_DORMANT_MAX_AGE_FRAMES,
-                                            stable_min_hits=SEEDS_DORMANT_MIN_HITS))
-    if not (f.remove_unstable and f.unstable_max_age_frames == SEEDS_DORMANT_MAX_AGE_FRAMES
-            and f.stable_min_hits == SEEDS_DORMANT_MIN_HITS):
-        variants.append((f"on: age > {SEEDS_DORMANT_MAX_AGE_FRAMES} frames, hits < {SEEDS_DORMANT_MIN_HITS} "
-                         "(the seeds' values)", "dormant_seeds",
-                         _run(seq_runs, out_dir / "runs" / "dormant_seeds", cfg_seeds, "dense", None, opts, True)))
+    cfg_reference = replace(cfg, fusion=replace(f, remove_unstable=True,
+                                                unstable_max_age_frames=REFERENCE_DORMANT_MAX_AGE_FRAMES,
+                                                stable_min_hits=REFERENCE_DORMANT_MIN_HITS))
+    if not (f.remove_unstable and f.unstable_max_age_frames == REFERENCE_DORMANT_MAX_AGE_FRAMES
+            and f.stable_min_hits == REFERENCE_DORMANT_MIN_HITS):
+        variants.append((f"on: age > {REFERENCE_DORMANT_MAX_AGE_FRAMES} frames, hits < {REFERENCE_DORMANT_MIN_HITS} "
+                         "(the reference assignment's values)", "dormant_reference",
+                         _run(seq_runs, out_dir / "runs" / "dormant_reference", cfg_reference, "dense", None, opts,
+                              True)))
     lines.append(f"Dense tracking over the same {len(seq_runs)} frames with `FusionConfig.remove_unstable` on and "
                  "off. The rule removes a surfel older than `unstable_max_age_frames` that was observed in fewer "
                  "than `stable_min_hits` frames (see `mapping/fusion.py`)."
@@ -447,24 +448,17 @@ def section_trajectories(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, 
     from surfelslam.viz.experiment_figures import plot_trajectories
 
     lines = [SECTION_TITLES[5], ""]
-    names = list(EXPECTED_TRACKERS) + [t for t in TRACKERS if t not in EXPECTED_TRACKERS]
     if not has_gt:
-        lines += ["Not available: this sequence has no ground truth. Trackers built: "
-                  + ", ".join(t for t in names if t in TRACKERS) + "; not built yet: "
-                  + (", ".join(t for t in names if t not in TRACKERS) or "none") + ".", ""]
+        lines += ["Not available: this sequence has no ground truth. Trackers: " + ", ".join(TRACKERS) + ".", ""]
         return lines, {}
-    lines.append(f"Every tracker of `pipeline.TRACKERS` over the same {len(seq_runs)} frames, default configuration; "
-                 "ATE after SE(3) alignment (no scale).")
+    lines.append(f"Every tracker (`surfelslam.slam.TRACKERS`) over the same {len(seq_runs)} frames, default "
+                 "configuration; ATE after SE(3) alignment (no scale).")
     lines += ["", "| tracker | status | frames | tracking failures | ATE RMSE (cm) | FPS |",
               "|---|---|---|---|---|---|"]
     out: dict[str, dict] = {}
     estimates = {}
     gt_plot = None  # the ground truth over the run's frames (the associated poses)
-    for name in names:
-        if name not in TRACKERS:
-            out[name] = {"status": "not built yet"}
-            lines.append(f"| {name} | not built yet | | | | |")
-            continue
+    for name in TRACKERS:
         d = out_dir / "runs" / name
         try:
             m = dense_metrics if name == "dense" else _run(seq_runs, d, cfg, name, None, opts, False)
