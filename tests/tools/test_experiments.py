@@ -12,8 +12,7 @@ from typer.testing import CliRunner
 from surfelslam.cli import app
 from surfelslam.datasets import open_sequence
 from surfelslam.datasets.base import DatasetOptions
-from surfelslam.slam import TRACKERS, SlamConfig
-from surfelslam.tools.experiments import (
+from surfelslam.eval.experiments import (
     FEATURES_SETTING,
     SECTION_TITLES,
     ExperimentOptions,
@@ -22,6 +21,7 @@ from surfelslam.tools.experiments import (
     icp_settings,
     section_trajectories,
 )
+from surfelslam.slam import TRACKERS, SlamConfig
 from surfelslam.tracking.features import FeatureConfig
 
 pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
@@ -203,7 +203,7 @@ def test_sequence_without_ground_truth(tmp_path):
 
 def test_solver_section_reports_singular_systems():
     """A single plane leaves rotation about its normal and in-plane translation unconstrained: solvers fail."""
-    from surfelslam.tools.experiments import section_solvers
+    from surfelslam.eval.experiments import section_solvers
     from surfelslam.tracking.preprocess import FramePyramid, PyramidLevel
     from surfelslam.types import Intrinsics
 
