@@ -199,3 +199,12 @@ def test_map_snapshots_loops_and_ground_truth_error():
 
 def test_map_snapshot_of_a_tracker_without_surfels():
     assert map_snapshot(SimpleNamespace(), 10) is None
+
+
+def test_connect_to_nothing_is_refused_up_front():
+    """`--viewer connect=...` with no viewer listening: start_viewer warns in one line instead of the SDK retrying
+    (and failing at the end of the run)."""
+    from surfelslam.viz.live import _require_listening
+
+    with pytest.raises(ConnectionError, match="nothing"):
+        _require_listening("rerun+http://127.0.0.1:1/proxy", "nothing listens", wait_s=0.0)

@@ -254,11 +254,14 @@ class LiveViewer:
             except Exception as exc:  # noqa: BLE001 - the view must not fail the run
                 self.stats.error = f"{type(exc).__name__}: {exc}"
         try:
-            self.rec.flush(timeout_sec=timeout_s)
-        except TypeError:  # older rerun-sdk: flush(blocking=True)
-            self.rec.flush()
-        if self.spec.mode != "serve":  # a served view stays up until the process ends
-            self.rec.disconnect()
+            try:
+                self.rec.flush(timeout_sec=timeout_s)
+            except TypeError:  # older rerun-sdk: flush(blocking=True)
+                self.rec.flush()
+            if self.spec.mode != "serve":  # a served view stays up until the process ends
+                self.rec.disconnect()
+        except Exception as exc:  # noqa: BLE001 - e.g. the viewer went away: the run's outputs are written anyway
+            self.stats.error = self.stats.error or f"{type(exc).__name__}: {exc}"
         return self.stats
 
     # ------------------------------------------------------------------------------------- logging thread
@@ -380,6 +383,24 @@ class LiveViewer:
                 self.stats.loops = len(segs)
 
 
+def _require_listening(url: str, why: str, wait_s: float = 3.0) -> None:
+    """ConnectionError(``why``) unless a TCP connection to ``url``'s host and port opens within ``wait_s``."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    host, port = parts.hostname or "127.0.0.1", parts.port or 9876
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=1.0):
+                return
+        except OSError:
+            if time.monotonic() >= deadline:
+                raise ConnectionError(why) from None
+            time.sleep(0.2)
+
+
 def start_viewer(spec: ViewerSpec | str, intrinsics: Intrinsics, ground_truth: Trajectory | None = None,
                  cfg: LiveViewerConfig | None = None, warn: Callable[[str], None] = print,
                  application_id: str = "surfelslam", recording_id: str | None = None) -> LiveViewer | None:
@@ -398,8 +419,14 @@ def start_viewer(spec: ViewerSpec | str, intrinsics: Intrinsics, ground_truth: T
             path.parent.mkdir(parents=True, exist_ok=True)
             rec.save(path)
         elif spec.mode == "spawn":
-            rec.spawn()
+            import sys
+
+            beside = Path(sys.executable).parent / "rerun"  # the viewer the rerun-sdk wheel installs
+            rr.spawn(connect=False, executable_path=str(beside) if beside.is_file() else None)
+            _require_listening(DEFAULT_CONNECT, "the spawned viewer is not listening (no display?)")
+            rec.connect_grpc(DEFAULT_CONNECT)
         elif spec.mode == "connect":
+            _require_listening(spec.url(), "nothing listens there (start `rerun` first)")
             rec.connect_grpc(spec.url())
         else:
             url = rec.serve_grpc()
@@ -409,7 +436,8 @@ def start_viewer(spec: ViewerSpec | str, intrinsics: Intrinsics, ground_truth: T
             else:  # pragma: no cover - older rerun-sdk
                 warn(f"live viewer: connect a Rerun viewer to {url}")
     except Exception as exc:  # noqa: BLE001 - no viewer binary, no display, unwritable file ...
-        warn(f"live viewer: cannot open {spec.describe()} ({type(exc).__name__}: {exc}); running without it")
+        first = (str(exc).strip().splitlines() or [""])[0]
+        warn(f"live viewer: cannot open {spec.describe()} ({type(exc).__name__}: {first}); running without it")
         try:
             rec.disconnect()
         except Exception:  # noqa: BLE001, S110
