@@ -12,9 +12,9 @@ from surfelslam.config import (
     from_dict,
     iter_tables,
     load_toml,
-    reference_markdown,
     validate,
 )
+from surfelslam.config_reference import reference_markdown
 from surfelslam.errors import ConfigError
 
 

@@ -10,7 +10,8 @@ Every threshold of the system is a field of a config dataclass with its unit in 
 - :func:`validate` checks a config tree; every error is one line naming the full TOML path
   (``config: [hybrid.loop_icp] sigma_m must be > 0, got -1``);
 - ``to_dict``, ``from_dict`` (strict: unknown keys are errors), ``load_toml``, ``dumps_toml``;
-- :func:`reference_markdown`, the configuration reference page (``make docs``).
+- :func:`iter_tables` walks a config tree; :mod:`surfelslam.config_reference` writes the configuration reference
+  page from the settings' metadata (``make docs``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import dataclasses
 import functools
 import math
 import numbers
-import re
 import tomllib
 import types
 import typing
@@ -150,7 +150,8 @@ def fmt_value(v: Any) -> str:
     return str(v)
 
 
-def _join(path: str, key: str) -> str:
+def join_path(path: str, key: str) -> str:
+    """The TOML path of table ``path``'s key ``key`` (``icp`` + ``levels`` -> ``icp.levels``)."""
     return f"{path}.{key}" if path else key
 
 
@@ -159,12 +160,14 @@ def _error(path: str, text: str) -> ConfigValueError:
 
 
 @functools.cache
-def _hints(cls: type) -> dict[str, Any]:
+def field_types(cls: type) -> dict[str, Any]:
+    """The resolved type of each field of config class ``cls``."""
     return typing.get_type_hints(cls)
 
 
 @functools.cache
-def _checks(cls: type) -> tuple[Callable[[Any], str | None], ...]:
+def check_rules(cls: type) -> tuple[Callable[[Any], str | None], ...]:
+    """The :func:`check` rules of config class ``cls`` and its bases (a subclass's rule replaces a same-named one)."""
     seen: dict[str, Callable[[Any], str | None]] = {}
     for klass in reversed(cls.__mro__):
         for name, val in vars(klass).items():
@@ -173,7 +176,8 @@ def _checks(cls: type) -> tuple[Callable[[Any], str | None], ...]:
     return tuple(seen.values())
 
 
-def _bounds(f: dataclasses.Field) -> Bounds:
+def field_bounds(f: dataclasses.Field) -> Bounds:
+    """What :func:`setting` declared for field ``f`` (no bounds for a plain field)."""
     return f.metadata.get(_META) or Bounds()
 
 
@@ -236,17 +240,17 @@ def _field_problem(name: str, v: Any, tp: Any, b: Bounds) -> str | None:
 
 def _validate(cfg: Any, path: str, recurse: bool) -> None:
     cls = type(cfg)
-    hints = _hints(cls)
+    hints = field_types(cls)
     for f in dataclasses.fields(cfg):
         v = getattr(cfg, f.name)
         if dataclasses.is_dataclass(v):
             if recurse:
-                _validate(v, _join(path, f.name), True)
+                _validate(v, join_path(path, f.name), True)
             continue
-        why = _field_problem(f.name, v, hints.get(f.name, Any), _bounds(f))
+        why = _field_problem(f.name, v, hints.get(f.name, Any), field_bounds(f))
         if why:
             raise _error(path, why)
-    for rule in _checks(cls):
+    for rule in check_rules(cls):
         why = rule(cfg)
         if why:
             raise _error(path, why)
@@ -324,7 +328,7 @@ def _coerce(value: Any, tp: Any, where: str, default: Any = None) -> Any:
 
 def _build(cls: type[C], data: dict[str, Any], where: str, base: C | None) -> C:
     """:func:`from_dict` without the final validation (runs with construction-time validation deferred)."""
-    hints = _hints(cls)
+    hints = field_types(cls)
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = set(data) - names
     if unknown:
@@ -381,7 +385,8 @@ def load_toml(cls: type[C], path: str | Path) -> C:
         raise type(exc)(f"{path}: {exc}") from None
 
 
-def _toml_value(v: Any) -> str:
+def toml_value(v: Any) -> str:
+    """``v`` (bool, int, float, str or a list of them) as a TOML value."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -395,7 +400,7 @@ def _toml_value(v: Any) -> str:
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise ConfigError(f"config: cannot write {v!r} as TOML")
 
 
@@ -410,7 +415,7 @@ def dumps_toml(cfg: Any) -> str:
         if prefix and scalars:
             lines.append(f"[{prefix}]")
         for k, v in scalars.items():
-            lines.append(f"{k} = {_toml_value(v)}")
+            lines.append(f"{k} = {toml_value(v)}")
         if scalars:
             lines.append("")
         for k, v in subs.items():
@@ -420,106 +425,11 @@ def dumps_toml(cfg: Any) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
-# ---------------------------------------------------------------------------------------------------- reference
+# ------------------------------------------------------------------------------------------------------ tables
 def iter_tables(cfg: Any, path: str = "") -> Iterator[tuple[str, Any]]:
     """``(toml_path, config)`` of ``cfg`` and every config nested in it, depth first in field order."""
     yield path, cfg
     for f in dataclasses.fields(cfg):
         v = getattr(cfg, f.name)
         if dataclasses.is_dataclass(v):
-            yield from iter_tables(v, _join(path, f.name))
-
-
-def _md(text: str) -> str:
-    """Docstring text as one Markdown table cell / paragraph (Sphinx roles and double backticks to code spans)."""
-    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"`\1`", " ".join(text.split()))
-    return text.replace("``", "`").replace("|", "\\|")
-
-
-def _summary(doc: str | None) -> str:
-    """A class docstring up to its ``Attributes:`` section."""
-    return (doc or "").split("Attributes:")[0].strip()
-
-
-def _attribute_docs(doc: str | None) -> dict[str, str]:
-    """``name -> text`` of a Google-style ``Attributes:`` section (the fallback meaning of a field declared without
-    :func:`setting`)."""
-    out: dict[str, str] = {}
-    if not doc or "Attributes:" not in doc:
-        return out
-    name = None
-    for line in doc.split("Attributes:", 1)[1].splitlines():
-        stripped = line.strip()
-        head, sep, rest = stripped.partition(": ")
-        if sep and head.isidentifier() and len(line) - len(line.lstrip()) <= 8:
-            name = head
-            out[name] = rest
-        elif name and stripped:
-            out[name] += " " + stripped
-    return out
-
-
-def _type_name(tp: Any) -> str:
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return _type_name(args[0]) + " or none"
-    if origin is tuple:
-        return f"list of {_type_name(typing.get_args(tp)[0])}"
-    return getattr(tp, "__name__", str(tp))
-
-
-def _default_text(v: Any) -> str:
-    if v is None:
-        return "(none)"
-    return f"`{_toml_value(v)}`"
-
-
-def reference_markdown(cls: type) -> str:
-    """The configuration reference page of config class ``cls`` (Markdown): one section per TOML table with its
-    settings (key, default, unit, bounds or choices, meaning) and the rules relating them."""
-    root = cls()
-    out = [
-        "# Configuration reference",
-        "",
-        "Generated from the settings' definitions by `make docs` (`python -m surfelslam.tools.gen_docs`); do not edit.",
-        "Every setting may be given in a TOML file passed with `--config`; missing settings keep the defaults shown.",
-        "A value of the wrong type or outside its bounds, or a broken rule, stops the command with one line naming",
-        "the setting by its table, e.g. `config: [icp] min_inliers must be >= 0, got -5`. Numbers must be finite",
-        "(`or inf`: also `inf`); a list's bounds apply to each of its values.",
-        "",
-    ]
-    for path, cfg in iter_tables(root):
-        klass = type(cfg)
-        hints = _hints(klass)
-        attr_docs = _attribute_docs(klass.__doc__)
-        rows = []
-        for f in dataclasses.fields(cfg):
-            v = getattr(cfg, f.name)
-            if dataclasses.is_dataclass(v):
-                continue
-            b = _bounds(f)
-            bounds = b.describe()
-            extra = []
-            if b.min_len is not None and b.min_len > 1:
-                extra.append(f"at least {b.min_len} values")
-            if b.allow_inf:
-                extra.append("or inf")
-            bounds = "; ".join(x for x in [bounds, *extra] if x)
-            rows.append(f"| `{f.name}` | {_default_text(v)} | {b.unit or ''} | {_md(bounds)} | "
-                        f"{_md(b.doc or attr_docs.get(f.name, '')) or '(' + _type_name(hints[f.name]) + ')'} |")
-        subs = [f"`[{_join(path, f.name)}]`" for f in dataclasses.fields(cfg)
-                if dataclasses.is_dataclass(getattr(cfg, f.name))]
-        out.append(f"## `[{path}]`" if path else f"## {klass.__name__} (the file's top level)")
-        out.append("")
-        doc = _summary(klass.__doc__)
-        if doc and not doc.startswith(klass.__name__ + "("):  # not dataclass's generated signature
-            out += [_md(doc), ""]
-        if rows:
-            out += ["| key | default | unit | bounds | meaning |", "|---|---|---|---|---|", *rows, ""]
-        rules = [(r.__doc__ or r.__name__).strip() for r in _checks(klass)]
-        if rules:
-            out += ["Rules:", "", *[f"- {_md(r)}" for r in rules], ""]
-        if subs:
-            out += ["Tables: " + ", ".join(subs) + ".", ""]
-    return "\n".join(out).rstrip() + "\n"
+            yield from iter_tables(v, join_path(path, f.name))

@@ -12,8 +12,8 @@ DEFAULT_PATH = Path("docs") / "config_reference.md"
 
 
 def reference_text() -> str:
-    """The page's text: :func:`surfelslam.config.reference_markdown` of :class:`~surfelslam.slam.SlamConfig`."""
-    from surfelslam.config import reference_markdown
+    """The page's text: :func:`~surfelslam.config_reference.reference_markdown` of ``SlamConfig``."""
+    from surfelslam.config_reference import reference_markdown
     from surfelslam.slam.config import SlamConfig
 
     return reference_markdown(SlamConfig)
