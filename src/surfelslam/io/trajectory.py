@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,18 @@ import numpy as np
 from surfelslam.errors import InputError, OutputError, TrackingError
 from surfelslam.io.atomic import NEW_FILE_MODE, atomic_open, os_error_text
 from surfelslam.types import Trajectory
+
+
+def data_lines(text: str) -> Iterator[tuple[int, str]]:
+    """``(line number, stripped line)`` of the lines of a TUM text file that are neither blank nor ``#`` comments.
+
+    One parser for every TUM-style file: trajectories here, and the dataset index files (``rgb.txt``,
+    ``depth.txt``, ``associations.txt``).
+    """
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if line and not line.startswith("#"):
+            yield lineno, line
 
 
 def read_tum(path: str | Path) -> Trajectory:
@@ -24,10 +37,7 @@ def read_tum(path: str | Path) -> Trajectory:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, f"cannot read trajectory file ({exc})") from None
     rows, linenos = [], []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
+    for lineno, line in data_lines(text):
         parts = line.replace(",", " ").split()
         if len(parts) != 8:
             raise InputError(
