@@ -1,44 +1,24 @@
 """Dense refinement of PnP keyframe edges: point-to-plane ICP between the two keyframes' depth maps.
 
-A PnP edge between keyframes is only as precise as a few hundred keypoints (their pixel noise and the depth
-noise at corners and edges): millimetres to a centimetre. Dense odometry between consecutive frames is far
-more precise, so in the hybrid tracker PnP loop edges carry a loose weight, and the loops they close barely
-move the dense trajectory. Started at the PnP pose, ICP between the two keyframes' depth maps (jointly with the
-PnP inliers as reprojection terms) uses every overlapping pixel; the edge can then carry a tight weight. The
-check also drops PnP edges the depth disagrees with (ICP fails, is degenerate, or ends more than a gate away
-from the PnP pose).
+A PnP edge between keyframes is only as precise as a few hundred keypoints (their pixel noise and the depth noise
+at corners and edges), while the dense odometry uses every pixel; so in the hybrid tracker PnP loop edges carry a
+loose weight and barely move the dense trajectory. Started at the PnP pose, ICP between the two keyframes' depth
+maps (jointly with the PnP inliers as reprojection terms) uses every overlapping pixel, and the refined edge can
+carry a tight weight. The check also drops PnP edges the depth disagrees with (ICP fails, is degenerate, or ends
+more than a gate away from the PnP pose).
 
-On by default (``hybrid.loop_icp.enabled``), behind a trust gate, because it helps on synthetic data and hurts
-on real Kinect data when trusted:
-
-* Synthetic Kinect-noise sequences (320x240): edge errors against ground truth fall from a median of 4 mm
-  (PnP) to 0.4 mm, and the hybrid's ATE by 2-4x where the dense tracker drifts (room, slow: 0.14 -> 0.05 cm,
-  dense 0.21; walking loop 0.33 -> 0.08, dense 0.33; office hand-held seed 1 0.064 -> 0.036, dense 0.045).
-* 7-Scenes (frames 0-499, 320x240): 2.48 -> 3.76 cm (dense 2.47), and the poses agree worse with the depth
-  itself (median |dz| on 95 revisit pairs >= 60 frames apart: dense 10.3 mm, with refined edges 14.0 mm).
-  140 of the 142 refined edges there are nearby ones; they disagree with the dense odometry by a median
-  0.10 deg and 2.2 mm (synthetic: 0.011 deg, 0.37 mm). The likely cause is the low-frequency distortion of raw
-  Kinect depth: keyframe-to-keyframe ICP is biased by it, and frame-to-model tracking averages it out. Only a
-  sigma that all but ignores the edges is harmless: 1 / 2 / 5 cm give 2.92 / 2.62 / 2.50 cm; a 1 cm / 1 deg
-  gate 2.70 cm; no feature terms 3.75 cm.
-
-The trust gate (``max_trusted_residual_rad``): the refined edges get a pose graph of their own (with the
-odometry), and at every optimisation the robust spread of their rotation residuals at its optimum
-(:meth:`DenseEdgeRefiner.residual_spread`) says whether they are consistent with one another. Unbiased edges are:
-0.11-0.18 mrad on synthetic Kinect-noise sequences, including those whose dense odometry is biased (colour taken
-before depth: the odometry edges absorb it). Biased edges are not: 7-Scenes 1.0-1.1 mrad, synthetic depth with a radial
-distortion (``surfelslam synth --noise kinect-distorted``, 0.1 px of disparity at the corners: 1 cm at 2 m) 0.4-0.6
-mrad. Above 0.3 mrad the poses come from the graph of the PnP edges (those the ICP rejected included), as without
-refinement: 7-Scenes 0-499 2.46 cm (dense 2.46), the distorted room 2.03 cm (dense 2.14; trusted 2.48). Known
-limit: on orbits the same distorted depth leaves 0.19-0.24 mrad (undistorted 0.17-0.19), passes the gate, and the
-hybrid ends 2-9 % above dense (README, "Known limit of the gate"). An earlier
-gate on the spread of the nearby edges' disagreement with the odometry could not tell which of the two was biased:
-it trusted the distorted room (0.7 mm) and distrusted the colour-offset sequences (1.2-2.6 mm), where the refined
-edges take hybrid from 0.67-2.02 cm to 0.28-0.38 cm (dense 0.57-2.07).
+The trust gate (``max_trusted_residual_rad``): keyframe-to-keyframe ICP inherits the low-frequency distortion of
+raw depth, which frame-to-model tracking averages out, and trusted biased edges make the trajectory worse than the
+dense odometry alone. So the refined edges get a pose graph of their own (with the odometry), and at every
+optimisation the robust spread of their rotation residuals at its optimum (:meth:`DenseEdgeRefiner.residual_spread`)
+says whether they are consistent with one another: unbiased edges are, biased ones spread more. Above the gate the
+poses come from the graph of the PnP edges (those the ICP rejected included), as without refinement. Known limit:
+on orbits mildly distorted depth can stay under the gate (docs/trackers.md). Measurements:
+``benchmarks/bench_hybrid.py``.
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
-``max_depth_m / 65535``, 0.08 mm at 5 m): 154 kB per keyframe at 320x240. The pyramids of the last few keyframes
-used are cached (the nearby keyframes are checked again at every new keyframe).
+``max_depth_m / 65535``). The pyramids of the last few keyframes used are cached (the nearby keyframes are checked
+again at every new keyframe).
 """
 
 from __future__ import annotations
@@ -68,11 +48,10 @@ _MAD_TO_SIGMA = 0.6745  # median |x| of a zero-mean Gaussian, in sigmas
 
 
 def _edge_icp_config() -> ICPConfig:
-    """The tracker's ICP settings with 3 levels (from a PnP start) and no solution remapping: remapping leaves
-    weakly constrained directions at the PnP estimate, while the feature terms constrain them (measured: a
-    synthetic office pair whose depth shows mostly two planes kept 14 mm of a 15 mm PnP error along their
-    intersection). Every finest-level pixel instead of every second: same edges (room, slow: ATE 0.047 vs
-    0.048 cm) at twice the cost."""
+    """The tracker's ICP settings with 3 levels (from a PnP start) and no solution remapping: remapping would leave
+    the weakly constrained directions (e.g. along the intersection of two planes) at the PnP estimate, while the
+    feature terms constrain them. The finest level keeps the tracker's every second pixel: every pixel gives the
+    same edges at twice the cost."""
     return ICPConfig(levels=3, weak_direction_ratio=0.0)
 
 

@@ -11,10 +11,8 @@ The search: a grid over the focal-length ratio (colour / depth, the same for x a
 offset, then Nelder-Mead over ``fx, fy, cx, cy`` and the horizontal offset ``tx`` (a Kinect-style rig: the colour
 camera sits beside the depth camera along x; ``ty = tz = 0``). Vectorised numpy + OpenCV; no I/O.
 
-7-Scenes redkitchen, 20 frames of 0-499 at 640x480 (5 s): fx 525.2, fy 529.7, cx 321.1, cy 238.0, tx -2.8 cm; mean
-edge distance 4.75 px at the same pixel, 2.59 px fitted. The built-in 7-Scenes model
-(:data:`surfelslam.datasets.sevenscenes.SEVENSCENES_COLOUR_CAMERA`: 524, 530, 322, 238, -3.2 cm) came from the same
-criterion on 100 frames.
+The built-in 7-Scenes model (:data:`surfelslam.datasets.sevenscenes.SEVENSCENES_COLOUR_CAMERA`) came from this
+criterion; ``surfelslam calibrate-colour`` fits other sequences.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ numpy reference.
 Plain (translational) Lucas-Kanade compares a square window of the template image with a square window of the
 search image. Under a camera rotation of a few degrees the patch around a point also rotates, shears and changes
 scale in the image, and the translation that best explains the deformed patch is not the displacement of its
-centre: on synthetic 640x480 pairs 2-3 frames apart in a fast pan, it left 0.15 px of error per point, correlated
-over the image so that the pose refined from ~900 points was 0.3-0.7 mm off (exact ground truth pixels: 0).
+centre: the error per point is a fraction of a pixel, but it is correlated over the image, so a pose refined from
+many points inherits it.
 Here the template is sampled through a homography ``A`` (search-image pixel -> template-image pixel) predicted
 from the pose, so both windows show the surface the same way and only a residual translation is searched.
 

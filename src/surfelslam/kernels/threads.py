@@ -4,9 +4,8 @@ Every hot kernel written with ``prange`` is compiled twice (lazily, on first use
 serial (``prange`` runs as ``range``). Both release the GIL (``nogil``), so a frame-reading thread keeps
 running while a kernel works. :func:`set_parallel` switches all kernels at once; the pipelines apply
 ``SlamConfig.compute.parallel_kernels`` (serial by default: on 2 cores the frame reader thread needs the
-second core; ``pipeline.ComputeConfig`` has the figures). Idle OpenMP workers sleep
-(``OMP_WAIT_POLICY=PASSIVE``, below): before that, spinning workers starved the reader thread and other jobs
-(7-Scenes 320x240 under load: 1.4 FPS parallel vs 7.4 serial).
+second core). Idle OpenMP workers sleep (``OMP_WAIT_POLICY=PASSIVE``, below): spinning workers would starve the
+reader thread and other jobs.
 
 Results do not depend on the choice: the parallel kernels write disjoint outputs per row or reduce fixed
 chunks in a fixed order, which the serial twin reproduces exactly.

@@ -1,4 +1,5 @@
-"""Point-based fusion of a frame into a :class:`SurfelMap` (Keller et al. 2013, as the seeds define it).
+"""Point-based fusion of a frame into a :class:`SurfelMap` (Keller et al. 2013, as the reference assignment
+defines it).
 
 Per frame, at the frame's pose ``T_world_cam``:
 
@@ -16,7 +17,7 @@ Per frame, at the frame's pose ``T_world_cam``:
    (within ``cover_radius_px``) hold a surfel passing the same tests (the surface is already in the map;
    this limits duplicates when surfels project just across a pixel border). ``cover_radius_px = 0`` is
    Keller's strict rule.
-5. removal (``remove_unstable``): (a) the seeds' dormant rule: a surfel older than
+5. removal (``remove_unstable``): (a) the reference assignment's dormant rule: a surfel older than
    ``unstable_max_age_frames`` that was observed in fewer than ``stable_min_hits`` frames is removed
    (each surfel is checked once, when it passes that age: O(new surfels) per frame); (b) Keller's rule
    among the surfels in view: confidence below ``stable_min_confidence`` and not updated for more than
@@ -26,19 +27,19 @@ Per frame, at the frame's pose ``T_world_cam``:
    surfels of the pixel's bucket within ``duplicate_dist_m`` of ``b``, with normals within
    ``duplicate_angle_deg`` and no more confidence, are flagged dead. Without this rule revisits keep adding
    near-copies (noise, small pose errors), the surfels in view grow with time and so does the per-frame
-   cost (``benchmarks/bench_pipeline.py``: 1.57x after 1000 hand-held frames without it).
+   cost (``benchmarks/bench_pipeline.py`` measures it over long hand-held runs).
 
 Weights: ``weight_mode = "keller"``: ``w = exp(-gamma^2 / (2 sigma^2))`` with ``gamma`` the pixel's distance
 from the principal point divided by the distance of the farthest image corner, ``sigma =
-radial_weight_sigma``; ``"constant"``: ``w = 1`` (the seeds; then confidence == hits).
+radial_weight_sigma``; ``"constant"``: ``w = 1`` (the reference assignment's; then confidence == hits).
 
 New radius: ``new_radius_px * z / f / max(|cos(normal, ray)|, radius_min_cos)``, at most ``max_radius_m``,
 with ``f = (|fx| + |fy|) / 2``.
 
-Default angle: the seeds use 5 deg, which rejects many correct matches with Kinect-noise normals (their
-spread is ~10 deg at 2 m, more with Kinect quantisation); the default is 45 deg with ``dist_diff_m`` 5 cm,
-measured best on noisy synthetic and 7-Scenes runs (unmerged noisy duplicates bias the rendered model
-towards the camera). Set ``angle_diff_deg = 5`` and ``dist_diff_m = 0.03`` for the seeds' behaviour.
+Default angle: the reference assignment uses 5 deg, which rejects many correct matches with Kinect-noise normals
+(their spread is ~10 deg at 2 m, more with Kinect quantisation); unmerged noisy duplicates then bias the rendered
+model towards the camera. The default is 45 deg with ``dist_diff_m`` 5 cm. Set ``angle_diff_deg = 5`` and
+``dist_diff_m = 0.03`` for the reference behaviour.
 """
 
 from __future__ import annotations

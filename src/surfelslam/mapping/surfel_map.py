@@ -27,12 +27,10 @@ rebuilt when the tail exceeds ``index_max_tail`` surfels or after a compaction (
 Memory locality
 ---------------
 The grouping is by index, so a block's surfels still lie wherever fusion appended them: after a few passes over a
-scene every block is scattered over the whole array and the renderers' gathers miss the cache (rendering the same
-view after 1,000 hand-held frames took 14.2 ms scattered and 11.5 ms grouped). :meth:`maybe_reorder` therefore
-regroups the rows themselves by block, but only the rows the dormant rule has already checked (before
-``dormant_cursor``): the rows after it keep their fusion order, which that rule relies on. Over 1,000
-hand-held synthetic frames (``benchmarks/bench_pipeline.py``'s orbit) this took the last/first-100 CPU ratio
-from 1.31 to 1.21 and from 1.39 to 1.26 in two A/B pairs.
+scene every block is scattered over the whole array and the renderers' gathers miss the cache. :meth:`maybe_reorder`
+therefore regroups the rows themselves by block, but only the rows the dormant rule has already checked (before
+``dormant_cursor``): the rows after it keep their fusion order, which that rule relies on. This keeps the per-frame
+cost of long runs from growing (``benchmarks/bench_pipeline.py``).
 """
 
 from __future__ import annotations

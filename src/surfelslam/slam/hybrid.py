@@ -87,11 +87,10 @@ class HybridSlam(DenseSlam):
         # PnP loop edges' Hessians never outweigh the (more accurate) dense odometry by their scale alone
         sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information="isotropic"))
         # its PnP poses only guess or check ICP's: the PnP inlier bound stays as given at every width (scaled as for
-        # the orb tracker, 640x480 7-Scenes went from dense's 25.06 to 25.32 mm: more PnP poses past the check)
+        # the orb tracker, it lets more poor PnP poses past the check)
         sp = replace(sp, features_reference_width_px=0)
-        # nor does it drop the keypoints on occluding contours from the sparse side (features.depth_edge_rel: with
-        # them off there its refined keyframe edges lost 1-10 % on synthetic sequences); its joint term leaves them
-        # out instead (_pnp_match)
+        # nor does it drop the keypoints on occluding contours from the sparse side (features.depth_edge_rel: its
+        # refined keyframe edges are better with them); its joint term leaves them out instead (_pnp_match)
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
         sp = replace(sp, features=replace(sp.features, depth_edge_rel=0.0))
         if cfg.hybrid.dense_odometry_sigma_m > 0:

@@ -1,7 +1,7 @@
 """A registration guess from the depth alone: FPFH descriptors, mutual matching, rigid 3D consensus.
 
-Two views far apart share little texture that survives the change of viewpoint (7-Scenes pairs 90 frames apart:
-6-20 SIFT inliers, often none), but the surfaces they share have the same shape. Fast Point Feature Histograms
+Two views far apart share little texture that survives the change of viewpoint (a few feature inliers, often
+none), but the surfaces they share have the same shape. Fast Point Feature Histograms
 (Rusu et al., ICRA 2009) describe the local shape around a point by the angles between its normal, its
 neighbours' normals and the lines joining them, which a rigid motion leaves unchanged. Steps:
 

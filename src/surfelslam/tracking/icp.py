@@ -111,9 +111,8 @@ def pairwise_config() -> ICPConfig:
     The :class:`ICPConfig` defaults with a wider basin of convergence: the coarse levels run longer (they stop at a
     1e-4 relative residual change, up to 20/20/80 iterations) with a 5 cm Huber scale, so large motions (20-30 cm,
     10-18 deg) are not frozen half-way by the robust kernel; the finest level stops at a 1e-3 relative residual
-    change or a 1e-4 update (the tracker's 3e-3 / 2e-4 save about one finest-level iteration per frame). On
-    7-Scenes pairs up to 30 frames apart this halves the gross failures (> 5 cm: 12 -> 6 of 120 at 320x240). In
-    frame-to-model tracking it costs about 2.5x the iterations for no ATE gain, so the tracker keeps the
+    change or a 1e-4 update. This fails less often on frames far apart (``benchmarks/icp_pairs.py``); in
+    frame-to-model tracking, where consecutive frames are close, it only costs iterations, so the tracker keeps the
     :class:`ICPConfig` defaults. No solution remapping (``weak_direction_ratio = 0``): the initial guess of a
     one-off registration is the identity or a feature guess, not a motion prediction worth keeping.
     """

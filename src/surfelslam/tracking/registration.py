@@ -32,16 +32,14 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 INIT_MODES = ("identity", "features", "geometry", "auto")
 #: The shape-feature guess is computed at the pyramid level at most this wide (px): its clouds are voxel means, so
-#: finer levels only cost time, and their noisier normals blur the descriptors (7-Scenes pairs 90 frames apart at
-#: 640x480: ICP from the guess reaches the ICP-from-GT result on 10 of 12 at level 1, 9 at level 0).
+#: finer levels only cost time, and their noisier normals blur the descriptors.
 GEOMETRIC_MAX_WIDTH_PX = 320
 FEATURE_MAX_NORM = 2.0  # m + rad: the PnP guess accepts motions up to this (pairs far apart; odometry uses 0.3)
 #: Keypoints per image for a pair's guess. Pairs far apart share a small part of the view, so twice the
-#: odometry's 1000 (ORB on 7-Scenes pairs 90 frames apart at 640x480: the guess is accepted on 4 of 8, not 1).
+#: odometry's 1000.
 PAIR_FEATURES = 2000
-#: Keypoints of a pair's guess: SIFT (ratio test) finds more correct matches than ORB between views far apart. Of
-#: the 12 7-Scenes pairs 90 frames apart in the README tables, ICP from the identity misses the ICP-from-GT result
-#: on 10 at 320x240; from the SIFT guess it reaches it on 8 of them (ORB: 5).
+#: Keypoints of a pair's guess: SIFT (ratio test) finds more correct matches than ORB between views far apart
+#: (``benchmarks/icp_pairs.py``).
 PAIR_DETECTOR = "sift"
 
 
@@ -83,12 +81,10 @@ def guess_maps(frame: RGBDFrame, pyramid: FramePyramid, intr: Intrinsics,
                preprocess_cfg: PreprocessConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertex and normal maps ``(h, w, 3)`` the shape-feature guess uses: the frame's depth at most ``max_width_px``
     wide, reduced by keeping every ``2**k``-th pixel (intrinsics divided by ``2**k``, as ``--downsample``), not the
-    pyramid's 2x2 block means, so that a 640x480 frame gives the guess what ``--downsample 2`` would. On the 41
-    7-Scenes pairs 90 frames apart at 640x480 this is a wash (``register --init geometry`` / ``features`` reach the
-    floor on 32 / 33 pairs either way) but 320->410 registers (1.5 cm / 0.9 deg; from the block means its guess kept 8
-    inliers, under the 10 required); with the default ICP settings the guess alone reached the floor on 32 pairs
-    against 29. At 320x240 input both are the frame itself. ``pyramid`` is the frame's (level 0 at ``intr``), built
-    with ``preprocess_cfg`` (default :class:`PreprocessConfig`), whose filters the reduced maps use too."""
+    pyramid's 2x2 block means, so that a 640x480 frame gives the guess what ``--downsample 2`` would (the block
+    means smooth away some of the shape the descriptors need). At 320x240 input both are the frame itself.
+    ``pyramid`` is the frame's (level 0 at ``intr``), built with ``preprocess_cfg`` (default
+    :class:`PreprocessConfig`), whose filters the reduced maps use too."""
     level = guess_level(pyramid, max_width_px)
     if level == 0:
         return pyramid[0].vertex, pyramid[0].normal
@@ -178,9 +174,7 @@ def colour_timing(offset_s: float, depth_stamp_s: float,
     colour and the depth stamp (at ``depth_stamp_s + offset_s / 2``), linear in time between the two pairs' (held at
     the nearer one outside them), or the one pair's. ``None`` when ``retime_cfg`` does not apply to ``offset_s``, no
     pair converged, or the pairs' velocities were measured farther than ``retime_cfg.max_velocity_lag_s`` from
-    there. Synthetic hand-held orbit, colour 8-16 ms before depth, frames 5 -> 15: 0.8 mm as taken,
-    0.0 re-timed with both neighbours, 0.4 with the previous pair alone, 1.1 mm with the next pair alone (which
-    ``max_velocity_lag_s`` refuses: its interval's middle is 23 ms from the colour-depth interval's)."""
+    there: a velocity from a pair whose interval lies far from the colour-depth interval re-times worse than none."""
     if not retime_cfg.applies(offset_s):
         return None
     found = [((t_b + t_a) / 2 - depth_stamp_s, tw) for b, a, p_b, p_a, t_b, t_a in neighbours if t_a > t_b

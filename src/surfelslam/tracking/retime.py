@@ -10,15 +10,12 @@ depth pixel ``u`` was imaged by the colour camera at ``project(T_colour_depth @ 
 ``T_colour_depth = exp(-offset_s * twist)``. :func:`retime_intensity` samples the colour (intensity) image there
 for every valid depth pixel, giving an intensity image on the depth grid at the depth time.
 
-Synthetic pairs 1-30 frames apart with colour 16.7 ms before depth (median of 34 per sequence, 320x240): room slow
-1.54 mm as taken, 0.33 re-timed, 0.30 with simultaneous colour; office hand-held 1.71 / 0.38 / 0.18 mm. The
-velocity comes from the frame's ICP with its neighbours (:func:`surfelslam.tracking.registration.colour_timing`).
+Used by pairwise registration (``surfelslam register``); the velocity comes from the frame's ICP with its
+neighbours (:func:`surfelslam.tracking.registration.colour_timing`).
 
 Not used by the frame-to-model trackers: there the offsets of consecutive frames are nearly equal and the map's
-colours, fused from such frames, carry the same shift as the frame's, so the two cancel. Measured on
-``benchmarks/bench_hybrid.py``'s room sequence with colour one step before depth (seed 0, slow, 150 frames; dense
-ATE): 0.61 cm as taken, 1.17 cm with source and fused colours re-timed by the exact motion except the first
-frame's (the map keeps its colours), 0.62 cm with the first frame's as well; 0.43 cm with simultaneous colour.
+colours, fused from such frames, carry the same shift as the frame's, so the two cancel; re-timing the frames but
+not the map's colours would make it worse (``benchmarks/bench_hybrid.py`` measures colour taken before depth).
 """
 
 from __future__ import annotations
