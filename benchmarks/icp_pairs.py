@@ -1,4 +1,5 @@
-"""Pairwise ICP on real data (7-Scenes redkitchen): success rate up to 30 frames apart, and the seeds' experiment.
+"""Pairwise ICP on real data (7-Scenes redkitchen): success rate up to 30 frames apart, and the reference
+assignment's experiment.
 
 Sequence: ../shared/data/7scenes_redkitchen_0000_0499 (real Kinect v1, 30 Hz, GT from KinectFusion).
 
@@ -20,10 +21,10 @@ better depth agreement kept); ``previous`` the setting before depth weighting (f
 at the GT pose of the same pairs, beside ours from GT: if another implementation also leaves the GT, the GT is not
 where these depth images agree. Needs the ``bench`` extra (open3d).
 
-``--table seeds``: the seeds' experiment, pairs 10, 40 and 90 apart at 320x240, single level at 0.07 m (10 fixed
-iterations, no angle gate, no robust kernel) vs the register command's coarse-to-fine defaults.
+``--table reference``: the reference assignment's experiment, pairs 10, 40 and 90 apart at 320x240, single level at
+0.07 m (10 fixed iterations, no angle gate, no robust kernel) vs the register command's coarse-to-fine defaults.
 
-Usage: ``.venv/bin/python benchmarks/icp_pairs.py [--table success|seeds|open3d] [--downsample 1,2] [--starts ...]
+Usage: ``.venv/bin/python benchmarks/icp_pairs.py [--table success|reference|open3d] [--downsample 1,2] [--starts ...]
 [--gaps ...]``.
 """
 
@@ -44,9 +45,9 @@ from surfelslam.tracking.registration import register_pair
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
 
-SEEDS_CFG = ICPConfig(levels=1, iterations=(10,), dist_thresh_m=(0.07,), angle_thresh_deg=(180.0,),
-                      robust_kernel="none", min_update_norm=0.0, min_relative_residual_change=0.0,
-                      finest_source_stride_px=1, depth_weight_ref_m=0.0)
+REFERENCE_CFG = ICPConfig(levels=1, iterations=(10,), dist_thresh_m=(0.07,), angle_thresh_deg=(180.0,),
+                          robust_kernel="none", min_update_norm=0.0, min_relative_residual_change=0.0,
+                          finest_source_stride_px=1, depth_weight_ref_m=0.0)
 PREVIOUS_CFG = replace(ICPConfig(), depth_weight_ref_m=0.0, finest_robust_scale_m=0.02, iterations=(5, 8, 10, 40),
                        min_update_norm=1e-4, min_relative_residual_change=1e-3)
 SUCCESS_M = 0.01  # the issue's criterion: < 1 cm and < 1 deg against GT
@@ -198,8 +199,9 @@ def open3d_rows(starts=SUCCESS_STARTS, gaps=SUCCESS_GAPS) -> list[dict]:
     return rows
 
 
-def seeds_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90)) -> list[dict]:
-    """The seeds' experiment at 320x240: single level at 0.07 m vs the register ICP settings (coarse-to-fine)."""
+def reference_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90)) -> list[dict]:
+    """The reference assignment's experiment at 320x240: single level at 0.07 m vs the register ICP settings
+    (coarse-to-fine)."""
     seq = _open(2)
     T_wc, valid = seq.gt_poses(at_depth_time=True)  # as register does
     pairs = [(s, s + g, g) for g in gaps for s in starts if s + g < len(seq) and valid[s] and valid[s + g]]
@@ -208,7 +210,7 @@ def seeds_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90))
     for s, t, gap in pairs:
         T_gt = se3.invert(T_wc[t]) @ T_wc[s]
         m_t, m_r = se3.pose_error(np.eye(4), T_gt)
-        for name, cfg in (("seeds 1 level 0.07 m", SEEDS_CFG), ("register --init identity", pairwise_config())):
+        for name, cfg in (("reference 1 level 0.07 m", REFERENCE_CFG), ("register --init identity", pairwise_config())):
             res = icp(pyr[s], pyr[t], None, cfg)
             e_t, e_r = se3.pose_error(res.T_target_source, T_gt)
             rows.append({"pair": f"{s}->{t}", "gap": gap, "motion_mm": 1000 * m_t, "motion_deg": m_r,
@@ -218,7 +220,7 @@ def seeds_rows(starts=(10, 60, 110, 160, 210, 260, 310, 360), gaps=(10, 40, 90))
     return rows
 
 
-def print_seeds(rows: list[dict]) -> None:
+def print_reference(rows: list[dict]) -> None:
     print("| pair | GT motion | method | inliers | trans err (mm) | rot err (deg) | iterations | converged |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
@@ -236,7 +238,7 @@ def print_seeds(rows: list[dict]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--table", choices=("success", "seeds", "open3d"), default="success")
+    ap.add_argument("--table", choices=("success", "reference", "open3d"), default="success")
     ap.add_argument("--downsample", default="1,2", help="success table: comma list (1 = 640x480, 2 = 320x240)")
     ap.add_argument("--starts", default=None, help="comma list of start frames")
     ap.add_argument("--gaps", default=None, help="comma list of frame gaps")
@@ -249,9 +251,9 @@ def main() -> None:
         kw = {k: v for k, v in (("starts", ints(a.starts)), ("gaps", ints(a.gaps))) if v is not None}
         print_success(open3d_rows(**kw), "640x480", "every ICP started at the GT pose", timed=False)
         return
-    if a.table == "seeds":
+    if a.table == "reference":
         kw = {k: v for k, v in (("starts", ints(a.starts)), ("gaps", ints(a.gaps))) if v is not None}
-        print_seeds(seeds_rows(**kw))
+        print_reference(reference_rows(**kw))
         return
     for ds in ints(a.downsample):
         rows = success_rows(ds, ints(a.starts) or SUCCESS_STARTS, ints(a.gaps) or SUCCESS_GAPS)

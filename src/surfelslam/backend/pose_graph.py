@@ -4,7 +4,7 @@ Nodes are keyframe poses ``T_world_kf``; the first one is anchored by a tight pr
 relative-pose measurements ``T_i_j = T_world_i^-1 T_world_j`` (gtsam ``BetweenFactorPose3``).
 Odometry edges use a Gaussian noise model; loop edges a robust one (Huber or Cauchy m-estimator on
 the whitened error) so that a wrong loop closure is down-weighted instead of bending the map.
-The seeds use information ``100 I`` on every edge (sigma 0.1 in metres and radians) and 100 LM
+The reference assignment uses information ``100 I`` on every edge (sigma 0.1 in metres and radians) and 100 LM
 iterations.
 """
 

@@ -114,7 +114,7 @@ def log(T: np.ndarray) -> np.ndarray:
 def small_angle_update(xi: np.ndarray) -> np.ndarray:
     """First-order update ``[[I + [omega]x, v], [0, 1]]`` re-orthonormalised by SVD.
 
-    This is the seeds' linearised increment; :func:`exp` is the exact one.
+    This is the reference assignment's linearised increment; :func:`exp` is the exact one.
     """
     xi = np.asarray(xi, dtype=np.float64).reshape(6)
     return orthonormalize(make_T(np.eye(3) + skew(xi[:3]), xi[3:]))
@@ -150,6 +150,6 @@ def pose_error(T_est: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
 
 
 def motion_norm(T: np.ndarray) -> float:
-    """The seeds' motion norm ``||t|| + min(||r||, 2 pi - ||r||)`` (metres + radians)."""
+    """The reference assignment's motion norm ``||t|| + min(||r||, 2 pi - ||r||)`` (metres + radians)."""
     r = float(np.linalg.norm(so3_log(T[:3, :3])))
     return float(np.linalg.norm(T[:3, 3])) + min(r, 2 * np.pi - r)

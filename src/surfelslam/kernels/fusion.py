@@ -412,8 +412,9 @@ def add_new_ref(assoc, vertex, normal, rgb, weight, R, t, radius_per_depth, min_
 
 @njit(cache=True, nogil=True)
 def dormant_scan(first_seen, hits, dead, cursor, size, frame, max_age_frames, min_hits):
-    """Seeds' dormant-surfel rule, incremental: rows from ``cursor`` on whose age ``frame - first_seen``
-    exceeds ``max_age_frames`` are checked once; those with ``hits < min_hits`` are flagged dead.
+    """The reference assignment's dormant-surfel rule, incremental: rows from ``cursor`` on whose age
+    ``frame - first_seen`` exceeds ``max_age_frames`` are checked once; those with ``hits < min_hits`` are flagged
+    dead.
     Stops at the first row that is still too young (rows are in ``first_seen`` order).
 
     Returns ``(new_cursor, n_flagged)``.

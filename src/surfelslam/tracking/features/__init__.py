@@ -1,6 +1,6 @@
 """Sparse feature odometry: ORB keypoints with depth, Hamming matching, PnP-RANSAC.
 
-The pipeline follows the feature-based RGB-D tutorial in the seeds:
+The pipeline follows the feature-based RGB-D tutorial of the reference assignment:
 
 1. :func:`extract` detects ORB keypoints spread over the image (retain-best per grid cell), computes
    their descriptors and lifts each keypoint to 3D with the depth image (camera frame).

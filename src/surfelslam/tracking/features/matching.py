@@ -36,7 +36,7 @@ def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
     """Match ``ref`` descriptors to ``cur`` descriptors and keep the good matches.
 
     Good matches: Hamming distance ``< good_match_k * max(min_dist, good_match_floor_bits)`` where
-    ``min_dist`` is the smallest distance of all raw matches (the seeds' rule).
+    ``min_dist`` is the smallest distance of all raw matches (the reference assignment's rule).
     """
     empty = MatchResult(np.zeros((0, 2), np.int64), np.zeros(0, np.float32), 0, 0, 0.0, 0.0)
     if len(ref) == 0 or len(cur) == 0:
