@@ -186,6 +186,32 @@ def generate_sequence(
     Bad names, sizes, offsets or motions raise ConfigError before anything is written.
     """
     noise_cfg = noise_config(noise)
+    _check_sequence_settings(width, height, fps, n_frames, colour_offset_s, colour_jitter_s)
+    sc = make_scene(scene, seed, TextureConfig(style=texture))
+    traj, motion_desc = _camera_motion(sc, style, n_frames, fps, seed, motion, speed, motion_start_s, motion_label)
+    intr = default_intrinsics(width, height)
+    out = Path(out_dir)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    names = [f"{t:.6f}" for t in traj.timestamps]
+    T_world_colour = None
+    rgb_names = names
+    if colour_offset_s != 0 or colour_jitter_s > 0:
+        c_stamps = colour_stamps(traj.timestamps, colour_offset_s, colour_jitter_s, seed)
+        T_world_colour = poses_at(traj, c_stamps)
+        rgb_names = [f"{t:.6f}" for t in c_stamps]
+    _write_frames(out, iter_frames(sc, traj, intr, noise_cfg, seed, T_world_colour), names, rgb_names, n_frames,
+                  progress)
+    _write_index_files(out, names, rgb_names)
+    write_tum(traj, out / "groundtruth.txt")
+    write_text_atomic(out / "INFO.txt", info_text(scene, motion_desc, noise, seed, n_frames, intr, fps,
+                                                         texture, colour_offset_s, colour_jitter_s))
+    return out
+
+
+def _check_sequence_settings(width: int, height: int, fps: float, n_frames: int, colour_offset_s: float,
+                             colour_jitter_s: float) -> None:
+    """ConfigError for an empty image size or a colour offset the TUM reader could not pair back."""
     if width < 1 or height < 1:
         raise ConfigError(f"image size must be positive, got {width}x{height}")
     max_offset_s = min(MAX_COLOUR_OFFSET_S, 0.5 / fps) if fps > 0 else MAX_COLOUR_OFFSET_S
@@ -196,28 +222,23 @@ def generate_sequence(
                           f"with the nearest depth stamp, within {1000 * MAX_COLOUR_OFFSET_S:g} ms)")
     if n_frames < 2 and (colour_offset_s != 0 or colour_jitter_s > 0):
         raise ConfigError("a colour offset needs at least 2 frames (the colour pose is interpolated)")
-    sc = make_scene(scene, seed, TextureConfig(style=texture))
+
+
+def _camera_motion(sc: Scene, style: str, n_frames: int, fps: float, seed: int, motion: Trajectory | None,
+                   speed: float, motion_start_s: float, motion_label: str) -> tuple[Trajectory, str]:
+    """The camera trajectory (a ``style`` or a replayed recording) and its description for INFO.txt."""
     if motion is None:
-        traj = make_trajectory(style, n_frames, sc, fps=fps, seed=seed)
-        motion_desc = style
-    else:
-        try:
-            traj = replay_motion(motion, n_frames, sc, fps=fps, speed=speed, start_s=motion_start_s, seed=seed)
-        except ConfigError as exc:  # name the recording the message is about
-            raise ConfigError(f"{motion_label}: {exc}") from None
-        motion_desc = f"replay of {motion_label} at {speed:g}x speed from {motion_start_s:g} s"
-    intr = default_intrinsics(width, height)
-    out = Path(out_dir)
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
-    (out / "depth").mkdir(parents=True, exist_ok=True)
-    names = [f"{t:.6f}" for t in traj.timestamps]
-    timed = colour_offset_s != 0 or colour_jitter_s > 0
-    T_world_colour = None
-    rgb_names = names
-    if timed:
-        c_stamps = colour_stamps(traj.timestamps, colour_offset_s, colour_jitter_s, seed)
-        T_world_colour = poses_at(traj, c_stamps)
-        rgb_names = [f"{t:.6f}" for t in c_stamps]
+        return make_trajectory(style, n_frames, sc, fps=fps, seed=seed), style
+    try:
+        traj = replay_motion(motion, n_frames, sc, fps=fps, speed=speed, start_s=motion_start_s, seed=seed)
+    except ConfigError as exc:  # name the recording the message is about
+        raise ConfigError(f"{motion_label}: {exc}") from None
+    return traj, f"replay of {motion_label} at {speed:g}x speed from {motion_start_s:g} s"
+
+
+def _write_frames(out: Path, frames: Iterator[RGBDFrame], names: list[str], rgb_names: list[str], n_frames: int,
+                  progress: bool | Callable[[int], None]) -> None:
+    """Write each frame's colour and depth PNGs (``rgb_names`` / ``names`` by frame index) while the next renders."""
     bar = None
     if progress is True:
         from tqdm import tqdm
@@ -242,7 +263,7 @@ def generate_sequence(
 
     try:
         with ThreadPoolExecutor(max_workers=_WRITER_THREADS) as pool:
-            for frame in iter_frames(sc, traj, intr, noise_cfg, seed, T_world_colour):
+            for frame in frames:
                 pending.append(pool.submit(write_frame, frame))
                 while len(pending) > _MAX_QUEUED_FRAMES:
                     finish_one()
@@ -251,6 +272,10 @@ def generate_sequence(
     finally:
         if bar is not None:
             bar.close()
+
+
+def _write_index_files(out: Path, names: list[str], rgb_names: list[str]) -> None:
+    """The TUM index files: ``rgb.txt``, ``depth.txt`` and ``associations.txt``."""
     write_text_atomic(
         out / "rgb.txt",
         "# color images\n# timestamp filename\n" + "".join(f"{n} rgb/{n}.png\n" for n in rgb_names),
@@ -261,7 +286,3 @@ def generate_sequence(
     )
     write_text_atomic(out / "associations.txt", "".join(f"{c} rgb/{c}.png {n} depth/{n}.png\n"
                                                         for c, n in zip(rgb_names, names, strict=True)))
-    write_tum(traj, out / "groundtruth.txt")
-    write_text_atomic(out / "INFO.txt", info_text(scene, motion_desc, noise, seed, n_frames, intr, fps,
-                                                         texture, colour_offset_s, colour_jitter_s))
-    return out
