@@ -44,6 +44,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
                                    "trackers) -> report.md."),
     "calibrate-colour": ("calibrate_colour", "Fit the colour camera (intrinsics + sideways offset) so that colour "
                                              "edges fall on depth edges."),
+    "mesh": ("mesh", "Write a run's triangle mesh (mesh.ply, colours and normals) by TSDF fusion or Poisson."),
     "rerun": ("export_rerun", "Write a run as a Rerun recording (map, estimate vs ground truth, loops, camera and "
                               "images over time)."),
 }

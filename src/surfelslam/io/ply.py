@@ -1,7 +1,9 @@
-"""PLY point clouds: binary little-endian writer (surfel maps, plain clouds) and a reader for tests/tools.
+"""PLY point clouds and meshes: binary little-endian writers (surfel maps, plain clouds, triangle meshes) and
+readers for tests/tools.
 
-Files open in MeshLab and CloudCompare: standard header, one ``vertex`` element, ``float``/``uchar``/``int``
-properties. Writes go through a temp file + rename (:mod:`surfelslam.io.atomic`).
+Files open in MeshLab, CloudCompare and Blender: standard header, a ``vertex`` element with ``float``/``uchar``/
+``int`` properties (and for meshes a ``face`` element, ``property list uchar int vertex_indices``). Writes go
+through a temp file + rename (:mod:`surfelslam.io.atomic`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,12 @@ _PLY_TYPES = {
 _NP_TO_PLY = {"<f4": "float", "|u1": "uchar", "<i4": "int", "<f8": "double"}
 
 
-def _write_vertices(path: str | Path, fields: list[tuple[str, np.ndarray]], comment: str) -> None:
+#: a triangle in the ``face`` element: the vertex count (3, uchar) and the vertex indices (int)
+_FACE_DTYPE = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
+
+
+def _write_vertices(path: str | Path, fields: list[tuple[str, np.ndarray]], comment: str,
+                    faces: np.ndarray | None = None) -> None:
     n = len(fields[0][1])
     dtype = np.dtype([(name, arr.dtype.newbyteorder("<") if arr.dtype.itemsize > 1 else arr.dtype)
                       for name, arr in fields])
@@ -35,11 +42,19 @@ def _write_vertices(path: str | Path, fields: list[tuple[str, np.ndarray]], comm
     lines = ["ply", "format binary_little_endian 1.0", f"comment {comment}", f"element vertex {n}"]
     for name in dtype.names:
         lines.append(f"property {_NP_TO_PLY[dtype[name].str]} {name}")
+    face_rec = None
+    if faces is not None:
+        face_rec = np.empty(len(faces), _FACE_DTYPE)
+        face_rec["n"] = 3
+        face_rec["v"] = faces
+        lines += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
     lines.append("end_header")
     header = ("\n".join(lines) + "\n").encode("ascii")
     with atomic_open(path, "wb") as fh:
         fh.write(header)
         fh.write(rec.tobytes())
+        if face_rec is not None:
+            fh.write(face_rec.tobytes())
 
 
 def _colour_u8(rgb: np.ndarray) -> np.ndarray:
@@ -86,9 +101,31 @@ def write_points_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, normals
     return len(xyz)
 
 
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
-    """Read the ``vertex`` element of a binary little-endian PLY into ``{property: (N,) array}``."""
-    path = Path(path)
+def write_mesh_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
+                   colours: np.ndarray | None = None) -> tuple[int, int]:
+    """Write a triangle mesh: vertices x y z [nx ny nz] (float) [red green blue] (uchar), faces as
+    ``vertex_indices`` lists (uchar count 3, int indices). ``vertices`` ``(V, 3)`` metres, ``faces`` ``(F, 3)``
+    indices, ``normals`` ``(V, 3)``, ``colours`` ``(V, 3)`` (uint8, or float in [0, 255]). Returns ``(V, F)``."""
+    xyz = np.asarray(vertices, "<f4").reshape(-1, 3)
+    tri = np.asarray(faces).reshape(-1, 3)
+    if len(tri) and (tri.min() < 0 or tri.max() >= len(xyz)):
+        raise ValueError(f"write_mesh_ply: face indices outside [0, {len(xyz)})")
+    fields = [("x", xyz[:, 0]), ("y", xyz[:, 1]), ("z", xyz[:, 2])]
+    if normals is not None:
+        nrm = np.asarray(normals, "<f4").reshape(-1, 3)
+        if len(nrm) != len(xyz):
+            raise ValueError(f"write_mesh_ply: {len(xyz)} vertices but {len(nrm)} normals")
+        fields += [("nx", nrm[:, 0]), ("ny", nrm[:, 1]), ("nz", nrm[:, 2])]
+    if colours is not None:
+        col = _colour_u8(np.asarray(colours).reshape(-1, 3))
+        if len(col) != len(xyz):
+            raise ValueError(f"write_mesh_ply: {len(xyz)} vertices but {len(col)} colours")
+        fields += [("red", col[:, 0]), ("green", col[:, 1]), ("blue", col[:, 2])]
+    _write_vertices(path, fields, "surfelslam mesh", faces=tri.astype("<i4"))
+    return len(xyz), len(tri)
+
+
+def _read_header(path: Path) -> tuple[list[str], bytes]:
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -99,6 +136,62 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
     header = data[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in header:
         raise InputError(path, "only binary_little_endian 1.0 PLY files are supported")
+    return header, data[end + len(b"end_header\n") :]
+
+
+def read_mesh_ply(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Read a binary little-endian triangle mesh: ``({vertex property: (V,) array}, faces (F, 3) int32)``.
+    The ``face`` element must hold one ``list uchar int|uint`` property of triangles; other elements are refused."""
+    path = Path(path)
+    header, body = _read_header(path)
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for line in header:
+        parts = line.split()
+        if parts[:1] == ["element"] and len(parts) == 3:
+            elements.append((parts[1], int(parts[2]), []))
+        elif parts[:1] == ["property"] and elements:
+            if parts[1] == "list":
+                if len(parts) != 5 or parts[2] not in ("uchar", "uint8") or parts[3] not in ("int", "int32", "uint",
+                                                                                             "uint32"):
+                    raise InputError(path, f"unsupported list property: {line!r}")
+                elements[-1][2].append((parts[4], "list"))
+            elif parts[1] in _PLY_TYPES:
+                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
+            else:
+                raise InputError(path, f"unsupported property: {line!r}")
+    names = [e[0] for e in elements]
+    if names[:1] != ["vertex"] or any(n not in ("vertex", "face") for n in names):
+        raise InputError(path, f"expected a vertex element then a face element, got {names}")
+    _, n_v, vprops = elements[0]
+    if any(t == "list" for _, t in vprops):
+        raise InputError(path, "list properties in the vertex element are not supported")
+    vdtype = np.dtype(vprops)
+    if len(body) < n_v * vdtype.itemsize:
+        raise InputError(path, f"truncated PLY: {n_v} vertices need {n_v * vdtype.itemsize} bytes, got {len(body)}")
+    rec = np.frombuffer(body, vdtype, count=n_v)
+    vertices = {name: rec[name].copy() for name in vdtype.names}
+    faces = np.zeros((0, 3), np.int32)
+    if len(elements) > 1:
+        _, n_f, fprops = elements[1]
+        if [t for _, t in fprops] != ["list"]:
+            raise InputError(path, "the face element must hold exactly one list property (vertex_indices)")
+        off = n_v * vdtype.itemsize
+        need = n_f * _FACE_DTYPE.itemsize
+        if len(body) - off < need:
+            raise InputError(path, f"truncated PLY: {n_f} triangles need {need} bytes, got {len(body) - off}")
+        frec = np.frombuffer(body, _FACE_DTYPE, count=n_f, offset=off)
+        if n_f and not np.all(frec["n"] == 3):
+            raise InputError(path, "only triangle faces are supported (a face has another vertex count)")
+        faces = frec["v"].astype(np.int32)
+        if n_f and (faces.min() < 0 or faces.max() >= n_v):
+            raise InputError(path, f"face indices outside [0, {n_v})")
+    return vertices, faces
+
+
+def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+    """Read the ``vertex`` element of a binary little-endian PLY into ``{property: (N,) array}``."""
+    path = Path(path)
+    header, body = _read_header(path)
     n = None
     props: list[tuple[str, str]] = []
     in_vertex = False
@@ -117,7 +210,6 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
     if n is None:
         raise InputError(path, "no 'element vertex' in the header")
     dtype = np.dtype(props)
-    body = data[end + len(b"end_header\n") :]
     if len(body) < n * dtype.itemsize:
         raise InputError(path, f"truncated PLY: {n} vertices need {n * dtype.itemsize} bytes, got {len(body)}")
     rec = np.frombuffer(body, dtype, count=n)
