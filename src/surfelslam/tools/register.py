@@ -78,6 +78,151 @@ def _timing_info(frame, ct) -> dict:
             "twist_per_s": None if ct is None else [float(x) for x in ct.twist_per_s]}
 
 
+def _icp_config(levels: int | None, dist_thresh: str | None, angle_thresh: str | None, iterations: str | None,
+                solver: str):
+    """``register``'s ICP settings (:func:`~surfelslam.tracking.icp.pairwise_config`) with the per-level options."""
+    from surfelslam.tracking.icp import pairwise_config
+
+    d = pairwise_config()
+    n_levels = d.levels if levels is None else levels
+    if n_levels < 1:
+        raise ConfigError(f"--levels must be >= 1, got {n_levels}")
+    return replace(
+        d,
+        levels=n_levels,
+        dist_thresh_m=per_level(dist_thresh, d.dist_thresh_m, n_levels, "--dist-thresh"),
+        angle_thresh_deg=per_level(angle_thresh, d.angle_thresh_deg, n_levels, "--angle-thresh",
+                                   coarser_factor=1.0),
+        iterations=per_level(iterations, d.iterations, n_levels, "--iterations", cast=int, coarser_factor=1.0),
+        solver=solver,
+    )
+
+
+def _pair_timing(sq, frames, pyramids, pre, cfg, retime_cfg):
+    """``((source timing, target timing), note)``: both frames' colour timings, or neither (with a note) when one
+    that needs re-timing has none."""
+    timing = tuple(_colour_timing(sq, f, p, pre, cfg, retime_cfg) for f, p in zip(frames, pyramids, strict=True))
+    if any(retime_cfg.applies(f.colour_minus_depth_s) and ct is None for f, ct in zip(frames, timing, strict=True)):
+        # one frame alone re-timed is worse than neither: the offsets' common part no longer cancels
+        return (None, None), "a frame's velocity could not be measured near its colour stamp: neither re-timed"
+    return timing, None
+
+
+def _guess_records(reg, descriptor: str, n_features: int) -> tuple[dict | None, dict | None]:
+    """``registration.json``'s records of the feature guess and the shape (FPFH) guess (None: not tried)."""
+    from surfelslam.geometry import se3
+
+    feat_info = None
+    if reg.motion is not None:
+        mres = reg.motion
+        feat_info = {"ok": bool(mres.ok), "reason": mres.reason, "descriptor": descriptor,
+                     "n_features": n_features,
+                     "good_matches": mres.n_good,
+                     "inliers": mres.n_inliers,
+                     "T_target_source": se3.invert(mres.T_cur_ref).tolist() if mres.ok else None}
+    geo_info = None
+    if reg.geometric is not None:
+        g = reg.geometric
+        geo_info = {"ok": g.T_target_source is not None, "reason": g.reason, "points": list(g.n_points),
+                    "matches": g.n_matches, "inliers": g.n_inliers,
+                    "T_target_source": None if g.T_target_source is None else g.T_target_source.tolist()}
+    return feat_info, geo_info
+
+
+def _add_depth_agreement_and_gt(result: dict, sq, source: int, target: int, f_src, f_tgt, T: np.ndarray,
+                                T_init: np.ndarray | None) -> dict:
+    """Add the depth agreement of the estimate (and of the ground truth) and the errors against the ground truth
+    to ``result``; returns the agreements by pose name."""
+    from surfelslam.eval.depth_agreement import depth_agreement
+    from surfelslam.geometry import se3
+
+    def agreement(T_pose: np.ndarray) -> dict:
+        a = vars(depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, T_pose)).copy()
+        a["median_abs_dz_m"] = a["median_abs_dz_m"] if np.isfinite(a["median_abs_dz_m"]) else None
+        return a
+
+    agree = {"estimate": agreement(T)}
+    result["depth_agreement"] = agree
+    # the depth camera's ground-truth pose at its own capture time: ICP registers the depth images
+    T_wc, valid = sq.gt_poses(at_depth_time=True)
+    if valid[source] and valid[target]:
+        T_gt = se3.invert(T_wc[target]) @ T_wc[source]
+        agree["ground_truth"] = agreement(T_gt)
+        t_err, r_err = se3.pose_error(T, T_gt)
+        t0, r0 = se3.pose_error(np.eye(4), T_gt)
+        result["gt_error"] = {"trans_m": t_err, "rot_deg": r_err}
+        result["gt_motion"] = {"trans_m": t0, "rot_deg": r0}
+        if T_init is not None:
+            ti, ri = se3.pose_error(T_init, T_gt)
+            result["init_gt_error"] = {"trans_m": ti, "rot_deg": ri}
+    return agree
+
+
+def _write_outputs(out: Path, result: dict, p_src, p_tgt, res, source: int, target: int) -> None:
+    """``registration.json``, ``before.png`` and ``after.png``."""
+    from surfelslam.geometry import se3
+    from surfelslam.io.atomic import write_text_atomic
+    from surfelslam.viz.registration import plot_registration
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "registration.json", json.dumps(result, indent=2) + "\n")
+    src_pts = p_src[0].vertex[p_src[0].vertex[..., 2] > 0]
+    tgt_pts = p_tgt[0].vertex[p_tgt[0].vertex[..., 2] > 0]
+    plot_registration(src_pts, tgt_pts, out / "before.png", f"before: source {source} (red), target "
+                      f"{target} (green), identity")
+    plot_registration(se3.transform_points(res.T_target_source, src_pts.astype(np.float64)), tgt_pts,
+                      out / "after.png", f"after ICP: {res.inliers} inliers, RMSE {1000 * res.rmse_m:.1f} mm")
+
+
+def _print_guesses(result: dict, init: str) -> None:
+    for label, info, n_key, n_name in (("feature guess", result["features"], "good_matches", "good matches"),
+                                       ("shape (FPFH) guess", result["geometric"], "matches", "mutual matches")):
+        if info is not None:
+            console.print(f"{label}: {info['inliers']} inliers of {info[n_key]} {n_name}" if info["ok"] else
+                          f"{label} rejected ({info['reason']}: {info[n_key]} {n_name}, {info['inliers']} "
+                          "inliers)", highlight=False)
+    if init != "identity":
+        console.print(f"ICP started from: {result['init_used']}", highlight=False)
+    ctm = result["colour_timing"]
+    if ctm["source"]["retimed"] or ctm["target"]["retimed"] or ctm["note"]:
+        console.print("colour re-timed to the depth stamps (colour - depth: "
+                      f"{1000 * ctm['source']['colour_minus_depth_s']:.1f} / "
+                      f"{1000 * ctm['target']['colour_minus_depth_s']:.1f} ms)" if ctm["note"] is None else
+                      f"colour not re-timed: {ctm['note']}", highlight=False)
+
+
+def _print_result(result: dict, res, T: np.ndarray, agree: dict, out: Path) -> None:
+    source, target = result["source"], result["target"]
+    console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
+                  f"({100 * res.inlier_fraction:.1f}%), RMSE {1000 * res.rmse_m:.2f} mm, "
+                  f"iterations {res.iterations}, converged {res.converged}"
+                  + ("" if res.reason is None else f" ({res.reason})"), highlight=False)
+    console.print(f"condition number {res.condition_number:.3g}, degenerate {res.degenerate}",
+                  highlight=False)
+    console.print("T_target_source =\n" + np.array2string(T, precision=6, suppress_small=True),
+                  highlight=False)
+    if "gt_error" in result:
+        g = result["gt_error"]
+        m = result["gt_motion"]
+        if "init_gt_error" in result:
+            gi = result["init_gt_error"]
+            console.print(f"initial guess GT error: {1000 * gi['trans_m']:.1f} mm, {gi['rot_deg']:.3f} deg",
+                          highlight=False)
+        console.print(f"GT error: {1000 * g['trans_m']:.1f} mm, {g['rot_deg']:.3f} deg "
+                      f"(GT motion {1000 * m['trans_m']:.1f} mm, {m['rot_deg']:.2f} deg)", highlight=False)
+    else:
+        console.print("no ground truth for these frames", highlight=False)
+    text = ", ".join(f"{name.replace('_', ' ')} pose "
+                     + ("no overlap" if a["median_abs_dz_m"] is None else
+                        f"{1000 * a['median_abs_dz_m']:.1f} mm over {100 * a['overlap_fraction']:.0f}% "
+                        "of the source")
+                     for name, a in agree.items())
+    console.print(f"depth agreement (median |dz| where the moved source meets target depth): {text}",
+                  highlight=False)
+    console.print(f"wrote {out / 'registration.json'}, {out / 'before.png'}, {out / 'after.png'}",
+                  highlight=False, markup=False)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("register")
     @handle_errors
@@ -128,11 +273,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
-        from surfelslam.eval.depth_agreement import depth_agreement
-        from surfelslam.geometry import se3
-        from surfelslam.io.atomic import write_text_atomic
         from surfelslam.tracking.features import DETECTORS
-        from surfelslam.tracking.icp import pairwise_config
         from surfelslam.tracking.photometric import PHOTOMETRIC_MODES, colour_switch
         from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
         from surfelslam.tracking.registration import (
@@ -143,7 +284,6 @@ def register(app: typer.Typer) -> None:
             register_pair,
         )
         from surfelslam.tracking.retime import RETIME_MODES, RetimeConfig
-        from surfelslam.viz.registration import plot_registration
 
         if init not in INIT_MODES:
             raise ConfigError(f"--init must be one of {', '.join(INIT_MODES)}, got {init!r}")
@@ -156,36 +296,16 @@ def register(app: typer.Typer) -> None:
         for name, idx in (("--source", source), ("--target", target)):
             if not 0 <= idx < len(sq):
                 raise ConfigError(f"{name} {idx} is out of range: the selection has {len(sq)} frames")
-        d = pairwise_config()
-        n_levels = d.levels if levels is None else levels
-        if n_levels < 1:
-            raise ConfigError(f"--levels must be >= 1, got {n_levels}")
-        cfg = replace(
-            d,
-            levels=n_levels,
-            dist_thresh_m=per_level(dist_thresh, d.dist_thresh_m, n_levels, "--dist-thresh"),
-            angle_thresh_deg=per_level(angle_thresh, d.angle_thresh_deg, n_levels, "--angle-thresh",
-                                       coarser_factor=1.0),
-            iterations=per_level(iterations, d.iterations, n_levels, "--iterations", cast=int, coarser_factor=1.0),
-            solver=solver,
-        )
-        pre = Preprocessor(sq.intrinsics, PreprocessConfig(pyramid_levels=n_levels))
+        cfg = _icp_config(levels, dist_thresh, angle_thresh, iterations, solver)
+        pre = Preprocessor(sq.intrinsics, PreprocessConfig(pyramid_levels=cfg.levels))
         f_src, f_tgt = sq[source], sq[target]
         p_src = pre.process(f_src.depth_m)
         p_tgt = pre.process(f_tgt.depth_m)
         use_photometric = colour_switch(photometric, sq.colour_registered)
         retime_cfg = RetimeConfig(mode=retime_colour)
-        timing = (None, None)
-        retime_note = None
+        timing, retime_note = (None, None), None
         if use_photometric:
-            timing = (_colour_timing(sq, f_src, p_src, pre, cfg, retime_cfg),
-                      _colour_timing(sq, f_tgt, p_tgt, pre, cfg, retime_cfg))
-            if any(retime_cfg.applies(f.colour_minus_depth_s) and ct is None
-                   for f, ct in zip((f_src, f_tgt), timing, strict=True)):
-                # one frame alone re-timed is worse than neither: the offsets' common part no longer cancels
-                # (synthetic hand-held pair: 4.4 mm against 0.8 as taken and 0.0 both re-timed)
-                timing = (None, None)
-                retime_note = "a frame's velocity could not be measured near its colour stamp: neither re-timed"
+            timing, retime_note = _pair_timing(sq, (f_src, f_tgt), (p_src, p_tgt), pre, cfg, retime_cfg)
         n_features = PAIR_FEATURES if features is None else features
         if n_features < 1:
             raise ConfigError(f"--features must be >= 1, got {n_features}")
@@ -196,20 +316,7 @@ def register(app: typer.Typer) -> None:
                             pair_feature_config(descriptor, n_features), preprocess_cfg=pre.cfg,
                             colour_timing=timing)
         res, init_used = reg.icp, reg.init_used
-        feat_info = None
-        if reg.motion is not None:
-            mres = reg.motion
-            feat_info = {"ok": bool(mres.ok), "reason": mres.reason, "descriptor": descriptor,
-                         "n_features": n_features,
-                         "good_matches": mres.n_good,
-                         "inliers": mres.n_inliers,
-                         "T_target_source": se3.invert(mres.T_cur_ref).tolist() if mres.ok else None}
-        geo_info = None
-        if reg.geometric is not None:
-            g = reg.geometric
-            geo_info = {"ok": g.T_target_source is not None, "reason": g.reason, "points": list(g.n_points),
-                        "matches": g.n_matches, "inliers": g.n_inliers,
-                        "T_target_source": None if g.T_target_source is None else g.T_target_source.tolist()}
+        feat_info, geo_info = _guess_records(reg, descriptor, n_features)
         T_init = reg.guess if init_used != "identity" else None
         T = res.T_target_source
 
@@ -240,74 +347,7 @@ def register(app: typer.Typer) -> None:
             "levels": [{k: (v if not isinstance(v, float) or np.isfinite(v) else None)
                         for k, v in vars(li).items()} for li in res.levels],
         }
-        def agreement(T_pose: np.ndarray) -> dict:
-            a = vars(depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, T_pose)).copy()
-            a["median_abs_dz_m"] = a["median_abs_dz_m"] if np.isfinite(a["median_abs_dz_m"]) else None
-            return a
-
-        agree = {"estimate": agreement(T)}
-        result["depth_agreement"] = agree
-        # the depth camera's ground-truth pose at its own capture time: ICP registers the depth images
-        T_wc, valid = sq.gt_poses(at_depth_time=True)
-        if valid[source] and valid[target]:
-            T_gt = se3.invert(T_wc[target]) @ T_wc[source]
-            agree["ground_truth"] = agreement(T_gt)
-            t_err, r_err = se3.pose_error(T, T_gt)
-            t0, r0 = se3.pose_error(np.eye(4), T_gt)
-            result["gt_error"] = {"trans_m": t_err, "rot_deg": r_err}
-            result["gt_motion"] = {"trans_m": t0, "rot_deg": r0}
-            if T_init is not None:
-                ti, ri = se3.pose_error(T_init, T_gt)
-                result["init_gt_error"] = {"trans_m": ti, "rot_deg": ri}
-
-        out.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(out / "registration.json", json.dumps(result, indent=2) + "\n")
-        src_pts = p_src[0].vertex[p_src[0].vertex[..., 2] > 0]
-        tgt_pts = p_tgt[0].vertex[p_tgt[0].vertex[..., 2] > 0]
-        plot_registration(src_pts, tgt_pts, out / "before.png", f"before: source {source} (red), target "
-                          f"{target} (green), identity")
-        plot_registration(se3.transform_points(T, src_pts.astype(np.float64)), tgt_pts, out / "after.png",
-                          f"after ICP: {res.inliers} inliers, RMSE {1000 * res.rmse_m:.1f} mm")
-
-        for label, info, n_key, n_name in (("feature guess", feat_info, "good_matches", "good matches"),
-                                           ("shape (FPFH) guess", geo_info, "matches", "mutual matches")):
-            if info is not None:
-                console.print(f"{label}: {info['inliers']} inliers of {info[n_key]} {n_name}" if info["ok"] else
-                              f"{label} rejected ({info['reason']}: {info[n_key]} {n_name}, {info['inliers']} "
-                              "inliers)", highlight=False)
-        if init != "identity":
-            console.print(f"ICP started from: {init_used}", highlight=False)
-        ctm = result["colour_timing"]
-        if ctm["source"]["retimed"] or ctm["target"]["retimed"] or ctm["note"]:
-            console.print("colour re-timed to the depth stamps (colour - depth: "
-                          f"{1000 * ctm['source']['colour_minus_depth_s']:.1f} / "
-                          f"{1000 * ctm['target']['colour_minus_depth_s']:.1f} ms)" if ctm["note"] is None else
-                          f"colour not re-timed: {ctm['note']}", highlight=False)
-        console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
-                      f"({100 * res.inlier_fraction:.1f}%), RMSE {1000 * res.rmse_m:.2f} mm, "
-                      f"iterations {res.iterations}, converged {res.converged}"
-                      + ("" if res.reason is None else f" ({res.reason})"), highlight=False)
-        console.print(f"condition number {res.condition_number:.3g}, degenerate {res.degenerate}",
-                      highlight=False)
-        console.print("T_target_source =\n" + np.array2string(T, precision=6, suppress_small=True),
-                      highlight=False)
-        if "gt_error" in result:
-            g = result["gt_error"]
-            m = result["gt_motion"]
-            if "init_gt_error" in result:
-                gi = result["init_gt_error"]
-                console.print(f"initial guess GT error: {1000 * gi['trans_m']:.1f} mm, {gi['rot_deg']:.3f} deg",
-                              highlight=False)
-            console.print(f"GT error: {1000 * g['trans_m']:.1f} mm, {g['rot_deg']:.3f} deg "
-                          f"(GT motion {1000 * m['trans_m']:.1f} mm, {m['rot_deg']:.2f} deg)", highlight=False)
-        else:
-            console.print("no ground truth for these frames", highlight=False)
-        text = ", ".join(f"{name.replace('_', ' ')} pose "
-                         + ("no overlap" if a["median_abs_dz_m"] is None else
-                            f"{1000 * a['median_abs_dz_m']:.1f} mm over {100 * a['overlap_fraction']:.0f}% "
-                            "of the source")
-                         for name, a in agree.items())
-        console.print(f"depth agreement (median |dz| where the moved source meets target depth): {text}",
-                      highlight=False)
-        console.print(f"wrote {out / 'registration.json'}, {out / 'before.png'}, {out / 'after.png'}",
-                      highlight=False, markup=False)
+        agree = _add_depth_agreement_and_gt(result, sq, source, target, f_src, f_tgt, T, T_init)
+        _write_outputs(out, result, p_src, p_tgt, res, source, target)
+        _print_guesses(result, init)
+        _print_result(result, res, T, agree, out)
