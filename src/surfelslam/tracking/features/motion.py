@@ -140,6 +140,43 @@ def _consensus_hypothesis(obj: np.ndarray, pts_cur: np.ndarray, uv_cur: np.ndarr
     return mask, rvec, tvec
 
 
+def _initial_vectors(T_init_cur_ref: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's ``(rvec (3, 1), tvec (3, 1))`` of the initial guess (zeros without one)."""
+    if T_init_cur_ref is None:
+        return np.zeros((3, 1)), np.zeros((3, 1))
+    rvec0 = so3_log(T_init_cur_ref[:3, :3]).reshape(3, 1).copy()
+    tvec0 = np.asarray(T_init_cur_ref[:3, 3], np.float64).reshape(3, 1).copy()
+    return rvec0, tvec0
+
+
+def _refined_pose(ref: Features, cur: Features, obj: np.ndarray, img: np.ndarray, uv_cur: np.ndarray,
+                  mask: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, sign: float, intr: Intrinsics,
+                  cfg: FeatureConfig):
+    """The accepted PnP pose refined (``cfg.refine``, ``projection_search``, ``rgbd_refine_iterations``):
+    ``(T_cur_ref, rvec (3,), tvec (3,), information or None, points in the final refinement)``."""
+    if cfg.refine:
+        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], K, None, rvec.copy(), tvec.copy())
+    rvec = np.asarray(rvec, np.float64).reshape(3)
+    tvec = np.asarray(tvec, np.float64).reshape(3)
+    T = make_T(so3_exp(rvec), tvec)
+    information = None
+    pts_final, uv_final = obj[mask], uv_cur[mask].astype(np.float64)
+    if cfg.projection_search and np.all(np.isfinite(T)):
+        found = search_by_projection(ref, cur, T, intr, cfg)
+        if len(found[0]) > len(pts_final):
+            pts_final, uv_final = found
+            if cfg.rgbd_refine_iterations <= 0 or cur.depth_m is None:
+                rvec, tvec = cv2.solvePnPRefineLM(pts_final, _image_points_cv(uv_final, intr, sign), K, None,
+                                                  rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy())
+                rvec, tvec = np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
+                T = make_T(so3_exp(rvec), tvec)
+    if cfg.rgbd_refine_iterations > 0 and cur.depth_m is not None and np.all(np.isfinite(T)):
+        z_cur = keypoint_depth(cur.depth_m, uv_final, cfg)
+        T, information = refine_rgbd(T, pts_final, uv_final, 1.0 / z_cur, intr, cfg, with_information=True)
+        rvec, tvec = so3_log(T[:3, :3]).reshape(3), T[:3, 3].copy()
+    return T, rvec, tvec, information, len(pts_final)
+
+
 def estimate_motion(
     ref: Features,
     cur: Features,
@@ -176,14 +213,8 @@ def estimate_motion(
     K, sign = _cv_camera(intr)
     uv_cur = track_subpixel(ref, cur, pairs, cfg)
     img = _image_points_cv(uv_cur, intr, sign)
-    use_guess = T_init_cur_ref is not None
-    if use_guess:
-        rvec0 = so3_log(T_init_cur_ref[:3, :3]).reshape(3, 1).copy()
-        tvec0 = np.asarray(T_init_cur_ref[:3, 3], np.float64).reshape(3, 1).copy()
-    else:
-        rvec0 = np.zeros((3, 1))
-        tvec0 = np.zeros((3, 1))
-    mask, rvec, tvec, reason = _pnp_ransac(obj, img, K, rvec0, tvec0, use_guess, cfg)
+    rvec0, tvec0 = _initial_vectors(T_init_cur_ref)
+    mask, rvec, tvec, reason = _pnp_ransac(obj, img, K, rvec0, tvec0, T_init_cur_ref is not None, cfg)
     if cfg.consensus_fallback and (mask is None or mask.sum() < cfg.consensus_below_fraction * n_good):
         alt = _consensus_hypothesis(obj, cur.points_cam[pairs[:, 1]], uv_cur, img, K, intr, cfg)
         if alt is not None and alt[0].sum() > (0 if mask is None else mask.sum()):
@@ -195,28 +226,10 @@ def estimate_motion(
         res.n_inliers = int(mask.sum())
         res.inlier_mask = mask
         return res
-    if cfg.refine:
-        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], K, None, rvec.copy(), tvec.copy())
-    rvec = np.asarray(rvec, np.float64).reshape(3)
-    tvec = np.asarray(tvec, np.float64).reshape(3)
-    T = make_T(so3_exp(rvec), tvec)
-    information = None
-    pts_final, uv_final = obj[mask], uv_cur[mask].astype(np.float64)
-    if cfg.projection_search and np.all(np.isfinite(T)):
-        found = search_by_projection(ref, cur, T, intr, cfg)
-        if len(found[0]) > len(pts_final):
-            pts_final, uv_final = found
-            if cfg.rgbd_refine_iterations <= 0 or cur.depth_m is None:
-                rvec, tvec = cv2.solvePnPRefineLM(pts_final, _image_points_cv(uv_final, intr, sign), K, None,
-                                                  rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy())
-                rvec, tvec = np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
-                T = make_T(so3_exp(rvec), tvec)
-    if cfg.rgbd_refine_iterations > 0 and cur.depth_m is not None and np.all(np.isfinite(T)):
-        z_cur = keypoint_depth(cur.depth_m, uv_final, cfg)
-        T, information = refine_rgbd(T, pts_final, uv_final, 1.0 / z_cur, intr, cfg, with_information=True)
-        rvec, tvec = so3_log(T[:3, :3]).reshape(3), T[:3, 3].copy()
+    T, rvec, tvec, information, n_final = _refined_pose(ref, cur, obj, img, uv_cur, mask, rvec, tvec, K, sign, intr,
+                                                        cfg)
     res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs, uv_cur, information,
-                       len(pts_final))
+                       n_final)
     if not np.all(np.isfinite(T)):
         res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
     elif motion_norm(T) > cfg.max_motion_norm:
