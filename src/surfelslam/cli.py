@@ -45,6 +45,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate-colour": ("calibrate_colour", "Fit the colour camera (intrinsics + sideways offset) so that colour "
                                              "edges fall on depth edges."),
     "mesh": ("mesh", "Write a run's triangle mesh (mesh.ply, colours and normals) by TSDF fusion or Poisson."),
+    "batch": ("batch", "Run sequences x trackers x configurations (a spec file, or SEQ... with --tracker/--set "
+                       "sweeps) as Ray tasks; one results table."),
     "rerun": ("export_rerun", "Write a run as a Rerun recording (map, estimate vs ground truth, loops, camera and "
                               "images over time)."),
 }

@@ -1,0 +1,76 @@
+"""A whole batch: skip the finished jobs, warm the kernels once, run the rest on an executor, write the table."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from surfelslam.batch.executors import Executor, LocalExecutor
+from surfelslam.batch.jobs import Job, is_complete, skipped_row, summary
+from surfelslam.batch.report import write_report
+
+
+@dataclasses.dataclass
+class BatchResult:
+    rows: list[dict]
+    files: dict[str, Path]
+    interrupted: bool = False
+
+    def count(self, status: str) -> int:
+        return sum(r["status"] == status for r in self.rows)
+
+
+def warm_parts(jobs: Sequence[Job]) -> tuple[str, ...]:
+    """The :mod:`surfelslam.warmup` parts the jobs' trackers use."""
+    parts = {"dense"} if any(j.tracker in ("dense", "hybrid") for j in jobs) else set()
+    if any(j.tracker in ("orb", "hybrid") for j in jobs):
+        parts.add("sparse")
+    return tuple(p for p in ("dense", "sparse") if p in parts)
+
+
+def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | None = None,
+              on_result: Callable[[Job, dict[str, Any]], None] | None = None, warmup: bool = True,
+              plots: bool = True) -> BatchResult:
+    """Run ``jobs`` (from :func:`~surfelslam.batch.spec.expand_jobs`) and write the results table into
+    ``out_root``.
+
+    A job whose folder holds a complete run of the same config is ``skipped`` (its row read from its
+    ``metrics.json``). Before the others are dispatched the JIT kernels are compiled (or loaded) once here
+    (``warmup``), so that the workers load numba's cache instead of each compiling it. ``on_result(job, row)`` is
+    called for each job as it is settled (skipped ones first). A KeyboardInterrupt still writes the table (the
+    jobs not finished: ``interrupted``) and then propagates.
+    """
+    executor = LocalExecutor() if executor is None else executor
+    out_root = Path(out_root)
+    out_root.mkdir(parents=True, exist_ok=True)
+    rows: dict[str, dict] = {}
+
+    def settle(job: Job, row: dict) -> None:
+        rows[job.name] = row
+        if on_result is not None:
+            on_result(job, row)
+
+    todo = []
+    for job in jobs:
+        if is_complete(job):
+            settle(job, skipped_row(job))
+        else:
+            todo.append(job)
+    interrupted = False
+    try:
+        if todo and warmup:
+            from surfelslam.warmup import warm
+
+            warm(*warm_parts(todo))
+        executor.run(todo, settle)
+    except KeyboardInterrupt:
+        interrupted = True
+        raise
+    finally:
+        ordered = [rows.get(j.name) or summary(j.describe(), None, "interrupted",
+                                               "the batch was interrupted before this job finished")
+                   for j in jobs]
+        files = write_report(out_root, ordered, plots=plots and not interrupted)
+    return BatchResult(ordered, files, interrupted)
