@@ -40,8 +40,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                    "figures."),
     "register": ("register", "Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and "
                              "GT error."),
-    "experiments": ("experiments", "The seeds' experiments (ICP pairs, solvers, fusion, dormant rule, features, "
-                                   "trackers) -> report.md."),
+    "experiments": ("experiments", "The reference assignment's experiments (ICP pairs, solvers, fusion, dormant "
+                                   "rule, features, trackers) -> report.md."),
     "calibrate-colour": ("calibrate_colour", "Fit the colour camera (intrinsics + sideways offset) so that colour "
                                              "edges fall on depth edges."),
     "mesh": ("mesh", "Write a run's triangle mesh (mesh.ply, colours and normals) by TSDF fusion or Poisson."),
@@ -151,6 +151,37 @@ def internal_error_message(exc: BaseException) -> str:
 # ------------------------------------------------------------------------------------------------ the app
 def _build_app() -> Any:
     import typer
+
+    def show_version(value: bool) -> None:
+        if value:
+            from surfelslam import __version__
+
+            typer.echo(f"surfelslam {__version__}")
+            raise typer.Exit(0)
+
+    app = typer.Typer(
+        name="surfelslam",
+        help=APP_HELP,
+        cls=_lazy_command_group(),
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+        rich_markup_mode=None,  # help texts hold literal brackets: 'surfelslam[viz]', units like [s]
+    )
+
+    @app.callback()
+    def _root(
+        version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True,
+                                     callback=show_version),
+    ) -> None:
+        pass
+
+    return app
+
+
+def _lazy_command_group() -> type:
+    """The app's command group class (built on first use: defining it imports typer)."""
+    import typer
     from typer.core import TyperCommand, TyperGroup
 
     try:  # typer >= 0.20 vendors click
@@ -166,7 +197,7 @@ def _build_app() -> Any:
 
         def get_command(self, ctx, cmd_name: str):
             if cmd_name not in self.commands and cmd_name in COMMANDS:
-                self.commands[cmd_name] = load_command(cmd_name)
+                self.commands[cmd_name] = _load_command(cmd_name)
             return self.commands.get(cmd_name)
 
         def format_commands(self, ctx, formatter) -> None:
@@ -202,46 +233,29 @@ def _build_app() -> Any:
                 return self._click_resolve_command(ctx, args)
             except UsageError as exc:
                 if self.suggest_commands and args:
-                    import difflib
-
-                    matches = difflib.get_close_matches(args[0], self.list_commands(ctx))
-                    if matches:
-                        exc.message = (exc.message.rstrip(".") + ". Did you mean "
-                                       + ", ".join(repr(m) for m in matches) + "?")
+                    _suggest_commands(exc, args[0], self.list_commands(ctx))
                 raise
 
-    def load_command(name: str):
-        """Import ``surfelslam.tools.<module>`` and build its click command."""
-        module = importlib.import_module(f"surfelslam.tools.{COMMANDS[name][0]}")
-        sub = typer.Typer(rich_markup_mode=None, pretty_exceptions_enable=False, add_completion=False)
-        module.register(sub)
-        return typer.main.get_group(sub).commands[name]
+    return LazyCommandGroup
 
-    def show_version(value: bool) -> None:
-        if value:
-            from surfelslam import __version__
 
-            typer.echo(f"surfelslam {__version__}")
-            raise typer.Exit(0)
+def _suggest_commands(exc: Any, word: str, names: list[str]) -> None:
+    """Append "Did you mean ...?" with the commands close to ``word`` to the usage error ``exc``."""
+    import difflib
 
-    app = typer.Typer(
-        name="surfelslam",
-        help=APP_HELP,
-        cls=LazyCommandGroup,
-        no_args_is_help=True,
-        add_completion=False,
-        pretty_exceptions_enable=False,
-        rich_markup_mode=None,  # help texts hold literal brackets: 'surfelslam[viz]', units like [s]
-    )
+    matches = difflib.get_close_matches(word, names)
+    if matches:
+        exc.message = exc.message.rstrip(".") + ". Did you mean " + ", ".join(repr(m) for m in matches) + "?"
 
-    @app.callback()
-    def _root(
-        version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True,
-                                     callback=show_version),
-    ) -> None:
-        pass
 
-    return app
+def _load_command(name: str) -> Any:
+    """Import ``surfelslam.tools.<module>`` and build its click command."""
+    import typer
+
+    module = importlib.import_module(f"surfelslam.tools.{COMMANDS[name][0]}")
+    sub = typer.Typer(rich_markup_mode=None, pretty_exceptions_enable=False, add_completion=False)
+    module.register(sub)
+    return typer.main.get_group(sub).commands[name]
 
 
 _APP = None

@@ -46,7 +46,8 @@ def register(app: typer.Typer) -> None:
         pair_gaps: Annotated[str, typer.Option("--pair-gaps", help="Frame gaps of the pairs, comma list.")] = "40,90",
         progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show progress bars.")] = True,
     ) -> None:
-        """The seeds' experiments (ICP pairs, solvers, fusion, dormant rule, features, trackers) -> report.md."""
+        """The reference assignment's experiments (ICP pairs, solvers, fusion, dormant rule, features, trackers) ->
+        report.md."""
         from surfelslam.datasets import open_sequence
         from surfelslam.eval.experiments import ExperimentOptions, run_experiments
         from surfelslam.slam.runner import load_config
