@@ -43,7 +43,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) || true
 	$(PY) -m pip install --quiet -e ".[dev,bench]" || echo "open3d not installable here: benchmarks run without the side-by-side"
-	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
+	$(PY) -m benchmarks.run_all $(BENCH_ARGS)
 
 # the configuration reference, generated from the settings' metadata (a test checks the committed page is current)
 docs: $(STAMP)

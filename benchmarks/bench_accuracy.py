@@ -8,7 +8,7 @@
 * Every run goes through :func:`surfelslam.slam.runner.run_sequence` (what ``surfelslam run`` does: background
   reading, warm-up excluded from FPS, ``metrics.json`` with the per-stage breakdown, ATE/RPE against the ground
   truth); the row is built from the ``metrics.json`` written by the run.
-* Open3D side by side (:mod:`open3d_slam`): the first ``n`` frames of a sequence through Open3D's
+* Open3D side by side (:mod:`benchmarks.open3d_slam`): the first ``n`` frames of a sequence through Open3D's
   ``t.pipelines.slam`` and through ``surfelslam run`` on exactly the same frames; ratios ours / theirs.
 """
 
@@ -104,7 +104,7 @@ def open3d_side_by_side(name: str, path: Path, downsample: int, n_frames: int, o
 
     ``ours``: an accuracy row of a dense run on exactly these frames, reused instead of running again.
     """
-    import open3d_slam
+    from benchmarks import open3d_slam
     from surfelslam.eval.metrics import evaluate
 
     seq = open_sequence(path, DatasetOptions(downsample=downsample, end=n_frames))

@@ -6,7 +6,7 @@ while panning, with 2 mm depth noise; normals from central differences. The map 
 follows what is in view (culling) or the map size: the table gives the first and last windows of frames.
 Vertex/normal maps are prepared before timing; only ``render`` (at the previous pose) and ``fuse`` are timed.
 
-Usage: ``.venv/bin/python benchmarks/bench_fusion.py [--quick]``; ``run(quick)`` returns the rows.
+Usage: ``.venv/bin/python -m benchmarks.bench_fusion [--quick]``; ``run(quick)`` returns the rows.
 """
 
 from __future__ import annotations

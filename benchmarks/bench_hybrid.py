@@ -15,7 +15,7 @@ Trackers: ``geometric`` is the dense tracker with ``tracking.photometric = "off"
   the ``register`` settings from the identity and from the ORB + PnP guess (``--init features``); errors against the
   exact ground truth.
 
-Usage: ``.venv/bin/python benchmarks/bench_hybrid.py [--quick] [--out DIR]``; writes ``hybrid.json`` and
+Usage: ``.venv/bin/python -m benchmarks.bench_hybrid [--quick] [--out DIR]``; writes ``hybrid.json`` and
 ``hybrid.md`` to ``--out`` (default ``benchmarks/results``) and prints the tables.
 """
 

@@ -13,25 +13,23 @@ and 640x480; numba with 1 thread and with 2 threads. Rows:
   320 px wide (what ``register --init features`` falls back on, and what dense relocalisation runs), on pairs
   90 frames apart when the frames are 7-Scenes (fewer repetitions: it takes a few hundred ms).
 
-Usage: ``.venv/bin/python benchmarks/bench_icp.py [--quick]``; ``run(quick)`` returns the rows.
+Usage: ``.venv/bin/python -m benchmarks.bench_icp [--quick]``; ``run(quick)`` returns the rows.
 """
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import replace
-from pathlib import Path
 
 import numba
 import numpy as np
 
-from bench_stages import _median_ms  # one timing helper for all benchmark scripts
+from benchmarks.common import REDKITCHEN, median_ms
 from surfelslam.tracking.geometric import geometric_guess
 from surfelslam.tracking.icp import ICPConfig, icp
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.types import Intrinsics
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
 FRAME_GAP = 5
 SHAPE_GAP = 90  # frames between the two views of a shape-guess pair (7-Scenes)
 SHAPE_REPS = 3
@@ -41,11 +39,11 @@ DepthPairs = list[tuple[np.ndarray, np.ndarray]]
 
 
 def _depth_pairs(downsample: int, n: int, gap: int = FRAME_GAP) -> tuple[Intrinsics, DepthPairs, str]:
-    if SHARED.is_dir():
+    if REDKITCHEN.is_dir():
         from surfelslam.datasets import open_sequence
         from surfelslam.datasets.base import DatasetOptions
 
-        seq = open_sequence(SHARED, DatasetOptions(downsample=downsample))
+        seq = open_sequence(REDKITCHEN, DatasetOptions(downsample=downsample))
         idx = np.linspace(0, len(seq) - 1 - gap, n).astype(int)
         return seq.intrinsics, [(seq[i].depth_m, seq[i + gap].depth_m) for i in idx], "7scenes"
     from surfelslam.geometry import se3
@@ -74,7 +72,7 @@ def _shape_guess_ms(intr: Intrinsics, pre: Preprocessor, downsample: int, n_pair
         a, b = pre.process(ds_m), pre.process(dt_m)
         la, lb = guess_level(a), guess_level(b)
         geometric_guess(a[la].vertex, a[la].normal, b[lb].vertex, b[lb].normal)  # warm-up
-        times.append(_median_ms(lambda a=a, b=b, la=la, lb=lb: geometric_guess(
+        times.append(median_ms(lambda a=a, b=b, la=la, lb=lb: geometric_guess(
             a[la].vertex, a[la].normal, b[lb].vertex, b[lb].normal), reps))
     return float(np.median(times))
 
@@ -102,10 +100,10 @@ def run(quick: bool = False, n_pairs: int | None = None, reps: int | None = None
                 icp(pyr_s, pre.process(pairs[0][1], out=pyr_t), cfg=cfg4)
                 t_pre, t3, t4, t41, it3, it4, it41 = [], [], [], [], [], [], []
                 for ds_m, dt_m in pairs:
-                    t_pre.append(_median_ms(lambda ds_m=ds_m, pre=pre, o=pyr_s: pre.process(ds_m, out=o), reps))
+                    t_pre.append(median_ms(lambda ds_m=ds_m, pre=pre, o=pyr_s: pre.process(ds_m, out=o), reps))
                     pre.process(dt_m, out=pyr_t)
                     for cfg, times, its in ((cfg3, t3, it3), (cfg4, t4, it4), (cfg4s1, t41, it41)):
-                        times.append(_median_ms(lambda cfg=cfg, a=pyr_s, b=pyr_t: icp(a, b, cfg=cfg), reps))
+                        times.append(median_ms(lambda cfg=cfg, a=pyr_s, b=pyr_t: icp(a, b, cfg=cfg), reps))
                         its.append(icp(pyr_s, pyr_t, cfg=cfg).iterations)
                 for stage, times, its in (("preprocess", t_pre, [0]), ("icp 3-level", t3, it3),
                                           ("icp default", t4, it4), ("icp default stride 1", t41, it41)):

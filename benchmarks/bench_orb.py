@@ -4,22 +4,19 @@ Frames: consecutive 7-Scenes redkitchen pairs (i, i+5) from ../shared/data when 
 synthetic textured plane (random grey blocks, 2 m away, shifted 3 cm between the two frames). Run at
 640x480 and 320x240 (``downsample`` 2). Default FeatureConfig (1000 features at 640x480; 500 at 320x240).
 
-Usage: ``.venv/bin/python benchmarks/bench_orb.py [--quick]``; ``run(quick)`` returns the rows.
+Usage: ``.venv/bin/python -m benchmarks.bench_orb [--quick]``; ``run(quick)`` returns the rows.
 """
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
-from bench_stages import _median_ms  # one timing helper for all benchmark scripts
+from benchmarks.common import REDKITCHEN, median_ms
 from surfelslam.tracking.features import FeatureConfig, estimate_motion, extract, match
 from surfelslam.types import Intrinsics, RGBDFrame
-
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
 
 
 def _synthetic_pairs(intr: Intrinsics, n: int) -> list[tuple[RGBDFrame, RGBDFrame]]:
@@ -41,11 +38,11 @@ def _synthetic_pairs(intr: Intrinsics, n: int) -> list[tuple[RGBDFrame, RGBDFram
 
 def _pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[RGBDFrame, RGBDFrame]], str]:
     full = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
-    if SHARED.is_dir():
+    if REDKITCHEN.is_dir():
         from surfelslam.datasets import open_sequence
         from surfelslam.datasets.base import DatasetOptions
 
-        seq = open_sequence(SHARED, DatasetOptions(downsample=downsample))
+        seq = open_sequence(REDKITCHEN, DatasetOptions(downsample=downsample))
         idx = np.linspace(0, len(seq) - 6, n).astype(int)
         return seq.intrinsics, [(seq[i], seq[i + 5]) for i in idx], "7scenes"
     intr = full.scaled(downsample)
@@ -57,10 +54,10 @@ def _time_pairs(pairs, intr: Intrinsics, cfg: FeatureConfig):
     for a, b in pairs:
         fa = extract(a.rgb, a.depth_m, intr, cfg)
         fb = extract(b.rgb, b.depth_m, intr, cfg)
-        ext.append(_median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), 3))
-        mat.append(_median_ms(lambda fa=fa, fb=fb: match(fa, fb, cfg), 3))
+        ext.append(median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), 3))
+        mat.append(median_ms(lambda fa=fa, fb=fb: match(fa, fb, cfg), 3))
         # PnP alone: estimate_motion minus its matching
-        tot = _median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), 3)
+        tot = median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), 3)
         pnp.append(max(tot - mat[-1], 0.0))
         inl.append(estimate_motion(fa, fb, intr, cfg).n_inliers)
     return ext, mat, pnp, inl

@@ -27,7 +27,7 @@ generator's trajectory, and a PNG of the per-frame cost against the frame index.
 
 Serial kernels, as ``SlamConfig().compute`` says, unless ``--parallel``.
 
-Usage: ``.venv/bin/python benchmarks/bench_pipeline.py [--frames 2000] [--style handheld|loop] [--width 320]``;
+Usage: ``.venv/bin/python -m benchmarks.bench_pipeline [--frames 2000] [--style handheld|loop] [--width 320]``;
 ``bench(...)`` returns the row.
 """
 

@@ -8,7 +8,7 @@
   with the ORB settings the ``orb``/``hybrid`` trackers use (``SlamConfig().sparse.features``).
 
 The other stages (preprocess, render, ICP, fuse) come from the ``metrics.json`` of a real dense run
-(:mod:`bench_accuracy`). Usage: ``.venv/bin/python benchmarks/bench_stages.py SEQUENCE [--downsample 2]``.
+(:mod:`benchmarks.bench_accuracy`). Usage: ``.venv/bin/python -m benchmarks.bench_stages SEQUENCE [--downsample 2]``.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import median_ms
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.slam import SlamConfig
 from surfelslam.tracking.features import estimate_motion, extract
@@ -40,15 +41,6 @@ def read_ms(path: Path, downsample: int, n_frames: int) -> dict:
             "read_frames": len(times), "resolution": f"{seq.intrinsics.width}x{seq.intrinsics.height}"}
 
 
-def _median_ms(fn, reps: int) -> float:
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(times))
-
-
 def orb_ms(path: Path, downsample: int, n_pairs: int, reps: int = 3) -> dict:
     """ORB extract ms per frame and match + PnP ms per pair (medians), tracker settings."""
     seq = open_sequence(path, DatasetOptions(downsample=downsample))
@@ -61,8 +53,8 @@ def orb_ms(path: Path, downsample: int, n_pairs: int, reps: int = 3) -> dict:
         a, b = seq[int(i)], seq[int(i) + gap]
         fa = extract(a.rgb, a.depth_m, intr, cfg)
         fb = extract(b.rgb, b.depth_m, intr, cfg)
-        ext.append(_median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), reps))
-        mp.append(_median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), reps))  # matches, then PnP
+        ext.append(median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), reps))
+        mp.append(median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), reps))  # matches, then PnP
         inl.append(estimate_motion(fa, fb, intr, cfg).n_inliers)
     return {"orb_extract_ms": round(float(np.median(ext)), 2), "orb_match_pnp_ms": round(float(np.median(mp)), 2),
             "orb_features": cfg.n_features, "orb_pairs": len(idx), "orb_median_inliers": float(np.median(inl))}

@@ -24,7 +24,7 @@ where these depth images agree. Needs the ``bench`` extra (open3d).
 ``--table reference``: the reference assignment's experiment, pairs 10, 40 and 90 apart at 320x240, single level at
 0.07 m (10 fixed iterations, no angle gate, no robust kernel) vs the register command's coarse-to-fine defaults.
 
-Usage: ``.venv/bin/python benchmarks/icp_pairs.py [--table success|reference|open3d] [--downsample 1,2] [--starts ...]
+Usage: ``.venv/bin/python -m benchmarks.icp_pairs [--table success|reference|open3d] [--downsample 1,2] [--starts ...]
 [--gaps ...]``.
 """
 
@@ -33,17 +33,15 @@ from __future__ import annotations
 import argparse
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import REDKITCHEN
 from surfelslam.eval.depth_agreement import depth_agreement
 from surfelslam.geometry import se3
 from surfelslam.tracking.icp import ICPConfig, icp, pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.tracking.registration import register_pair
-
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0499"
 
 REFERENCE_CFG = ICPConfig(levels=1, iterations=(10,), dist_thresh_m=(0.07,), angle_thresh_deg=(180.0,),
                           robust_kernel="none", min_update_norm=0.0, min_relative_residual_change=0.0,
@@ -60,9 +58,9 @@ def _open(downsample: int):
     from surfelslam.datasets import open_sequence
     from surfelslam.datasets.base import DatasetOptions
 
-    if not SHARED.is_dir():
-        raise SystemExit(f"{SHARED} is absent: this experiment needs the shared 7-Scenes data")
-    return open_sequence(SHARED, DatasetOptions(downsample=downsample))
+    if not REDKITCHEN.is_dir():
+        raise SystemExit(f"{REDKITCHEN} is absent: this experiment needs the shared 7-Scenes data")
+    return open_sequence(REDKITCHEN, DatasetOptions(downsample=downsample))
 
 
 def _pyramids(seq, pre: Preprocessor, frames) -> dict:

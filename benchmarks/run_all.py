@@ -5,20 +5,21 @@ README) and ``pipeline_cost_<W>x<H>.png`` (per-frame cost against frame index). 
 
 * ``jit``: numba compile (or cache load) and warm-up time, excluded from every FPS.
 * ``stages``: ms per frame at 320x240 and 640x480 on the first real sequence with ground truth (7-Scenes):
-  read (:mod:`bench_stages`, the dataset reader), preprocess / render / ICP / fuse and the whole loop (from the
-  ``metrics.json`` of a dense ``surfelslam run``), ORB extract and match + PnP (:mod:`bench_stages`).
-* ``icp``: one pairwise registration (:mod:`bench_icp`): preprocessing and pyramid ICP (3 levels, and the 4-level
-  default) at 320x240 and 640x480 on 1 and 2 threads, median ms after the JIT warm-up.
-* ``sustained``: the dense loop over 2,000 generated frames at 320x240 (:mod:`bench_pipeline`): FPS, per-frame
-  cost of the first and last 100 frames and their ratio (flat cost: <= 1.3), plot.
-* ``accuracy``: ATE / RPE / FPS of ``surfelslam run`` (:mod:`bench_accuracy`) on every real sequence long enough
-  to track (the others are listed in ``not_tracked``) and on synthetic slow / walking loop / fast sequences;
-  dense tracker, then orb and hybrid while the time budget allows (``skipped`` says what was left out).
+  read (:mod:`benchmarks.bench_stages`, the dataset reader), preprocess / render / ICP / fuse and the whole loop
+  (from the ``metrics.json`` of a dense ``surfelslam run``), ORB extract and match + PnP
+  (:mod:`benchmarks.bench_stages`).
+* ``icp``: one pairwise registration (:mod:`benchmarks.bench_icp`): preprocessing and pyramid ICP (3 levels, and
+  the 4-level default) at 320x240 and 640x480 on 1 and 2 threads, median ms after the JIT warm-up.
+* ``sustained``: the dense loop over 2,000 generated frames at 320x240 (:mod:`benchmarks.bench_pipeline`): FPS,
+  per-frame cost of the first and last 100 frames and their ratio (flat cost: <= 1.3), plot.
+* ``accuracy``: ATE / RPE / FPS of ``surfelslam run`` (:mod:`benchmarks.bench_accuracy`) on every real sequence
+  long enough to track (the others are listed in ``not_tracked``) and on synthetic slow / walking loop / fast
+  sequences; dense tracker, then orb and hybrid while the time budget allows (``skipped`` says what was left out).
 * ``open3d``: when open3d imports, Open3D's ``t.pipelines.slam`` (CPU, its example's defaults) and ours on the same
   first frames of those sequences at 320x240, with the ratios ours / theirs.
 
 ``--quick`` (about 1-2 minutes) runs the same sections on fewer frames. Usage:
-``.venv/bin/python benchmarks/run_all.py [--quick] [--out DIR] [--budget-s S] [--no-open3d] [--shared DIR]``.
+``.venv/bin/python -m benchmarks.run_all [--quick] [--out DIR] [--budget-s S] [--no-open3d] [--shared DIR]``.
 Other tools here (not run by ``make bench``): ``bench_fusion.py``
 (render/fuse on a growing corridor map), ``bench_orb.py``, ``icp_pairs.py``.
 """
@@ -38,22 +39,17 @@ import traceback
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import surfelslam
+from benchmarks import bench_accuracy, bench_icp, bench_pipeline, bench_stages, open3d_slam
+from benchmarks.common import SHARED_DATA
+from surfelslam.datasets import DatasetOptions, open_sequence
+from surfelslam.io.jsonio import json_default
+from surfelslam.kernels import threads
+from surfelslam.slam import SlamConfig, warm_up
+from surfelslam.slam.config import apply_compute
+
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-import bench_accuracy  # noqa: E402
-import bench_icp  # noqa: E402
-import bench_pipeline  # noqa: E402
-import bench_stages  # noqa: E402
-import open3d_slam  # noqa: E402
-import surfelslam  # noqa: E402
-from surfelslam.datasets import DatasetOptions, open_sequence  # noqa: E402
-from surfelslam.io.jsonio import json_default  # noqa: E402
-from surfelslam.kernels import threads  # noqa: E402
-from surfelslam.slam import SlamConfig, warm_up  # noqa: E402
-from surfelslam.slam.config import apply_compute  # noqa: E402
-
-SHARED = HERE.parent.parent / "shared" / "data"
+SHARED = SHARED_DATA
 RESULTS = HERE / "results"
 STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it

@@ -1,4 +1,4 @@
-"""`make bench` (benchmarks/run_all.py) end to end on tiny inputs: the JSON sections and the markdown tables.
+"""`make bench` (``python -m benchmarks.run_all``) end to end on tiny inputs: the JSON sections and the markdown tables.
 
 A tiny plan (80x60 and 160x120 images, a few frames each) over a temporary "shared data" folder holding a
 12-frame generated sequence (stands in for 7-Scenes), a 4-frame one (too short to track) and a folder that is
@@ -10,17 +10,12 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
 
+from benchmarks import run_all  # the repository root is on sys.path (pytest's `pythonpath`)
 from surfelslam.synth.writer import generate_sequence
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(BENCH))
-
-import run_all  # noqa: E402
 
 TINY = run_all.Plan(
     "tiny", read_frames=2, orb_pairs=1, icp_pairs=1, icp_reps=1,
@@ -161,7 +156,7 @@ def test_budget() -> None:
 
 def test_sustained_equal_view_ratios() -> None:
     """Laps of 15 frames (walking loop): the ratios of equal views use the right windows of the series."""
-    import bench_pipeline
+    from benchmarks import bench_pipeline
 
     row = bench_pipeline.bench(80, 40, 5, style="loop", lap=15, plot_dir=None)
     cpu = row["series"]["cpu_ms"]
