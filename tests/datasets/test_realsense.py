@@ -44,6 +44,7 @@ class FakeDevice:
         self.closed = True
 
 
+@pytest.mark.slow
 def test_live_run_and_its_recording_give_the_folder_trajectory(folder, tmp_path):
     ref = open_sequence(folder)
     run_sequence(ref, tmp_path / "folder", SlamConfig(), "dense", progress=False, figures=False)
@@ -59,6 +60,7 @@ def test_live_run_and_its_recording_give_the_folder_trajectory(folder, tmp_path)
     assert (tmp_path / "replay" / "trajectory.txt").read_bytes() == expected
 
 
+@pytest.mark.slow
 def test_selection_order_and_end_of_stream(folder):
     ref = open_sequence(folder)
     live = open_realsense(DatasetOptions(start=2, end=8, stride=2, downsample=2), device=FakeDevice(ref))
@@ -75,6 +77,7 @@ def test_selection_order_and_end_of_stream(folder):
         short[len(ref)]
 
 
+@pytest.mark.slow
 def test_options_are_checked(folder, tmp_path):
     ref = open_sequence(folder)
     with pytest.raises(ConfigError, match="--end"):

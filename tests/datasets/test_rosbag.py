@@ -54,6 +54,7 @@ def _frames_equal(a, b) -> None:
         assert np.array_equal(fa.rgb, fb.rgb) and np.array_equal(fa.depth_m, fb.depth_m)
 
 
+@pytest.mark.slow
 def test_bag_trajectories_are_the_folders(folder, bags, tmp_path):
     """ROS 1, ROS 2 (SQLite), ROS 2 (MCAP) and the plain MCAP file: same frames, same camera, same ground truth
     and a trajectory byte-identical to the folder run's."""
@@ -74,6 +75,7 @@ def test_bag_trajectories_are_the_folders(folder, bags, tmp_path):
         assert (tmp_path / fmt / "trajectory.txt").read_bytes() == expected, fmt
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("colour, depth, scale", [("bgr8", "16UC1", 5000.0), ("png", "compressedDepth", 5000.0)])
 def test_encodings_give_the_same_frames(folder, tmp_path, colour, depth, scale):
     """bgr8 and PNG colour, 16-bit depth in raw units (read with the folder's --depth-scale), and compressedDepth
@@ -83,6 +85,7 @@ def test_encodings_give_the_same_frames(folder, tmp_path, colour, depth, scale):
     _frames_equal(open_sequence(folder, DatasetOptions(end=3)), open_sequence(path, DatasetOptions(depth_scale=scale)))
 
 
+@pytest.mark.slow
 def test_jpeg_colour_and_millimetre_default(folder, tmp_path):
     path = write_bag(folder, tmp_path / "j", "mcap", colour_encoding="jpeg", depth_encoding="16UC1",
                      options=DatasetOptions(end=2))
@@ -94,6 +97,7 @@ def test_jpeg_colour_and_millimetre_default(folder, tmp_path):
     assert np.allclose(f.depth_m * 1000 / 5000, g.depth_m, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_info_lists_topics_rates_and_camera(bags):
     res = runner.invoke(app, ["info", str(bags["ros2"]), "--json"])
     assert res.exit_code == 0, res.output
@@ -109,6 +113,7 @@ def test_info_lists_topics_rates_and_camera(bags):
     assert res.exit_code == 0 and "/camera/color/image_raw" in res.output
 
 
+@pytest.mark.slow
 def test_cli_run_on_a_bag_with_a_selection(bags, tmp_path):
     out = tmp_path / "run"
     res = runner.invoke(app, ["run", str(bags["ros1"]), "--out", str(out), "--no-progress", "--no-figures",
@@ -129,6 +134,7 @@ def _one_line_error(args: list[str]) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["ros1", "ros2", "plain_mcap"])
 def test_truncated_bag_is_one_line(bags, tmp_path, which):
     src = bags[which] if which != "ros2" else next(bags["ros2"].glob("*.db3"))
@@ -139,11 +145,13 @@ def test_truncated_bag_is_one_line(bags, tmp_path, which):
     assert str(cut) in line and "truncated" in line
 
 
+@pytest.mark.slow
 def test_missing_topic_is_one_line(bags):
     line = _one_line_error(["info", str(bags["ros1"]), "--depth-topic", "/camera/depth/nope"])
     assert "/camera/depth/nope" in line and "no such topic" in line and "/camera/color/image_raw" in line
 
 
+@pytest.mark.slow
 def test_no_depth_topic_names_the_option(folder, tmp_path):
     path = write_bag(folder, tmp_path / "nd.bag", "ros1", depth_topic="/camera/aligned/image_raw",
                      options=DatasetOptions(end=2))
@@ -194,6 +202,7 @@ def test_no_camera_info_asks_for_intrinsics(tmp_path):
     assert seq[0].rgb.shape == (4, 4, 3) and float(seq[0].depth_m[0, 0]) == 1.0  # mono8 colour, 16UC1 in mm
 
 
+@pytest.mark.slow
 def test_gt_file_replaces_ground_truth(folder, tmp_path):
     gt = tmp_path / "gt.txt"
     gt.write_text("0.0 1 2 3 0 0 0 1\n0.033333 1 2 3 0 0 0 1\n")

@@ -14,6 +14,9 @@ from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
+# every test here streams frames of a generated sequence (several run it through a tracker)
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):

@@ -61,94 +61,108 @@ def write_bag(seq_folder: str | Path, out_path: str | Path, format: str = "ros1"
     Returns the written path (the ``.bag`` file or the ROS 2 bag folder).
     """
     from surfelslam.datasets.registry import open_sequence
-    from surfelslam.io.images import read_depth_raw, read_rgb
 
-    if format not in FORMATS:
-        raise ConfigError(f"bag format must be one of {', '.join(FORMATS)}, got {format!r}")
-    if colour_encoding not in COLOUR_ENCODINGS:
-        raise ConfigError(f"colour encoding must be one of {', '.join(COLOUR_ENCODINGS)}, got {colour_encoding!r}")
-    if depth_encoding not in DEPTH_ENCODINGS:
-        raise ConfigError(f"depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got {depth_encoding!r}")
     out = Path(out_path)
-    if out.exists():
-        raise OutputError(out, "already exists (the bag writers only create new bags)")
     opts = DatasetOptions() if options is None else options
-    if opts.downsample != 1:
-        raise ConfigError("write_bag writes the files' resolution: leave downsample at 1")
+    _check_arguments(format, colour_encoding, depth_encoding, out, opts)
     seq = open_sequence(seq_folder, opts)
     if depth_encoding == "auto":
         depth_encoding = "16UC1" if seq.depth_scale == MM_DEPTH_SCALE else "32FC1"
 
-    ros1 = format == "ros1"
-    msgs = _Messages(ros1)
-    ts, serialize = msgs.ts, msgs.serialize
-    image, compressed = msgs.image, msgs.compressed
-
-    def colour_msg(t: float, rgb: np.ndarray):
-        import cv2
-
-        if colour_encoding == "rgb8":
-            return IMAGE, image(t, rgb, "rgb8")
-        if colour_encoding == "bgr8":
-            return IMAGE, image(t, rgb[:, :, ::-1], "bgr8")
-        ok, buf = cv2.imencode(".jpg" if colour_encoding == "jpeg" else ".png", rgb[:, :, ::-1])
-        assert ok
-        return COMPRESSED, compressed(t, f"rgb8; {colour_encoding} compressed bgr8", buf.tobytes())
-
-    def depth_msg(t: float, raw: np.ndarray):
-        import cv2
-
-        if depth_encoding == "32FC1":
-            metres = raw.astype(np.float32) / np.float32(seq.depth_scale)
-            metres[~np.isfinite(metres) | (metres <= 0) | (raw == 0)] = 0.0
-            return IMAGE, image(t, metres.astype("<f4"), "32FC1")
-        raw16 = np.asarray(raw).astype("<u2")
-        if depth_encoding == "16UC1":
-            return IMAGE, image(t, raw16, "16UC1")
-        ok, buf = cv2.imencode(".png", raw16)
-        assert ok
-        head = np.array([0], "<i4").tobytes() + np.array([0.0, 0.0], "<f4").tobytes()
-        return COMPRESSED, compressed(t, "16UC1; compressedDepth png", head + buf.tobytes())
-
-    def camera_info(t: float):
-        return msgs.camera_info(t, seq.full_intrinsics)
-
-    def pose(t: float, M: np.ndarray):
-        return msgs.pose(t, M)
-
+    msgs = _Messages(format == "ros1")
     writer = _writer(out, format)
     colour_type = IMAGE if colour_encoding in ("rgb8", "bgr8") else COMPRESSED
     depth_type = COMPRESSED if depth_encoding == "compressedDepth" else IMAGE
-    messages: list[tuple[int, str, float, object]] = []  # (receive ns, topic, stamp, builder) per message
-    for e in seq.entries:
-        messages.append((_ns(e.timestamp), rgb_topic, e.timestamp, ("colour", e)))
-        t_d = e.timestamp if e.depth_timestamp is None else e.depth_timestamp
-        messages.append((_ns(t_d), depth_topic, t_d, ("depth", e)))
-        if info_topic is not None:
-            messages.append((_ns(e.timestamp), info_topic, e.timestamp, ("info", e)))
     gt = seq.ground_truth if gt_topic is not None else None
-    if gt is not None:
-        for t, M in zip(gt.timestamps, gt.T_world_cam, strict=True):
-            messages.append((_ns(t), gt_topic, float(t), ("pose", M)))
-    messages.sort(key=lambda m: m[0])  # stable: colour before depth before info at one time
+    messages = _message_plan(seq, gt, rgb_topic, depth_topic, info_topic, gt_topic)
     with writer:
+        ts = msgs.ts
         conns = {rgb_topic: writer.add_connection(rgb_topic, colour_type, typestore=ts),
                  depth_topic: writer.add_connection(depth_topic, depth_type, typestore=ts)}
         if info_topic is not None:
             conns[info_topic] = writer.add_connection(info_topic, CAMERA_INFO, typestore=ts)
         if gt is not None:
             conns[gt_topic] = writer.add_connection(gt_topic, POSE, typestore=ts)
-        for log_ns, topic, t, (what, obj) in messages:
-            if what == "colour":
-                msgtype, msg = colour_msg(t, read_rgb(obj.rgb_path))
-            elif what == "depth":
-                msgtype, msg = depth_msg(t, read_depth_raw(obj.depth_path))
-            elif what == "info":
-                msgtype, msg = CAMERA_INFO, camera_info(t)
-            else:
-                msgtype, msg = POSE, pose(t, obj)
-            writer.write(conns[topic], log_ns, serialize(msg, msgtype))
+        for log_ns, topic, t, what in messages:
+            msgtype, msg = _build_message(msgs, seq, what, t, colour_encoding, depth_encoding)
+            writer.write(conns[topic], log_ns, msgs.serialize(msg, msgtype))
     return out
+
+
+def _check_arguments(format: str, colour_encoding: str, depth_encoding: str, out: Path,  # noqa: A002
+                     opts: DatasetOptions) -> None:
+    """ConfigError / OutputError for an unknown format or encoding, an existing output or a downsampled selection."""
+    if format not in FORMATS:
+        raise ConfigError(f"bag format must be one of {', '.join(FORMATS)}, got {format!r}")
+    if colour_encoding not in COLOUR_ENCODINGS:
+        raise ConfigError(f"colour encoding must be one of {', '.join(COLOUR_ENCODINGS)}, got {colour_encoding!r}")
+    if depth_encoding not in DEPTH_ENCODINGS:
+        raise ConfigError(f"depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got {depth_encoding!r}")
+    if out.exists():
+        raise OutputError(out, "already exists (the bag writers only create new bags)")
+    if opts.downsample != 1:
+        raise ConfigError("write_bag writes the files' resolution: leave downsample at 1")
+
+
+def _message_plan(seq, gt, rgb_topic: str, depth_topic: str, info_topic: str | None, gt_topic: str | None
+                  ) -> list[tuple[int, str, float, tuple[str, object]]]:
+    """``(receive ns, topic, stamp, (what, frame entry or pose))`` of every message to write, in receive order."""
+    messages: list[tuple[int, str, float, tuple[str, object]]] = []
+    for e in seq.entries:
+        messages.append((_ns(e.timestamp), rgb_topic, e.timestamp, ("colour", e)))
+        t_d = e.timestamp if e.depth_timestamp is None else e.depth_timestamp
+        messages.append((_ns(t_d), depth_topic, t_d, ("depth", e)))
+        if info_topic is not None:
+            messages.append((_ns(e.timestamp), info_topic, e.timestamp, ("info", e)))
+    if gt is not None:
+        for t, M in zip(gt.timestamps, gt.T_world_cam, strict=True):
+            messages.append((_ns(t), gt_topic, float(t), ("pose", M)))
+    messages.sort(key=lambda m: m[0])  # stable: colour before depth before info at one time
+    return messages
+
+
+def _build_message(msgs: _Messages, seq, what: tuple[str, object], t: float, colour_encoding: str,
+                   depth_encoding: str) -> tuple[str, object]:
+    """``(message type, message)`` of one planned message (:func:`_message_plan`), its image read from the folder."""
+    from surfelslam.io.images import read_depth_raw, read_rgb
+
+    kind, obj = what
+    if kind == "colour":
+        return _colour_msg(msgs, t, read_rgb(obj.rgb_path), colour_encoding)
+    if kind == "depth":
+        return _depth_msg(msgs, t, read_depth_raw(obj.depth_path), depth_encoding, seq.depth_scale)
+    if kind == "info":
+        return CAMERA_INFO, msgs.camera_info(t, seq.full_intrinsics)
+    return POSE, msgs.pose(t, obj)
+
+
+def _colour_msg(msgs: _Messages, t: float, rgb: np.ndarray, colour_encoding: str) -> tuple[str, object]:
+    import cv2
+
+    if colour_encoding == "rgb8":
+        return IMAGE, msgs.image(t, rgb, "rgb8")
+    if colour_encoding == "bgr8":
+        return IMAGE, msgs.image(t, rgb[:, :, ::-1], "bgr8")
+    ok, buf = cv2.imencode(".jpg" if colour_encoding == "jpeg" else ".png", rgb[:, :, ::-1])
+    assert ok
+    return COMPRESSED, msgs.compressed(t, f"rgb8; {colour_encoding} compressed bgr8", buf.tobytes())
+
+
+def _depth_msg(msgs: _Messages, t: float, raw: np.ndarray, depth_encoding: str, depth_scale: float
+               ) -> tuple[str, object]:
+    import cv2
+
+    if depth_encoding == "32FC1":
+        metres = raw.astype(np.float32) / np.float32(depth_scale)
+        metres[~np.isfinite(metres) | (metres <= 0) | (raw == 0)] = 0.0
+        return IMAGE, msgs.image(t, metres.astype("<f4"), "32FC1")
+    raw16 = np.asarray(raw).astype("<u2")
+    if depth_encoding == "16UC1":
+        return IMAGE, msgs.image(t, raw16, "16UC1")
+    ok, buf = cv2.imencode(".png", raw16)
+    assert ok
+    head = np.array([0], "<i4").tobytes() + np.array([0.0, 0.0], "<f4").tobytes()
+    return COMPRESSED, msgs.compressed(t, "16UC1; compressedDepth png", head + buf.tobytes())
 
 
 def _ns(t: float) -> int:

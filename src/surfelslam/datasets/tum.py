@@ -30,7 +30,7 @@ from surfelslam.datasets.base import (
 )
 from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
 from surfelslam.errors import DatasetError, GroundTruthError, InputError
-from surfelslam.io.trajectory import read_tum
+from surfelslam.io.trajectory import data_lines, read_tum
 from surfelslam.types import Trajectory
 
 #: Largest colour/depth timestamp difference accepted as one frame (seconds).
@@ -66,10 +66,7 @@ def read_index(path: Path, min_columns: int = 2) -> list[tuple[int, list[str]]]:
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(path, f"cannot read index file ({exc})") from None
     rows = []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
+    for lineno, line in data_lines(text):
         parts = line.split()
         if len(parts) < min_columns:
             raise DatasetError(path, f"line {lineno}: expected 'timestamp filename', got {line!r}")
@@ -137,8 +134,8 @@ def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt_s: float) -> tuple[np.nda
     return ia, nearest[ia], float(dt.min())
 
 
-def _unpaired_reasons(t_a: np.ndarray, t_b: np.ndarray, used_b: np.ndarray, max_dt_s: float,
-                      b_index: str, b_what: str) -> list[str]:
+def unpaired_reasons(t_a: np.ndarray, t_b: np.ndarray, used_b: np.ndarray, max_dt_s: float,
+                     b_index: str, b_what: str) -> list[str]:
     """Why each of ``t_a`` (all unpaired) has no partner among ``t_b``: too far, or its nearest is taken."""
     if len(t_b) == 0:
         return [f"{b_index} lists no {b_what}"] * len(t_a)
@@ -182,10 +179,10 @@ def read_tum_entries(root: Path, max_dt_s: float = MAX_RGB_DEPTH_DT_S) -> tuple[
     used_depth[ib] = True
     lone_rgb, lone_depth = np.nonzero(~used_rgb)[0], np.nonzero(~used_depth)[0]
     unpaired = [UnpairedFrame(rgb_paths[k], float(t_rgb[k]), why) for k, why in zip(
-        lone_rgb, _unpaired_reasons(t_rgb[lone_rgb], t_depth, used_depth, max_dt_s, DEPTH_INDEX, "depth image"),
+        lone_rgb, unpaired_reasons(t_rgb[lone_rgb], t_depth, used_depth, max_dt_s, DEPTH_INDEX, "depth image"),
         strict=True)]
     unpaired += [UnpairedFrame(depth_paths[k], float(t_depth[k]), why) for k, why in zip(
-        lone_depth, _unpaired_reasons(t_depth[lone_depth], t_rgb, used_rgb, max_dt_s, RGB_INDEX, "colour image"),
+        lone_depth, unpaired_reasons(t_depth[lone_depth], t_rgb, used_rgb, max_dt_s, RGB_INDEX, "colour image"),
         strict=True)]
     listed = max(len(t_rgb), len(t_depth))
     if len(ia) < MIN_PAIRED_FRACTION * listed:
