@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from surfelslam.backend.dense_edges import DenseEdgeConfig
+from surfelslam.backend.pose_graph import EDGE_INFORMATION_MODES
 from surfelslam.backend.sparse_slam import (
     DepthOdometryConfig,
     SparseSlamConfig,
@@ -154,6 +155,18 @@ class HybridConfig(Config):
         0.1, ge=0, le=1000,
         doc="a feature residual of joint_sigma_px costs this many point-to-plane pairs at [icp] "
             "finest_robust_scale_m")
+    graph_edge_information: str = setting(
+        "isotropic", choices=EDGE_INFORMATION_MODES,
+        doc="the hybrid's pose-graph edge weighting, in place of [sparse.graph] edge_information: isotropic, since "
+            "its dense odometry edges carry no estimated information and PnP Hessians must not outweigh them")
+    pnp_reference_width_px: int = setting(
+        0, unit="px", ge=0, le=65536,
+        doc="[sparse] features_reference_width_px for the hybrid: 0 keeps the PnP inlier bound as given at every "
+            "width (its PnP poses only guess or check ICP's)")
+    pnp_depth_edge_rel: float = setting(
+        0.0, unit="fraction", ge=0, le=100,
+        doc="[sparse.features] depth_edge_rel for the hybrid's sparse side: 0 keeps keypoints on occluding "
+            "contours for the keyframe edges (the joint term leaves them out itself)")
 
     @check
     def _odometry_sigma(self) -> str | None:

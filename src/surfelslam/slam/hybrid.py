@@ -83,16 +83,13 @@ class HybridSlam(DenseSlam):
         super().__init__(intr, cfg, colour_registered, colour_camera)
         mode = cfg.hybrid.joint_features
         self.joint = colour_switch(mode, colour_registered)
-        # dense odometry edges carry no estimated information: every edge weighs isotropically here, so the
-        # PnP loop edges' Hessians never outweigh the (more accurate) dense odometry by their scale alone
-        sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information="isotropic"))
-        # its PnP poses only guess or check ICP's: the PnP inlier bound stays as given at every width (scaled as for
-        # the orb tracker, it lets more poor PnP poses past the check)
-        sp = replace(sp, features_reference_width_px=0)
-        # nor does it drop the keypoints on occluding contours from the sparse side (features.depth_edge_rel: its
-        # refined keyframe edges are better with them); its joint term leaves them out instead (_pnp_match)
+        # the sparse back end with the hybrid's own settings (HybridConfig: graph_edge_information,
+        # pnp_reference_width_px, pnp_depth_edge_rel); the joint term leaves contour keypoints out itself (_pnp_match)
+        h = cfg.hybrid
+        sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information))
+        sp = replace(sp, features_reference_width_px=h.pnp_reference_width_px)
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
-        sp = replace(sp, features=replace(sp.features, depth_edge_rel=0.0))
+        sp = replace(sp, features=replace(sp.features, depth_edge_rel=h.pnp_depth_edge_rel))
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         refiner, refined_scale = None, None
