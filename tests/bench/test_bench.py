@@ -126,6 +126,14 @@ def test_markdown(bench) -> None:
             assert len({ln.count("|") for ln in lines}) == 1, block
 
 
+def test_docs_page_is_the_markdown_under_its_header(bench, tmp_path) -> None:
+    res, _ = bench
+    page = tmp_path / "benchmarks.md"
+    run_all.write_docs_page(res, page)
+    assert page.read_text() == run_all.DOCS_HEADER + run_all.to_markdown(res)
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
 def test_markdown_flags_failures() -> None:
     """A flat-cost ratio above 1.3, a budget skip and a section error all show in the markdown."""
     res = {"meta": {"date": "2000-01-01", "mode": "full", "python": "3", "numba": "0", "open3d": None,
