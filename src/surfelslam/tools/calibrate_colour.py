@@ -12,18 +12,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from surfelslam.tools.common import (
-    DepthScaleOpt,
-    DownsampleOpt,
-    EndOpt,
-    IntrinsicsOpt,
-    SeqArg,
-    StartOpt,
-    StrideOpt,
-    console,
-    dataset_options,
-    handle_errors,
-)
+from surfelslam.tools.common import DatasetOptionsArgs, SeqArg, console, handle_errors, with_dataset_options
 
 
 def info_lines(fx: float, fy: float, cx: float, cy: float, t: tuple[float, float, float]) -> list[str]:
@@ -35,14 +24,10 @@ def info_lines(fx: float, fy: float, cx: float, cy: float, t: tuple[float, float
 def register(app: typer.Typer) -> None:
     @app.command("calibrate-colour")
     @handle_errors
+    @with_dataset_options
     def calibrate_colour(
         seq: SeqArg,
-        intrinsics: IntrinsicsOpt = None,
-        depth_scale: DepthScaleOpt = None,
-        start: StartOpt = 0,
-        end: EndOpt = None,
-        stride: StrideOpt = 1,
-        downsample: DownsampleOpt = 1,
+        dataset: DatasetOptionsArgs,
         frames: Annotated[int, typer.Option(help="Frames used, evenly spread over the selection.", min=1)] = 20,
         json_out: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
     ) -> None:
@@ -50,7 +35,7 @@ def register(app: typer.Typer) -> None:
         from surfelslam.datasets import open_sequence
         from surfelslam.geometry.colour_fit import fit_colour_camera
 
-        sq = open_sequence(seq, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
+        sq = open_sequence(seq, dataset.resolve())
         picks = np.unique(np.linspace(0, len(sq) - 1, min(frames, len(sq))).round().astype(int))
         fit = fit_colour_camera([sq[int(i)] for i in picks], sq.intrinsics)
         ci, f = fit.camera.intrinsics, sq.options.downsample

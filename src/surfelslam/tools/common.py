@@ -188,14 +188,3 @@ def parse_intrinsics(text: str | None) -> tuple[float, float, float, float] | No
         raise ConfigError(f"--intrinsics must be four numbers fx,fy,cx,cy, got {text!r}")
     return vals  # type: ignore[return-value]
 
-
-def dataset_options(
-    intrinsics: str | None = None,
-    depth_scale: float | None = None,
-    start: int | None = 0,
-    end: int | None = None,
-    stride: int | None = 1,
-    downsample: int | None = 1,
-) -> DatasetOptions:
-    """:class:`DatasetOptions` from the command-line values (``None``: the default)."""
-    return DatasetOptionsArgs(intrinsics, depth_scale, start, end, stride, downsample).resolve()

@@ -10,22 +10,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from surfelslam.tools.common import (
-    CameraInfoTopicOpt,
-    DatasetOptionsArgs,
-    DepthScaleOpt,
-    DepthTopicOpt,
-    DownsampleOpt,
-    EndOpt,
-    GtOpt,
-    IntrinsicsOpt,
-    RgbTopicOpt,
-    SeqArg,
-    StartOpt,
-    StrideOpt,
-    console,
-    handle_errors,
-)
+from surfelslam.tools.common import DatasetOptionsArgs, SeqArg, console, handle_errors, with_dataset_options
 
 
 def _colour_row(d: dict) -> str:
@@ -79,18 +64,10 @@ def info_table(d: dict) -> Table:
 def register(app: typer.Typer) -> None:
     @app.command("info")
     @handle_errors
+    @with_dataset_options
     def info(
         seq: SeqArg,
-        intrinsics: IntrinsicsOpt = None,
-        depth_scale: DepthScaleOpt = None,
-        start: StartOpt = 0,
-        end: EndOpt = None,
-        stride: StrideOpt = 1,
-        downsample: DownsampleOpt = 1,
-        rgb_topic: RgbTopicOpt = None,
-        depth_topic: DepthTopicOpt = None,
-        camera_info_topic: CameraInfoTopicOpt = None,
-        gt: GtOpt = None,
+        dataset: DatasetOptionsArgs,
         json_out: Annotated[bool, typer.Option("--json", help="Print the information as JSON.")] = False,
     ) -> None:
         """Show the detected layout, frames, resolution, intrinsics, depth scale and ground-truth coverage.
@@ -99,9 +76,8 @@ def register(app: typer.Typer) -> None:
         """
         from surfelslam.datasets import describe, open_sequence
 
-        opts = DatasetOptionsArgs(intrinsics, depth_scale, start, end, stride, downsample, rgb_topic, depth_topic,
-                                  camera_info_topic, gt).resolve()
-        d = describe(open_sequence(seq, opts, plausibility="warn"))  # info diagnoses: it warns, run refuses
+        # info diagnoses: it warns (run refuses)
+        d = describe(open_sequence(seq, dataset.resolve(), plausibility="warn"))
         if json_out:
             typer.echo(json.dumps(d, indent=2))
         else:

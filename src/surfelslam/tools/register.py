@@ -15,18 +15,7 @@ import numpy as np
 import typer
 
 from surfelslam.errors import ConfigError
-from surfelslam.tools.common import (
-    DepthScaleOpt,
-    DownsampleOpt,
-    EndOpt,
-    IntrinsicsOpt,
-    SeqArg,
-    StartOpt,
-    StrideOpt,
-    console,
-    dataset_options,
-    handle_errors,
-)
+from surfelslam.tools.common import DatasetOptionsArgs, SeqArg, console, handle_errors, with_dataset_options
 
 
 def per_level(text: str | None, default: tuple, levels: int, name: str, cast=float,
@@ -226,17 +215,13 @@ def _print_result(result: dict, res, T: np.ndarray, agree: dict, out: Path) -> N
 def register(app: typer.Typer) -> None:
     @app.command("register")
     @handle_errors
+    @with_dataset_options
     def register_cmd(
         seq: SeqArg,
         source: Annotated[int, typer.Option("--source", help="Source frame position (after selection).")],
         target: Annotated[int, typer.Option("--target", help="Target frame position (after selection).")],
         out: Annotated[Path, typer.Option("--out", help="Output folder (registration.json, before/after.png).")],
-        intrinsics: IntrinsicsOpt = None,
-        depth_scale: DepthScaleOpt = None,
-        start: StartOpt = 0,
-        end: EndOpt = None,
-        stride: StrideOpt = 1,
-        downsample: DownsampleOpt = 1,
+        dataset: DatasetOptionsArgs,
         levels: Annotated[int | None, typer.Option("--levels", help="Pyramid levels (default 4).")] = None,
         dist_thresh: Annotated[str | None, typer.Option(
             "--dist-thresh", help="Association distance in metres: finest level (doubled per coarser level) "
@@ -292,7 +277,7 @@ def register(app: typer.Typer) -> None:
                               f"got {retime_colour!r}")
         if photometric not in PHOTOMETRIC_MODES:
             raise ConfigError(f"--photometric must be one of {', '.join(PHOTOMETRIC_MODES)}, got {photometric!r}")
-        sq = open_sequence(seq, dataset_options(intrinsics, depth_scale, start, end, stride, downsample))
+        sq = open_sequence(seq, dataset.resolve())
         for name, idx in (("--source", source), ("--target", target)):
             if not 0 <= idx < len(sq):
                 raise ConfigError(f"{name} {idx} is out of range: the selection has {len(sq)} frames")
