@@ -221,42 +221,51 @@ def integrate(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, tru
     """
     H, W = depth.shape
     inv_t = 1.0 / trunc_m
+    c_max = 255.0 * COLOUR_SCALE
+    cw_max = min(max_weight, _U16_MAX)
+    # camera-frame steps of one voxel along world x, y, z
+    ax, ay, az = T_cam_world[0, 0] * voxel_m, T_cam_world[1, 0] * voxel_m, T_cam_world[2, 0] * voxel_m
+    bx, by, bz = T_cam_world[0, 1] * voxel_m, T_cam_world[1, 1] * voxel_m, T_cam_world[2, 1] * voxel_m
+    cx_, cy_, cz_ = T_cam_world[0, 2] * voxel_m, T_cam_world[1, 2] * voxel_m, T_cam_world[2, 2] * voxel_m
     for q in prange(visible.shape[0]):
         b = visible[q]
-        ox = coords[b, 0] * BLOCK
-        oy = coords[b, 1] * BLOCK
-        oz = coords[b, 2] * BLOCK
-        for k in range(BLOCK_VOXELS):
-            px = (ox + (k & 7)) * voxel_m
-            py = (oy + ((k >> 3) & 7)) * voxel_m
-            pz = (oz + (k >> 6)) * voxel_m
-            zc = T_cam_world[2, 0] * px + T_cam_world[2, 1] * py + T_cam_world[2, 2] * pz + T_cam_world[2, 3]
-            if zc <= 1e-6:
-                continue
-            xc = T_cam_world[0, 0] * px + T_cam_world[0, 1] * py + T_cam_world[0, 2] * pz + T_cam_world[0, 3]
-            yc = T_cam_world[1, 0] * px + T_cam_world[1, 1] * py + T_cam_world[1, 2] * pz + T_cam_world[1, 3]
-            uf = fx * xc / zc + cx + 0.5
-            vf = fy * yc / zc + cy + 0.5
-            if not (uf >= 0.0 and vf >= 0.0 and uf < W and vf < H):
-                continue
-            u = int(uf)
-            v = int(vf)
-            d = depth[v, u]
-            if not (d >= min_depth and d <= max_depth):
-                continue
-            sdf = d - zc
-            if sdf < -trunc_m:
-                continue
-            f = min(1.0, sdf * inv_t)
-            w0 = weight[b, k]
-            tsdf[b, k] = (tsdf[b, k] * w0 + f) / (w0 + 1.0)
-            weight[b, k] = min(w0 + 1.0, max_weight)
-            if sdf < trunc_m:
-                cw = np.float64(colour_weight[b, k])
-                for c in range(3):
-                    val = (colour[b, k, c] * cw + rgb[v, u, c] * COLOUR_SCALE) / (cw + 1.0)
-                    colour[b, k, c] = np.uint16(min(val + 0.5, 255.0 * COLOUR_SCALE))
-                colour_weight[b, k] = np.uint16(min(cw + 1.0, min(max_weight, _U16_MAX)))
+        gx, gy, gz = coords[b, 0] * BLOCK, coords[b, 1] * BLOCK, coords[b, 2] * BLOCK
+        ox = ax * gx + bx * gy + cx_ * gz + T_cam_world[0, 3]
+        oy = ay * gx + by * gy + cy_ * gz + T_cam_world[1, 3]
+        oz = az * gx + bz * gy + cz_ * gz + T_cam_world[2, 3]
+        for kz in range(BLOCK):
+            for ky in range(BLOCK):
+                rx = ox + bx * ky + cx_ * kz
+                ry = oy + by * ky + cy_ * kz
+                rz = oz + bz * ky + cz_ * kz
+                for kx in range(BLOCK):
+                    zc = rz + az * kx
+                    if zc <= 1e-6:
+                        continue
+                    inv_z = 1.0 / zc
+                    uf = fx * (rx + ax * kx) * inv_z + cx + 0.5
+                    vf = fy * (ry + ay * kx) * inv_z + cy + 0.5
+                    if not (uf >= 0.0 and vf >= 0.0 and uf < W and vf < H):
+                        continue
+                    u = int(uf)
+                    v = int(vf)
+                    d = depth[v, u]
+                    if not (d >= min_depth and d <= max_depth):
+                        continue
+                    sdf = d - zc
+                    if sdf < -trunc_m:
+                        continue
+                    k = kx + BLOCK * ky + BLOCK * BLOCK * kz
+                    w0 = weight[b, k]
+                    tsdf[b, k] = (tsdf[b, k] * w0 + min(1.0, sdf * inv_t)) / (w0 + 1.0)
+                    weight[b, k] = min(w0 + 1.0, max_weight)
+                    if sdf < trunc_m:
+                        cw = np.float64(colour_weight[b, k])
+                        inv_w = 1.0 / (cw + 1.0)
+                        for c in range(3):
+                            val = (colour[b, k, c] * cw + rgb[v, u, c] * COLOUR_SCALE) * inv_w + 0.5
+                            colour[b, k, c] = np.uint16(min(val, c_max))
+                        colour_weight[b, k] = np.uint16(min(cw + 1.0, cw_max))
 
 
 # ---------------------------------------------------------------------------------------------- extraction

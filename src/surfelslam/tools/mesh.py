@@ -225,8 +225,8 @@ def register(app: typer.Typer) -> None:
                           min_weight=min_weight)
         res = mesh_run(run_dir, cfg, out, sequence, progress, run_depth_range=max_depth is None)
         for note in res.notes:
-            console.print(f"note: {note}", highlight=False, markup=False)
+            console.print(f"note: {note}", highlight=False, markup=False, soft_wrap=True)
         detail = (f"{res.frames_fused} frames fused, voxel {cfg.voxel_m * 100:g} cm, TSDF {res.tsdf_mb:,.0f} MiB"
                   if res.method == "tsdf" else "Poisson on map.ply")
         console.print(f"wrote {res.path} ({res.vertices:,} vertices, {res.faces:,} triangles; {detail}; "
-                      f"{res.seconds:.1f} s)", highlight=False, markup=False)
+                      f"{res.seconds:.1f} s)", highlight=False, markup=False, soft_wrap=True)

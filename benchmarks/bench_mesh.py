@@ -1,0 +1,214 @@
+"""Mesh quality and cost: our TSDF + marching cubes against the exact surfaces of a synthetic room, beside Open3D.
+
+A ``surfelslam synth`` room (320x240, Kinect noise, ``slow`` hand-held loop; 150 frames by default) is meshed
+
+* from the ground-truth poses and from the poses a dense ``surfelslam run`` estimated (moved onto the first
+  ground-truth pose: the run starts at the identity, the scene's frame is the ground truth's);
+* by our TSDF (:mod:`surfelslam.mapping.mesh`, parallel kernels) and, when ``open3d`` imports, by Open3D's TSDF
+  (``t.geometry.VoxelBlockGrid``, CPU) with the same voxel, truncation, depth range, frames and weight threshold,
+  and by ``surfelslam mesh --method poisson`` (Open3D's Poisson on the run's ``map.ply``).
+
+Each mesh gets accuracy (mesh to true surface: mean, 90th percentile) and completeness (share of the surface the
+frames saw within 1 cm of the mesh), :mod:`surfelslam.eval.mesh_quality`. Times exclude image decoding (frames are
+read first) and, for ours, numba's compilation (a warm-up fuse). With scikit-image importable the marching cubes
+stage is also compared with ``skimage.measure.marching_cubes`` on the same TSDF made dense.
+
+Usage: ``.venv/bin/python benchmarks/bench_mesh.py [--frames N] [--voxel M] [--repeats K] [--work DIR]
+[--json PATH]``; prints Markdown tables (times: the fastest of ``--repeats``). ``run(...)`` returns the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from surfelslam.datasets import open_sequence
+from surfelslam.eval import mesh_quality as mq
+from surfelslam.kernels.threads import set_parallel
+from surfelslam.mapping.mesh import MeshConfig, TsdfVolume
+from surfelslam.slam import SlamConfig
+from surfelslam.slam.runner import run_sequence
+from surfelslam.synth.writer import generate_sequence
+
+
+def _open3d():
+    try:
+        import open3d as o3d
+    except ImportError:
+        return None
+    return o3d
+
+
+def _ours(frames, poses, intr, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    t0 = time.perf_counter()
+    vol = TsdfVolume.from_config(cfg)
+    for f, T in zip(frames, poses, strict=True):
+        vol.integrate(f.depth_m, f.rgb, intr, T)
+    t1 = time.perf_counter()
+    mesh = vol.extract_mesh(cfg.min_weight)
+    t2 = time.perf_counter()
+    return mesh.vertices, mesh.faces, {"fuse_s": t1 - t0, "extract_s": t2 - t1,
+                                       "memory_mb": vol.memory_mb(vol.n_blocks)}
+
+
+def _theirs(o3d, frames, poses, intr, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Open3D's ``t.geometry.VoxelBlockGrid`` TSDF (8^3 blocks, CPU), float depth in metres and float colour (the
+    legacy ``ScalableTSDFVolume`` gives an empty mesh with open3d-cpu 0.20 and numpy 2 here)."""
+    o3c = o3d.core
+    vbg = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+        attr_channels=((1), (1), (3)), voxel_size=cfg.voxel_m, block_resolution=8, block_count=100_000,
+        device=o3c.Device("CPU:0"))
+    K = o3c.Tensor(intr.K, o3c.float64)
+    mult = cfg.truncation_m / cfg.voxel_m
+    t0 = time.perf_counter()
+    for f, T in zip(frames, poses, strict=True):
+        E = o3c.Tensor(np.linalg.inv(T), o3c.float64)
+        depth = o3d.t.geometry.Image(o3c.Tensor(np.where(f.depth_m >= cfg.min_depth_m, f.depth_m, 0)
+                                                .astype(np.float32)))
+        colour = o3d.t.geometry.Image(o3c.Tensor(f.rgb.astype(np.float32) / 255.0))
+        blocks = vbg.compute_unique_block_coordinates(depth, K, E, 1.0, cfg.max_depth_m, mult)
+        vbg.integrate(blocks, depth, colour, K, K, E, 1.0, cfg.max_depth_m, mult)
+    t1 = time.perf_counter()
+    mesh = vbg.extract_triangle_mesh(weight_threshold=cfg.min_weight).to_legacy()
+    t2 = time.perf_counter()
+    return (np.asarray(mesh.vertices, np.float32), np.asarray(mesh.triangles, np.int32),
+            {"fuse_s": t1 - t0, "extract_s": t2 - t1, "memory_mb": float("nan")})
+
+
+def marching_cubes_comparison(frames, poses, intr, cfg: MeshConfig) -> dict | None:
+    """Our marching cubes vs scikit-image's on the same TSDF (ours on the sparse blocks, theirs on the blocks'
+    bounding box made dense, unobserved voxels masked out); None without scikit-image."""
+    try:
+        from skimage.measure import marching_cubes
+    except ImportError:
+        return None
+    vol = TsdfVolume.from_config(cfg)
+    for f, T in zip(frames, poses, strict=True):
+        vol.integrate(f.depth_m, f.rgb, intr, T)
+    vol.extract_mesh(cfg.min_weight)  # compiled
+    t0 = time.perf_counter()
+    ours = vol.extract_mesh(cfg.min_weight)
+    t_ours = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    tsdf, weight, _ = vol.dense_grid()
+    t_dense = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    verts, faces, _, _ = marching_cubes(tsdf, 0.0, mask=weight >= cfg.min_weight)
+    t_sk = time.perf_counter() - t0
+    return {"blocks": vol.n_blocks, "dense_voxels": int(tsdf.size), "dense_mb": 2 * tsdf.nbytes / 2**20,
+            "ours_s": t_ours, "ours_vertices": ours.n_vertices, "ours_faces": ours.n_faces,
+            "skimage_s": t_sk, "skimage_dense_grid_s": t_dense, "skimage_vertices": len(verts),
+            "skimage_faces": len(faces)}
+
+
+def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open3d: bool = True,
+        noise: str = "kinect", repeats: int = 1) -> dict:
+    work = Path(tempfile.mkdtemp(prefix="bench_mesh_")) if work is None else Path(work)
+    seq_dir = work / f"room_{frames}_{noise}"
+    if not (seq_dir / "INFO.txt").is_file():
+        generate_sequence(seq_dir, scene="room", style="slow", n_frames=frames, noise=noise, seed=0, width=320,
+                          height=240)
+    seq = open_sequence(seq_dir)
+    run_dir = work / f"run_{frames}_{noise}"
+    if not (run_dir / "metrics.json").is_file():
+        run_sequence(seq, run_dir, SlamConfig(), progress=False, figures=False)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    from surfelslam.types import Trajectory
+
+    gt, ok_gt = seq.ground_truth.lookup(seq.timestamps, 1e-4)
+    est_raw, ok_est = Trajectory.read_tum(run_dir / "trajectory.txt").lookup(seq.timestamps, 1e-4)
+    assert ok_gt.all() and ok_est.all()
+    est = mq.first_pose_alignment(est_raw[0], gt[0]) @ est_raw
+    frames_mem = [seq[i] for i in range(len(seq))]
+    intr = seq.intrinsics
+    cfg = MeshConfig(voxel_m=voxel_m)
+    scene = mq.scene_of_sequence(seq_dir)
+    truth = mq.visible_surface_points(scene, gt[::2], intr, cfg.min_depth_m, cfg.max_depth_m)
+
+    set_parallel(True)
+    _ours(frames_mem[:2], gt[:2], intr, cfg)  # compile
+    o3d = _open3d() if open3d else None
+    rows = []
+    for poses_name, poses in (("ground truth", gt), ("estimated (dense run)", est)):
+        methods = [("surfelslam TSDF", _ours)]
+        if o3d is not None:
+            methods.append((f"Open3D {o3d.__version__} VoxelBlockGrid TSDF",
+                            lambda *a: _theirs(o3d, *a)))
+        for name, fn in methods:
+            v, f, cost = fn(frames_mem, poses, intr, cfg)
+            for _ in range(repeats - 1):  # the fastest of the repeats (the machine may be shared)
+                again = fn(frames_mem, poses, intr, cfg)[2]
+                cost = {k: min(cost[k], again[k]) for k in ("fuse_s", "extract_s")} | {"memory_mb": cost["memory_mb"]}
+            q = mq.mesh_quality(v, f, scene, truth, samples=100_000)
+            rows.append({"method": name, "poses": poses_name, **cost, **q})
+    if o3d is not None:  # Poisson on the run's surfels (estimated poses: the map is in the run's frame)
+        from surfelslam.io.ply import read_ply
+        from surfelslam.mapping.mesh import poisson_mesh
+
+        m = read_ply(run_dir / "map.ply")
+        t0 = time.perf_counter()
+        mesh = poisson_mesh(*(np.stack([m[a], m[b], m[c]], 1) for a, b, c in
+                              (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))), cfg)
+        cost = {"fuse_s": float("nan"), "extract_s": time.perf_counter() - t0, "memory_mb": float("nan")}
+        mesh = mesh.transformed(mq.first_pose_alignment(est_raw[0], gt[0]))
+        q = mq.mesh_quality(mesh.vertices, mesh.faces, scene, truth, samples=100_000)
+        rows.append({"method": "Poisson (Open3D) on map.ply's surfels", "poses": "estimated (dense run)", **cost,
+                     **q})
+    return {"sequence": str(seq_dir), "frames": len(seq), "resolution": [intr.width, intr.height],
+            "noise": noise, "repeats": repeats, "voxel_m": voxel_m, "trunc_m": cfg.truncation_m,
+            "max_depth_m": cfg.max_depth_m,
+            "run_ate_rmse_m": metrics.get("eval", {}).get("ate_rmse_m"), "rows": rows,
+            "marching_cubes": marching_cubes_comparison(frames_mem, gt, intr, cfg)}
+
+
+def _secs(v: float) -> str:
+    return "-" if np.isnan(v) else f"{v:.2f}"
+
+
+def markdown(res: dict) -> str:
+    ate = res["run_ate_rmse_m"]
+    lines = [f"Synthetic room, {res['frames']} frames at {res['resolution'][0]}x{res['resolution'][1]}, "
+             f"{res['noise']} noise; voxel {res['voxel_m'] * 100:g} cm, truncation {res['trunc_m'] * 100:g} cm, "
+             f"depth <= {res['max_depth_m']:g} m" + (f"; dense run ATE {ate * 100:.2f} cm" if ate is not None else ""),
+             "",
+             "| method | poses | accuracy mean (mm) | accuracy p90 (mm) | completeness @ 1 cm | triangles | fuse (s) "
+             "| extract (s) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in res["rows"]:
+        lines.append(f"| {r['method']} | {r['poses']} | {r['accuracy_mean_m'] * 1000:.2f} | "
+                     f"{r['accuracy_p90_m'] * 1000:.2f} | {r['completeness'] * 100:.1f} % | {r['faces']:,} | "
+                     f"{_secs(r['fuse_s'])} | {_secs(r['extract_s'])} |")
+    mc = res.get("marching_cubes")
+    if mc:
+        lines += ["", "| marching cubes (same TSDF, ground-truth poses) | time (s) | triangles |", "|---|---:|---:|",
+                  f"| ours, numba, on {mc['blocks']:,} sparse blocks | {mc['ours_s']:.2f} | {mc['ours_faces']:,} |",
+                  f"| scikit-image `marching_cubes` on the dense box ({mc['dense_voxels'] / 1e6:.0f} M voxels, "
+                  f"{mc['dense_mb']:.0f} MiB; + {mc['skimage_dense_grid_s']:.2f} s to build it) | "
+                  f"{mc['skimage_s']:.2f} | {mc['skimage_faces']:,} |"]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--voxel", type=float, default=0.01, help="voxel size [m]")
+    ap.add_argument("--noise", default="kinect")
+    ap.add_argument("--work", type=Path, default=None, help="folder for the sequence and the run (kept)")
+    ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--repeats", type=int, default=1, help="time each TSDF this many times, report the fastest")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    res = run(a.frames, a.voxel, a.work, not a.no_open3d, a.noise, max(1, a.repeats))
+    if a.json is not None:
+        a.json.write_text(json.dumps(res, indent=2) + "\n")
+    print(markdown(res))
+
+
+if __name__ == "__main__":
+    main()
