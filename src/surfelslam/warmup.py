@@ -9,6 +9,7 @@ process per part running at the same time, compiles each kernel once::
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
 working resolution and reduced from a larger input. ``sparse``: the synthetic renderer and the feature side (ORB
 matching, PnP and its consensus fallback, the keyframe cloud's voxel filter, the shape-feature guess).
+``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes.
 """
 
 from __future__ import annotations
@@ -36,6 +37,24 @@ def _dense() -> None:
     depth = (1.5 + 0.004 * u + 0.002 * v).astype(np.float32)
     mapper = build_slam(intr, cfg, "given")
     mapper.process(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), depth), T_world_cam=np.eye(4))
+    mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
+    mapper.finish()  # compaction of the map
+
+
+def _outputs() -> None:
+    """The figures' splat renderer and the mesh's TSDF and marching cubes."""
+    from surfelslam.mapping.mesh import TsdfVolume
+    from surfelslam.types import Intrinsics
+    from surfelslam.viz.map_figures import ViewCamera, render
+
+    intr = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    v, u = np.mgrid[0:48, 0:64].astype(np.float32)
+    depth = (1.0 + 0.004 * u + 0.002 * v).astype(np.float32)
+    vol = TsdfVolume(0.02, 0.08)
+    vol.integrate(depth, np.zeros((48, 64, 3), np.uint8), intr, np.eye(4))
+    mesh = vol.extract_mesh()
+    cam = ViewCamera(np.eye(3), np.zeros(3), 64, 48, 31.5, 23.5, f_px=60.0)
+    render(cam, mesh.vertices, mesh.normals, np.full(len(mesh.vertices), 0.01, np.float32))
 
 
 def _sparse() -> None:
@@ -61,7 +80,7 @@ def _sparse() -> None:
     geometric_guess(a.vertex, a.normal, b.vertex, b.normal)
 
 
-PARTS = {"dense": _dense, "sparse": _sparse}
+PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs}
 
 
 def warm(*parts: str) -> None:
