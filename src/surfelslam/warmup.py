@@ -9,7 +9,8 @@ process per part running at the same time, compiles each kernel once::
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
 working resolution and reduced from a larger input. ``sparse``: the synthetic renderer and the feature side (ORB
 matching, PnP and its consensus fallback, the keyframe cloud's voxel filter, the shape-feature guess).
-``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes.
+``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes. ``parallel``: the
+``parallel=True`` twins of the dense kernels.
 """
 
 from __future__ import annotations
@@ -39,6 +40,19 @@ def _dense() -> None:
     mapper.process(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), depth), T_world_cam=np.eye(4))
     mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
     mapper.finish()  # compaction of the map
+
+
+def _parallel() -> None:
+    """The ``parallel=True`` twins of the dense kernels (``compute.parallel_kernels``; bit-identical results)."""
+    from surfelslam.kernels import threads
+    from surfelslam.slam import SlamConfig
+    from surfelslam.slam.dense import warm_up
+
+    threads.set_parallel(True)
+    try:
+        warm_up(SlamConfig())
+    finally:
+        threads.set_parallel(False)
 
 
 def _outputs() -> None:
@@ -80,7 +94,7 @@ def _sparse() -> None:
     geometric_guess(a.vertex, a.normal, b.vertex, b.normal)
 
 
-PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs}
+PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs, "parallel": _parallel}
 
 
 def warm(*parts: str) -> None:

@@ -279,13 +279,24 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
         HybridConfig(joint_features="yes")
 
 
+def _few_loop_checks() -> SlamConfig:
+    """The defaults with fewer loop candidates per keyframe (2 nearby, 1 random): cheaper, still closing loops."""
+    cfg = SlamConfig()
+    return replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
+
+
+@cache
+def _loop_run_few_checks():
+    """The hybrid on the walking loop with :func:`_few_loop_checks` (shared by the loop tests of one worker)."""
+    return _run("hybrid", _frames("loop", N_LOOP)[0], _few_loop_checks())
+
+
 def test_loop_found_reported_and_closure_reduces_ate():
     """The revisit is recognised and reported, and the loop-corrected trajectory beats the same run without
     loop closure (measured with the defaults: 60 frames 0.59 vs 0.72 cm; 150 frames 0.74 vs 2.30 cm)."""
     frames, gt = _frames("loop", N_LOOP)
-    cfg = SlamConfig()
-    cheap = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
-    est, res, slam = _run("hybrid", frames, cheap)
+    cheap = _few_loop_checks()
+    est, res, slam = _loop_run_few_checks()
     m = res.metrics
     assert m["loops_accepted"] >= 1 and m["loops_found"] >= m["loops_accepted"] and m["keyframes"] > 10
     assert res.loop_stamps and all(a < b for a, b in res.loop_stamps)
@@ -306,10 +317,10 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     frames, gt = _frames("loop", N_LOOP)
     cfg = SlamConfig()
     assert cfg.hybrid.loop_icp.enabled
-    on = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
+    on = _few_loop_checks()
     cheap = replace(on, hybrid=replace(on.hybrid, loop_icp=replace(on.hybrid.loop_icp, enabled=False)))
     est_pnp, res_pnp, _ = _run("hybrid", frames, cheap)
-    est, res, _ = _run("hybrid", frames, on)
+    est, res, _ = _loop_run_few_checks()
     m = res.metrics
     assert res_pnp.metrics["edges_dense_refined"] == 0 and res_pnp.metrics["edge_sigma_m"] is None
     assert m["edges_dense_refined"] > 50 and m["loops_accepted"] > 10
@@ -487,13 +498,14 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     from helpers import shared_sequence
 
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2, end=150))
+    frames = list(seq)  # read once for the four runs
     T_gt, _ = seq.gt_poses()
     cfg = SlamConfig()
     plain = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, enabled=False)))
 
     def run(c: SlamConfig):
         slam = build_slam(seq.intrinsics, c, "hybrid", seq.colour_registered)
-        live = np.stack([slam.process(f).T_world_cam for f in seq])
+        live = np.stack([slam.process(f).T_world_cam for f in frames])
         res = slam.finish()
         est = res.trajectory_override.T_world_cam if res.trajectory_override is not None else live
         return est, res.metrics
@@ -506,7 +518,7 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     # loop corrections, which would move keyframes by a fraction of a millimetre (the PnP edges' noise): below
     # ``untrusted_min_correction_m`` they are not applied, and the trajectory is dense's to the last bit
     dense = build_slam(seq.intrinsics, cfg, "dense", seq.colour_registered)
-    est_dense = np.stack([dense.process(f).T_world_cam for f in seq])
+    est_dense = np.stack([dense.process(f).T_world_cam for f in frames])
     assert m["loop_correction_skipped"] == 1 and np.array_equal(est, est_dense)
     # without refined edges nothing says the depth is biased: the PnP graph's correction is applied (sub-mm here)
     assert m_plain["loop_correction_skipped"] == 0 and not np.array_equal(est_plain, est_dense)
