@@ -95,11 +95,11 @@ def look_pose(position: np.ndarray, yaw_rad: float, pitch_rad: float = 0.0) -> n
     return make_T(R, position)
 
 
-def register_app():
-    """A Typer app holding only the ``register`` command (the CLI without importing every command)."""
-    import typer
+def command_app(name: str):
+    """A Typer app holding only the command module ``surfelslam.tools.<name>`` (independent of the other commands)."""
+    import importlib
 
-    from surfelslam.tools import register as register_tool
+    import typer
 
     app = typer.Typer(pretty_exceptions_enable=False)
 
@@ -107,5 +107,10 @@ def register_app():
     def _root() -> None:
         pass
 
-    register_tool.register(app)
+    importlib.import_module(f"surfelslam.tools.{name}").register(app)
     return app
+
+
+def register_app():
+    """A Typer app holding only the ``register`` command."""
+    return command_app("register")

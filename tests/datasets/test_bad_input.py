@@ -7,27 +7,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import typer
 from typer.testing import CliRunner
 
 from surfelslam.datasets import LAYOUTS, DatasetOptions, open_sequence, require_ground_truth
 from surfelslam.errors import ConfigError, DatasetError, FrameError, GroundTruthError
 from surfelslam.io.images import write_png_depth, write_png_rgb
 
+from helpers import command_app
+
 W, H = 8, 6
 
 
-def info_app() -> typer.Typer:
-    from surfelslam.tools import info
-
-    app = typer.Typer(pretty_exceptions_enable=False)
-
-    @app.callback()
-    def _root() -> None:
-        pass
-
-    info.register(app)
-    return app
+def info_app():
+    """A CLI holding only ``info``."""
+    return command_app("info")
 
 
 def run_info(*args):

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import typer
 from typer.testing import CliRunner
 
 from surfelslam.datasets import (
@@ -25,23 +24,14 @@ from surfelslam.geometry.camera import backproject, project, round_in_image
 from surfelslam.io.images import write_png_depth, write_png_rgb
 from surfelslam.types import Intrinsics, RGBDFrame
 
-from helpers import shared_sequence
+from helpers import command_app, shared_sequence
 
 W, H = 8, 6
 
 
-def info_app() -> typer.Typer:
-    """A CLI holding only ``info`` (independent of the other commands' modules)."""
-    from surfelslam.tools import info
-
-    app = typer.Typer(pretty_exceptions_enable=False)
-
-    @app.callback()
-    def _root() -> None:
-        pass
-
-    info.register(app)
-    return app
+def info_app():
+    """A CLI holding only ``info``."""
+    return command_app("info")
 
 
 def run_info(*args: str):

@@ -170,7 +170,7 @@ def test_bad_input_is_one_line(orb_run, tmp_path, case):
             "wrong_downsample": [str(out), "--downsample", "2"]}.get(case)
     expect = {"no_folder": "not a folder", "no_trajectory": "trajectory.txt: missing",
               "bad_every": "--images-every must be >= 1", "wrong_downsample": "pass the run's --downsample",
-              "bad_metrics": "metrics.json: cannot read metrics"}[case]
+              "bad_metrics": "metrics.json: cannot read the run's metrics"}[case]
     if case == "bad_metrics":
         run2 = tmp_path / "r"
         run2.mkdir()

@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import contextlib
 import fnmatch
+import json
 import os
 import shutil
 import time
 from pathlib import Path
 
-from surfelslam.errors import ConfigError, OutputError
+from surfelslam.errors import ConfigError, InputError, OutputError
 from surfelslam.io.atomic import os_error_text
 
 #: The files a run (and ``surfelslam eval`` / ``surfelslam rerun`` beside it) writes into its folder.
@@ -278,3 +279,14 @@ def _hand_over(journal: Path, out: Path) -> None:
     except OSError as exc:
         raise OutputError(exc.filename or out, f"cannot move the run's files into {out} "
                                                f"({os_error_text(exc)}); the rest is in {journal}") from None
+
+
+def read_run_metrics(run_dir: Path) -> dict:
+    """A run folder's ``metrics.json`` as a dict (``{}`` when there is none); one line naming the file if unreadable."""
+    path = Path(run_dir) / COMPLETE_MARKER
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot read the run's metrics ({exc})") from None

@@ -2,27 +2,19 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from surfelslam.errors import ConfigError, InputError
+from surfelslam.io.run_folder import read_run_metrics
 from surfelslam.tools.common import DepthScaleOpt, IntrinsicsOpt, console, handle_errors, parse_intrinsics
 
 #: Largest difference (s) between a trajectory stamp and a frame stamp for the frame's images to be logged.
 FRAME_MATCH_S = 1e-4
 
 
-def _read_metrics(run_dir: Path) -> dict:
-    path = run_dir / "metrics.json"
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read metrics ({exc})") from None
 
 
 def export_run(run_dir: Path, out: Path | None = None, seq_dir: Path | None = None, images_every: int = 10,
@@ -63,7 +55,7 @@ def _read_run(run_dir: Path):
     est = Trajectory.read_tum(traj_path)
     if len(est) == 0:
         raise InputError(traj_path, "has no poses")
-    metrics = _read_metrics(run_dir)
+    metrics = read_run_metrics(run_dir)
     notes: list[str] = []
     map_path = run_dir / "map.ply"
     vertices = read_ply(map_path) if map_path.is_file() else None

@@ -9,7 +9,6 @@ surfels of ``map.ply`` with Open3D (optional). :func:`mesh_run` is the command w
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
 import time
 from pathlib import Path
@@ -19,6 +18,7 @@ import numpy as np
 import typer
 
 from surfelslam.errors import ConfigError, ConfigValueError, FrameError, InputError
+from surfelslam.io.run_folder import read_run_metrics
 from surfelslam.mapping.mesh import METHODS, Mesh, MeshConfig
 from surfelslam.tools.common import console, handle_errors
 
@@ -56,14 +56,6 @@ def mesh_config(**given) -> MeshConfig:
         raise ConfigError(text) from None
 
 
-def _read_metrics(run_dir: Path) -> dict:
-    path = run_dir / "metrics.json"
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read the run's metrics ({exc})") from None
 
 
 def _run_config(run_dir: Path, metrics: dict):
@@ -116,7 +108,7 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     est = Trajectory.read_tum(traj_path)
     if len(est) == 0:
         raise InputError(traj_path, "has no poses")
-    metrics = _read_metrics(run_dir)
+    metrics = read_run_metrics(run_dir)
     run_cfg = _run_config(run_dir, metrics)
     if run_depth_range:  # the depth range the run fused its map with
         cfg = dataclasses.replace(cfg, min_depth_m=run_cfg.fusion.min_depth_m, max_depth_m=run_cfg.fusion.max_depth_m)
