@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from surfelslam.config import Config, setting
 from surfelslam.errors import ConfigError
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 from surfelslam.viz.rerun_export import (
@@ -95,19 +96,17 @@ def parse_viewer(text: str) -> ViewerSpec:
 
 
 @dataclass(frozen=True)
-class LiveViewerConfig:
-    """How much is logged: images and map every N frames, path every N frames, map size cap, queue length."""
+class LiveViewerConfig(Config):
+    """How much the live viewer logs, and how far it may fall behind tracking."""
 
-    images_every: int = 5
-    map_every: int = 30
-    path_every: int = 10
-    map_max_points: int = 100_000
-    queue_size: int = 8
-
-    def __post_init__(self) -> None:
-        for name in ("images_every", "map_every", "path_every", "map_max_points", "queue_size"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"live viewer: {name} must be >= 1, got {getattr(self, name)}")
+    images_every: int = setting(5, unit="frames", ge=1, le=1_000_000,
+                                doc="log the colour and depth images every N frames")
+    map_every: int = setting(30, unit="frames", ge=1, le=1_000_000, doc="log a map snapshot every N frames")
+    path_every: int = setting(10, unit="frames", ge=1, le=1_000_000, doc="log the camera path every N frames")
+    map_max_points: int = setting(100_000, unit="points", ge=1, le=100_000_000,
+                                  doc="a map snapshot is subsampled to at most this many points")
+    queue_size: int = setting(8, unit="items", ge=1, le=10_000,
+                              doc="pending log items; when full, images and map snapshots are dropped, not waited for")
 
 
 @dataclass
