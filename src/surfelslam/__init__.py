@@ -1,9 +1,9 @@
 """surfelslam: dense RGB-D SLAM (projective ICP + point-based fusion) with a sparse ORB back end.
 
 The public API (:mod:`surfelslam.api`): :func:`open_sequence`, :class:`Slam` (``track`` / ``finish``), :class:`SlamRun`,
-:func:`register`, :func:`evaluate`, :class:`SlamConfig`, and the types :class:`Intrinsics`, :class:`RGBDFrame`,
-:class:`Trajectory`. The API names are imported on first use, so ``import surfelslam`` (and the command line's
-start-up) stays fast: nothing but the error types is imported up front.
+:func:`register`, :func:`evaluate`, :func:`load_map`, :class:`SlamConfig`, and the types :class:`Intrinsics`,
+:class:`RGBDFrame`, :class:`Trajectory`. The API names are imported on first use, so ``import surfelslam`` (and the
+command line's start-up) stays fast: nothing but the error types is imported up front.
 """
 
 from surfelslam.errors import SurfelSlamError
@@ -12,8 +12,8 @@ __version__ = "0.1.0"
 
 _API = {"Intrinsics": "surfelslam.types", "RGBDFrame": "surfelslam.types", "Trajectory": "surfelslam.types",
         "open_sequence": "surfelslam.api", "Slam": "surfelslam.api", "SlamRun": "surfelslam.api",
-        "register": "surfelslam.api", "evaluate": "surfelslam.api", "SlamConfig": "surfelslam.slam.config",
-        "TRACKERS": "surfelslam.slam"}
+        "register": "surfelslam.api", "evaluate": "surfelslam.api", "load_map": "surfelslam.api",
+        "SlamConfig": "surfelslam.slam.config", "TRACKERS": "surfelslam.slam"}
 
 __all__ = ["SurfelSlamError", *_API]
 

@@ -30,6 +30,7 @@ from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
 from surfelslam.eval.metrics import evaluate as _evaluate
 from surfelslam.slam import TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
+from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 from surfelslam.tracking.icp import ICPConfig
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
@@ -91,15 +92,21 @@ class SlamRun:
         return None if arrays is None else arrays["position"]
 
     def save(self, out_dir: str | Path) -> Path:
-        """Write ``trajectory.txt`` (TUM), ``map.ply``, ``config.toml`` and ``metrics.json`` into ``out_dir``."""
+        """Write ``trajectory.txt`` (TUM), ``map.ply``, ``config.toml``, ``metrics.json`` and (surfel trackers)
+        ``map.npz``, the map a later session continues from (:func:`load_map`), into ``out_dir``."""
         from surfelslam.io.atomic import write_text_atomic
         from surfelslam.io.jsonio import json_default
+        from surfelslam.io.map_file import MAP_FILE, write_map_file
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         self.trajectory.write_tum(out / "trajectory.txt")
         self.result.write_map(out / "map.ply")
-        write_text_atomic(out / "config.toml", dumps_toml(self.config))
+        recipe = dumps_toml(self.config)
+        write_text_atomic(out / "config.toml", recipe)
+        saved = self.result.saved_map
+        if saved is not None:
+            write_map_file(out / MAP_FILE, saved if saved.config_toml else replace(saved, config_toml=recipe))
         metrics = {"tracker": self.tracker, "frames_processed": len(self.trajectory), **self.metrics}
         write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
         return out
@@ -116,19 +123,28 @@ class Slam:
             are used only then, by default).
         colour_camera: a separate colour camera, if the colour is not registered to depth (map colours only).
         warmup: compile the numba kernels now (else on the first frame).
+        prior_map: continue from a saved map (:func:`load_map`, or the path of a run folder or its ``map.npz``):
+            the first frames are localised in it, then tracking and mapping go on in its frame (``dense``,
+            ``hybrid``). Frames before that have ``posed`` False.
+        localize_only: with ``prior_map``, track against it without changing it.
     """
 
     def __init__(self, intrinsics: Intrinsics, tracker: str | None = None,
                  config: SlamConfig | dict | str | Path | None = None, *, colour_registered: bool = True,
-                 colour_camera: ColourCamera | None = None, warmup: bool = True):
+                 colour_camera: ColourCamera | None = None, warmup: bool = True,
+                 prior_map: SavedMap | str | Path | None = None, localize_only: bool = False):
         cfg = _as_config(config)
         tracker = cfg.tracker if tracker is None else tracker
         if tracker not in TRACKERS:
             raise ConfigError(f"tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
+        check_map_options(tracker, prior_map, localize_only, None)
         self.intrinsics = intrinsics
         self.tracker_name = tracker
         self.config = replace(cfg, tracker=tracker)
         self.tracker: Tracker = build_slam(intrinsics, self.config, tracker, colour_registered, colour_camera)
+        if prior_map is not None:
+            self.tracker.use_prior_map(prior_map if isinstance(prior_map, SavedMap) else load_map(prior_map),
+                                       localize_only)
         if warmup:
             self.tracker.warmup()
         self._results: list[FrameResult] = []
@@ -169,12 +185,24 @@ class Slam:
         if res.trajectory_override is not None:
             traj = res.trajectory_override
         else:
-            stamps = np.array([r.timestamp for r in self._results], np.float64)
-            poses = np.array([r.T_world_cam for r in self._results], np.float64).reshape(-1, 4, 4)
+            posed = [r for r in self._results if r.posed]
+            stamps = np.array([r.timestamp for r in posed], np.float64)
+            poses = np.array([r.T_world_cam for r in posed], np.float64).reshape(-1, 4, 4)
             traj = Trajectory(stamps, poses)
         frames = [(r.index, r.timestamp, r.status, r.reason) for r in self._results]
         metrics = {**res.metrics, **segments_report(tracking_segments(frames))}
         return SlamRun(traj, res.surfel_map, metrics, self.config, self.tracker_name, res, self._results)
+
+
+def load_map(path: str | Path) -> SavedMap:
+    """A saved map (``map.npz``, or the run folder holding it) for ``Slam(..., prior_map=...)``.
+
+    Raises:
+        MapFileError: missing, truncated or corrupt, or of another format version (the message names the file).
+    """
+    from surfelslam.io.map_file import read_map_file
+
+    return read_map_file(path)
 
 
 def register(source: RGBDFrame, target: RGBDFrame, intrinsics: Intrinsics, init: str = "auto",

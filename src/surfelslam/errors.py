@@ -37,6 +37,12 @@ class GroundTruthError(InputError):
     """Ground truth is missing or cannot be associated with the frames."""
 
 
+class MapFileError(InputError):
+    """A saved map (``map.npz``, ``--map``) is missing, truncated, corrupt, or of another format version.
+
+    The message names the file and the problem on one line."""
+
+
 class ConfigError(SurfelSlamError):
     """A configuration value or file is invalid."""
 

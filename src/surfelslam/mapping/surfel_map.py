@@ -210,6 +210,23 @@ class SurfelMap:
         self._assign_blocks(s0, s0 + n)
         return rows
 
+    def load(self, surfels: dict[str, np.ndarray]) -> None:
+        """Fill an empty map with saved surfels (a map to continue from): ``{name: (n, ...)}`` for ``position``,
+        ``normal``, ``colour``, ``confidence``, ``radius``, ``first_seen``, ``last_seen``, ``hits`` (see the class
+        attributes). The rows count as checked by the dormant rule and are grouped by block."""
+        if self._size:
+            raise ValueError(f"load: the map must be empty, it has {self._size} surfels")
+        n = len(surfels["position"])
+        self.reserve(n)
+        for name in ("position", "normal", "colour", "confidence", "radius", "first_seen", "last_seen", "hits"):
+            getattr(self, "_" + name)[:n] = surfels[name]
+        self._dead[:n] = 0
+        self._size = n
+        self.latest_frame = int(self._last_seen[:n].max()) if n else -1
+        self.dormant_cursor = n
+        self._assign_blocks(0, n)
+        self.reorder_by_block(n)
+
     def commit_appended(self, start: int, stop: int) -> None:
         """Register rows ``start..stop-1`` written directly into the arrays by a kernel (sets ``size``)."""
         self._size = stop

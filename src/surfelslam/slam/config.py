@@ -98,6 +98,39 @@ class GivenPosesConfig(Config):
                               doc="a frame takes the pose whose timestamp is nearest, within this")
 
 
+@dataclass(frozen=True)
+class MapReuseConfig(Config):
+    """Saving the map for a later run (``map.npz``) and localising a new sequence in a saved map (``--map``)."""
+
+    save: bool = setting(True, doc="write map.npz (surfels, keyframes, pose graph, config) so that a later run can "
+                         "continue from it with --map (surfel trackers)")
+    keyframe_motion: float = setting(
+        0.15, unit="m + rad", gt=0, le=100,
+        doc="a tracked frame this far (motion norm) from the last saved keyframe becomes one: its ORB features and "
+            "depth are saved for relocalisation")
+    keyframe_depth_max_width_px: int = setting(
+        160, unit="px", ge=1, le=65536,
+        doc="a saved keyframe's depth is block-subsampled to at most this width (2x2 steps)")
+    localise_max_frames: int = setting(
+        30, unit="frames", ge=1, le=1_000_000,
+        doc="with --map, the first frames are localised in the saved map; after this many frames without a "
+            "verified pose the run gives up and starts a new map frame at the next frame")
+    localise_candidates: int = setting(
+        5, unit="keyframes", ge=1, le=1000,
+        doc="saved keyframes proposed by place recognition (descriptor voting) and verified by PnP per frame")
+    localise_min_inlier_fraction: float = setting(
+        0.4, unit="fraction", gt=0, le=1,
+        doc="a relocalisation is accepted only if dense ICP against the saved surfels keeps at least this fraction "
+            "of the frame's points as inliers (the overlap)")
+    localise_max_rmse_m: float = setting(
+        0.015, unit="m", gt=0, le=10,
+        doc="... and their RMS point-to-plane residual is at most this")
+    localise_max_shift_m: float = setting(
+        0.1, unit="m", gt=0, le=100,
+        doc="... and ICP moved the PnP pose at most this far (farther: the PnP pose was wrong)")
+    localise_max_shift_deg: float = setting(10.0, unit="deg", gt=0, le=180, doc="the same bound on the rotation")
+
+
 JOINT_MODES = PHOTOMETRIC_MODES  # the same auto | on | off colour switch (tracking.photometric.colour_switch)
 
 
@@ -217,6 +250,8 @@ class SlamConfig(Config):
     orb: OrbConfig = setting(default_factory=OrbConfig, doc="the orb tracker")
     colour_registration: ColourRegistrationConfig = setting(default_factory=ColourRegistrationConfig,
                                                             doc="colour through a separate colour camera")
+    map_reuse: MapReuseConfig = setting(default_factory=MapReuseConfig,
+                                        doc="saving the map (map.npz) and localising in a saved one (--map)")
 
     @check
     def _tracker_registered(self) -> str | None:

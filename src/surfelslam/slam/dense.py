@@ -24,13 +24,17 @@ density of a 320x240 map (one surfel per 2x2 input pixels; ~7 mm apart at 2 m, a
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
+from surfelslam.backend.sparse_slam import features_for_width
 from surfelslam.geometry import se3
 from surfelslam.mapping.render import render
+from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
+from surfelslam.slam.map_localiser import NOT_LOCALISED, MapLocaliser, verify_icp
 from surfelslam.slam.mapper import FusingMapper
 from surfelslam.slam.protocol import register_tracker
 from surfelslam.tracking.geometric import geometric_guess
@@ -78,6 +82,7 @@ class DenseSlam(FusingMapper):
         self.relocalisations = {"tried": 0, "tracked": 0, "refused_implausible": 0}
         self.t_last_tracked = 0.0  # timestamp (s) of the last tracked frame
         self.weak_frames = 0  # frames registered with weak directions held at the prediction
+        self._localiser: MapLocaliser | None = None  # with a loaded map, until the first frame is localised
 
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of ``T_world_cam`` for the next frame."""
@@ -142,15 +147,18 @@ class DenseSlam(FusingMapper):
         self._preprocess(frame, prepared)
         self._set_source_intensity(frame, prepared)
         t.lap("preprocess" if prepared is None else None)
-        if self.T_world_cam is None:  # the first frame defines the world frame
-            self.T_world_cam = np.eye(4)
+        if self.T_world_cam is None:  # the first frame defines the world frame (or is localised in a loaded map)
+            T_first = self._first_pose(frame, t)
+            if T_first is None:
+                return self._not_localised(frame, t)
+            self.T_world_cam = T_first
             self.T_world_last_tracked = self.T_world_cam.copy()
             self.t_last_tracked = frame.timestamp
             self._fuse(frame, self.T_world_cam)
             t.lap("fuse")
             self._retire_source()
             return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), True, True, None, t.ms,
-                               self.map.n_alive)
+                               self.map.n_alive, status=self._first_status())
         T_prev = self.T_world_cam
         T_pred = self.predict()
         T_init = se3.orthonormalize(se3.invert(T_prev) @ T_pred)
@@ -192,6 +200,69 @@ class DenseSlam(FusingMapper):
         self._retire_source()
         return FrameResult(frame.index, frame.timestamp, T_new.copy(), failure is None, failure is None,
                            res.reason, t.ms, self.map.n_alive, res, status)
+
+    # ---- a loaded map: the first frames are localised in it before tracking starts (map_localiser.py)
+    def use_prior_map(self, saved, localize_only: bool = False) -> None:
+        """Continue from the saved map ``saved`` (:meth:`FusingMapper.use_prior_map`); the first frames are localised
+        in it (:mod:`surfelslam.slam.map_localiser`)."""
+        super().use_prior_map(saved, localize_only)
+        self._localiser = MapLocaliser(saved.keyframes, self.intr, features_for_width(self.cfg.sparse, self.intr.width),
+                                       self.cfg.map_reuse)
+
+    def _first_pose(self, frame: RGBDFrame, t: StageTimer) -> np.ndarray | None:
+        """The first frame's pose: the identity (it defines the world frame), or with a loaded map its verified pose
+        in it (``None``: not localised yet)."""
+        if self._localiser is None:
+            return np.eye(4)
+        rep = self.prior_report
+        if not self.frozen and rep["frames_tried"] >= self.cfg.map_reuse.localise_max_frames:
+            # not localised in localise_max_frames frames: a map of another place, or no overlap. Refused, not
+            # forced: this frame starts a new map (a localise-only run has none to start and keeps trying)
+            self._localiser = None
+            self.prior = None
+            self.map = SurfelMap(self.cfg.map)
+            if self._recorder is not None:
+                self._recorder = self._new_recorder()
+            rep["new_map_frame_at"] = int(frame.index)
+            return np.eye(4)
+        rep["frames_tried"] += 1
+        T = self._localise_in_map(frame)
+        t.lap("localise")
+        return T
+
+    def _localise_in_map(self, frame: RGBDFrame) -> np.ndarray | None:
+        """Place recognition and PnP against the loaded keyframes, then ICP against the loaded surfels rendered at
+        each PnP pose (most inliers first); the first pose that passes :func:`verify_icp`, or ``None``."""
+        rep = self.prior_report
+        guesses = self._localiser.guesses(self._map_features(frame))
+        reason = "no_keyframe_verified_by_pnp"
+        for g in guesses:
+            target = self.render_target(g.T_world_cam)
+            res = icp(self.track_source, target, T_init=np.eye(4), cfg=self.cfg.icp,
+                      photometric=self.photometric_term())
+            why = verify_icp(res, self.cfg.map_reuse)
+            if why is None:
+                self._localiser = None
+                rep.update(localised=True, frame=int(frame.index), timestamp=float(frame.timestamp),
+                           keyframe=int(g.kf_id), pnp_inliers=g.n_inliers,
+                           icp_inlier_fraction=float(res.inlier_fraction), icp_rmse_m=float(res.rmse_m))
+                rep.pop("last_failure", None)
+                return self._step_and_pose(g.T_world_cam, res)[1]
+            reason = why
+        rep["last_failure"] = reason
+        return None
+
+    def _first_status(self) -> FrameStatus:
+        return FrameStatus.RELOCALISED if self.prior_report is not None and self.prior_report["localised"] \
+            else FrameStatus.TRACKED
+
+    def _not_localised(self, frame: RGBDFrame, t: StageTimer) -> FrameResult:
+        """A frame before the run is localised in the loaded map: lost, not fused, no pose written."""
+        self._retire_source()
+        self.failures += 1
+        self.failure_reasons[NOT_LOCALISED] = self.failure_reasons.get(NOT_LOCALISED, 0) + 1
+        return FrameResult(frame.index, frame.timestamp, np.eye(4), False, False, NOT_LOCALISED, t.ms,
+                           self.map.n_alive, status=FrameStatus.LOST, posed=False)
 
     def failure_of(self, res: ICPResult) -> str | None:
         """Why ``res`` cannot be used (an :class:`~surfelslam.tracking.icp.ICPStatus` value), or ``None``.
@@ -290,6 +361,6 @@ def warm_up(cfg: SlamConfig) -> None:
     v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float32)
     depth = 1.5 + 0.004 * u + 0.002 * v + 0.1 * np.exp(-((u - 32) ** 2 + (v - 24) ** 2) / 60.0)
     rgb = np.zeros((intr.height, intr.width, 3), np.uint8)
-    slam = DenseSlam(intr, cfg)
+    slam = DenseSlam(intr, replace(cfg, map_reuse=replace(cfg.map_reuse, save=False)))
     for i in range(2):
         slam.process(RGBDFrame(i, i / 30.0, rgb, depth.astype(np.float32)))

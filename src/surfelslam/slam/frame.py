@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.mapping.surfel_map import SurfelMap
+from surfelslam.slam.saved_map import SavedMap
 from surfelslam.tracking.features import Features
 from surfelslam.tracking.icp import ICPResult
 from surfelslam.tracking.photometric import (
@@ -54,6 +55,7 @@ class FrameResult:
     map_points: int
     icp: ICPResult | None = None
     status: FrameStatus | None = None
+    posed: bool = True  # False: the frame has no pose at all (not yet localised in a loaded map); not written
 
     def __post_init__(self) -> None:
         if self.status is None:
@@ -100,6 +102,7 @@ class SlamResult:
     loop_stamps: list[tuple[float, float]] | None = None
     points_xyz: np.ndarray | None = None  # (M, 3) float32 world points (sparse map), when there is no surfel map
     points_rgb: np.ndarray | None = None  # (M, 3) uint8
+    saved_map: SavedMap | None = None  # the map to save for a later run (map.npz), surfel trackers
 
     def map_arrays(self) -> dict[str, np.ndarray] | None:
         """The map as arrays (position, normal, colour, confidence, first_seen; plus radius for a surfel map),

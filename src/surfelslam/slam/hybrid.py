@@ -121,6 +121,10 @@ class HybridSlam(DenseSlam):
         p.cpu_ms += (time.thread_time() - c0) * 1e3
         return p
 
+    def _map_features(self, frame: RGBDFrame) -> Features:
+        """The saved keyframes' and the map localisation's features: the back end's own."""
+        return self._features(frame)
+
     def _features(self, frame: RGBDFrame) -> Features:
         """The current frame's ORB features: the prepared ones, else extracted once here."""
         if self._feats is None:
@@ -161,15 +165,18 @@ class HybridSlam(DenseSlam):
         self._set_source_intensity(frame, prepared)
         t.lap("preprocess" if prepared is None else None)
         self._stamp_of_frame[frame.index] = frame.timestamp
-        if self.T_world_cam is None:
-            T_new = np.eye(4)
-            self._mark_tracked(T_new, frame.timestamp, FrameStatus.TRACKED)
+        if self.T_world_cam is None:  # the world frame, or the pose localised in a loaded map
+            T_new = self._first_pose(frame, t)
+            if T_new is None:
+                return self._not_localised(frame, t)
+            status = self._first_status()
+            self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
             self._after_tracking(frame, T_new, True, t)
             self._retire_source()
             return FrameResult(frame.index, frame.timestamp, self.T_world_cam.copy(), True, True, None, t.ms,
-                               self.map.n_alive)
+                               self.map.n_alive, status=status)
         T_prev = self.T_world_cam
         T_pred = self.predict()
         if self.failures_in_a_row >= self.cfg.hybrid.relocalise_after_failures:
@@ -319,7 +326,7 @@ class HybridSlam(DenseSlam):
         self.counts["map_corrections"] += 1
         m = self.map
         n = m.size
-        if n:
+        if n and not self.frozen:  # localise only: the loaded map never moves
             frames = np.asarray(self._fused_frames, np.int64)
             anchors = np.asarray(self._fused_anchor, np.int64)
             row = np.clip(np.searchsorted(frames, m.first_seen), 0, len(frames) - 1)
@@ -395,6 +402,8 @@ class HybridSlam(DenseSlam):
                 kf_final = self._kf_dense.poses.copy()
             else:
                 self._correct(kf_final)
+        if self.cfg.hybrid.loop_correction and self.counts["map_corrections"] > 0 and self._recorder is not None:
+            self._recorder.repose(self.trajectory(kf_final))  # the saved keyframes follow the corrected map
         out = self._result({"tracking_failures": self.failures, "tracking_failure_reasons": self.failure_reasons,
                             "photometric": self.photometric, "joint_features": self.joint, **self.counts,
                             "shape_relocalisations_tried": self.relocalisations["tried"],

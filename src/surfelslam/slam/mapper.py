@@ -9,12 +9,16 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from surfelslam.backend.sparse_slam import features_for_width
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.camera import ColourRegistrationConfig, colour_at_depth_pixels
 from surfelslam.mapping.fusion import fuse
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.slam.config import SlamConfig, apply_compute
 from surfelslam.slam.frame import PreparedFrame, SlamResult, prepared_for
+from surfelslam.slam.map_keyframes import KeyframeRecorder, depth_step_for_width
+from surfelslam.slam.saved_map import SavedMap, chain_graph
+from surfelslam.tracking.features import Features, extract
 from surfelslam.tracking.preprocess import (
     FramePyramid,
     Preprocessor,
@@ -46,6 +50,54 @@ class FusingMapper:
         self._rgb_fuse: np.ndarray | None = None  # the prepared fusion colour of the current frame
         self.map = SurfelMap(cfg.map)
         self.n_fused = 0
+        # the saved map (map.npz): keyframes recorded as frames are fused; a loaded map to continue from
+        self._map_feature_cfg = features_for_width(cfg.sparse, intr.width).features
+        self.prior: SavedMap | None = None
+        self.frozen = False  # localise only: the map is never changed
+        self.prior_report: dict | None = None  # metrics of the loaded map (``prior_map`` in metrics.json)
+        self._recorder = self._new_recorder() if cfg.map_reuse.save else None
+
+    def _new_recorder(self, prior: SavedMap | None = None) -> KeyframeRecorder:
+        mr = self.cfg.map_reuse
+        step = depth_step_for_width(self.intr.width, mr.keyframe_depth_max_width_px)
+        return KeyframeRecorder(mr.keyframe_motion, step, self._map_features,
+                                None if prior is None else prior.keyframes)
+
+    def _map_features(self, frame: RGBDFrame) -> Features:
+        """ORB features of a frame that becomes a saved keyframe (trackers with features of their own reuse them)."""
+        return extract(frame.rgb, frame.depth_m, self.intr, self._map_feature_cfg)
+
+    def use_prior_map(self, saved: SavedMap, localize_only: bool = False) -> None:
+        """Continue from ``saved`` (before the first frame): its surfels become the map (their frame indices shifted
+        below this run's: ``first_seen`` / ``last_seen`` <= -1), its keyframes come first in this run's saved map.
+        ``localize_only``: the map is never changed (nothing is fused) and the saved map is ``saved`` itself."""
+        if self.map.size or self.n_fused:
+            raise ValueError("use_prior_map: the tracker has already mapped frames")
+        surfels = dict(saved.surfels)
+        if saved.n_surfels:
+            offset = int(surfels["last_seen"].max()) + 1
+            for name in ("first_seen", "last_seen"):
+                surfels[name] = (surfels[name].astype(np.int64) - offset).astype(np.int32)
+        self.map.load(surfels)
+        self.prior = saved
+        self.frozen = localize_only
+        self.prior_report = {"surfels": saved.n_surfels, "keyframes": len(saved.keyframes),
+                             "localize_only": localize_only, "localised": False, "frames_tried": 0}
+        if self._recorder is not None:
+            self._recorder = self._new_recorder(saved)
+
+    def _saved_map(self) -> SavedMap | None:
+        """The map to save at the end of the run (``None`` with ``map_reuse.save`` off)."""
+        if self._recorder is None:
+            return None
+        if self.frozen and self.prior is not None:
+            return self.prior
+        kfs = self._recorder.keyframes()
+        edges, rel = chain_graph(kfs.T_world_kf)
+        m = self.map
+        surfels = {"position": m.position, "normal": m.normal, "colour": m.colour, "confidence": m.confidence,
+                   "radius": m.radius, "first_seen": m.first_seen, "last_seen": m.last_seen, "hits": m.hits}
+        return SavedMap(surfels, kfs, edges, rel, self.intr, getattr(self, "name", ""))
 
     def _acquire(self) -> FramePyramid:
         with self._pool_lock:
@@ -110,14 +162,21 @@ class FusingMapper:
         self.previous = self.source
 
     def _fuse(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
+        if self.frozen:
+            return  # localise only: the loaded map stays as it is
         lvl = self.source[self.fuse_level]
         rgb = self._rgb_fuse if self._rgb_fuse is not None else self._fuse_rgb(frame)
         fuse(self.map, lvl.vertex, lvl.normal, rgb, T_world_cam, lvl.intrinsics, frame.index, self.cfg.fusion)
         self.n_fused += 1
+        if self._recorder is not None:
+            self._recorder.observe(frame, T_world_cam)
 
     def _result(self, extra: dict) -> SlamResult:
         self.map.compact()
-        return SlamResult(self.map.n_alive, {"frames_fused": self.n_fused, **extra}, self.map)
+        if self.prior_report is not None:
+            extra = {**extra, "prior_map": dict(self.prior_report)}
+        return SlamResult(self.map.n_alive, {"frames_fused": self.n_fused, **extra}, self.map,
+                          saved_map=self._saved_map())
 
 
 

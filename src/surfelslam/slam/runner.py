@@ -32,11 +32,13 @@ from surfelslam.config import dumps_toml, from_dict, load_toml
 from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
+from surfelslam.io.map_file import MAP_FILE, write_map_file
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
+from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 
 #: Preset configurations: ``--config NAME`` reads ``configs/NAME.toml`` of the source tree.
@@ -173,7 +175,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
                  progress: bool = True, figures: bool = True, *, overwrite: bool = True,
                  on_start: Callable[[Path], None] | None = None,
                  before_commit: Callable[[Path], None] | None = None,
-                 on_frame: Callable[[Any, Any, Any], None] | None = None) -> dict:
+                 on_frame: Callable[[Any, Any, Any], None] | None = None,
+                 prior_map: SavedMap | None = None, localize_only: bool = False) -> dict:
     """Run the pipeline on an opened sequence and write every output into ``out_dir``.
 
     ``tracker`` overrides ``cfg.tracker``. The written ``config.toml`` is ``cfg`` with the tracker and the
@@ -185,6 +188,11 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     add files to the run). ``on_frame(frame, result, tracker)`` is called on the tracking thread after each frame
     is tracked (a live viewer: :mod:`surfelslam.viz.live`; it must return quickly).
 
+    ``prior_map`` (``--map``, :func:`surfelslam.io.map_file.read_map_file`): continue from a saved map: the first
+    frames are localised in it, then tracking and fusion go on in its frame (``dense`` and ``hybrid``).
+    ``localize_only``: track against it without changing it. With ``map_reuse.save`` (the default) the run saves its
+    map as ``map.npz``.
+
     Returns the metrics dict (also written as ``metrics.json``).
     """
     tracker = cfg.tracker if tracker is None else tracker
@@ -195,9 +203,12 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     cfg = dataclasses.replace(cfg, tracker=tracker, dataset=seq.options)
     recipe = dumps_toml(cfg)
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
+    check_map_options(tracker, prior_map, localize_only, poses)
     slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given",
                       colour_registered=getattr(seq, "colour_registered", True),
                       colour_camera=getattr(seq, "colour_camera", None))
+    if prior_map is not None:
+        slam.use_prior_map(prior_map, localize_only)
     folder = RunFolder(out_dir, overwrite=overwrite)
     folder.check()  # nothing written yet
     with folder:
@@ -206,7 +217,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
         if on_start is not None:
             on_start(stage)
         write_text_atomic(stage / "config.toml", recipe)
-        metrics = _run(seq, stage, cfg, slam, tracker, given, poses, progress, figures, on_frame)
+        metrics = _run(seq, stage, cfg, slam, tracker, given, poses, progress, figures, on_frame, recipe)
         metrics.update(complete=True, started=started, finished=_now())
         write_text_atomic(stage / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
         if before_commit is not None:
@@ -216,7 +227,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
 
 
 def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: str | None, progress: bool,
-         figures: bool, on_frame: Callable[[Any, Any, Any], None] | None = None) -> dict:
+         figures: bool, on_frame: Callable[[Any, Any, Any], None] | None = None, recipe: str = "") -> dict:
     """The loop proper, writing into the staging folder ``out_dir``; everything but ``metrics.json``."""
     t_warm = time.perf_counter()
     slam.warmup()
@@ -252,7 +263,8 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
                     res = slam.process(frame, T_world_cam=T_given, prepared=item.prepared)
                 else:
                     res = slam.process(frame, prepared=item.prepared)
-                traj_out.append(frame.timestamp, res.T_world_cam)
+                if res.posed:  # frames not yet localised in a loaded map have no pose
+                    traj_out.append(frame.timestamp, res.T_world_cam)
                 if on_frame is not None:
                     on_frame(frame, res, slam)
                 statuses.append((res.index, res.timestamp, res.status, res.reason))
@@ -313,9 +325,20 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
         except Exception as exc:  # noqa: BLE001 - evaluation problems must not lose the run's outputs
             metrics["eval_error"] = str(exc)
     result.write_map(out_dir / "map.ply")
+    _write_saved_map(result, out_dir, recipe, str(seq.root))
     if figures:
         _write_figures(out_dir, seq, result, metrics)
     return metrics
+
+
+def _write_saved_map(result, out_dir: Path, recipe: str, sequence: str) -> None:
+    """``map.npz`` (:mod:`surfelslam.io.map_file`) when the tracker saved a map."""
+    saved = result.saved_map
+    if saved is None:
+        return
+    if not saved.config_toml:  # a map this run made (a localise-only run saves the loaded one as it was)
+        saved = dataclasses.replace(saved, config_toml=recipe, sequence=sequence)
+    write_map_file(out_dir / MAP_FILE, saved)
 
 
 def _stats(v: list[float]) -> dict:
@@ -339,7 +362,7 @@ def _write_figures(out_dir: Path, seq, result, metrics: dict) -> None:
                         title=f"{metrics['tracker']}: ATE RMSE {a.rmse_m * 100:.2f} cm", loops=result.loop_stamps)
         plot_errors(out_dir / "ate_errors.png", a)
     cloud = result.map_arrays()
-    if cloud is not None and len(cloud["position"]):
+    if cloud is not None and len(cloud["position"]) and len(est):
         save_map_figures(out_dir, cloud["position"], cloud["normal"], cloud["colour"], cloud["confidence"],
                          cloud["first_seen"], est.T_world_cam[0], title=f"{metrics['tracker']} map",
                          trajectory_T_world_cam=est.T_world_cam, radius=cloud.get("radius"))

@@ -14,6 +14,7 @@ from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.slam import TRACKERS
 from surfelslam.slam.runner import load_config, run_sequence
+from surfelslam.slam.saved_map import check_map_options
 from surfelslam.slam.segments import Segment
 from surfelslam.tools.common import (
     DatasetOptionsArgs,
@@ -74,10 +75,44 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
         console.print(f"[yellow]{escape(Segment(**s).describe())}[/]", highlight=False, soft_wrap=True)
     if len(shown) > SUMMARY_EXAMPLES:
         console.print(f"[yellow]... and {len(shown) - SUMMARY_EXAMPLES} more segments (metrics.json)[/]")
+    print_prior_map(metrics.get("prior_map"))
     if metrics.get("lost_at_end"):
         last = [s for s in segs if s["kind"] == "lost"][-1]
         console.print(f"[bold red]the run ended lost[/] (from frame {last['first_frame']}): the poses after it are "
                       "predictions, not measurements", highlight=False, soft_wrap=True)
+
+
+def read_prior_map(map_dir: Path | None, tracker: str, localize_only: bool, poses: str | None):
+    """The map ``--map`` names (``None`` without it), after checking the options (before reading a large file)."""
+    check_map_options(tracker, map_dir, localize_only, poses)
+    if map_dir is None:
+        return None
+    from surfelslam.io.map_file import read_map_file
+
+    return read_map_file(map_dir)
+
+
+def prior_map_line(rep: dict | None) -> str | None:
+    """One line on the loaded map (``--map``): where the run was localised in it, or that it was not."""
+    if rep is None:
+        return None
+    if rep.get("localised"):
+        return (f"localised in the loaded map at frame {rep['frame']} (keyframe {rep['keyframe']}, "
+                f"{rep['pnp_inliers']} PnP inliers, ICP overlap {rep['icp_inlier_fraction'] * 100:.0f} %, residual "
+                f"{rep['icp_rmse_m'] * 1000:.1f} mm)" + ("; map unchanged (--localize-only)"
+                                                         if rep.get("localize_only") else ""))
+    why = rep.get("last_failure", "no frame tried")
+    if rep.get("new_map_frame_at") is not None:
+        return (f"not localised in the loaded map in {rep['frames_tried']} frames ({why}): refused; a new map "
+                f"frame started at frame {rep['new_map_frame_at']}")
+    return f"not localised in the loaded map in {rep['frames_tried']} frames ({why}): no poses written"
+
+
+def print_prior_map(rep: dict | None) -> None:
+    line = prior_map_line(rep)
+    if line is not None:
+        style = "green" if rep.get("localised") else "bold red"
+        console.print(f"[{style}]{escape(line)}[/]", highlight=False, soft_wrap=True)
 
 
 def resolve_run_config(config: str | None, sets: list[str] | None, tracker: str | None,
@@ -123,6 +158,15 @@ def register(app: typer.Typer) -> None:
             "--viewer-images-every", help="Live viewer: log the images every N frames.")] = 5,
         viewer_map_every: Annotated[int, typer.Option(
             "--viewer-map-every", help="Live viewer: log the map (subsampled) every N frames.")] = 30,
+        map_dir: Annotated[Path | None, typer.Option(
+            "--map", help="Continue from the map a previous run saved (its --out folder, or its map.npz): the first "
+                          "frames are localised in it, then tracking and mapping go on in its frame (dense, hybrid)."
+        )] = None,
+        localize_only: Annotated[bool, typer.Option(
+            "--localize-only", help="With --map: track against the loaded map without changing it.")] = False,
+        mesh: Annotated[bool, typer.Option(
+            "--mesh", help="Also write OUT/mesh.ply at the end, as `surfelslam mesh OUT` does (TSDF, default "
+                           "settings).")] = False,
         record: Annotated[Path | None, typer.Option(
             "--record", help="With the live camera (SEQ = realsense): also write the frames to this bag (.bag: "
                              "ROS 1, else a ROS 2 MCAP bag folder).")] = None,
@@ -135,6 +179,7 @@ def register(app: typer.Typer) -> None:
         writes into OUT/.partial-PID/ and moves its files into OUT when complete.
         """
         cfg = resolve_run_config(config, sets, tracker, dataset)
+        prior = read_prior_map(map_dir, cfg.tracker, localize_only, poses)
         if rerun:
             from surfelslam.viz.rerun_export import require_rerun
 
@@ -146,6 +191,7 @@ def register(app: typer.Typer) -> None:
         else:
             seq = open_sequence(seq_path, cfg.dataset)
         exported = []
+        meshed = []
         from surfelslam.viz.live import finish_viewer, viewer_for_run
 
         def note(text: str) -> None:
@@ -162,10 +208,20 @@ def register(app: typer.Typer) -> None:
 
             exported.append(export_run(stage, seq=seq))
 
+        def before_commit(stage: Path) -> None:
+            if mesh:  # in the staging folder: an interrupted run leaves no half mesh in OUT
+                from surfelslam.tools.mesh import mesh_config, mesh_run
+
+                meshed.append(mesh_run(stage, mesh_config(), sequence=Path(str(seq.root)), progress=progress,
+                                       run_depth_range=True))
+            if rerun:
+                export(stage)
+
         try:
             metrics = run_sequence(seq, out, cfg, poses=poses, progress=progress, figures=figures,
-                                   overwrite=overwrite, on_start=started, before_commit=export if rerun else None,
-                                   on_frame=live)
+                                   overwrite=overwrite, on_start=started,
+                                   before_commit=before_commit if rerun or mesh else None, on_frame=live,
+                                   prior_map=prior, localize_only=localize_only)
         except BaseException:
             finish_viewer(live, None, warn=note, wait_when_serving=False)
             raise
@@ -173,6 +229,10 @@ def register(app: typer.Typer) -> None:
             if hasattr(seq, "close"):  # a bag, a live camera (and its recording)
                 seq.close()
         print_summary(metrics, out)
+        if meshed:
+            res = meshed[0]
+            console.print(f"wrote {out / res.path.name} ({res.vertices:,} vertices, {res.faces:,} triangles; "
+                          f"{res.seconds:.1f} s)", highlight=False, markup=False, soft_wrap=True)
         finish_viewer(live, out, warn=note)
         if exported:
             from surfelslam.tools.export_rerun import print_export

@@ -1,0 +1,204 @@
+"""A map saved for a later run: surfels, keyframes, pose graph, config, format version (``map.npz``).
+
+:class:`SavedMap` is what a surfel tracker hands over at the end of a run (``SlamResult.saved_map``) and what
+``--map`` gives the next run. :func:`to_arrays` / :func:`from_arrays` turn it into named arrays and back (every
+array checked: shape, dtype, count); the file itself is written and read by :mod:`surfelslam.io.map_file`. The
+format is documented in ``docs/outputs.md`` (Saved map).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from surfelslam.errors import ConfigError
+from surfelslam.geometry.se3 import invert
+from surfelslam.slam.map_keyframes import MapKeyframes
+from surfelslam.tracking.features import Features
+from surfelslam.types import Intrinsics
+
+#: ``format`` in the manifest: what the file is
+MAP_FORMAT = "surfelslam-map"
+#: ``version`` in the manifest: this code reads exactly this version
+MAP_VERSION = 1
+#: the surfel arrays: name -> (dtype, trailing shape)
+SURFEL_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "position": ("float32", (3,)), "normal": ("float32", (3,)), "colour": ("float32", (3,)),
+    "confidence": ("float32", ()), "radius": ("float32", ()), "first_seen": ("int32", ()),
+    "last_seen": ("int32", ()), "hits": ("int32", ()),
+}
+
+
+class MapFormatProblem(ValueError):
+    """What is wrong with a map's arrays (the reader adds the file name: :class:`~surfelslam.errors.MapFileError`)."""
+
+
+@dataclass
+class SavedMap:
+    """A map to continue from.
+
+    Attributes:
+        surfels: ``{name: (N, ...)}`` the live surfels (:data:`SURFEL_FIELDS`), world frame; ``first_seen`` /
+            ``last_seen`` are frame indices of the session that saved it (earlier sessions' are negative).
+        keyframes: the keyframes (poses in the same world frame, features, subsampled depth).
+        graph_edges: ``(E, 2)`` int64 keyframe pairs ``(i, j)`` of the pose graph.
+        graph_T_i_j: ``(E, 4, 4)`` float64 their relative poses (``T_world_i^-1 T_world_j`` of the saved poses).
+        intrinsics: the camera of the run that saved it.
+        tracker: that run's tracker.
+        config_toml: that run's ``config.toml`` (the whole recipe).
+        sequence: that run's sequence (as given).
+    """
+
+    surfels: dict[str, np.ndarray]
+    keyframes: MapKeyframes
+    graph_edges: np.ndarray
+    graph_T_i_j: np.ndarray
+    intrinsics: Intrinsics
+    tracker: str
+    config_toml: str = ""
+    sequence: str = ""
+
+    @property
+    def n_surfels(self) -> int:
+        return len(self.surfels["position"])
+
+
+def chain_graph(T_world_kf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The odometry chain of keyframe poses ``(K, 4, 4)``: edges ``(K-1, 2)`` and relative poses ``(K-1, 4, 4)``."""
+    k = len(T_world_kf)
+    edges = np.stack([np.arange(k - 1), np.arange(1, k)], 1).astype(np.int64) if k > 1 else np.zeros((0, 2), np.int64)
+    rel = np.asarray([invert(T_world_kf[i]) @ T_world_kf[j] for i, j in edges], np.float64).reshape(-1, 4, 4)
+    return edges, rel
+
+
+def to_arrays(m: SavedMap) -> dict[str, np.ndarray]:
+    """Named arrays of ``m`` (``manifest``: the JSON manifest as uint8 bytes); keyframe features are concatenated,
+    ``kf_feature_start`` ``(K + 1,)`` delimiting them, and so are the depth images (``kf_depth_shape``)."""
+    kf = m.keyframes
+    n_kf = len(kf)
+    starts = np.zeros(n_kf + 1, np.int64)
+    starts[1:] = np.cumsum([len(f) for f in kf.features])
+
+    def cat(name: str, dtype, width: int) -> np.ndarray:
+        parts = [np.asarray(getattr(f, name), dtype).reshape(-1, width) for f in kf.features]
+        return np.concatenate(parts) if parts else np.zeros((0, width), dtype)
+
+    shapes = np.asarray([d.shape for d in kf.depth_m], np.int64).reshape(n_kf, 2)
+    depth = np.concatenate([d.reshape(-1) for d in kf.depth_m]) if n_kf else np.zeros(0, np.float32)
+    manifest = {
+        "format": MAP_FORMAT, "version": MAP_VERSION, "tracker": m.tracker, "sequence": m.sequence,
+        "intrinsics": [m.intrinsics.fx, m.intrinsics.fy, m.intrinsics.cx, m.intrinsics.cy, m.intrinsics.width,
+                       m.intrinsics.height],
+        "surfels": m.n_surfels, "keyframes": n_kf, "graph_edges": len(m.graph_edges),
+        "keyframe_depth_step": kf.depth_step, "config_toml": m.config_toml,
+    }
+    out = {"manifest": np.frombuffer(json.dumps(manifest).encode(), np.uint8)}
+    for name, (dtype, _) in SURFEL_FIELDS.items():
+        out[f"surfel_{name}"] = np.ascontiguousarray(m.surfels[name], dtype)
+    out.update(
+        kf_T_world_kf=np.asarray(kf.T_world_kf, np.float64).reshape(n_kf, 4, 4),
+        kf_frame_index=np.asarray(kf.frame_index, np.int64), kf_timestamp=np.asarray(kf.timestamp, np.float64),
+        kf_session=np.asarray(kf.session, np.int32), kf_feature_start=starts,
+        kf_keypoints_uv=cat("keypoints_uv", np.float32, 2), kf_descriptors=cat("descriptors", np.uint8, 32),
+        kf_points_cam=cat("points_cam", np.float32, 3), kf_valid=cat("valid", bool, 1).reshape(-1),
+        kf_response=cat("response", np.float32, 1).reshape(-1), kf_depth_shape=shapes,
+        kf_depth_m=np.asarray(depth, np.float32),
+        graph_edges=np.asarray(m.graph_edges, np.int64).reshape(-1, 2),
+        graph_T_i_j=np.asarray(m.graph_T_i_j, np.float64).reshape(-1, 4, 4),
+    )
+    return out
+
+
+def read_manifest(arrays: Any) -> dict:
+    """The manifest of a map's arrays (a mapping, e.g. an open ``NpzFile``), checked for format and version.
+
+    Raises:
+        MapFormatProblem: no manifest, not a surfelslam map, or another format version.
+    """
+    if "manifest" not in arrays:
+        raise MapFormatProblem("not a surfelslam map (no manifest)")
+    try:
+        manifest = json.loads(bytes(np.asarray(arrays["manifest"], np.uint8)).decode())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise MapFormatProblem(f"unreadable manifest ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != MAP_FORMAT:
+        raise MapFormatProblem("not a surfelslam map (manifest format is not 'surfelslam-map')")
+    if manifest.get("version") != MAP_VERSION:
+        raise MapFormatProblem(f"map format version {manifest.get('version')}, this surfelslam reads version "
+                               f"{MAP_VERSION} only (remake the map with this version)")
+    return manifest
+
+
+def _get(arrays: Any, name: str, dtype: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """``arrays[name]`` checked for dtype and shape (``None``: any length)."""
+    if name not in arrays:
+        raise MapFormatProblem(f"array {name} is missing")
+    a = np.asarray(arrays[name])
+    if a.dtype != np.dtype(dtype) or a.ndim != len(shape) or any(s is not None and s != d
+                                                                for s, d in zip(shape, a.shape, strict=True)):
+        want = "x".join("N" if s is None else str(s) for s in shape)
+        raise MapFormatProblem(f"array {name} is {a.dtype} {a.shape}, expected {dtype} ({want})")
+    return a
+
+
+def from_arrays(arrays: Any) -> SavedMap:
+    """The :class:`SavedMap` of :func:`to_arrays`'s output (or an open ``NpzFile`` of it), every array checked.
+
+    Raises:
+        MapFormatProblem: another format or version, a missing array, a wrong dtype, shape or count.
+    """
+    man = read_manifest(arrays)
+    try:
+        n, k, e = int(man["surfels"]), int(man["keyframes"]), int(man["graph_edges"])
+        fx, fy, cx, cy, w, h = man["intrinsics"]
+        intr = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+        step = int(man["keyframe_depth_step"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise MapFormatProblem(f"incomplete manifest ({exc})") from None
+    surfels = {name: _get(arrays, f"surfel_{name}", dtype, (n, *trail))
+               for name, (dtype, trail) in SURFEL_FIELDS.items()}
+    starts = _get(arrays, "kf_feature_start", "int64", (k + 1,))
+    n_feat = int(starts[-1])
+    if starts[0] != 0 or np.any(np.diff(starts) < 0):
+        raise MapFormatProblem("array kf_feature_start is not increasing from 0")
+    uv = _get(arrays, "kf_keypoints_uv", "float32", (n_feat, 2))
+    desc = _get(arrays, "kf_descriptors", "uint8", (n_feat, 32))
+    pts = _get(arrays, "kf_points_cam", "float32", (n_feat, 3))
+    valid = _get(arrays, "kf_valid", "bool", (n_feat,))
+    resp = _get(arrays, "kf_response", "float32", (n_feat,))
+    shapes = _get(arrays, "kf_depth_shape", "int64", (k, 2))
+    depth = _get(arrays, "kf_depth_m", "float32", (int(np.prod(shapes, axis=1).sum()) if k else 0,))
+    if np.any(shapes < 0):
+        raise MapFormatProblem("array kf_depth_shape has negative sizes")
+    feats, depths, d0 = [], [], 0
+    for i in range(k):
+        s = slice(int(starts[i]), int(starts[i + 1]))
+        feats.append(Features(uv[s], desc[s], pts[s], valid[s], resp[s]))
+        size = int(shapes[i, 0] * shapes[i, 1])
+        depths.append(depth[d0 : d0 + size].reshape(int(shapes[i, 0]), int(shapes[i, 1])))
+        d0 += size
+    kfs = MapKeyframes(_get(arrays, "kf_T_world_kf", "float64", (k, 4, 4)),
+                       _get(arrays, "kf_frame_index", "int64", (k,)), _get(arrays, "kf_timestamp", "float64", (k,)),
+                       _get(arrays, "kf_session", "int32", (k,)), feats, depths, step)
+    edges = _get(arrays, "graph_edges", "int64", (e, 2))
+    if e and (edges.min() < 0 or edges.max() >= k):
+        raise MapFormatProblem("array graph_edges names keyframes that are not in the map")
+    return SavedMap(surfels, kfs, edges, _get(arrays, "graph_T_i_j", "float64", (e, 4, 4)), intr,
+                    str(man.get("tracker", "")), str(man.get("config_toml", "")), str(man.get("sequence", "")))
+
+
+def check_map_options(tracker: str, prior_map: object | None, localize_only: bool, poses: str | None) -> None:
+    """Refuse ``--map`` / ``--localize-only`` where they cannot apply (one line, :class:`ConfigError`); ``prior_map``:
+    the map or its path, ``None`` without ``--map``."""
+    if localize_only and prior_map is None:
+        raise ConfigError("--localize-only needs a map to localise in (--map RUN_DIR)")
+    if prior_map is None:
+        return
+    if poses is not None:
+        raise ConfigError("--map cannot be combined with --poses (mapping with given poses has nothing to localise)")
+    if tracker == "orb":
+        raise ConfigError("--map is not supported with --tracker orb (its map is a keyframe cloud, not surfels); "
+                          "use --tracker dense or hybrid")
