@@ -1,7 +1,6 @@
 """``surfelslam batch``: spec expansion, the same ATEs as separate runs, resume, failures, --report, the Ray extra.
 
-Tiny 8-frame 160x120 synthetic sequences and the LocalExecutor (Ray is an optional extra, not installed in CI);
-the one Ray test runs only where Ray is importable.
+Tiny 8-frame 160x120 synthetic sequences and the LocalExecutor; the Ray executor's tests are in test_batch_ray.py.
 """
 
 from __future__ import annotations
@@ -15,23 +14,17 @@ import pytest
 from typer.testing import CliRunner
 
 from surfelslam.batch import expand_jobs, inline_spec, load_spec, run_batch
-from surfelslam.batch.executors import LocalExecutor, make_executor, ray_available
+from surfelslam.batch.executors import LocalExecutor, make_executor
 from surfelslam.batch.jobs import config_sha256, is_complete
 from surfelslam.batch.report import rebuild_rows
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.slam.runner import run_sequence
-from surfelslam.synth.writer import generate_sequence
 
 
-@pytest.fixture(scope="module")
-def seqs(tmp_path_factory) -> list[Path]:
-    root = tmp_path_factory.mktemp("seqs")
-    out = []
-    for i, name in enumerate(("roomA", "roomB")):
-        generate_sequence(root / name, "room", "slow", 8, "kinect", i, 160, 120)
-        out.append(root / name)
-    return out
+@pytest.fixture
+def seqs(tiny_seqs) -> list[Path]:
+    return tiny_seqs[:2]  # roomA, roomB (conftest.py)
 
 
 def _spec(tmp_path: Path, seqs: list[Path], configs: str = "") -> Path:
@@ -186,24 +179,6 @@ def test_missing_ray_names_the_extra(tmp_path, seqs, monkeypatch):
     assert len(lines) == 1 and "pip install 'surfelslam[batch]'" in lines[0], res.stderr
     runner, note = make_executor(None)
     assert runner.name == "local" and "surfelslam[batch]" in note
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not ray_available(), reason="Ray is not installed (the [batch] extra)")
-def test_ray_local_mode_gives_the_local_ates(tmp_path, seqs):
-    import ray
-
-    from surfelslam.batch.executors import RayExecutor
-
-    ray.init(num_cpus=2, include_dashboard=False)
-    try:
-        spec = load_spec(_spec(tmp_path, seqs))
-        ray_rows = run_batch(expand_jobs(spec, tmp_path / "ray"), tmp_path / "ray", RayExecutor(), warmup=False).rows
-    finally:
-        ray.shutdown()
-    local_rows = run_batch(expand_jobs(spec, tmp_path / "local"), tmp_path / "local", warmup=False).rows
-    assert [r["status"] for r in ray_rows] == ["done"] * 4
-    assert _ates(ray_rows) == _ates(local_rows)
 
 
 def test_interrupt_keeps_finished_runs_and_marks_the_rest(tmp_path, seqs, monkeypatch):

@@ -1,17 +1,18 @@
 """Where batch jobs run. Every executor calls the same :func:`~surfelslam.batch.jobs.run_job`.
 
 * :class:`LocalExecutor`: in this process, one job after the other (the reference, and the fallback without Ray);
-* :class:`RayExecutor`: one Ray task per job (``@ray.remote(num_cpus=2, memory=..., max_retries=N)``), on a
-  local Ray started in-process (sized to the machine) or on a cluster (``address="auto"`` or
-  ``"ray://host:10001"``).
+* :class:`RayExecutor`: one Ray task per job (``num_cpus=2``, ``memory=<estimate>``, ``max_retries=N``), on a
+  local Ray started in-process (sized to the machine, shut down after the batch) or on a cluster
+  (``address="auto"`` or ``"ray://host:10001"``).
 
-A job that raises (a crash, a killed worker) is retried ``retries`` times; after that it is a ``failed`` row with
-its reason, and the batch goes on. Ctrl-C (KeyboardInterrupt) cancels what has not finished and propagates; the
-finished runs stay (run folders are handed over atomically).
+A job that raises (a crash) or whose worker dies (killed, out of memory) is run again, ``retries`` times; after
+that it is a ``failed`` row with its reason, and the batch goes on. Ctrl-C (KeyboardInterrupt) cancels what has
+not finished and propagates; the finished runs stay (run folders are handed over atomically).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -28,8 +29,14 @@ RAY_EXTRA_HINT = "pip install 'surfelslam[batch]'"
 _BASE_BYTES = 600 << 20
 #: per pixel of the working resolution: pyramids, rendered model, the surfel map growing over a sequence
 _BYTES_PER_PIXEL = 2500
+#: a task never declares more than this share of the cluster's memory (else Ray could never schedule it)
+_MAX_MEMORY_SHARE = 0.9
+#: the Ray logger's level in this process: Ray's warnings, not its start-up chatter
+_RAY_LOG_LEVEL = logging.WARNING
 
 OnResult = Callable[[Job, dict[str, Any]], None]
+#: what a task runs for one job: :func:`run_job` (tests wrap it to inject faults or to look inside a worker)
+TaskFn = Callable[[Job], dict[str, Any]]
 
 
 class Executor(Protocol):
@@ -55,8 +62,12 @@ def ray_available() -> bool:
     return True
 
 
-def failed_row(job: Job, exc: BaseException) -> dict[str, Any]:
-    return summary(job.describe(), None, "failed", one_line(exc))
+def failed_row(job: Job, reason: BaseException | str, attempts: int = 1) -> dict[str, Any]:
+    """A ``failed`` row; ``attempts`` > 1 is said in the reason."""
+    text = reason if isinstance(reason, str) else one_line(reason)
+    if attempts > 1:
+        text += f" (after {attempts} attempts)"
+    return summary(job.describe(), None, "failed", text)
 
 
 class LocalExecutor:
@@ -75,59 +86,84 @@ class LocalExecutor:
                 except Exception as exc:  # noqa: BLE001 - a job's crash is its row, the batch goes on
                     if attempt < self.retries:
                         continue
-                    row = failed_row(job, exc)
-                    row["error"] += f" (after {self.retries + 1} attempts)" if self.retries else ""
+                    row = failed_row(job, exc, self.retries + 1)
                 break
             on_result(job, row)
 
 
+def ray_failure_reason(exc: BaseException) -> str:
+    """One line for a Ray task's final error: the job's own exception (a ``RayTaskError``'s cause), or what
+    happened to its worker (Ray's messages for those run over several lines and name log files)."""
+    import ray.exceptions as rex
+
+    if isinstance(exc, rex.RayTaskError):
+        cause = getattr(exc, "cause", None)
+        return one_line(cause) if isinstance(cause, BaseException) else one_line(exc)
+    if isinstance(exc, rex.OutOfMemoryError):
+        return f"the worker was killed for using too much memory ({type(exc).__name__})"
+    if isinstance(exc, rex.WorkerCrashedError | rex.NodeDiedError | rex.LocalRayletDiedError):
+        return f"the worker died while running the job ({type(exc).__name__})"
+    return one_line(exc)
+
+
 class RayExecutor:
-    """One Ray task per job. ``address``: ``None`` starts a local Ray in this process (all the machine's CPUs),
-    ``"auto"`` joins the cluster this node belongs to, ``"ray://host:10001"`` connects a Ray client.
-    ``env_vars`` are set in the workers (e.g. ``NUMBA_CACHE_DIR``)."""
+    """One Ray task per job. ``address``: ``None`` starts a local Ray in this process (all the machine's CPUs)
+    unless Ray is already initialised, ``"auto"`` joins the cluster this node belongs to, ``"ray://host:10001"``
+    connects a Ray client. A Ray this executor started is shut down after the batch. ``env_vars`` are set in the
+    workers (e.g. ``NUMBA_CACHE_DIR``); ``task`` is what a task runs for a job (:func:`run_job`)."""
 
     name = "ray"
 
     def __init__(self, address: str | None = None, retries: int = DEFAULT_RETRIES, env_vars: dict | None = None,
-                 init_kwargs: dict | None = None):
+                 init_kwargs: dict | None = None, task: TaskFn = run_job):
         require_ray()
         self.address = address
         self.retries = max(int(retries), 0)
         self.env_vars = dict(env_vars or {})
         self.init_kwargs = dict(init_kwargs or {})
+        self.task = task
 
-    def _init(self):
+    def _init(self) -> tuple[Any, bool]:
+        """``(ray, started)``: Ray connected (started here when it was not initialised)."""
         import ray
 
-        if not ray.is_initialized():
-            kwargs: dict[str, Any] = {"address": self.address, "ignore_reinit_error": True,
-                                      "log_to_driver": False}
-            if self.address is None:
-                kwargs["num_cpus"] = None  # local: sized to the machine
-            if self.env_vars:
-                kwargs["runtime_env"] = {"env_vars": self.env_vars}
-            kwargs.update(self.init_kwargs)
-            ray.init(**kwargs)
-        return ray
+        if ray.is_initialized():
+            return ray, False
+        kwargs: dict[str, Any] = {"address": self.address, "log_to_driver": False,
+                                  "logging_level": _RAY_LOG_LEVEL}
+        if self.address is None:
+            kwargs["include_dashboard"] = False  # a local Ray for this batch: nobody to look at it
+        kwargs.update(self.init_kwargs)
+        ray.init(**kwargs)
+        return ray, True
+
+    def task_options(self, job: Job, resources: dict[str, float]) -> dict[str, Any]:
+        """The Ray options of ``job``'s task: its CPUs and memory (capped by what the cluster has, so that it
+        can be scheduled), its retries, the workers' environment."""
+        cpus = min(CPUS_PER_JOB, max(resources.get("CPU", CPUS_PER_JOB), 1))
+        mem = memory_estimate(job)
+        if resources.get("memory"):
+            mem = min(mem, int(resources["memory"] * _MAX_MEMORY_SHARE))
+        opts: dict[str, Any] = {"num_cpus": cpus, "memory": mem, "max_retries": self.retries,
+                                "retry_exceptions": True}
+        if self.env_vars:
+            opts["runtime_env"] = {"env_vars": dict(self.env_vars)}
+        return opts
 
     def run(self, jobs: Sequence[Job], on_result: OnResult) -> None:
         if not jobs:
             return
-        ray = self._init()
+        ray, started = self._init()
+        try:
+            self._run(ray, jobs, on_result)
+        finally:
+            if started:
+                ray.shutdown()
+
+    def _run(self, ray: Any, jobs: Sequence[Job], on_result: OnResult) -> None:
         resources = ray.cluster_resources()
-        cpus = min(CPUS_PER_JOB, max(resources.get("CPU", CPUS_PER_JOB), 1))
-        mem_cap = resources.get("memory")
-        task = ray.remote(run_job)
-        refs: dict[Any, Job] = {}
-        for job in jobs:
-            mem = memory_estimate(job)
-            if mem_cap:
-                mem = min(mem, int(mem_cap * 0.9))
-            opts: dict[str, Any] = {"num_cpus": cpus, "memory": mem, "max_retries": self.retries,
-                                    "retry_exceptions": True}
-            if self.env_vars:
-                opts["runtime_env"] = {"env_vars": self.env_vars}
-            refs[task.options(**opts).remote(job)] = job
+        remote = ray.remote(self.task)
+        refs = {remote.options(**self.task_options(job, resources)).remote(job): job for job in jobs}
         pending = list(refs)
         try:
             while pending:
@@ -136,12 +172,8 @@ class RayExecutor:
                     job = refs[ref]
                     try:
                         row = ray.get(ref)
-                    except KeyboardInterrupt:
-                        raise
-                    except Exception as exc:  # noqa: BLE001 - RayTaskError, WorkerCrashedError, ...
-                        cause = getattr(exc, "cause", None)
-                        row = failed_row(job, cause if isinstance(cause, BaseException) else exc)
-                        row["error"] += f" (after {self.retries + 1} attempts)" if self.retries else ""
+                    except ray.exceptions.RayError as exc:  # the job's exception, a dead worker, ...
+                        row = failed_row(job, ray_failure_reason(exc), self.retries + 1)
                     on_result(job, row)
         except KeyboardInterrupt:
             for ref in pending:
@@ -179,15 +211,17 @@ def make_executor(kind: str | None, address: str | None = None, retries: int = D
 
 
 def numba_cache_env() -> dict[str, str]:
-    """``{"NUMBA_CACHE_DIR": ...}`` for the workers when the kernels' in-tree cache is not writable (the same
-    fallback as :func:`surfelslam.cli.numba_cache_fallback`, one folder for every worker); else ``{}``: numba's
-    in-tree cache is shared as it is."""
-    from surfelslam.cli import KERNEL_CACHE_DIR, NUMBA_CACHE_ENV, _writable_dir, numba_cache_fallback
+    """``{"NUMBA_CACHE_DIR": ...}`` for the workers, or ``{}`` when numba's in-tree cache (next to the kernels'
+    sources, which every worker of this install reads) is used.
 
-    if _writable_dir(KERNEL_CACHE_DIR):
-        return {}
+    The folder is the one this process uses: the user's ``NUMBA_CACHE_DIR``, else the CLI's fallback when the
+    in-tree cache is not writable (:func:`surfelslam.cli.numba_cache_fallback`, one folder for every worker). It
+    is set here too, so that this process's warm-up fills the cache the workers then load.
+    """
+    from surfelslam.cli import NUMBA_CACHE_ENV, numba_cache_fallback
+
     chosen = os.environ.get(NUMBA_CACHE_ENV) or numba_cache_fallback()
-    if chosen:
-        os.environ[NUMBA_CACHE_ENV] = chosen  # this process's warm-up fills the cache the workers read
-        return {NUMBA_CACHE_ENV: chosen}
-    return {}
+    if not chosen:
+        return {}
+    os.environ[NUMBA_CACHE_ENV] = chosen
+    return {NUMBA_CACHE_ENV: chosen}
