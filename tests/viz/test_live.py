@@ -100,9 +100,19 @@ class _Archetype:
         return self
 
 
-FAKE_RR = SimpleNamespace(ViewCoordinates=SimpleNamespace(RDF="RDF"), Pinhole=_Archetype, Transform3D=_Archetype,
-                          Scalars=_Archetype, LineStrips3D=_Archetype, Image=_Archetype, DepthImage=_Archetype,
-                          Points3D=_Archetype)
+class _Columnar(_Archetype):
+    @staticmethod
+    def columns(**kwargs):
+        return {k: np.asarray(v) for k, v in kwargs.items()}
+
+
+def _time_column(name, **kwargs):
+    return name, np.asarray(next(iter(kwargs.values())))
+
+
+FAKE_RR = SimpleNamespace(ViewCoordinates=SimpleNamespace(RDF="RDF"), Pinhole=_Archetype, Transform3D=_Columnar,
+                          Scalars=_Columnar, LineStrips3D=_Archetype, Image=_Archetype, DepthImage=_Archetype,
+                          Points3D=_Archetype, TimeColumn=_time_column, EncodedImage=_Archetype)
 
 
 class SlowRecording:
@@ -117,6 +127,15 @@ class SlowRecording:
         if path.endswith("/rgb"):
             time.sleep(self.image_s)
         self.logged.append((path, obj))
+
+    def send_columns(self, path, indexes, columns):
+        frames = dict(indexes)["frame"]
+        assert all(len(v) == len(frames) for v in columns.values())
+        self.logged.append((path, {"frame": frames, **columns}))
+
+    def column(self, path: str, name: str) -> np.ndarray:
+        """A column sent to ``path``, its batches concatenated."""
+        return np.concatenate([o[name] for o in self.paths(path)])
 
     def set_time(self, timeline, sequence=None, duration=None):
         self.time[timeline] = sequence if sequence is not None else duration
@@ -156,8 +175,22 @@ def test_a_full_queue_drops_images_not_poses_and_never_blocks():
     stats = viewer.close()
     assert worst < 0.015  # never waits for the 20 ms image logging
     assert stats.images_dropped > 0 and stats.images_logged + stats.images_dropped == 60
-    poses = rec.paths("world/camera")
-    assert len(poses) == 60 and [p.kwargs["translation"][0] for p in poses] == pytest.approx(np.arange(60) * 0.01)
+    assert list(rec.column("world/camera", "frame")) == list(range(60))  # every pose, in batches
+    assert rec.column("world/camera", "translation")[:, 0] == pytest.approx(np.arange(60) * 0.01)
+    assert len(rec.paths("world/camera")) < 60 / LiveViewerConfig().path_every + 2
+
+
+def test_poses_go_in_bounded_batches():
+    """Poses, plots and path: one send per `path_every` frames (the rest at close), not a few calls per frame."""
+    rec = SlowRecording()
+    viewer = LiveViewer(FAKE_RR, rec, parse_viewer("save=x.rrd"), INTR,
+                        cfg=LiveViewerConfig(images_every=1000, map_every=1000, path_every=4, queue_size=64))
+    for k in range(10):
+        viewer.on_frame(_frame(k), _result(k))
+    viewer.close()
+    assert [len(b["frame"]) for b in rec.paths("world/camera")] == [4, 4, 2]
+    assert list(rec.column("plots/map_points", "scalars")) == [100.0 * k for k in range(10)]
+    assert len(rec.paths("world/estimate")) == 3 and len(rec.paths("world/estimate")[-1].args[0][0]) == 10
 
 
 class _FakeMap:
@@ -192,7 +225,8 @@ def test_map_snapshots_loops_and_ground_truth_error():
     assert 0 < len(xyz) <= 100 and maps[0].kwargs["colors"].max() == 255  # subsampled, dead dropped, clipped
     loops = rec.paths("world/loops")
     assert stats.loops == 1 and np.allclose(loops[-1].args[0][0], [[0, 0, 0], [0.08, 0, 0]])
-    err = [s.args[0] for s in rec.paths("plots/ate_m")]
+    err = rec.column("plots/ate_m", "scalars")
+    assert list(rec.column("plots/ate_m", "frame")) == list(range(10))
     assert err == pytest.approx(0.01 * np.arange(10), abs=1e-9)
     assert len(rec.paths("world/ground_truth")) == 1
 
@@ -208,3 +242,16 @@ def test_connect_to_nothing_is_refused_up_front():
 
     with pytest.raises(ConnectionError, match="nothing"):
         _require_listening("rerun+http://127.0.0.1:1/proxy", "nothing listens", wait_s=0.0)
+
+
+def test_jpeg_keeps_the_colours():
+    """The live view's JPEG (OpenCV, RGB in): decoded, the same colours within JPEG error."""
+    import cv2
+
+    from surfelslam.viz.live import jpeg
+
+    rgb = np.zeros((24, 32, 3), np.uint8)
+    rgb[..., 0], rgb[:, 16:, 2] = 200, 120  # red everywhere, blue on the right half
+    back = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpeg(rgb), np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert np.abs(back[:, 2:12].astype(int) - rgb[:, 2:12]).max() <= 8
+    assert np.abs(back[:, 20:30].astype(int) - rgb[:, 20:30]).max() <= 8

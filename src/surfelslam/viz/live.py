@@ -4,13 +4,17 @@ The run loop calls :meth:`LiveViewer.on_frame` after each tracked frame, on the 
 references and small copies (the pose; every ``images_every`` frames the frame's images; every ``map_every`` frames a
 subsampled copy of the map) and hands them to a background thread through a bounded queue; when the queue is full
 the images and map of that frame are dropped (counted), never the poses, and tracking never waits. The background
-thread converts and logs (Rerun batches and sends from its own threads).
+thread converts and logs (Rerun batches and sends from its own threads): the poses, plots and path go as column
+batches of ``path_every`` frames (one call per entity instead of a few per frame), the colour image as a JPEG
+encoded by OpenCV (a tenth of the CPU of rerun-sdk's encoder, without the GIL), so that the view costs little of
+the CPU the tracking shares (``make bench``'s viewer section: issue 36 allows 10 % of FPS).
 
 What is shown (entity paths and colours as in :mod:`surfelslam.viz.rerun_export`; ``world`` is the run's frame, the
 first camera's: x right, y down, z forward):
 
-* ``world/camera``: the estimated pose at each frame (timelines ``frame`` and ``time``), with a pinhole of the
-  run's camera at ``world/camera/image`` and the colour (JPEG) and depth images every ``images_every`` frames;
+* ``world/camera``: the estimated pose at each frame (timelines ``frame`` and ``time``; sent every ``path_every``
+  frames), with a pinhole of the run's camera at ``world/camera/image`` and the colour (JPEG) and depth images
+  every ``images_every`` frames;
 * ``world/estimate``: the path so far, every ``path_every`` frames;
 * ``world/map``: the map's points, every ``map_every`` frames, subsampled to at most ``map_max_points`` (a new
   snapshot replaces the previous one on the timeline: the map is not re-sent each frame);
@@ -35,9 +39,14 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.config import Config, setting
-from surfelslam.errors import ConfigError
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
+from surfelslam.viz.live_spec import (  # noqa: F401 - re-exported: the viewer's one import for callers
+    DEFAULT_CONNECT,
+    MODES,
+    LiveViewerConfig,
+    ViewerSpec,
+    parse_viewer,
+)
 from surfelslam.viz.rerun_export import (
     DEPTH_UNITS_PER_M,
     ESTIMATE_RGB,
@@ -49,64 +58,10 @@ from surfelslam.viz.rerun_export import (
 )
 
 MISSING_RERUN = "the live viewer needs rerun-sdk: pip install 'surfelslam[viz]'"
-MODES = ("spawn", "connect", "serve", "save")
-#: Default Rerun gRPC address for ``connect`` without one.
-DEFAULT_CONNECT = "rerun+http://127.0.0.1:9876/proxy"
+#: The largest depth a uint16 depth image holds, in its units (:data:`DEPTH_UNITS_PER_M` per metre).
+DEPTH_MAX_UNITS = np.iinfo(np.uint16).max
 #: Ground-truth association tolerance for the per-frame error (s), as the evaluation's.
 GT_MAX_DT_S = 0.02
-
-
-@dataclass(frozen=True)
-class ViewerSpec:
-    """Where the live view goes: ``mode`` one of :data:`MODES`; ``target``: the file (``save``), the address
-    (``connect``, ``None``: the local viewer), else ``None``."""
-
-    mode: str
-    target: str | None = None
-
-    def describe(self) -> str:
-        return {"spawn": "a spawned Rerun viewer", "connect": f"the Rerun viewer at {self.url()}",
-                "serve": "a served Rerun web viewer", "save": f"the recording {self.target}"}[self.mode]
-
-    def url(self) -> str:
-        """The gRPC URL of ``connect``: ``host:port`` becomes ``rerun+http://host:port/proxy``."""
-        t = self.target
-        if not t:
-            return DEFAULT_CONNECT
-        return t if "://" in t else f"rerun+http://{t}/proxy"
-
-
-def parse_viewer(text: str) -> ViewerSpec:
-    """``spawn``, ``connect``, ``connect=HOST:PORT`` (or a ``rerun+http://`` URL), ``serve`` or ``save=FILE``.
-
-    Raises:
-        ConfigError: anything else (the message lists the forms).
-    """
-    mode, sep, target = text.strip().partition("=")
-    mode = mode.strip().lower()
-    forms = "spawn, connect, connect=HOST:PORT, serve or save=FILE.rrd"
-    if mode not in MODES:
-        raise ConfigError(f"--viewer {text!r}: expected {forms}")
-    target = target.strip() or None
-    if mode == "save" and target is None:
-        raise ConfigError(f"--viewer {text!r}: save needs a file, e.g. save=run.rrd")
-    if mode in ("spawn", "serve") and sep:
-        raise ConfigError(f"--viewer {text!r}: {mode} takes no value (expected {forms})")
-    return ViewerSpec(mode, target)
-
-
-@dataclass(frozen=True)
-class LiveViewerConfig(Config):
-    """How much the live viewer logs, and how far it may fall behind tracking."""
-
-    images_every: int = setting(5, unit="frames", ge=1, le=1_000_000,
-                                doc="log the colour and depth images every N frames")
-    map_every: int = setting(30, unit="frames", ge=1, le=1_000_000, doc="log a map snapshot every N frames")
-    path_every: int = setting(10, unit="frames", ge=1, le=1_000_000, doc="log the camera path every N frames")
-    map_max_points: int = setting(100_000, unit="points", ge=1, le=100_000_000,
-                                  doc="a map snapshot is subsampled to at most this many points")
-    queue_size: int = setting(8, unit="items", ge=1, le=10_000,
-                              doc="pending log items; when full, images and map snapshots are dropped, not waited for")
 
 
 @dataclass
@@ -136,6 +91,17 @@ class _Item:
     loops: list[tuple[int, int]] | None = None
 
 
+def jpeg(rgb: np.ndarray, quality: int = RGB_JPEG_QUALITY) -> bytes:
+    """``rgb`` (H, W, 3) uint8 as JPEG bytes, by OpenCV: about a tenth of the CPU of rerun-sdk's
+    ``Image.compress`` at 320x240, and it releases the GIL while encoding (the tracking thread is not held up)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buf.tobytes()
+
+
 def map_snapshot(tracker, max_points: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A subsampled copy of the tracker's surfel map: ``(positions (M, 3) float32, colours (M, 3) uint8)`` with
     ``M <= max_points``, or ``None`` for trackers without a surfel map (``orb``). Cheap: a strided slice."""
@@ -147,7 +113,7 @@ def map_snapshot(tracker, max_points: int) -> tuple[np.ndarray, np.ndarray] | No
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
     step = max(1, -(-m.n_alive // max_points))
     alive = m.dead[::step] == 0
-    return m.position[::step][alive].copy(), np.clip(m.colour[::step][alive], 0, 255).astype(np.uint8)
+    return m.position[::step][alive], np.clip(m.colour[::step][alive], 0, 255).astype(np.uint8)
 
 
 def loop_frames(tracker) -> list[tuple[int, int]] | None:
@@ -181,6 +147,7 @@ class LiveViewer:
         self._t0: float | None = None
         self._positions: dict[int, np.ndarray] = {}
         self._path: list[np.ndarray] = []
+        self._rows: list[tuple[int, float, np.ndarray, int]] = []  # received, not yet sent (< path_every)
         self._T_align: np.ndarray | None = None
         self._loops: list[tuple[int, int]] = []
         self._log_static()
@@ -276,6 +243,12 @@ class LiveViewer:
             item = self._q.get()
             self.stats.logging_cpu_s = time.thread_time() - cpu0
             if item is None:
+                if self.stats.error is None:
+                    try:
+                        self._send_rows()  # the last, partial batch
+                    except Exception as exc:  # noqa: BLE001 - a failing view stops logging, not the run
+                        self.stats.error = f"{type(exc).__name__}: {exc}"
+                self.stats.logging_cpu_s = time.thread_time() - cpu0
                 return
             if self.stats.error is not None:
                 continue  # drain
@@ -292,27 +265,23 @@ class LiveViewer:
 
     def _log_item(self, item: _Item) -> None:
         rr, rec = self.rr, self.rec
-        last = None
-        for k, t, T, n_map in item.poses:
-            self._set_time(k, t)
-            rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-            rec.log("plots/map_points", rr.Scalars(float(n_map)))
+        for k, t, T, _ in item.poses:
+            if self._t0 is None:
+                self._t0 = t
             self._positions[k] = T[:3, 3].copy()
             self._path.append(T[:3, 3].copy())
-            if self.ground_truth is not None:
-                self._log_error(k, t, T)
-            if k % self.cfg.path_every == 0:
-                rec.log("world/estimate", rr.LineStrips3D([np.asarray(self._path)], colors=[ESTIMATE_RGB],
-                                                          radii=LINE_RADIUS_M))
-            last = (k, t)
-        if last is None:
+        self._rows += item.poses
+        if len(self._rows) >= self.cfg.path_every:
+            self._send_rows()
+        if not item.poses:
             return
-        self._set_time(item.k, next((t for k, t, _, _ in item.poses if k == item.k), last[1]))
+        self._set_time(item.k, next((t for k, t, _, _ in item.poses if k == item.k), item.poses[-1][1]))
         if item.rgb is not None and item.depth_m is not None:
-            rec.log("world/camera/image/rgb", rr.Image(item.rgb).compress(jpeg_quality=RGB_JPEG_QUALITY))
+            rec.log("world/camera/image/rgb", rr.EncodedImage(contents=jpeg(item.rgb), media_type="image/jpeg"))
             depth = np.where(np.isfinite(item.depth_m), item.depth_m, 0.0) * DEPTH_UNITS_PER_M
             rec.log("world/camera/image/depth",
-                    rr.DepthImage(np.clip(np.round(depth), 0, 65535).astype(np.uint16), meter=DEPTH_UNITS_PER_M))
+                    rr.DepthImage(np.clip(np.round(depth), 0, DEPTH_MAX_UNITS).astype(np.uint16),
+                                  meter=DEPTH_UNITS_PER_M))
             self.stats.images_logged += 1
         if item.map_xyz is not None:
             rec.log("world/map", rr.Points3D(item.map_xyz, colors=item.map_rgb, radii=POINT_RADIUS_M))
@@ -329,21 +298,47 @@ class LiveViewer:
             self.rec.log("world/loops", self.rr.LineStrips3D(np.asarray(segs, np.float64), colors=[LOOP_RGB],
                                                              radii=LINE_RADIUS_M))
 
-    def _log_error(self, k: int, t: float, T: np.ndarray) -> None:
-        gt = self.ground_truth
-        assert gt is not None
-        T_gt, valid = gt.lookup(np.array([t]), GT_MAX_DT_S)
-        if not valid[0]:
+    def _send_rows(self) -> None:
+        """The pending frames' poses, map sizes and errors as one column batch per entity (one call each instead
+        of a few per frame: Rerun's per-call cost dominated the logging thread), then the path so far."""
+        rows, self._rows = self._rows, []
+        if not rows:
             return
-        if self._T_align is None:  # the ground truth put on the first estimated pose that has one
+        rr, rec = self.rr, self.rec
+        ks = np.array([r[0] for r in rows], np.int64)
+        ts = np.array([r[1] for r in rows], np.float64)
+        T = np.stack([r[2] for r in rows])
+        assert self._t0 is not None
+        index = [rr.TimeColumn("frame", sequence=ks), rr.TimeColumn("time", duration=ts - self._t0)]
+        rec.send_columns("world/camera", index, rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]))
+        rec.send_columns("plots/map_points", index,
+                         rr.Scalars.columns(scalars=np.array([r[3] for r in rows], np.float64)))
+        if self.ground_truth is not None:
+            self._send_errors(ks, ts, T)
+        self._set_time(int(ks[-1]), float(ts[-1]))
+        rec.log("world/estimate", rr.LineStrips3D([np.asarray(self._path)], colors=[ESTIMATE_RGB],
+                                                  radii=LINE_RADIUS_M))
+
+    def _send_errors(self, ks: np.ndarray, ts: np.ndarray, T: np.ndarray) -> None:
+        """Each frame's position error against the ground truth, put on the first estimated pose that has one."""
+        gt = self.ground_truth
+        assert gt is not None and self._t0 is not None
+        T_gt, valid = gt.lookup(ts, GT_MAX_DT_S)
+        if not valid.any():
+            return
+        if self._T_align is None:
             from surfelslam.geometry import se3
 
-            self._T_align = T @ se3.invert(T_gt[0])
+            i = int(np.argmax(valid))
+            self._T_align = T[i] @ se3.invert(T_gt[i])
             pts = (self._T_align[:3, :3] @ gt.positions.T).T + self._T_align[:3, 3]
             self.rec.log("world/ground_truth", self.rr.LineStrips3D([pts], colors=[GROUND_TRUTH_RGB],
                                                                     radii=LINE_RADIUS_M), static=True)
-        p_gt = self._T_align[:3, :3] @ T_gt[0][:3, 3] + self._T_align[:3, 3]
-        self.rec.log("plots/ate_m", self.rr.Scalars(float(np.linalg.norm(T[:3, 3] - p_gt))))
+        p_gt = T_gt[valid][:, :3, 3] @ self._T_align[:3, :3].T + self._T_align[:3, 3]
+        err = np.linalg.norm(T[valid][:, :3, 3] - p_gt, axis=1)
+        index = [self.rr.TimeColumn("frame", sequence=ks[valid]),
+                 self.rr.TimeColumn("time", duration=ts[valid] - self._t0)]
+        self.rec.send_columns("plots/ate_m", index, self.rr.Scalars.columns(scalars=err))
 
     def _log_final(self, run_dir: Path) -> None:
         """The finished run's trajectory, map and loop edges, at the last frame."""
