@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -29,11 +30,19 @@ import numpy as np
 
 from surfelslam.datasets import open_sequence
 from surfelslam.eval import mesh_quality as mq
-from surfelslam.kernels.threads import set_parallel
+from surfelslam.kernels.threads import parallel_enabled, set_parallel
 from surfelslam.mapping.mesh import MeshConfig, TsdfVolume
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
+
+DEFAULT_VOXEL_M = 0.01  # the voxel of `surfelslam mesh` (m)
+OURS, GT = "surfelslam TSDF", "ground truth"  # the method and poses of the row the targets apply to
+#: points drawn on each mesh to measure its accuracy
+QUALITY_SAMPLES = 100_000
+#: issue 37's targets, ground-truth poses on Kinect-noise data: mean accuracy (m) and completeness at 1 cm
+TARGET_ACCURACY_MEAN_M = 0.005
+TARGET_COMPLETENESS = 0.90
 
 
 def _open3d():
@@ -108,14 +117,16 @@ def marching_cubes_comparison(frames, poses, intr, cfg: MeshConfig) -> dict | No
 
 
 def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open3d: bool = True,
-        noise: str = "kinect", repeats: int = 1) -> dict:
+        noise: str = "kinect", repeats: int = 1, width: int = 320, samples: int = QUALITY_SAMPLES) -> dict:
+    """Generate (or reuse, in ``work``) the sequence and its dense run, mesh it every way; the rows (module
+    docstring). ``samples``: points drawn on each mesh for its accuracy."""
     work = Path(tempfile.mkdtemp(prefix="bench_mesh_")) if work is None else Path(work)
-    seq_dir = work / f"room_{frames}_{noise}"
+    seq_dir = work / f"room_{frames}_{noise}_{width}"
     if not (seq_dir / "INFO.txt").is_file():
-        generate_sequence(seq_dir, scene="room", style="slow", n_frames=frames, noise=noise, seed=0, width=320,
-                          height=240)
+        generate_sequence(seq_dir, scene="room", style="slow", n_frames=frames, noise=noise, seed=0, width=width,
+                          height=width * 3 // 4)
     seq = open_sequence(seq_dir)
-    run_dir = work / f"run_{frames}_{noise}"
+    run_dir = work / f"run_{frames}_{noise}_{width}"
     if not (run_dir / "metrics.json").is_file():
         run_sequence(seq, run_dir, SlamConfig(), progress=False, figures=False)
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -135,8 +146,8 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
     _ours(frames_mem[:2], gt[:2], intr, cfg)  # compile
     o3d = _open3d() if open3d else None
     rows = []
-    for poses_name, poses in (("ground truth", gt), ("estimated (dense run)", est)):
-        methods = [("surfelslam TSDF", _ours)]
+    for poses_name, poses in ((GT, gt), ("estimated (dense run)", est)):
+        methods = [(OURS, _ours)]
         if o3d is not None:
             methods.append((f"Open3D {o3d.__version__} VoxelBlockGrid TSDF",
                             lambda *a: _theirs(o3d, *a)))
@@ -145,7 +156,7 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
             for _ in range(repeats - 1):  # the fastest of the repeats (the machine may be shared)
                 again = fn(frames_mem, poses, intr, cfg)[2]
                 cost = {k: min(cost[k], again[k]) for k in ("fuse_s", "extract_s")} | {"memory_mb": cost["memory_mb"]}
-            q = mq.mesh_quality(v, f, scene, truth, samples=100_000)
+            q = mq.mesh_quality(v, f, scene, truth, samples=samples)
             rows.append({"method": name, "poses": poses_name, **cost, **q})
     if o3d is not None:  # Poisson on the run's surfels (estimated poses: the map is in the run's frame)
         from surfelslam.io.ply import read_ply
@@ -157,7 +168,7 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
                               (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))), cfg)
         cost = {"fuse_s": float("nan"), "extract_s": time.perf_counter() - t0, "memory_mb": float("nan")}
         mesh = mesh.transformed(mq.first_pose_alignment(est_raw[0], gt[0]))
-        q = mq.mesh_quality(mesh.vertices, mesh.faces, scene, truth, samples=100_000)
+        q = mq.mesh_quality(mesh.vertices, mesh.faces, scene, truth, samples=samples)
         rows.append({"method": "Poisson (Open3D) on map.ply's surfels", "poses": "estimated (dense run)", **cost,
                      **q})
     return {"sequence": str(seq_dir), "frames": len(seq), "resolution": [intr.width, intr.height],
@@ -165,6 +176,88 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
             "max_depth_m": cfg.max_depth_m,
             "run_ate_rmse_m": metrics.get("eval", {}).get("ate_rmse_m"), "rows": rows,
             "marching_cubes": marching_cubes_comparison(frames_mem, gt, intr, cfg)}
+
+
+def section(frames: int, width: int, work: Path, open3d: bool = True, repeats: int = 1,
+            voxel_m: float = DEFAULT_VOXEL_M) -> dict:
+    """``make bench``'s ``mesh`` section: :func:`run` on the Kinect-noise room, times that do not apply as ``None``
+    (JSON has no NaN), the caller's serial/parallel kernel choice restored, issue 37's targets checked on our
+    mesh from the ground-truth poses."""
+    was_parallel = parallel_enabled()
+    try:
+        res = run(frames, voxel_m, work, open3d, "kinect", repeats, width)
+    finally:
+        set_parallel(was_parallel)
+    for r in res["rows"]:
+        r.update({k: None for k, v in r.items() if isinstance(v, float) and math.isnan(v)})
+    ours = next(r for r in res["rows"] if r["method"] == OURS and r["poses"] == GT)
+    res["sequence"] = "synthetic room, slow hand-held orbit, Kinect noise"
+    res["targets"] = {"accuracy_mean_m": TARGET_ACCURACY_MEAN_M, "completeness": TARGET_COMPLETENESS,
+                      "ok": ours["accuracy_mean_m"] <= TARGET_ACCURACY_MEAN_M
+                      and ours["completeness"] >= TARGET_COMPLETENESS}
+    return res
+
+
+def section_markdown(res: dict) -> list[str]:
+    """The ``make bench`` section: the quality table, the targets, the marching cubes comparison and what they say
+    about the choice of libraries."""
+    from benchmarks.report import fmt, table
+
+    w, h = res["resolution"]
+    t = res["targets"]
+    md = [f"### Mesh quality: {res['frames']} synthetic frames at {w}x{h} (`surfelslam mesh`)", ""]
+    md.append(table(["method", "poses", "accuracy mean mm", "accuracy p90 mm", "completeness @ 1 cm",
+                     "triangles", "fuse s", "extract s"],
+                    [[r["method"], r["poses"], fmt(1e3 * r["accuracy_mean_m"], 2), fmt(1e3 * r["accuracy_p90_m"], 2),
+                      f"{100 * r['completeness']:.1f} %", f"{r['faces']:,}", fmt(r["fuse_s"], 2),
+                      fmt(r["extract_s"], 2)] for r in res["rows"]]))
+    ate = res.get("run_ate_rmse_m")
+    md += [f"{res['sequence']}; voxel {100 * res['voxel_m']:g} cm, truncation {100 * res['trunc_m']:g} cm, depth up "
+           f"to {res['max_depth_m']:g} m. Accuracy: distance from points sampled on the mesh to the scene's exact "
+           "surfaces; completeness: share of the surface the frames saw within 1 cm of the mesh "
+           "(`surfelslam.eval.mesh_quality`). Estimated poses: a dense `surfelslam run` of the same frames"
+           + (f" (ATE {100 * ate:.2f} cm)" if ate is not None else "") + ", put on the first ground-truth pose. "
+           "Open3D: `t.geometry.VoxelBlockGrid` on the CPU with the same voxel, truncation, depth range, frames and "
+           "weight threshold; Poisson: `surfelslam mesh --method poisson` on the run's `map.ply`. Times: wall "
+           f"clock, the fastest of {res['repeats']}, frames decoded beforehand, ours with numba's parallel kernels "
+           f"(as `surfelslam mesh`). Issue 37's target (ground-truth poses, Kinect noise: mean accuracy <= "
+           f"{1e3 * t['accuracy_mean_m']:g} mm, completeness >= {100 * t['completeness']:g} % at 1 cm): "
+           f"{fmt(t['ok'])}.", ""]
+    mc = res.get("marching_cubes")
+    if mc:
+        md.append(table(["marching cubes (same TSDF, ground-truth poses)", "s", "triangles"],
+                        [[f"ours (numba) on the {mc['blocks']:,} sparse blocks", fmt(mc["ours_s"], 2),
+                          f"{mc['ours_faces']:,}"],
+                         [f"scikit-image `marching_cubes` on the dense box ({mc['dense_voxels'] / 1e6:.1f} M voxels, "
+                          f"{mc['dense_mb']:.0f} MiB, built in {mc['skimage_dense_grid_s']:.2f} s more)",
+                          fmt(mc["skimage_s"], 2), f"{mc['skimage_faces']:,}"]]))
+    md += [_choice(res), ""]
+    return md
+
+
+def _choice(res: dict) -> str:
+    """What the figures say about the libraries ``surfelslam mesh`` uses (worded from the figures themselves)."""
+    rows = {(r["method"].split()[0], r["poses"]): r for r in res["rows"]}
+    ours, theirs = rows.get(("surfelslam", GT)), rows.get(("Open3D", GT))
+    text = ["Choice of libraries: the TSDF and marching cubes are our own numba code, with no further dependency"]
+    if theirs is not None:
+        ours_s = (ours["fuse_s"] or 0.0) + (ours["extract_s"] or 0.0)
+        their_s = (theirs["fuse_s"] or 0.0) + (theirs["extract_s"] or 0.0)
+        text.append("against Open3D's TSDF on the same frames and poses: mean accuracy "
+                    f"{1e3 * ours['accuracy_mean_m']:.2f} mm vs {1e3 * theirs['accuracy_mean_m']:.2f} mm, completeness "
+                    f"{100 * ours['completeness']:.1f} % vs {100 * theirs['completeness']:.1f} %, "
+                    f"{ours_s:.1f} s vs {their_s:.1f} s to fuse and extract")
+    mc = res.get("marching_cubes")
+    if mc:
+        text.append(f"scikit-image's marching cubes needs the dense box ({mc['dense_mb']:.0f} MiB here, growing with "
+                    "the room's volume, where the sparse blocks grow with its surface): "
+                    f"{mc['skimage_dense_grid_s'] + mc['skimage_s']:.2f} s with building it, ours "
+                    f"{mc['ours_s']:.2f} s")
+    poisson = next((r for r in res["rows"] if r["method"].startswith("Poisson")), None)
+    if poisson is not None:
+        text.append(f"Open3D's Poisson stays an option (`--method poisson`), not the default: it fills holes with "
+                    f"surfaces that are not there (p90 {1e3 * poisson['accuracy_p90_m']:.1f} mm)")
+    return "; ".join(text) + "."
 
 
 def _secs(v: float) -> str:
