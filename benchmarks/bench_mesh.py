@@ -212,7 +212,8 @@ def section_markdown(res: dict) -> list[str]:
                       f"{100 * r['completeness']:.1f} %", f"{r['faces']:,}", fmt(r["fuse_s"], 2),
                       fmt(r["extract_s"], 2)] for r in res["rows"]]))
     ate = res.get("run_ate_rmse_m")
-    md += [f"{res['sequence']}; voxel {100 * res['voxel_m']:g} cm, truncation {100 * res['trunc_m']:g} cm, depth up "
+    seq = res["sequence"][0].upper() + res["sequence"][1:]
+    md += [f"{seq}; voxel {100 * res['voxel_m']:g} cm, truncation {100 * res['trunc_m']:g} cm, depth up "
            f"to {res['max_depth_m']:g} m. Accuracy: distance from points sampled on the mesh to the scene's exact "
            "surfaces; completeness: share of the surface the frames saw within 1 cm of the mesh "
            "(`surfelslam.eval.mesh_quality`). Estimated poses: a dense `surfelslam run` of the same frames"

@@ -142,14 +142,18 @@ def section_markdown(s: dict) -> list[str]:
                      [f"`{s['viewer']}`", s["fps_viewer"], s["fps_viewer_best"], s["cpu_s_viewer"],
                       f"{fmt(s['cost_pct'])} % / {fmt(s['cost_best_pct'])} %", fmt(s["target_ok"]),
                       "passes" if s["rrd_verify_ok"] else f"**{s['rrd_verify_message']}**"]]))
-    md += [f"{s['sequence']}; {s['repeats']} runs of each, interleaved (without, with, with, without, ...) so both "
-           "see the same load; FPS from each run's `metrics.json` (frames over the loop's wall time, JIT warm-up "
-           "excluded), CPU: the process's CPU time for the whole run (all threads). The viewer logged "
+    fps = {v: ", ".join(f"{r['fps']:.1f}" for r in s["runs"][v]) for v in ("none", "viewer")}
+    noise = (" A negative cost means the difference is within the run-to-run spread (other jobs on the machine)."
+             if s["cost_pct"] < 0 or s["cost_best_pct"] < 0 else "")
+    md += [f"{s['sequence'][0].upper()}{s['sequence'][1:]}; {s['repeats']} runs of each, interleaved (without, "
+           "with, with, without, ...) so both see the same load; FPS from each run's `metrics.json` (frames over the "
+           "loop's wall time, JIT warm-up excluded), CPU: the process's CPU time for the whole run (all threads). "
+           f"FPS of the runs: without {fps['none']}; with {fps['viewer']}.{noise} The viewer logged "
            f"{s['images_logged']} image pairs (every {s['images_every']} frames) and {s['maps_logged']} map "
            f"snapshots (every {s['map_every']} frames, at most {s['map_max_points']:,} points), "
            f"{s['dropped']} dropped; {fmt(s['on_frame_ms'], 2)} ms per frame on the tracking thread, "
            f"{fmt(s['logging_cpu_ms'], 2)} ms CPU per frame in the logging thread, "
-           f"{fmt(s['cpu_ms_per_frame_added'], 2)} ms CPU per frame added in all; recording "
+           f"{fmt(s['cpu_ms_per_frame_added'], 2)} ms CPU per frame more than without (medians); recording "
            f"{fmt(s['rrd_mb'])} MiB.", ""]
     return md
 
