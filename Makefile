@@ -21,10 +21,11 @@ $(STAMP): $(PY) pyproject.toml
 demo: $(STAMP)
 	$(PY) -m surfelslam.tools.demo $(DEMO_OUT)
 
-# the tests also cover `surfelslam rerun` and the live viewer, which need the optional rerun-sdk (the `viz` extra):
-# one install of both extras (one dependency resolution), the dev extra alone if rerun-sdk cannot be had
+# the tests also cover `surfelslam rerun` and the live viewer, which need the optional rerun-sdk (the `viz` extra),
+# and `surfelslam batch` on Ray (the `batch` extra: ray without the dashboard, about 5 s more of a cold install):
+# one install of the extras (one dependency resolution), the dev extra alone if one of them cannot be had
 $(VIZ_STAMP): $(PY) pyproject.toml
-	$(PIP_INSTALL) -e ".[dev,viz]" || (echo "rerun-sdk not installable here: the rerun tests skip" && \
+	$(PIP_INSTALL) -e ".[dev,viz,batch]" || (echo "rerun-sdk or ray not installable here: their tests skip" && \
 	$(PIP_INSTALL) -e ".[dev]")
 	touch $(VIZ_STAMP) $(STAMP)
 

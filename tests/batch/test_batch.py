@@ -198,3 +198,21 @@ def test_interrupt_keeps_finished_runs_and_marks_the_rest(tmp_path, seqs, monkey
     rows = json.loads((out / "batch.json").read_text())["jobs"]
     assert [r["status"] for r in rows] == ["done", "interrupted"]
     assert is_complete(jobs[0]) and not is_complete(jobs[1])
+
+
+def test_a_failing_executor_leaves_the_table_with_its_reason(tmp_path, seqs):
+    class NoCluster:
+        name = "ray"
+
+        def run(self, jobs, on_result):
+            raise ConfigError("cannot start or join Ray at auto: no cluster")
+
+    out = tmp_path / "out"
+    jobs = expand_jobs(inline_spec(seqs, "dense"), out)
+    run_batch(jobs[:1], out, warmup=False)
+    with pytest.raises(ConfigError):
+        run_batch(jobs, out, NoCluster(), warmup=False)
+    rows = json.loads((out / "batch.json").read_text())["jobs"]
+    assert [r["status"] for r in rows] == ["skipped", "interrupted"]
+    assert rows[1]["error"] == ("the batch stopped before this job finished: cannot start or join Ray at auto: "
+                                "no cluster")

@@ -81,7 +81,8 @@ def ray_cluster():
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("RAY_USAGE_STATS_ENABLED", "0")
-        ray.init(num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+        ray.init("local", num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.WARNING)
         ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
         try:
             yield ray
@@ -231,3 +232,24 @@ def test_task_options_fit_the_cluster(tiny_seqs, tmp_path):
                    "retry_exceptions": True, "runtime_env": {"env_vars": {"NUMBA_CACHE_DIR": "/cache"}}}
     small = executor.task_options(job, {"CPU": 1.0, "memory": 1e9})  # a 1-CPU, 1 GB node: still schedulable
     assert small["num_cpus"] == 1 and small["memory"] == int(0.9e9) < memory_estimate(job)
+
+
+def test_no_cluster_at_the_address_is_a_one_line_error(monkeypatch):
+    import ray
+
+    from surfelslam.batch.executors import local_or
+    from surfelslam.errors import ConfigError
+
+    def refuse(**kwargs):
+        raise ConnectionError(f"Could not find any running Ray instance.\n(address {kwargs['address']})")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", refuse)
+    with pytest.raises(ConfigError, match=r"^cannot start or join Ray at auto: Could not find any running Ray "
+                                          r"instance\. \(address auto\)$"):
+        RayExecutor(address="auto")._init()
+    # without --address: a new local Ray, unless RAY_ADDRESS names the cluster (a `ray job submit` entry point)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert local_or(None) == "local" and local_or("ray://head:10001") == "ray://head:10001"
+    monkeypatch.setenv("RAY_ADDRESS", "head:6379")
+    assert local_or(None) is None

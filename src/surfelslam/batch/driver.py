@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from surfelslam.batch.executors import Executor, LocalExecutor
-from surfelslam.batch.jobs import Job, is_complete, skipped_row, summary
+from surfelslam.batch.jobs import Job, is_complete, one_line, skipped_row, summary
 from surfelslam.batch.report import write_report
 
 
@@ -39,8 +39,9 @@ def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | No
     A job whose folder holds a complete run of the same config is ``skipped`` (its row read from its
     ``metrics.json``). Before the others are dispatched the JIT kernels are compiled (or loaded) once here
     (``warmup``), so that the workers load numba's cache instead of each compiling it. ``on_result(job, row)`` is
-    called for each job as it is settled (skipped ones first). A KeyboardInterrupt still writes the table (the
-    jobs not finished: ``interrupted``) and then propagates.
+    called for each job as it is settled (skipped ones first). A KeyboardInterrupt, or the executor failing (a
+    cluster that cannot be joined), still writes the table (the jobs not finished: ``interrupted``, with the
+    reason) and then propagates.
     """
     executor = LocalExecutor() if executor is None else executor
     out_root = Path(out_root)
@@ -59,6 +60,7 @@ def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | No
         else:
             todo.append(job)
     interrupted = False
+    reason = "the batch was interrupted before this job finished"
     try:
         if todo and warmup:
             from surfelslam.warmup import warm
@@ -68,9 +70,10 @@ def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | No
     except KeyboardInterrupt:
         interrupted = True
         raise
+    except Exception as exc:  # the executor itself failed (no cluster, the cluster lost): say so in the table
+        reason = f"the batch stopped before this job finished: {one_line(exc)}"
+        raise
     finally:
-        ordered = [rows.get(j.name) or summary(j.describe(), None, "interrupted",
-                                               "the batch was interrupted before this job finished")
-                   for j in jobs]
+        ordered = [rows.get(j.name) or summary(j.describe(), None, "interrupted", reason) for j in jobs]
         files = write_report(out_root, ordered, plots=plots and not interrupted)
     return BatchResult(ordered, files, interrupted)

@@ -31,6 +31,8 @@ _BASE_BYTES = 600 << 20
 _BYTES_PER_PIXEL = 2500
 #: a task never declares more than this share of the cluster's memory (else Ray could never schedule it)
 _MAX_MEMORY_SHARE = 0.9
+#: ``ray.init(address=...)`` for a new Ray in this process; the variable a Ray job's driver finds its cluster by
+LOCAL_RAY, RAY_ADDRESS_ENV = "local", "RAY_ADDRESS"
 #: the Ray logger's level in this process: Ray's warnings, not its start-up chatter
 _RAY_LOG_LEVEL = logging.WARNING
 
@@ -106,11 +108,21 @@ def ray_failure_reason(exc: BaseException) -> str:
     return one_line(exc)
 
 
+def local_or(address: str | None) -> str | None:
+    """The ``ray.init`` address for ``--address``: as given; without one, ``RAY_ADDRESS`` when set (a ``ray job
+    submit`` entry point has it), else a new local Ray (:data:`LOCAL_RAY`), even when ``ray start`` left a
+    cluster running on this machine (``--address auto`` joins that one)."""
+    if address is not None:
+        return address
+    return None if os.environ.get(RAY_ADDRESS_ENV) else LOCAL_RAY
+
+
 class RayExecutor:
-    """One Ray task per job. ``address``: ``None`` starts a local Ray in this process (all the machine's CPUs)
-    unless Ray is already initialised, ``"auto"`` joins the cluster this node belongs to, ``"ray://host:10001"``
-    connects a Ray client. A Ray this executor started is shut down after the batch. ``env_vars`` are set in the
-    workers (e.g. ``NUMBA_CACHE_DIR``); ``task`` is what a task runs for a job (:func:`run_job`)."""
+    """One Ray task per job. ``address``: ``None`` starts a local Ray in this process (all the machine's CPUs;
+    see :func:`local_or`) unless Ray is already initialised, ``"auto"`` joins the cluster this node belongs to,
+    ``"ray://host:10001"`` connects a Ray client. A Ray this executor started is shut down after the batch.
+    ``env_vars`` are set in the workers (e.g. ``NUMBA_CACHE_DIR``); ``task`` is what a task runs for a job
+    (:func:`run_job`)."""
 
     name = "ray"
 
@@ -129,12 +141,17 @@ class RayExecutor:
 
         if ray.is_initialized():
             return ray, False
-        kwargs: dict[str, Any] = {"address": self.address, "log_to_driver": False,
+        kwargs: dict[str, Any] = {"address": local_or(self.address), "log_to_driver": False,
                                   "logging_level": _RAY_LOG_LEVEL}
-        if self.address is None:
+        if kwargs["address"] == LOCAL_RAY:
             kwargs["include_dashboard"] = False  # a local Ray for this batch: nobody to look at it
         kwargs.update(self.init_kwargs)
-        ray.init(**kwargs)
+        try:
+            ray.init(**kwargs)
+        except (ConnectionError, TimeoutError, ValueError, RuntimeError) as exc:  # no cluster there, bad address
+            where = f" at {self.address}" if self.address else ""
+            raise ConfigError(f"cannot start or join Ray{where}: {' '.join(str(exc).split()) or type(exc).__name__}"
+                              ) from exc
         return ray, True
 
     def task_options(self, job: Job, resources: dict[str, float]) -> dict[str, Any]:
