@@ -1,10 +1,11 @@
 """``surfelslam batch`` on Ray: the ATEs of separate ``surfelslam run`` calls, declared resources, numba's cache in
 the workers, a killed worker retried, failures kept with their reason, resume without dispatching, Ctrl-C.
 
-One small local Ray (2 CPUs) for the whole module (its start-up is most of the time); the 3 tiny synthetic
-sequences of conftest.py x dense, orb. Faults are injected by the task function (a wrapper of ``run_job``,
-pickled by value into the workers) through marker files, never by timing: a worker SIGKILLs itself on its first
-attempt, the next attempt finds the marker. The cluster's tests are ``slow`` (left out by ``make test-fast``).
+One small local Ray (2 CPUs) for one test that checks everything needing a cluster (its start-up is most of the
+time); the 3 tiny synthetic sequences of conftest.py x dense, orb. Faults are injected by the task function (a
+wrapper of ``run_job``, pickled by value into the workers) through marker files, never by timing: a worker SIGKILLs
+itself on its first attempt, the next attempt finds the marker. The cluster's test is ``slow`` (left out by
+``make test-fast``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import logging
 import os
 import signal
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -73,10 +73,10 @@ def _faulty(job, marker_dir, plan):
     return run_job(job)
 
 
-# ------------------------------------------------------------------------------------------------ fixtures
-@pytest.fixture(scope="module")
+# ------------------------------------------------------------------------------------------------ the cluster's test
+@pytest.fixture
 def ray_cluster():
-    """One local Ray for the module (its start-up is most of these tests' time), shut down at the end."""
+    """A local Ray (its start-up is most of this module's time), shut down after the test."""
     import ray
 
     with pytest.MonkeyPatch.context() as mp:
@@ -91,22 +91,32 @@ def ray_cluster():
             ray.shutdown()
 
 
-@pytest.fixture(scope="module")
-def spec_file(tiny_seqs, tmp_path_factory) -> Path:
-    """3 sequences x dense, orb: the spec of issue 38's "done when"."""
-    path = tmp_path_factory.mktemp("ray_spec") / "spec.toml"
-    path.write_text(f"sequences = {json.dumps([str(s) for s in tiny_seqs])}\ntrackers = {json.dumps(TRACKERS)}\n")
-    return path
+@pytest.mark.slow
+def test_batch_on_ray(ray_cluster, tiny_seqs, tmp_path):
+    """Everything that needs the cluster, in one test: with pytest-xdist (``make test``) separate tests could land
+    on both workers, and each would start its own Ray. Each part is one of issue 38's "done when" items."""
+    spec_file = tmp_path / "spec.toml"  # 3 sequences x dense, orb
+    spec_file.write_text(f"sequences = {json.dumps([str(s) for s in tiny_seqs])}\n"
+                         f"trackers = {json.dumps(TRACKERS)}\n")
+    separate = _separate_runs(tiny_seqs, tmp_path / "separate")
+    # after the separate runs: numba's on-disk cache holds every kernel the jobs use
+    out = tmp_path / "batch"
+    jobs = expand_jobs(load_spec(spec_file), out)
+    rows = run_batch(jobs, out, RayExecutor(retries=0, task=_inspect), warmup=False).rows
+
+    _check_the_ates_of_separate_runs(jobs, rows, separate)
+    _check_declared_resources_and_cached_kernels(jobs, rows)
+    _check_rerun_skips_every_finished_job(spec_file, out, rows)
+    _check_killed_worker_is_retried_and_a_failing_job_keeps_its_reason(tiny_seqs, separate, tmp_path / "faults")
+    _check_interrupt_cancels_the_rest_and_keeps_the_finished_run(tiny_seqs, tmp_path / "interrupt")
 
 
-@pytest.fixture(scope="module")
-def separate_runs(tiny_seqs, tmp_path_factory) -> dict[tuple[str, str], dict]:
+def _separate_runs(seqs, root: Path) -> dict[tuple[str, str], dict]:
     """(sequence, tracker) -> metrics.json and config.toml sha256 of a separate ``surfelslam run``."""
     from surfelslam.cli import app
 
-    root = tmp_path_factory.mktemp("separate")
     out = {}
-    for seq in tiny_seqs:
+    for seq in seqs:
         for tracker in TRACKERS:
             run_dir = root / f"{seq.name}-{tracker}"
             res = CliRunner().invoke(app, ["run", str(seq), "--tracker", tracker, "--out", str(run_dir),
@@ -117,24 +127,12 @@ def separate_runs(tiny_seqs, tmp_path_factory) -> dict[tuple[str, str], dict]:
     return out
 
 
-@pytest.fixture(scope="module")
-def ray_batch(ray_cluster, spec_file, separate_runs, tmp_path_factory):
-    """The spec's 6 jobs run on Ray (after the separate runs: numba's cache holds every kernel they use)."""
-    out = tmp_path_factory.mktemp("ray_batch")
-    jobs = expand_jobs(load_spec(spec_file), out)
-    result = run_batch(jobs, out, RayExecutor(retries=0, task=_inspect), warmup=False)
-    return jobs, out, result
-
-
-# ------------------------------------------------------------------------------------------------ tests
-@pytest.mark.slow
-def test_ray_jobs_give_the_ates_of_separate_runs(ray_batch, separate_runs):
-    jobs, _, result = ray_batch
+def _check_the_ates_of_separate_runs(jobs, rows, separate) -> None:
     assert [(Path(j.sequence).name, j.tracker) for j in jobs] == [
         (room, t) for room in ("roomA", "roomB", "roomC") for t in TRACKERS]
-    assert [r["status"] for r in result.rows] == ["done"] * 6
-    for job, row in zip(jobs, result.rows, strict=True):
-        ref = separate_runs[Path(job.sequence).name, job.tracker]
+    assert [r["status"] for r in rows] == ["done"] * 6
+    for job, row in zip(jobs, rows, strict=True):
+        ref = separate[Path(job.sequence).name, job.tracker]
         assert ref["config_sha256"] == job.config_hash  # the same recipe as `surfelslam run SEQ --tracker T`
         assert row["ate_rmse_m"] == ref["metrics"]["eval"]["ate_rmse_m"]
         assert row["rpe_trans_m_per_frame"] == ref["metrics"]["eval"]["rpe_trans_rmse_m_per_frame"]
@@ -144,62 +142,51 @@ def test_ray_jobs_give_the_ates_of_separate_runs(ray_batch, separate_runs):
         assert row["_pid"] != os.getpid()  # it ran in a Ray worker
 
 
-@pytest.mark.slow
-def test_ray_tasks_declare_cpus_and_memory_and_load_the_cached_kernels(ray_batch):
-    jobs, _, result = ray_batch
-    for job, row in zip(jobs, result.rows, strict=True):
+def _check_declared_resources_and_cached_kernels(jobs, rows) -> None:
+    for job, row in zip(jobs, rows, strict=True):
         assert row["_resources"]["CPU"] == CPUS_PER_JOB
         assert row["_resources"]["memory"] == memory_estimate(job)
         # every kernel the worker needed was loaded from numba's on-disk cache, none compiled
         assert row["_cache_misses"] == 0 and row["_cache_hits"] > 0, row
 
 
-@pytest.mark.slow
-def test_rerun_of_the_spec_on_ray_skips_every_finished_job(ray_batch, spec_file):
+def _check_rerun_skips_every_finished_job(spec_file: Path, out: Path, first_rows) -> None:
     """``surfelslam batch SPEC --executor ray`` over the finished batch: every job skipped, nothing dispatched
     (a dispatched job would be ``done``), the same ATEs."""
     from surfelslam.cli import app
 
-    jobs, out, first = ray_batch
-    t0 = time.perf_counter()
     res = CliRunner().invoke(app, ["batch", str(spec_file), "--out", str(out), "--executor", "ray", "--no-warmup"])
-    elapsed = time.perf_counter() - t0
     assert res.exit_code == 0, res.output
     assert "executor: ray" in res.stdout and "6 skipped ->" in res.stdout and "done" not in res.stdout
     again = json.loads((out / "batch.json").read_text())["jobs"]
     assert [r["status"] for r in again] == ["skipped"] * 6
-    assert [r["ate_rmse_m"] for r in again] == [r["ate_rmse_m"] for r in first.rows]
-    print(f"rerun of {len(jobs)} finished jobs: {elapsed:.2f} s")
+    assert [r["ate_rmse_m"] for r in again] == [r["ate_rmse_m"] for r in first_rows]
 
 
-@pytest.mark.slow
-def test_killed_worker_is_retried_and_a_failing_job_keeps_its_reason(ray_cluster, tiny_seqs, separate_runs,
-                                                                     tmp_path):
-    out, markers = tmp_path / "out", tmp_path / "markers"
-    markers.mkdir()
-    jobs = expand_jobs(inline_spec(tiny_seqs[:2], "dense"), out)
+def _check_killed_worker_is_retried_and_a_failing_job_keeps_its_reason(seqs, separate, root: Path) -> None:
+    out, markers = root / "out", root / "markers"
+    markers.mkdir(parents=True)
+    jobs = expand_jobs(inline_spec(seqs[:2], "dense"), out)
     plan = {jobs[0].name: "kill-once", jobs[1].name: "raise"}
 
     def task(job):  # a local function: pickled by value with its closure
         return _faulty(job, str(markers), plan)
 
     rows = run_batch(jobs, out, RayExecutor(retries=1, task=task), warmup=False, plots=False).rows
-
     attempts = {j.name: (markers / f"{j.name}.attempts").read_text().split() for j in jobs}
     assert [len(attempts[j.name]) for j in jobs] == [2, 2]
     assert attempts[jobs[0].name][0] != attempts[jobs[0].name][1]  # the killed worker's retry ran in a new one
     assert rows[0]["status"] == "done" and is_complete(jobs[0])
-    assert rows[0]["ate_rmse_m"] == separate_runs["roomA", "dense"]["metrics"]["eval"]["ate_rmse_m"]
+    assert rows[0]["ate_rmse_m"] == separate["roomA", "dense"]["metrics"]["eval"]["ate_rmse_m"]
     assert rows[1]["status"] == "failed" and not is_complete(jobs[1])
     assert rows[1]["error"] == "RuntimeError: disk on fire (after 2 attempts)"
     table = (out / "results.md").read_text()
     assert "1 done, 1 failed" in table and "disk on fire" in table
 
 
-@pytest.mark.slow
-def test_interrupt_cancels_the_rest_and_keeps_the_finished_run(ray_cluster, tiny_seqs, tmp_path):
-    out = tmp_path / "out"
-    jobs = expand_jobs(inline_spec(tiny_seqs, "dense"), out)
+def _check_interrupt_cancels_the_rest_and_keeps_the_finished_run(seqs, root: Path) -> None:
+    out = root / "out"
+    jobs = expand_jobs(inline_spec(seqs, "dense"), out)
 
     def stop_after_first(job, row):
         raise KeyboardInterrupt
