@@ -216,3 +216,16 @@ def test_a_failing_executor_leaves_the_table_with_its_reason(tmp_path, seqs):
     assert [r["status"] for r in rows] == ["skipped", "interrupted"]
     assert rows[1]["error"] == ("the batch stopped before this job finished: cannot start or join Ray at auto: "
                                 "no cluster")
+
+
+def test_workers_get_the_numba_cache_folder_this_process_uses(monkeypatch, tmp_path):
+    from surfelslam.batch.executors import numba_cache_env
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert numba_cache_env() == {"NUMBA_CACHE_DIR": str(tmp_path)}
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setattr("surfelslam.cli.numba_cache_fallback", lambda: str(tmp_path / "fallback"))
+    assert numba_cache_env() == {"NUMBA_CACHE_DIR": str(tmp_path / "fallback")}
+    monkeypatch.setattr("surfelslam.cli.numba_cache_fallback", lambda: None)  # the in-tree cache works
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert numba_cache_env() == {}
