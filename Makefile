@@ -32,11 +32,13 @@ $(VIZ_STAMP): $(PY) pyproject.toml
 # The suite runs on every core (pytest-xdist). The numba kernels are compiled first, once, by two warm-up processes
 # side by side (surfelslam.warmup: dense and sparse parts), so the workers load them from numba's on-disk cache
 # instead of each compiling the same kernels; a kernel a worker still compiles is written to a temporary name and
-# renamed by numba, so workers never read a torn cache file. The slowest (whole-sequence) tests are scheduled first
-# (tests/conftest.py), and idle workers steal queued tests.
+# renamed by numba, so workers never read a torn cache file. Tests are handed out one at a time to whichever worker is
+# free (--dist loadgroup): first the groups that share a module fixture or a cached run (marked xdist_group, so the
+# shared work is done once, on one worker), then the whole-sequence tests (marked slow, tests/conftest.py), then the rest.
 PYTEST_WORKERS ?= auto
+PYTEST_DIST := --dist loadgroup
 test: $(VIZ_STAMP) warmup
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
 warmup: $(STAMP)
 	@$(PY) -m surfelslam.warmup dense & dense=$$!; $(PY) -m surfelslam.warmup sparse outputs; sparse=$$?; \
@@ -44,7 +46,7 @@ warmup: $(STAMP)
 
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal -m "not slow and not shared"
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST) -m "not slow and not shared"
 
 bench: $(STAMP)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) || true

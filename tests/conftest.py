@@ -21,6 +21,9 @@ def sevenscenes_path() -> Path:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The whole-sequence tests (marker ``slow``) first: the parallel workers start on the long tests and finish on
-    the short ones, instead of one worker running a 30 s test at the end while the other is idle."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """Long work first, so the parallel workers start on the long tests and finish on the short ones instead of one
+    worker running a 30 s test at the end while the other is idle: the groups that share a module fixture or a
+    cached run (marker ``xdist_group``: one worker runs the whole group, ``make test`` uses ``--dist loadgroup``),
+    then the whole-sequence tests (marker ``slow``), then the rest."""
+    items.sort(key=lambda item: (item.get_closest_marker("xdist_group") is None,
+                                 item.get_closest_marker("slow") is None))

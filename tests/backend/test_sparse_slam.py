@@ -17,6 +17,8 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 from helpers import ROOM_INTR, ate_m, look_pose, render_room
 
+pytestmark = pytest.mark.xdist_group("sparse_slam_loop")  # the module's loop run is shared: one worker
+
 N_LOOP = 40  # frames per revolution (9 deg and ~8 cm per frame)
 N_EXTRA = 6  # frames past the start: the loop closes
 

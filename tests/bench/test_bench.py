@@ -25,7 +25,8 @@ TINY = run_all.Plan(
     viewer_frames=0, mesh_frames=0,  # run apart below (test_viewer_and_mesh_sections_spliced_into_the_last_results)
 )
 
-pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+# whole sequences through trackers or commands; the tests share a module fixture, so they run on one worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("bench")]
 
 
 @pytest.fixture(scope="module")

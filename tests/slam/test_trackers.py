@@ -189,6 +189,7 @@ def _plain_office_frames():
     return list(iter_frames(scene, traj, INTR, noise_config("kinect"), 2)), gt
 
 
+@pytest.mark.xdist_group("plain_office")  # shares a cached run or render: one worker
 def test_orb_tracks_a_plain_walled_office_by_its_depth():
     """Plain walls, a few cabinet corners: PnP against the keyframe has 8-20 inliers and is centimetres off or
     rejected, and the orb tracker without depth is lost (29 of 60 frames rejected, 236 mm ATE when measured).
@@ -205,6 +206,7 @@ def test_orb_tracks_a_plain_walled_office_by_its_depth():
     assert res_pnp.metrics["tracking_failures"] > 10 and ate_m(est_pnp, gt) > 0.05, ate_m(est_pnp, gt)
 
 
+@pytest.mark.xdist_group("plain_office")  # shares a cached run or render: one worker
 def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
     """Plain-walled office: PnP verifies no nearby keyframe pair, so no refined edge constrains the dense odometry
     and the hybrid is the dense trajectory (6.7 mm unaligned over 60 frames when measured). Registered by depth
@@ -291,6 +293,7 @@ def _loop_run_few_checks():
     return _run("hybrid", _frames("loop", N_LOOP)[0], _few_loop_checks())
 
 
+@pytest.mark.xdist_group("hybrid_loop_run")  # shares a cached run or render: one worker
 def test_loop_found_reported_and_closure_reduces_ate():
     """The revisit is recognised and reported, and the loop-corrected trajectory beats the same run without
     loop closure (measured with the defaults: 60 frames 0.59 vs 0.72 cm; 150 frames 0.74 vs 2.30 cm)."""
@@ -310,6 +313,7 @@ def test_loop_found_reported_and_closure_reduces_ate():
     assert ate_m(est, gt) < ate_m(est_no, gt), (ate_m(est, gt), ate_m(est_no, gt))
 
 
+@pytest.mark.xdist_group("hybrid_loop_run")  # shares a cached run or render: one worker
 def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     """``hybrid.loop_icp``: the PnP keyframe edges refined by ICP between the keyframes' depth carry a tight
     weight, and the loops then correct the dense drift (measured, walking loop, 60 frames: 0.42 cm with PnP
@@ -330,6 +334,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert ate_m(est, gt) < 0.5 * ate_m(est_pnp, gt), (ate_m(est, gt), ate_m(est_pnp, gt))
 
 
+@pytest.mark.xdist_group("hybrid_loop_run")  # shares a cached run or render: one worker
 def test_background_loop_checks_keep_poses_rigid_and_close_to_inline():
     """Loop checks in the background thread are applied one keyframe later: keyframe poses stay rigid (no
     compounding of rounding through re-based poses) and the trajectory stays close to the inline one."""

@@ -24,7 +24,8 @@ from surfelslam.eval.experiments import (
 from surfelslam.slam import TRACKERS, SlamConfig
 from surfelslam.tracking.features import FeatureConfig
 
-pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+# whole sequences through trackers or commands; the tests share a module fixture, so they run on one worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("experiments")]
 
 FRAMES = 10
 GAPS = (10, 20)

@@ -19,7 +19,8 @@ from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
 from surfelslam.viz.rerun_export import build_scene
 
-pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
+# whole sequences through trackers or commands; the tests share a module fixture, so they run on one worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("rerun_export")]
 
 runner = CliRunner()
 

@@ -23,5 +23,5 @@ def save_figure(fig: Figure, path: str | Path) -> Path:
     if fig.canvas is None or not isinstance(fig.canvas, FigureCanvasAgg):
         FigureCanvasAgg(fig)
     with atomic_open(path, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=style.DPI)
+        fig.savefig(fh, format="png", dpi=style.DPI, pil_kwargs={"compress_level": style.PNG_COMPRESS_LEVEL})
     return Path(path)

@@ -17,6 +17,8 @@ THIN_LINE_WIDTH = 0.8
 MARKER_SIZE = 12
 
 DPI = 120
+#: zlib level of the PNGs: 3 writes a 1600x1200 map figure in half the time of the default 6, about 10 % larger
+PNG_COMPRESS_LEVEL = 3
 TRAJECTORY_FIGSIZE_IN = (12.0, 6.5)  # top view + 3 time panels
 ERRORS_FIGSIZE_IN = (10.0, 5.0)
 TITLE_FONTSIZE = 11
