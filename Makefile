@@ -11,7 +11,10 @@ DEMO_OUT ?= out/demo
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 
-# --no-compile: modules are byte-compiled when first imported, not every file of every dependency up front
+# --no-compile: modules are byte-compiled when first imported, not every file of every dependency up front. That needs
+# Python to keep the bytecode it compiles: an inherited PYTHONDONTWRITEBYTECODE would make every process (each test
+# worker, warm-up and command a test runs) compile every module it imports again, seconds each.
+unexport PYTHONDONTWRITEBYTECODE
 PIP_INSTALL := $(PY) -m pip install --quiet --no-compile
 
 $(STAMP): $(PY) pyproject.toml
