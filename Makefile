@@ -40,11 +40,7 @@ $(VIZ_STAMP): $(PY) pyproject.toml
 # shared work is done once, on one worker), then the whole-sequence tests (marked slow, tests/conftest.py), then the rest.
 PYTEST_WORKERS ?= auto
 PYTEST_DIST := --dist loadgroup
-# Beside the warm-up, one collection pass byte-compiles the test modules (assertion rewriting) and what they import, so
-# the workers start from the cached bytecode instead of each compiling every module (--no-compile install).
-test: $(VIZ_STAMP)
-	@$(PY) -m pytest --collect-only -q -p no:cacheprovider >/dev/null 2>&1 & collect=$$!; \
-	$(MAKE) --no-print-directory warmup; status=$$?; wait $$collect; exit $$status
+test: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
 warmup: $(STAMP)
