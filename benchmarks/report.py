@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks import bench_icp, bench_mesh, bench_viewer
+from benchmarks import bench_icp, bench_mesh, bench_robustness, bench_viewer
 from surfelslam.io.jsonio import json_default
 
 DOCS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"  # written by every full run
@@ -131,7 +131,7 @@ def to_markdown(res: dict) -> str:
                    "starts, and our FPS excludes the JIT warm-up. At 320x240 only (Open3D runs at a few FPS).", ""]
         else:
             md += [f"Open3D side by side: {o.get('reason', 'no rows')}.", ""]
-    for key, module in (("viewer", bench_viewer), ("mesh", bench_mesh)):
+    for key, module in (("viewer", bench_viewer), ("mesh", bench_mesh), ("robustness", bench_robustness)):
         if res.get(key):
             md += module.section_markdown(res[key]) + _measured_apart(res[key], meta, key)
     return "\n".join(md + _footer(res))

@@ -23,6 +23,7 @@ TINY = run_all.Plan(
     sustained_window=5, synth_width=80, synth_slow_frames=24, synth_loop_frames=12, open3d_frames_real=0,
     open3d_frames_synth=0, extra_runs=(("orb", "real", 6), ("orb", "slow", 6)), min_frames=8, budget_s=0.0,
     viewer_frames=0, mesh_frames=0,  # run apart below (test_viewer_and_mesh_sections_spliced_into_the_last_results)
+    robust_frames=0,  # run apart below (test_robustness_section_spliced_into_the_last_results)
 )
 
 # whole sequences through trackers or commands; the tests share a module fixture, so they run on one worker
@@ -46,8 +47,8 @@ def test_json_sections(bench) -> None:
     res, out = bench
     on_disk = json.loads((out / "latest.json").read_text())
     assert set(on_disk) == {"meta", "jit", "stages", "icp", "sustained", "accuracy", "not_tracked", "open3d", "viewer",
-                            "mesh", "skipped", "errors"}
-    assert on_disk["viewer"] is None and on_disk["mesh"] is None  # not in this plan
+                            "mesh", "robustness", "skipped", "errors"}
+    assert on_disk["viewer"] is None and on_disk["mesh"] is None and on_disk["robustness"] is None  # not planned
     assert on_disk["errors"] == [], on_disk["errors"]
     assert on_disk["meta"]["mode"] == "tiny" and on_disk["meta"]["machine"]["cores"] >= 1
     assert on_disk["jit"]["warmup_s"] >= 0.0 and "cache" in on_disk["jit"]
@@ -228,3 +229,37 @@ def test_sections_option_refuses_other_names(capsys) -> None:
     with pytest.raises(SystemExit):
         run_all.main(["--sections", "stages"])
     assert "--sections" in capsys.readouterr().err
+
+
+# 33 frames at 30 Hz: just over the 1 s the worst-drift window needs; one generated sequence, no real data
+ROBUST = run_all.Plan("tiny", robust_frames=33, robust_width=80, robust_synthetic=("wall_textured",),
+                      robust_trackers=("orb",), robust_open3d_frames=0, robust_budget_s=1e-6)
+
+
+def test_robustness_section_spliced_into_the_last_results(tmp_path, monkeypatch) -> None:
+    """``run_all --sections robustness`` on tiny inputs: the dense row with its drift and segments, orb skipped by
+    the budget, the real sequences listed as not run (no shared data), the sequence generated once then cached."""
+    monkeypatch.setenv(run_all.bench_robustness.CACHE_ENV, str(tmp_path / "cache"))
+    base = {"meta": {"date": "2000-01-01", "mode": "tiny", "python": "3", "numba": "0", "open3d": None,
+                     "git": {"commit": "abc", "src_modified": False}, "parallel_kernels": False,
+                     "machine": {"cpu": "cpu X", "cores": 2, "arch": "x", "os": "y", "load_average_at_start": 0.1}},
+            "jit": None, "stages": [], "icp": [], "sustained": None, "accuracy": [], "not_tracked": [],
+            "open3d": None, "skipped": [], "errors": []}
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "latest.json").write_text(json.dumps(base))
+    res = run_all.run_sections(ROBUST, ["robustness"], out, open3d=False, shared=tmp_path / "no_shared")
+    assert res["errors"] == [], res["errors"]
+    r = res["robustness"]
+    [row] = r["rows"]
+    assert (row["sequence"], row["tracker"], row["frames"], row["resolution"]) == (
+        "close wall, textured (plane)", "dense", 33, "80x60")
+    assert row["ate_rmse_cm"] >= 0 and row["worst_1s_drift_cm"] >= 0 and row["fps"] > 0
+    assert 0 < row["worst_1s_drift_end_s"] <= 33 / 30 and row["lost_segments"] >= 0 and row["failures"] >= 0
+    assert [s["what"] for s in r["skipped"]] == ["robustness orb on close wall, textured (plane) (33 frames)"]
+    assert len(r["not_run"]) == len(run_all.bench_robustness.REAL)
+    assert len(list((tmp_path / "cache" / "robustness").iterdir())) == 1  # generated once, kept
+    md = (out / "latest.md").read_text()
+    assert md == run_all.to_markdown(json.loads((out / "latest.json").read_text()))
+    assert "### Robustness: long near-degenerate sequences (33 generated frames at 80x60" in md
+    assert "| close wall, textured (plane) | 33 | dense |" in md and "Skipped (time budget of the section)" in md

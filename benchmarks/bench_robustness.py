@@ -1,0 +1,277 @@
+"""Robustness of the trackers on long near-degenerate sequences (issue 33, item 5), beside Open3D's dense SLAM.
+
+Sequences (320x240, Kinect-like noise, written in TUM layout by :func:`surfelslam.synth.writer.generate_sequence`
+and read back like real data; generated once and cached, keyed by their settings and the generator's source):
+
+* ceiling + one wall: the ``office`` scene, ``upward`` style (the camera looks up at the ceiling and one wall and
+  moves sideways along it: two planes leave translation along their edge to the texture), plain and textured;
+* a single close wall: the ``plane`` scene (one wall about 1.5 m ahead), plain and textured;
+* a corridor: the ``corridor`` scene walked back and forth (two long walls), plain and textured;
+* real: TUM fr3/teddy (first 200 frames) and the two halves of the 7-Scenes kitchen sequence (frames 0-249 and
+  250-499), at 320x240, when ``../shared/data`` holds them (otherwise listed in ``not_run`` with the reason).
+
+For each tracker and sequence a row gives ATE RMSE / max, tracking failures, the weak and lost segments from the
+run's ``metrics.json`` (:mod:`surfelslam.slam.segments`), the worst 1-second drift and FPS. The worst 1-second
+drift is the largest translation of the relative pose error ``(G_i^-1 G_j)^-1 (E_i^-1 E_j)`` over every pair of
+estimated poses ``(E_i, E_j)`` and ground-truth poses ``(G_i, G_j)`` whose stamps lie 1 s apart (pairs found by
+:func:`surfelslam.eval.metrics.time_delta_pairs`; the errors by :func:`surfelslam.eval.metrics.rpe` with
+``delta_unit="seconds"``): how far the trajectory slides, unaligned, within the worst second of the run.
+
+The dense (default) tracker runs on every sequence; hybrid, orb and the Open3D side by side (its depth range
+raised to :data:`OPEN3D_DEPTH_MAX_M` so that it sees the whole room) run while the time budget allows, and
+``skipped`` says what was left out.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from surfelslam.datasets import DatasetOptions, open_sequence
+from surfelslam.eval.metrics import ate, rpe
+from surfelslam.slam import SlamConfig
+from surfelslam.slam.runner import run_sequence
+from surfelslam.synth.writer import generate_sequence
+from surfelslam.types import Trajectory
+
+NOISE = "kinect"
+SEED = 0
+DRIFT_WINDOW_S = 1.0  # the worst drift is measured over pose pairs this far apart (s)
+OPEN3D_DEPTH_MAX_M = 6.0  # Open3D's example clips depth at 3 m: most of the office is farther
+DOWNSAMPLE_REAL = 2  # the real sequences are 640x480: read at 320x240
+REAL_FIRST_S_PER_FRAME = 0.05  # a-priori dense cost (s/frame) until a run measured it
+TRACKER_COST_VS_DENSE = {"hybrid": 6.0, "orb": 3.0, "open3d": 8.0}  # a-priori, until one run measured it
+RUN_OVERHEAD_S = 5.0  # per run: opening, map and metrics writing
+SEGMENT_LINES = 3  # segments described per row in the JSON (the counts cover them all)
+CACHE_ENV = "SURFELSLAM_BENCH_CACHE"  # where generated sequences are kept between runs (default: the temp folder)
+
+
+@dataclass(frozen=True)
+class Synthetic:
+    """One generated sequence: a key, a label, the scene, trajectory style and texture style."""
+
+    key: str
+    label: str
+    scene: str
+    style: str
+    texture: str
+
+
+SYNTHETIC = (
+    Synthetic("ceiling_plain", "ceiling + wall, plain (office, upward)", "office", "upward", "plain"),
+    Synthetic("ceiling_textured", "ceiling + wall, textured (office, upward)", "office", "upward", "rich"),
+    Synthetic("wall_plain", "close wall, plain (plane)", "plane", "slow", "plain"),
+    Synthetic("wall_textured", "close wall, textured (plane)", "plane", "slow", "rich"),
+    Synthetic("corridor_plain", "corridor, plain", "corridor", "slow", "plain"),
+    Synthetic("corridor_textured", "corridor, textured", "corridor", "slow", "rich"),
+)
+SYNTHETIC_KEYS = tuple(s.key for s in SYNTHETIC)
+#: (label, folder under the shared data, first frame, end frame or None)
+REAL = (
+    ("TUM fr3/teddy (first 200)", "rgbd_dataset_freiburg3_teddy_first200", 0, None),
+    ("7-Scenes kitchen 0-249", "7scenes_redkitchen_0000_0499", 0, 250),
+    ("7-Scenes kitchen 250-499", "7scenes_redkitchen_0000_0499", 250, 500),
+)
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get(CACHE_ENV) or Path(tempfile.gettempdir()) / "surfelslam_bench_cache")
+
+
+def _generator_hash() -> str:
+    """Hash of the generator's source: a cached sequence is reused only while the generator is unchanged."""
+    import surfelslam.synth as synth
+
+    h = hashlib.sha256()
+    for p in sorted(Path(synth.__file__).parent.glob("*.py")):
+        h.update(p.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def synthetic_sequence(spec: Synthetic, n_frames: int, width: int, cache: Path) -> Path:
+    """The generated sequence of ``spec`` (from the cache when it is there; written atomically otherwise)."""
+    height = width * 3 // 4
+    key = f"{spec.scene}_{spec.style}_{spec.texture}_{n_frames}f_{width}x{height}_{NOISE}_s{SEED}_{_generator_hash()}"
+    path = cache / "robustness" / key
+    if not (path / "groundtruth.txt").is_file():
+        part = path.with_name(f".{key}.partial-{os.getpid()}")
+        shutil.rmtree(part, ignore_errors=True)
+        generate_sequence(part, scene=spec.scene, style=spec.style, n_frames=n_frames, noise=NOISE, seed=SEED,
+                          width=width, height=height, texture=spec.texture)
+        shutil.rmtree(path, ignore_errors=True)
+        part.rename(path)
+    return path
+
+
+def worst_drift(est: Trajectory, gt: Trajectory, window_s: float = DRIFT_WINDOW_S) -> tuple[float, float]:
+    """``(metres, end of the window in s from the first estimated pose)`` of the worst ``window_s`` drift."""
+    r = rpe(est, gt, delta=window_s, delta_unit="seconds")
+    k = int(r.trans_errors_m.argmax())
+    return float(r.trans_errors_m[k]), float(r.timestamps[k] - est.timestamps[0])
+
+
+def _cm(v: float | None, nd: int = 2) -> float | None:
+    return None if v is None else round(100.0 * v, nd)
+
+
+def _drift_fields(est: Trajectory, gt: Trajectory) -> dict:
+    try:
+        d, at = worst_drift(est, gt)
+    except ValueError as exc:  # EvaluationError: too short for a 1 s pair
+        return {"worst_1s_drift_cm": None, "worst_1s_drift_end_s": None, "drift_error": str(exc)}
+    return {"worst_1s_drift_cm": _cm(d), "worst_1s_drift_end_s": round(at, 2)}
+
+
+def run_tracker(label: str, seq, tracker: str, out_dir: Path) -> dict:
+    """``surfelslam run`` (defaults but the tracker) on ``seq``; the row from its ``metrics.json`` and trajectory."""
+    t0 = time.perf_counter()
+    run_sequence(seq, out_dir, SlamConfig(), tracker, progress=False, figures=False)
+    wall = time.perf_counter() - t0
+    m = json.loads((out_dir / "metrics.json").read_text())
+    e = m.get("eval") or {}
+    segs = m.get("tracking_segments", [])
+    est = Trajectory.read_tum(out_dir / "trajectory.txt")
+    row = {
+        "sequence": label, "tracker": tracker, "frames": m["frames_processed"],
+        "resolution": "x".join(str(v) for v in m["resolution"]),
+        "ate_rmse_cm": _cm(e.get("ate_rmse_m")), "ate_max_cm": _cm(e.get("ate_max_m")),
+        "failures": m.get("tracking_failures", 0),
+        "lost_segments": m.get("lost_segments", 0), "weak_segments": m.get("weak_segments", 0),
+        "lost_frames": sum(s["frames"] for s in segs if s["kind"] == "lost"),
+        "weak_frames": sum(s["frames"] for s in segs if s["kind"] == "weak"),
+        "lost_at_end": bool(m.get("lost_at_end", False)),
+        "segments": [_describe(s) for s in segs[:SEGMENT_LINES]],
+        **_drift_fields(est, seq.ground_truth),
+        "fps": round(m["fps"], 2), "wall_s": round(wall, 1),
+    }
+    if "eval_error" in m:
+        row["eval_error"] = m["eval_error"]
+    return row
+
+
+def _describe(s: dict) -> str:
+    text = f"{s['kind']} {s['first_frame']}-{s['last_frame']} ({s['frames']} frames, {s['reason']})"
+    return text + (f", {s['bridged_frames']} bridged" if s["bridged_frames"] else "") + f"; {s['recovery']}"
+
+
+def run_open3d(label: str, seq) -> dict:
+    """Open3D's ``t.pipelines.slam`` (its example's settings, depth range up to :data:`OPEN3D_DEPTH_MAX_M`)."""
+    from benchmarks.open3d_slam import Open3DSlamConfig, run_open3d_slam
+
+    o3 = run_open3d_slam(seq, Open3DSlamConfig(depth_max_m=OPEN3D_DEPTH_MAX_M))
+    a = ate(o3["trajectory"], seq.ground_truth)
+    return {"sequence": label, "tracker": f"Open3D (depth <= {OPEN3D_DEPTH_MAX_M:g} m)", "frames": o3["frames"],
+            "resolution": f"{seq.intrinsics.width}x{seq.intrinsics.height}",
+            "ate_rmse_cm": _cm(a.rmse_m), "ate_max_cm": _cm(a.max_m), "failures": o3["failed"],
+            "lost_segments": None, "weak_segments": None, "lost_frames": None, "weak_frames": None,
+            "lost_at_end": None, "segments": [], **_drift_fields(o3["trajectory"], seq.ground_truth),
+            "fps": round(o3["fps"], 2), "wall_s": round(o3["wall_s"], 1)}
+
+
+def sequences(n_frames: int, width: int, synthetic: tuple[str, ...], shared: Path | None, cache: Path,
+              real_end: int | None = None) -> tuple[list[tuple[str, Path, DatasetOptions]], list[dict]]:
+    """``([(label, folder, reader options)], [not run: label and reason])``: the generated ones, then the real
+    ones."""
+    out, not_run = [], []
+    for spec in (s for s in SYNTHETIC if s.key in synthetic):
+        path = synthetic_sequence(spec, n_frames, width, cache)
+        out.append((spec.label, path, DatasetOptions()))
+    for label, folder, start, end in REAL:
+        path = None if shared is None else shared / folder
+        if path is None or not path.is_dir():
+            not_run.append({"sequence": label, "reason": f"{folder} not in {shared}"})
+            continue
+        stop = end if real_end is None else min(start + real_end, end or start + real_end)
+        out.append((label, path, DatasetOptions(downsample=DOWNSAMPLE_REAL, start=start, end=stop)))
+    return out, not_run
+
+
+def section(n_frames: int, width: int, work: Path, budget, *, synthetic: tuple[str, ...] = SYNTHETIC_KEYS,
+            shared: Path | None = None, extra_trackers: tuple[str, ...] = ("hybrid", "orb"),
+            open3d_frames: int = 0, cache: Path | None = None, real_end: int | None = None) -> dict:
+    """Run the section: dense on every sequence, then Open3D on the first long generated one (``open3d_frames``
+    of it; 0: none), then ``extra_trackers`` on every sequence, each while ``budget.fits`` its estimate."""
+    t0 = time.perf_counter()
+    seqs, not_run = sequences(n_frames, width, synthetic, shared, cache or cache_root(), real_end)
+    gen_s = time.perf_counter() - t0
+    rows: list[dict] = []
+    per_frame: dict[str, float] = {}  # tracker -> measured wall s per frame
+
+    def estimate(tracker: str, n: int) -> float:
+        dense = per_frame.get("dense", REAL_FIRST_S_PER_FRAME)
+        return n * per_frame.get(tracker, TRACKER_COST_VS_DENSE.get(tracker, 1.0) * dense) + RUN_OVERHEAD_S
+
+    def one(tracker: str, label: str, seq, idx: int) -> None:
+        if tracker != "dense" and not budget.fits(f"robustness {tracker} on {label} ({len(seq)} frames)",
+                                                  estimate(tracker, len(seq))):
+            return
+        print(f"  robustness: {tracker} on {label} ({len(seq)} frames)", file=sys.stderr, flush=True)
+        t = time.perf_counter()
+        row = (run_open3d(label, seq) if tracker == "open3d" else
+               run_tracker(label, seq, tracker, work / f"{idx}_{tracker}"))
+        rows.append(row)
+        per_frame[tracker] = (time.perf_counter() - t) / max(len(seq), 1)
+        shutil.rmtree(work / f"{idx}_{tracker}", ignore_errors=True)
+
+    for i, (label, path, opts) in enumerate(seqs):
+        one("dense", label, open_sequence(path, opts), i)
+    if open3d_frames and seqs:
+        from benchmarks.open3d_slam import available
+
+        if available():
+            label, path, _ = seqs[0]
+            one("open3d", label, open_sequence(path, DatasetOptions(end=open3d_frames)), 0)
+        else:
+            not_run.append({"sequence": "Open3D side by side", "reason": "open3d not importable"})
+    for tracker in extra_trackers:
+        for i, (label, path, opts) in enumerate(seqs):
+            one(tracker, label, open_sequence(path, opts), i)
+    return {"frames": n_frames, "resolution": [width, width * 3 // 4], "noise": NOISE,
+            "drift_window_s": DRIFT_WINDOW_S, "open3d_depth_max_m": OPEN3D_DEPTH_MAX_M, "rows": rows,
+            "not_run": not_run, "generate_or_cache_s": round(gen_s, 1)}
+
+
+def section_markdown(res: dict) -> list[str]:
+    """The ``make bench`` section: one table of every (sequence, tracker) row and how to read it."""
+    from benchmarks.report import fmt, table
+
+    order = {"dense": 0, "hybrid": 1, "orb": 2}
+    seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in res["rows"]))}
+    rows = sorted(res["rows"], key=lambda r: (seq_order[r["sequence"]], order.get(r["tracker"], 9)))
+    w, h = res["resolution"]
+    md = [f"### Robustness: long near-degenerate sequences ({res['frames']} generated frames at {w}x{h}, "
+          f"{res['noise']} noise) and real ones", ""]
+    md.append(table(["sequence", "frames", "tracker", "ATE RMSE cm", "ATE max cm", "failures", "lost segments "
+                     "(frames)", "weak segments (frames)", "worst 1 s drift cm", "FPS"],
+                    [[r["sequence"], r["frames"], r["tracker"], fmt(r["ate_rmse_cm"], 2), fmt(r["ate_max_cm"], 2),
+                      r["failures"], _seg(r, "lost") + (" **lost at end**" if r.get("lost_at_end") else ""),
+                      _seg(r, "weak"), fmt(r["worst_1s_drift_cm"], 2), r["fps"]] for r in rows]))
+    md += ["Generated sequences: `surfelslam synth` scenes with Kinect-like noise, cached between runs. Ceiling + "
+           "wall: `office`, style `upward`; close wall: `plane` (one wall about 1.5 m ahead); corridor: `corridor` "
+           "walked back and forth; plain = flat paint on walls, ceiling and floor covering, textured = the "
+           "default textures. Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
+           f"the largest translation error of the relative pose over every pair of poses {res['drift_window_s']:g} "
+           "s apart (`eval.metrics.rpe`, `delta_unit=\"seconds\"`), unaligned. FPS: wall clock, JIT warm-up "
+           f"excluded. Open3D: `t.pipelines.slam` with its example's settings but depth up to "
+           f"{res['open3d_depth_max_m']:g} m, on the same decoded frames.", ""]
+    lost = [f"{r['sequence']} / {r['tracker']}: {'; '.join(r['segments'])}" for r in rows
+            if r["tracker"] == "dense" and r.get("segments")]
+    if lost:
+        md += ["Dense tracker's first segments: " + " | ".join(lost) + ".", ""]
+    if res.get("skipped"):
+        md += ["Skipped (time budget of the section): " + "; ".join(s["what"] for s in res["skipped"]) + ".", ""]
+    if res["not_run"]:
+        md += ["Not run: " + "; ".join(f"{n['sequence']} ({n['reason']})" for n in res["not_run"]) + ".", ""]
+    return md
+
+
+def _seg(r: dict, kind: str) -> str:
+    n = r.get(f"{kind}_segments")
+    return "–" if n is None else f"{n} ({r[f'{kind}_frames']})"
