@@ -259,8 +259,9 @@ def section_markdown(res: dict) -> list[str]:
            "default textures. Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
            f"the largest translation error of the relative pose over every pair of poses {res['drift_window_s']:g} "
            "s apart (`eval.metrics.rpe`, `delta_unit=\"seconds\"`), unaligned. FPS: wall clock, JIT warm-up "
-           f"excluded. Open3D: `t.pipelines.slam` with its example's settings but depth up to "
-           f"{res['open3d_depth_max_m']:g} m, on the same decoded frames.", ""]
+           "excluded." + (f" Open3D: `t.pipelines.slam` with its example's settings but depth up to "
+                          f"{res['open3d_depth_max_m']:g} m, on the same decoded frames."
+                          if any(r["tracker"].startswith("Open3D") for r in rows) else ""), ""]
     lost = [f"{r['sequence']} / {r['tracker']}: {'; '.join(r['segments'])}" for r in rows
             if r["tracker"] == "dense" and r.get("segments")]
     if lost:
