@@ -281,6 +281,20 @@ def _hand_over(journal: Path, out: Path) -> None:
                                                f"({os_error_text(exc)}); the rest is in {journal}") from None
 
 
+def read_run_trajectory(run_dir: Path):
+    """A finished run's ``trajectory.txt`` as a :class:`~surfelslam.types.Trajectory`; one line naming the file
+    when it is missing (not a run folder) or holds no pose."""
+    from surfelslam.types import Trajectory  # types imports io: imported here, not at module level
+
+    path = Path(run_dir) / "trajectory.txt"
+    if not path.is_file():
+        raise InputError(path, "missing: not the output folder of `surfelslam run`")
+    est = Trajectory.read_tum(path)
+    if len(est) == 0:
+        raise InputError(path, "has no poses")
+    return est
+
+
 def read_run_metrics(run_dir: Path) -> dict:
     """A run folder's ``metrics.json`` as a dict (``{}`` when there is none); one line naming the file if unreadable."""
     path = Path(run_dir) / COMPLETE_MARKER

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from surfelslam.errors import ConfigError, InputError
-from surfelslam.io.run_folder import read_run_metrics
+from surfelslam.io.run_folder import read_run_metrics, read_run_trajectory
 from surfelslam.tools.common import DepthScaleOpt, IntrinsicsOpt, console, handle_errors, parse_intrinsics
 
 #: Largest difference (s) between a trajectory stamp and a frame stamp for the frame's images to be logged.
@@ -45,16 +45,10 @@ def export_run(run_dir: Path, out: Path | None = None, seq_dir: Path | None = No
 def _read_run(run_dir: Path):
     """``(trajectory, metrics, map vertices or None, notes)`` of a run folder; InputError when it is not one."""
     from surfelslam.io.ply import read_ply
-    from surfelslam.types import Trajectory
 
     if not run_dir.is_dir():
         raise InputError(run_dir, "not a folder (expected the --out folder of `surfelslam run`)")
-    traj_path = run_dir / "trajectory.txt"
-    if not traj_path.is_file():
-        raise InputError(traj_path, "missing: not the output folder of `surfelslam run`")
-    est = Trajectory.read_tum(traj_path)
-    if len(est) == 0:
-        raise InputError(traj_path, "has no poses")
+    est = read_run_trajectory(run_dir)
     metrics = read_run_metrics(run_dir)
     notes: list[str] = []
     map_path = run_dir / "map.ply"

@@ -18,7 +18,7 @@ import numpy as np
 import typer
 
 from surfelslam.errors import ConfigError, ConfigValueError, FrameError, InputError
-from surfelslam.io.run_folder import read_run_metrics
+from surfelslam.io.run_folder import read_run_metrics, read_run_trajectory
 from surfelslam.mapping.mesh import METHODS, Mesh, MeshConfig
 from surfelslam.tools.common import console, handle_errors
 
@@ -100,14 +100,8 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     from surfelslam.kernels.threads import parallel_enabled, set_parallel
     from surfelslam.mapping.mesh import TsdfVolume
     from surfelslam.slam.mapper import frame_colour_at_depth
-    from surfelslam.types import Trajectory
 
-    traj_path = run_dir / "trajectory.txt"
-    if not traj_path.is_file():
-        raise InputError(traj_path, "missing: not the output folder of `surfelslam run`")
-    est = Trajectory.read_tum(traj_path)
-    if len(est) == 0:
-        raise InputError(traj_path, "has no poses")
+    est = read_run_trajectory(run_dir)
     metrics = read_run_metrics(run_dir)
     run_cfg = _run_config(run_dir, metrics)
     if run_depth_range:  # the depth range the run fused its map with
@@ -116,7 +110,8 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     T, has_pose = est.lookup(seq.timestamps, FRAME_MATCH_S)
     positions = np.flatnonzero(has_pose)[:: cfg.stride]
     if len(positions) == 0:
-        raise InputError(traj_path, f"no pose has the timestamp of a frame of {seq.root}: is it the run's sequence?")
+        raise InputError(run_dir / "trajectory.txt",
+                         f"no pose has the timestamp of a frame of {seq.root}: is it the run's sequence?")
     colour_cam = getattr(seq, "colour_camera", None)
     was_parallel = parallel_enabled()
     set_parallel(True)  # a batch job: no reader thread to leave a core to (same results either way)
