@@ -6,6 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from surfelslam.backend.loop_consistency import LoopConsistencyConfig
 from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
 from surfelslam.config import Config, setting
 from surfelslam.tracking.features import FeatureConfig, Features, MotionResult, estimate_motion
@@ -34,6 +35,9 @@ class LoopConfig(Config):
         doc="before PnP-RANSAC a candidate's good matches must hold a rigidly consistent 3D set this large "
             "(cheap rejection of non-overlapping candidates); 0 = off")
     retrieval: RetrievalConfig = setting(default_factory=RetrievalConfig, doc="descriptor-voting parameters")
+    consistency: LoopConsistencyConfig = setting(
+        default_factory=LoopConsistencyConfig,
+        doc="chi-square gate of verified edges against the odometry chain (false-loop-closure guard)")
 
 
 @dataclass(frozen=True)

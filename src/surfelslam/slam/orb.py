@@ -27,6 +27,8 @@ def sparse_metrics(sparse: SparseSlam, res) -> dict:
         "keyframes": int(len(res.keyframe_indices)),
         "loops_found": len(res.loops_found),
         "loops_accepted": len(res.loops_accepted),
+        "loops_rejected_inconsistent": int(sparse.n_loops_rejected_inconsistent),
+        "nearby_rejected_inconsistent": int(sparse.n_nearby_rejected_inconsistent),
         "nearby_edges": int(res.n_nearby_edges),
         "reinitialisations": int(sparse.n_reinitialisations),
         "segments_merged": int(sparse.n_segments_merged),

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from surfelslam.backend.dense_edges import DenseEdgeRefiner
+from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
 from surfelslam.backend.sparse_slam.results import LoopCheck
 from surfelslam.geometry.se3 import invert, orthonormalize
@@ -18,22 +19,25 @@ class KeyframeGraph:
     """Keyframe poses and the graph(s) that optimise them.
 
     With an edge refiner a second graph holds the refined edges (the first the PnP ones); each optimisation checks the
-    refined edges' consistency there and takes its poses from the trusted graph.
+    refined edges' consistency there and takes its poses from the trusted graph. A verified edge that disagrees with
+    the odometry chain between its keyframes (:mod:`~surfelslam.backend.loop_consistency`) enters neither graph.
 
     Args:
         cfg: pose-graph weights and solver (both graphs).
         refiner: the dense check of keyframe edges, or ``None`` (one graph, of PnP edges).
         refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
+        consistency: the chi-square gate of edges against the odometry chain (``None``: the defaults).
     """
 
     def __init__(self, cfg: PoseGraphConfig, refiner: DenseEdgeRefiner | None,
-                 refined_robust_scale: float | None) -> None:
+                 refined_robust_scale: float | None, consistency: LoopConsistencyConfig | None = None) -> None:
         self._refiner = refiner
         self._refined_robust_scale = refined_robust_scale
         self._graph = PoseGraph(cfg)
         self._graph_refined = None if refiner is None else PoseGraph(cfg)
         self._pose_buf = PoseArray()  # current estimates T_world_kf
-        self._odometry: list[np.ndarray] = []  # T_world_kf chained from odometry edges alone (never optimised)
+        # T_world_kf chained from odometry edges alone (never optimised), and the gate against it
+        self._chain = OdometryChain(consistency or LoopConsistencyConfig())
         self.refined_trusted = False  # until enough refined edges show they are consistent (DenseEdgeRefiner.trusted)
         self.refined_residual_rad: float | None = None
         self._open_bridges: list[int] = []  # first keyframes of segments no loop edge has joined to the old map
@@ -44,6 +48,9 @@ class KeyframeGraph:
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
         self.n_depth_only_edges = 0  # nearby edges from depth alone where PnP could not verify (refined graph only)
         self.n_segments_merged = 0  # segments moved onto the older map by a loop edge
+        self.n_loops_rejected_inconsistent = 0  # verified far edges the odometry-chain gate rejected
+        self.n_nearby_rejected_inconsistent = 0  # ... nearby ones (``gate_nearby``)
+        self.gate_d2: list[tuple[int, int, float]] = []  # (kf_old, kf_new, squared distance) of every gated edge
 
     @property
     def poses(self) -> np.ndarray:
@@ -61,14 +68,14 @@ class KeyframeGraph:
         if self._graph_refined is not None:
             self._graph_refined.add_node(T_world_kf)
         self._pose_buf.append(T_world_kf)
-        self._odometry.append(np.asarray(T_world_kf, np.float64).copy() if prev_kf is None or T_prev_new is None
-                             else self._odometry[prev_kf] @ T_prev_new)
+        self._chain.add(T_world_kf, prev_kf, T_prev_new)
         return kf_id
 
     def start_segment(self, kf_id: int) -> None:
         """Keyframe ``kf_id`` starts a new segment (after a long loss): the first accepted edge from it or a later
         keyframe to one before it moves the segment onto the older map (:meth:`merge_segment`)."""
         self._open_bridges.append(kf_id)
+        self._chain.mark_unknown(kf_id)
 
     def apply_loop_checks(self, kf_id: int, checked: list[LoopCheck], min_inliers: int) -> int:
         """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older (non-nearby) keyframe or
@@ -90,7 +97,7 @@ class KeyframeGraph:
                 self.add_edge(None, PoseEdge(cand.kf_id, kf_id, invert(refined), "loop",
                                              robust_scale=self._refined_robust_scale))
                 continue
-            if not res.ok:
+            if not res.ok or not self._consistent(cand.kf_id, kf_id, res, far):
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
             pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
@@ -101,7 +108,7 @@ class KeyframeGraph:
                 self.n_dense_refined += 1
                 T_i_j = invert(refined)
                 if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
-                    odo = self._odometry
+                    odo = self._chain.poses
                     self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
                 # weighed by the refined edges' sigma (isotropic), set when it enters their graph
                 added = self.add_edge(pnp, PoseEdge(pnp.i, pnp.j, T_i_j, "loop",
@@ -121,6 +128,23 @@ class KeyframeGraph:
         if n_loops > 0 or bridging is not None:
             self.optimise()
         return n_loops
+
+    def _consistent(self, i: int, j: int, res, far: bool) -> bool:
+        """Whether the PnP edge ``res`` from keyframe ``i`` to ``j`` passes the odometry-chain gate (counts the
+        rejections; nearby edges pass untested unless ``gate_nearby``)."""
+        c = self._chain.cfg
+        if not c.enabled or not (far or c.gate_nearby):
+            return True
+        d2 = self._chain.mahalanobis2(i, j, invert(res.T_cur_ref), res.information)
+        if d2 is not None:
+            self.gate_d2.append((i, j, d2))
+        if self._chain.consistent(d2):
+            return True
+        if far:
+            self.n_loops_rejected_inconsistent += 1
+        else:
+            self.n_nearby_rejected_inconsistent += 1
+        return False
 
     def optimise(self) -> None:
         """Optimise, and take the poses from the refined edges' graph when it is trusted, else from the PnP one."""

@@ -64,7 +64,7 @@ class SparseSlam:
         self._cloud_rgb = cloud_rgb
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._kfs: list[Keyframe] = []
-        self._graph = KeyframeGraph(self.cfg.graph, self._refiner, refined_robust_scale)
+        self._graph = KeyframeGraph(self.cfg.graph, self._refiner, refined_robust_scale, self.cfg.loop.consistency)
         self._loops = LoopChecker(intr, self.cfg.features, self.cfg.loop, self._refiner, self._kfs)
         self._ref_kf = -1
         # per processed frame: timestamp, reference keyframe, pose relative to it
@@ -135,6 +135,17 @@ class SparseSlam:
     def n_depth_only_edges(self) -> int:
         """Nearby edges from depth alone where PnP could not verify (refined graph only)."""
         return self._graph.n_depth_only_edges
+
+    @property
+    def n_loops_rejected_inconsistent(self) -> int:
+        """Verified older-keyframe edges the odometry-chain gate rejected
+        (:mod:`~surfelslam.backend.loop_consistency`)."""
+        return self._graph.n_loops_rejected_inconsistent
+
+    @property
+    def n_nearby_rejected_inconsistent(self) -> int:
+        """Verified nearby edges it rejected (``loop.consistency.gate_nearby``)."""
+        return self._graph.n_nearby_rejected_inconsistent
 
     @property
     def n_segments_merged(self) -> int:

@@ -1,0 +1,142 @@
+"""Chi-square gate of keyframe edges against the odometry chain (false-loop-closure guard).
+
+A verified loop edge ``T_i_j`` may still be wrong (repetitive or plain texture, a far keyframe that only looks
+alike); a robust kernel only limits its pull, and many wrong edges together still bend the map. Before an edge
+enters the graph it is compared with the relative pose that the odometry alone chains between its keyframes, whose
+uncertainty grows along the path: each odometry step adds a random-walk drift (variance proportional to the step's
+translation and rotation), propagated to keyframe ``j`` through the chain's adjoints. The edge is rejected when its
+squared Mahalanobis distance (residual covariance: chain plus edge) exceeds a chi-square quantile (6 dof).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from surfelslam.config import Config, setting
+from surfelslam.geometry.se3 import invert, log
+
+
+@dataclass(frozen=True)
+class LoopConsistencyConfig(Config):
+    """Chi-square gate of keyframe edges against the odometry chain (:mod:`surfelslam.backend.loop_consistency`)."""
+
+    enabled: bool = setting(True, doc="reject loop edges that disagree with the odometry chain between their "
+                                      "keyframes")
+    gate_nearby: bool = setting(False, doc="gate the nearby edges too (off: a nearby edge that disagrees with a few "
+                                           "odometry steps more likely corrects a bad step than is wrong)")
+    quantile: float = setting(0.99, unit="probability", gt=0, lt=1,
+                              doc="an edge is rejected when its squared Mahalanobis distance exceeds this chi-square "
+                                  "(6 dof) quantile")
+    drift_m_per_sqrt_m: float = setting(
+        0.02, unit="m/sqrt(m)", ge=0, le=100,
+        doc="odometry translation drift: per-axis sigma after 1 m of path (random walk: grows with the square root)")
+    drift_rad_per_sqrt_m: float = setting(0.02, unit="rad/sqrt(m)", ge=0, le=100,
+                                          doc="odometry rotation drift per square root of metres travelled")
+    drift_rad_per_sqrt_rad: float = setting(0.02, unit="rad/sqrt(rad)", ge=0, le=100,
+                                            doc="odometry rotation drift per square root of radians turned")
+    edge_sigma_m: float = setting(0.01, unit="m", gt=0, le=100,
+                                  doc="floor of the edge's own translation sigma (added to its estimated covariance)")
+    edge_sigma_rad: float = setting(0.01, unit="rad", gt=0, le=100, doc="the same on the rotation")
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """``(N, 6, 6)`` adjoints of poses ``(N, 4, 4)`` in gtsam's tangent order ``(omega, v)``."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    out = np.zeros((len(T), 6, 6))
+    out[:, :3, :3] = R
+    out[:, 3:, 3:] = R
+    t_x = np.zeros((len(T), 3, 3))
+    t_x[:, 0, 1], t_x[:, 0, 2], t_x[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    out[:, 3:, :3] = (t_x - np.swapaxes(t_x, 1, 2)) @ R
+    return out
+
+
+class OdometryChain:
+    """Keyframe poses chained from odometry alone (a tree: each keyframe hangs from the one it was tracked against)
+    and the chi-square test of an edge against it.
+
+    Args:
+        cfg: the drift model and the gate.
+    """
+
+    def __init__(self, cfg: LoopConsistencyConfig) -> None:
+        self.cfg = cfg
+        self.threshold = float(chi2.ppf(cfg.quantile, 6))
+        self.poses: list[np.ndarray] = []  # T_world_kf from odometry alone
+        self._parent: list[int] = []  # -1: a root (the first keyframe, or one placed without odometry)
+        self._step_var: list[np.ndarray] = []  # (6,) drift variance of the step from the parent, (omega, v)
+        self._unknown: set[int] = set()  # keyframes whose step from the parent is unknown (a new segment)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def add(self, T_world_kf: np.ndarray, parent: int | None, T_parent_kf: np.ndarray | None) -> None:
+        """Append a keyframe reached from ``parent`` by ``T_parent_kf`` (``None``: a root at ``T_world_kf``)."""
+        c = self.cfg
+        if parent is None or T_parent_kf is None:
+            self.poses.append(np.asarray(T_world_kf, np.float64).copy())
+            self._parent.append(-1)
+            self._step_var.append(np.zeros(6))
+            return
+        T = np.asarray(T_parent_kf, np.float64)
+        dist_m = float(np.linalg.norm(T[:3, 3]))
+        angle_rad = float(np.arccos(np.clip(0.5 * (np.trace(T[:3, :3]) - 1.0), -1.0, 1.0)))
+        var_rot = c.drift_rad_per_sqrt_m ** 2 * dist_m + c.drift_rad_per_sqrt_rad ** 2 * angle_rad
+        var_t = c.drift_m_per_sqrt_m ** 2 * dist_m
+        self.poses.append(self.poses[parent] @ T)
+        self._parent.append(parent)
+        self._step_var.append(np.array([var_rot] * 3 + [var_t] * 3))
+
+    def mark_unknown(self, kf: int) -> None:
+        """The step into keyframe ``kf`` is unknown (it starts a segment after a loss): edges across it are not
+        tested."""
+        self._unknown.add(kf)
+
+    def path(self, i: int, j: int) -> list[int] | None:
+        """Keyframes whose odometry step lies on the chain between ``i`` and ``j`` (``None``: not connected, or across
+        an unknown step)."""
+        a, b, out = i, j, []
+        while a != b:
+            if a < 0 or b < 0:
+                return None
+            if a > b:  # a parent always precedes its child
+                out.append(a)
+                a = self._parent[a]
+            else:
+                out.append(b)
+                b = self._parent[b]
+        return None if any(k in self._unknown for k in out) else out
+
+    def relative(self, i: int, j: int) -> np.ndarray:
+        """``T_i_j`` ``(4, 4)`` from the odometry alone."""
+        return invert(self.poses[i]) @ self.poses[j]
+
+    def covariance(self, i: int, j: int, path: list[int]) -> np.ndarray:
+        """``(6, 6)`` covariance of the odometry's ``T_i_j`` (right perturbation, ``(omega, v)``) over ``path``."""
+        if not path:
+            return np.zeros((6, 6))
+        T_j_c = invert(self.poses[j])[None] @ np.stack([self.poses[k] for k in path])
+        A = _adjoint(T_j_c)
+        var = np.stack([self._step_var[k] for k in path])
+        return np.einsum("nab,nb,ncb->ac", A, var, A)
+
+    def mahalanobis2(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray | None) -> float | None:
+        """Squared Mahalanobis distance of the edge ``T_i_j`` ``(4, 4)`` (with its ``(6, 6)`` information, or
+        ``None``: the sigma floors alone) from the odometry chain; ``None`` when the chain cannot tell."""
+        p = self.path(i, j)
+        if p is None:
+            return None
+        c = self.cfg
+        cov = self.covariance(i, j, p) + np.diag([c.edge_sigma_rad ** 2] * 3 + [c.edge_sigma_m ** 2] * 3)
+        if information is not None:
+            info = 0.5 * (np.asarray(information, np.float64) + np.asarray(information, np.float64).T)
+            cov += np.linalg.pinv(info, hermitian=True)
+        r = log(invert(np.asarray(T_i_j, np.float64)) @ self.relative(i, j))
+        return float(r @ np.linalg.solve(cov, r))
+
+    def consistent(self, d2: float | None) -> bool:
+        """Whether a distance from :meth:`mahalanobis2` passes the gate (``None``: untested, passes)."""
+        return d2 is None or d2 <= self.threshold

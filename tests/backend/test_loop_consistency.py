@@ -1,0 +1,178 @@
+"""False-loop-closure guard: loop edges that disagree with the odometry chain never enter the graph."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
+from surfelslam.backend.loops import Candidate
+from surfelslam.backend.pose_graph import PoseEdge, PoseGraphConfig
+from surfelslam.backend.sparse_slam.graph import KeyframeGraph
+from surfelslam.backend.sparse_slam.results import LoopCheck
+from surfelslam.geometry.se3 import exp, invert, make_T, so3_exp
+from surfelslam.tracking.features import MotionResult
+
+N_SIDE = 6  # keyframes per side of the square walk (24 in all, 1.5 m sides)
+
+
+def _square(n_side: int = N_SIDE, side_m: float = 1.5) -> np.ndarray:
+    """Ground-truth keyframe poses walking a square and turning 90 deg at the corners, ``(4 n_side, 4, 4)``."""
+    poses, T = [], np.eye(4)
+    step, turn = make_T(np.eye(3), [side_m / n_side, 0, 0]), make_T(so3_exp([0, 0, np.pi / 2]), [0, 0, 0])
+    for k in range(4 * n_side):
+        poses.append(T.copy())
+        T = T @ step
+        if (k + 1) % n_side == 0:
+            T = T @ turn
+    return np.array(poses)
+
+
+def _odometry(gt: np.ndarray, seed: int = 0) -> list[np.ndarray]:
+    """Relative keyframe motions with a yaw bias (4 mrad a step, ~5 deg around the square) and noise."""
+    rng = np.random.default_rng(seed)
+    return [invert(gt[k]) @ gt[k + 1] @ exp(np.r_[0, 0, 0.004, 0, 0, 0] + rng.normal(0, 0.001, 6))
+            for k in range(len(gt) - 1)]
+
+
+def _ate(est: np.ndarray, gt: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+# information of a PnP edge as the RGB-D refinement estimates it (sigma 2 mrad and 5 mm): the graph weighs such edges
+# by it under a Huber kernel, whose influence on a wrong edge is bounded but never vanishes
+PNP_INFORMATION = np.diag([0.002 ** -2] * 3 + [0.005 ** -2] * 3)
+
+
+def _check(i: int, T_i_j: np.ndarray, source: str = "retrieved") -> LoopCheck:
+    """A PnP-verified loop candidate ``i`` whose edge to the new keyframe is ``T_i_j``."""
+    res = MotionResult(invert(T_i_j), True, None, 300, 200, 150, np.zeros(3), np.zeros(3),
+                       np.ones(200, bool), np.zeros((200, 2), np.int64), information=PNP_INFORMATION)
+    return LoopCheck(Candidate(i, source), res)
+
+
+def _graph(gt: np.ndarray, consistency: LoopConsistencyConfig) -> KeyframeGraph:
+    """The keyframes of ``gt`` chained by :func:`_odometry` (no loop edge yet)."""
+    g = KeyframeGraph(PoseGraphConfig(), None, None, consistency)
+    g.add_node(gt[0], None, None)
+    for k, T in enumerate(_odometry(gt)):
+        g.add_node(g.poses[k] @ T, k, T)
+        g.add_edge(PoseEdge(k, k + 1, T, "odometry"))
+    return g
+
+
+def _wrong_edges(gt: np.ndarray) -> list[LoopCheck]:
+    """Perceptual aliasing: the last keyframe matched to keyframes that only look like the start (0.5 m to 1.5 m
+    and 0.3 rad off), and one edge between the right keyframes but 0.5 m off."""
+    n = len(gt)
+    true_last = invert(gt[0]) @ gt[n - 1]
+    return [_check(3, true_last),  # keyframe 3 taken for keyframe 0
+            _check(N_SIDE, true_last @ make_T(so3_exp([0, 0, 0.3]), [0.5, 0, 0])),
+            _check(1, invert(gt[1]) @ gt[n - 1] @ make_T(np.eye(3), [0, 0.5, 0]), "random")]
+
+
+def test_wrong_loop_edges_are_rejected_and_the_right_one_closes_the_loop():
+    gt = _square()
+    n = len(gt)
+    right = _check(0, invert(gt[0]) @ gt[n - 1])
+    odometry_only = _graph(gt, LoopConsistencyConfig())
+    ate_odometry = _ate(odometry_only.poses, gt)
+
+    gated = _graph(gt, LoopConsistencyConfig())
+    assert gated.apply_loop_checks(n - 1, [right, *_wrong_edges(gt)], min_inliers=30) == 1
+    assert gated.n_loops_rejected_inconsistent == 3
+    assert gated.loops_accepted == [(0, n - 1, 150)]
+    assert [d2 > gated._chain.threshold for _, _, d2 in gated.gate_d2] == [False, True, True, True]
+    ate_gated = _ate(gated.poses, gt)
+
+    # the same edges without the gate: the Huber kernel alone lets the wrong ones bend the map
+    open_gate = _graph(gt, LoopConsistencyConfig(enabled=False))
+    assert open_gate.apply_loop_checks(n - 1, [right, *_wrong_edges(gt)], min_inliers=30) == 4
+    assert open_gate.n_loops_rejected_inconsistent == 0
+    ate_open = _ate(open_gate.poses, gt)
+
+    assert ate_odometry > 0.04  # measured 0.053 m
+    assert ate_gated < 0.1 * ate_odometry  # measured 0.003 m
+    assert ate_open > 5 * ate_odometry  # measured 0.77 m
+
+
+def test_consistent_loop_edges_are_all_kept_and_change_nothing():
+    """Right edges (1 cm / 5 mrad noise) from every keyframe of the last side back to the first: none is rejected,
+    and the poses are exactly those of the graph without the gate."""
+    gt = _square()
+    n = len(gt)
+    rng = np.random.default_rng(3)
+    checks = {j: [_check(i, invert(gt[i]) @ gt[j] @ exp(np.r_[rng.normal(0, 0.005, 3), rng.normal(0, 0.01, 3)]))
+                  for i in range(3)] for j in range(n - 3, n)}
+    graphs = [_graph(gt, LoopConsistencyConfig(enabled=on)) for on in (True, False)]
+    for g in graphs:
+        for j in range(n - 3, n):
+            g.apply_loop_checks(j, checks[j], min_inliers=30)
+    gated, open_gate = graphs
+    assert gated.n_loops_rejected_inconsistent == 0 and len(gated.loops_accepted) == 9
+    assert len(gated.gate_d2) == 9 and max(d2 for *_, d2 in gated.gate_d2) < gated._chain.threshold
+    np.testing.assert_array_equal(gated.poses, open_gate.poses)
+    assert _ate(gated.poses, gt) < 0.3 * _ate(_graph(gt, LoopConsistencyConfig()).poses, gt)
+
+
+def test_the_gate_follows_the_chi_square_law_of_the_drift_model():
+    """Chains drawn from the drift model itself (a turning walk, so rotation drift moves the far end): the squared
+    distance of a right edge has the chi-square mean (6) and the quantile rejects about its share."""
+    cfg = LoopConsistencyConfig(drift_m_per_sqrt_m=0.01, drift_rad_per_sqrt_m=0.01, drift_rad_per_sqrt_rad=0.01,
+                                edge_sigma_m=0.002, edge_sigma_rad=0.002, quantile=0.9)
+    gt = _square(n_side=4)
+    steps = [invert(gt[k]) @ gt[k + 1] for k in range(len(gt) - 1)]
+    ref = OdometryChain(cfg)
+    ref.add(gt[0], None, None)
+    for k, T in enumerate(steps):
+        ref.add(ref.poses[k] @ T, k, T)
+    sd = np.sqrt(np.stack(ref._step_var[1:]))
+    rng = np.random.default_rng(0)
+    i, j = 1, len(gt) - 2
+    d2 = []
+    for _ in range(200):
+        chain = OdometryChain(cfg)
+        chain.add(gt[0], None, None)
+        for k, T in enumerate(steps):
+            noisy = T @ exp(rng.normal(0, 1, 6) * sd[k])
+            chain.add(chain.poses[k] @ noisy, k, noisy)
+        edge = invert(gt[i]) @ gt[j] @ exp(rng.normal(0, 0.002, 6))
+        d2.append(chain.mahalanobis2(i, j, edge, None))
+    d2 = np.array(d2)
+    assert np.mean(d2) == pytest.approx(6.0, rel=0.12)
+    assert np.mean(d2 > chain.threshold) == pytest.approx(0.1, abs=0.04)
+    # without the adjoints (drift added in place), the far end's rotation-induced drift is missed
+    assert np.trace(ref.covariance(i, j, ref.path(i, j))[3:, 3:]) > 3 * np.sum(sd[i:j, 3:] ** 2)
+
+
+def test_edges_across_an_unknown_step_or_between_unconnected_chains_are_not_tested():
+    chain = OdometryChain(LoopConsistencyConfig())
+    step = make_T(np.eye(3), [0.1, 0, 0])
+    chain.add(np.eye(4), None, None)
+    chain.add(step, 0, step)
+    chain.add(step @ step, 1, step)
+    chain.add(np.eye(4), None, None)  # a second root
+    far_off = make_T(np.eye(3), [5.0, 0, 0])
+    assert chain.mahalanobis2(0, 2, far_off, None) > chain.threshold
+    assert chain.mahalanobis2(0, 3, far_off, None) is None and chain.consistent(None)
+    chain.mark_unknown(2)
+    assert chain.path(0, 2) is None and chain.path(0, 1) == [1]
+    assert chain.mahalanobis2(0, 2, far_off, None) is None
+
+
+def test_nearby_edges_are_gated_only_on_request():
+    gt = _square()
+    n = len(gt)
+    bad = _check(n - 3, invert(gt[n - 3]) @ gt[n - 1] @ make_T(np.eye(3), [0.3, 0, 0]), "nearby")
+    for gate_nearby, kept in ((False, 1), (True, 0)):
+        g = _graph(gt, LoopConsistencyConfig(gate_nearby=gate_nearby))
+        g.apply_loop_checks(n - 1, [bad], min_inliers=30)
+        assert g.n_nearby_edges == kept and g.n_nearby_rejected_inconsistent == 1 - kept
+        assert g.n_loops_rejected_inconsistent == 0
+
+
+@pytest.mark.parametrize(("field", "value"), [("quantile", 1.0), ("quantile", 0.0), ("edge_sigma_m", 0.0),
+                                              ("drift_m_per_sqrt_m", -1.0)])
+def test_bad_gate_settings_are_rejected(field, value):
+    with pytest.raises(ValueError, match=field):
+        LoopConsistencyConfig(**{field: value})
