@@ -3,6 +3,8 @@
 Sequences (320x240, Kinect-like noise, written in TUM layout by :func:`surfelslam.synth.writer.generate_sequence`
 and read back like real data; generated once and cached, keyed by their settings and the generator's source):
 
+* an office tour: the ``office`` scene, ``tour`` style (the slow orbit round the room with a ``upward`` stretch in
+  the middle third: a degenerate stretch inside normal motion, as in the office benchmarks), plain;
 * ceiling + one wall: the ``office`` scene, ``upward`` style (the camera looks up at the ceiling and one wall and
   moves sideways along it: two planes leave translation along their edge to the texture), plain and textured;
 * a single close wall: the ``plane`` scene (one wall about 1.5 m ahead), plain and textured;
@@ -65,6 +67,7 @@ class Synthetic:
 
 
 SYNTHETIC = (
+    Synthetic("tour_plain", "office tour, looking up mid-way, plain (office, tour)", "office", "tour", "plain"),
     Synthetic("ceiling_plain", "ceiling + wall, plain (office, upward)", "office", "upward", "plain"),
     Synthetic("ceiling_textured", "ceiling + wall, textured (office, upward)", "office", "upward", "rich"),
     Synthetic("wall_plain", "close wall, plain (plane)", "plane", "slow", "plain"),
@@ -256,7 +259,8 @@ def section_markdown(res: dict) -> list[str]:
     md += ["Generated sequences: `surfelslam synth` scenes with Kinect-like noise, cached between runs. Ceiling + "
            "wall: `office`, style `upward`; close wall: `plane` (one wall about 1.5 m ahead); corridor: `corridor` "
            "walked back and forth; plain = flat paint on walls, ceiling and floor covering, textured = the "
-           "default textures. Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
+           "default textures; office tour: `office`, style `tour` (the slow orbit with an upward stretch in its middle "
+           "third). Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
            f"the largest translation error of the relative pose over every pair of poses {res['drift_window_s']:g} "
            "s apart (`eval.metrics.rpe`, `delta_unit=\"seconds\"`), unaligned. FPS: wall clock, JIT warm-up "
            "excluded." + (f" Open3D: `t.pipelines.slam` with its example's settings but depth up to "

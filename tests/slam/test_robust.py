@@ -32,8 +32,8 @@ def _plane_frames():
     return list(iter_frames(scene, traj, INTR_SMALL, noise_config("kinect"), 1)), gt
 
 
-def _run(frames, **tracking):
-    slam = ss.Slam(INTR_SMALL, config={"tracking": tracking})
+def _run(frames, intr=INTR_SMALL, **tracking):
+    slam = ss.Slam(intr, config={"tracking": tracking})
     for f in frames:
         slam.track(f)
     return slam.finish()
@@ -71,3 +71,18 @@ def test_a_run_that_ends_lost_says_so(tmp_path):
     assert run.metrics["lost_at_end"] is True
     last = run.metrics["tracking_segments"][-1]
     assert last["kind"] == "lost" and last["first_frame"] == 40 and last["recovery"] == "not recovered"
+
+
+def test_weak_frames_carry_the_velocity_on_fading():
+    """A plain wall, 5 s of sway in front of it (Kinect noise): the plane leaves the sideways motion to the motion
+    prior. Carrying the velocity on through weak frames, fading over seconds, halves the error of holding the camera
+    still (measured 0.63 vs 1.33 cm; over 1500 frames at 320x240 2.0 vs 6.5 cm, and 57 cm if it never fades)."""
+    scene = make_scene("plane", 0, TextureConfig(style="plain"))
+    traj = make_trajectory("slow", 150, scene, seed=0)
+    gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
+    frames = list(iter_frames(scene, traj, INTR_SMALL, noise_config("kinect"), 0))
+    held = _run(frames, weak_velocity_decay_s=0.0)
+    carried = _run(frames)
+    assert held.metrics["weak_frames"] > 100 and carried.metrics["weak_frames"] > 100
+    ate_held, ate_carried = ate_m(held.trajectory.T_world_cam, gt), ate_m(carried.trajectory.T_world_cam, gt)
+    assert ate_carried < 0.7 * ate_held, (ate_carried, ate_held)

@@ -186,11 +186,19 @@ def test_trajectory_styles_speeds_and_loop_closure(scenes):
         assert np.linalg.norm(loop.positions[-1] - loop.positions[0]) < 0.3
         assert np.ptp(loop.positions[:, 0]) > 1.0  # it really walks round the room
         assert np.allclose(slow.timestamps, np.arange(90) / 30.0)
-    assert STYLES == ["slow", "fast", "handheld", "loop", "upward"]
+    assert STYLES == ["slow", "fast", "handheld", "loop", "upward", "tour"]
     up = make_trajectory("upward", 90, scenes["room"], seed=2)
     pitch_deg = np.degrees(np.arcsin(up.T_world_cam[:, 2, 2]))  # the optical axis' elevation (z up)
     assert np.all((pitch_deg > 30) & (pitch_deg < 55)), pitch_deg  # looking up at the ceiling and one wall
     assert np.ptp(up.positions[:, 0]) + np.ptp(up.positions[:, 1]) > 0.5  # moving sideways along that wall
+    tour = make_trajectory("tour", 300, scenes["room"], seed=2)  # the slow orbit, looking up in its middle third
+    tour_pitch_deg = np.degrees(np.arcsin(tour.T_world_cam[:, 2, 2]))
+    orbit = make_trajectory("slow", 300, scenes["room"], seed=2)
+    assert np.allclose(tour.T_world_cam[:10], orbit.T_world_cam[:10]) and np.allclose(tour.T_world_cam[-10:],
+                                                                                        orbit.T_world_cam[-10:])
+    assert np.all((tour_pitch_deg[110:190] > 30) & (tour_pitch_deg[110:190] < 55))
+    tour_step = np.linalg.norm(np.diff(tour.positions, axis=0), axis=1)
+    assert tour_step.max() < 0.05  # the turns are smooth: no jump between the orbit and the upward view
     walk = make_trajectory("slow", 360, scenes["corridor"], seed=2)
     assert np.ptp(walk.positions[:, 0]) > 4.0 and np.ptp(walk.positions[:, 1]) < 0.6  # along the corridor
 

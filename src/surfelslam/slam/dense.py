@@ -183,8 +183,7 @@ class DenseSlam(FusingMapper):
                 status = FrameStatus.RELOCALISED
         if failure is None:
             step, T_new = self._step_and_pose(T_ref, res)
-            # a relocalised frame has no known velocity; a weak one knows it only along the constrained directions
-            self.velocity = step if status is FrameStatus.TRACKED else np.eye(4)
+            self.velocity = self._velocity_after(step, status, frame.timestamp - self.t_last_tracked)
             self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
@@ -281,6 +280,21 @@ class DenseSlam(FusingMapper):
                   and res.inlier_fraction >= icfg.min_inlier_fraction
                   and res.motion_m <= icfg.max_translation_m and res.motion_deg <= icfg.max_rotation_deg)
         return None if usable else failure
+
+    def _velocity_after(self, step: np.ndarray, status: FrameStatus, dt_s: float) -> np.ndarray:
+        """The velocity (``T_prev_cur`` per frame, ``(4, 4)``) after a registered frame whose step was ``step``.
+
+        A relocalised frame has no known velocity (identity). A weak frame knows it only along the constrained
+        directions; along the others its step is the prediction, so the step carries the last velocity on, damped
+        by ``exp(-dt_s / tracking.weak_velocity_decay_s)`` (a walk down a corridor keeps going; a sway in front of a
+        plain wall does not run away)."""
+        if status is FrameStatus.TRACKED:
+            return step
+        tau_s = self.cfg.tracking.weak_velocity_decay_s
+        if status is not FrameStatus.WEAK or tau_s <= 0:
+            return np.eye(4)
+        keep = float(np.exp(-max(dt_s, 0.0) / tau_s))
+        return se3.exp(keep * se3.log(step))
 
     def _mark_tracked(self, T_world_cam: np.ndarray, timestamp: float, status: FrameStatus) -> None:
         """Bookkeeping of a registered frame: the last tracked pose and time, the failure streak, weak counts."""

@@ -10,6 +10,10 @@ world z up). Styles:
 * ``handheld``: the ``slow`` curve plus band-limited jitter (a few mm and a few tenths of a degree);
 * ``loop``: one walking lap round the room (``n_frames`` per lap), looking outward-and-ahead at the walls;
   the last frame is one step before the start, so the loop closes.
+* ``upward``: looking up at the ceiling and one wall, moving sideways along the wall (two planes);
+* ``tour``: the ``slow`` orbit with an ``upward`` stretch inside it: the camera turns up to the ceiling and
+  one wall, stays there for ``tour_upward_fraction`` of the frames, then turns back to the room (a degenerate
+  stretch inside normal motion, as in the office benchmarks where a hand-held camera looks up).
 
 For a ``"wall"`` scene (``plane``) the camera keeps facing the wall and sways / circles in front of it.
 
@@ -31,7 +35,7 @@ from surfelslam.geometry.se3 import invert as se3_invert
 from surfelslam.synth.scenes import Scene
 from surfelslam.types import Trajectory
 
-STYLES = ["slow", "fast", "handheld", "loop", "upward"]
+STYLES = ["slow", "fast", "handheld", "loop", "upward", "tour"]
 UPWARD_LOOK_M, UPWARD_RISE_M = 1.6, 1.5  # "upward": the look-at point is this far ahead and up (about 43 deg)
 REPLAY_HEADINGS = 8  # headings (evenly spaced) tried for a replayed motion in a "room" scene
 _REPLAY_MAX_GAP_S = 0.1  # a recorded motion may not have a gap longer than this (s) where it is replayed
@@ -59,6 +63,10 @@ class TrajectoryConfig(Config):
     jitter_smooth_s: float = setting(0.12, unit="s", ge=0, le=10,
                                      doc="handheld: Gaussian smoothing of the white jitter (band limit)")
     wall_sway_m: float = setting(0.35, unit="m", ge=0, le=10, doc="wall scenes: lateral sway amplitude")
+    tour_upward_fraction: float = setting(0.3, unit="fraction", gt=0, lt=1,
+                                          doc="tour: share of the frames spent looking up (ceiling and one wall)")
+    tour_turn_s: float = setting(3.0, unit="s", gt=0, le=60,
+                                 doc="tour: duration of each turn between the room and the upward view")
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, roll_rad: np.ndarray | float = 0.0) -> np.ndarray:
@@ -176,6 +184,18 @@ def _jitter(rng: np.random.Generator, n: int, fps: float, cfg: TrajectoryConfig)
     return smooth * gain * scale
 
 
+def _tour_weight(n_frames: int, fps: float, cfg: TrajectoryConfig) -> np.ndarray:
+    """``(n_frames,)`` blend from the orbit (0) to the upward view (1): 0, a smooth (cosine) turn of ``tour_turn_s``,
+    1 for ``tour_upward_fraction`` of the frames, the turn back, 0; the upward stretch centred in the sequence."""
+    k = np.arange(n_frames, dtype=np.float64)
+    hold = cfg.tour_upward_fraction * n_frames
+    turn = max(cfg.tour_turn_s * fps, 1.0)
+    start = 0.5 * (n_frames - hold) - turn
+    ramp_up = np.clip((k - start) / turn, 0.0, 1.0)
+    ramp_down = np.clip((start + 2.0 * turn + hold - k) / turn, 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * np.minimum(ramp_up, ramp_down))
+
+
 def make_trajectory(
     style: str, n_frames: int, scene: Scene, fps: float = 30.0, seed: int = 0,
     cfg: TrajectoryConfig = TrajectoryConfig(),
@@ -202,6 +222,13 @@ def make_trajectory(
     elif style == "upward":
         theta = theta0 + np.radians(cfg.slow_step_deg) * k
         eye, target = _upward_rig(scene, theta, ph, cfg)
+        roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
+    elif style == "tour" and scene.view.kind == "room":
+        theta = theta0 + np.radians(cfg.slow_step_deg) * k
+        w = _tour_weight(n_frames, fps, cfg)[:, None]
+        eye_o, target_o = _orbit_rig(scene, theta, ph, cfg)
+        eye_u, target_u = _upward_rig(scene, theta, ph, cfg)
+        eye, target = (1.0 - w) * eye_o + w * eye_u, (1.0 - w) * target_o + w * target_u
         roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
     elif scene.view.kind == "corridor":
         step = np.radians(cfg.slow_step_deg) * (cfg.fast_factor if style == "fast" else 1.0)
