@@ -8,8 +8,8 @@ Per frame (:meth:`SparseSlam.process`):
    ``keyframe_threshold`` the frame becomes a keyframe: a graph node with an odometry edge, then
    loop candidates (nearby, appearance-retrieved, random; :mod:`surfelslam.backend.loops`) are verified by PnP and
    accepted ones become robust loop edges, unless an edge to an older keyframe disagrees with the odometry chain
-   between the two (chi-square gate, :mod:`surfelslam.backend.loop_consistency`). The graph is optimised whenever an edge to an older
-   (non-nearby) keyframe is accepted, and in :meth:`finish`.
+   between the two (chi-square gate, :mod:`surfelslam.backend.loop_consistency`). The graph is optimised whenever
+   an edge to an older (non-nearby) keyframe is accepted, and in :meth:`finish`.
 3. Rejected: the reason is counted and the frame gets the constant-velocity prediction
    (``rejected_pose = "constant_velocity"``) or the last pose (``"last"``); it never becomes a
    keyframe. After ``relocalise_after_failures`` consecutive rejections, :meth:`relocalise`
