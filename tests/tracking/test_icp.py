@@ -197,7 +197,8 @@ def test_noiseless_pairs_recovered(renders, stride):
         t_err, r_err = se3.pose_error(res.T_target_source, T_tgt_src)
         assert t_err < 1e-3 and r_err < 0.05, (k, t_err, r_err, res.reason)
         assert res.converged and not res.degenerate and res.reason is None
-        assert res.rmse_m < 1e-3 and res.inlier_fraction > 0.5
+        # residuals of exact depth: only where 2-pixel normals round the corners (1-pixel normals: under 1 mm)
+        assert res.rmse_m < 2.5e-3 and res.inlier_fraction > 0.5
 
 
 def test_kinect_noise_pairs_recovered(renders):

@@ -61,10 +61,12 @@ def test_vertex_normal_downsample_kernels_match_reference():
     kp.depth_to_vertex(z, i.fx, i.fy, i.cx, i.cy, 0.1, 5.0, V)
     np.testing.assert_allclose(V, kp.depth_to_vertex_ref(z, i.fx, i.fy, i.cx, i.cy, 0.1, 5.0), atol=1e-6)
     N = np.empty_like(V)
-    kp.vertex_normals(V, 0.05, N)
-    Nref = kp.vertex_normals_ref(V, 0.05)
-    np.testing.assert_allclose(N, Nref, atol=1e-5)
-    assert np.array_equal(np.any(N != 0, -1), np.any(Nref != 0, -1))
+    for step in (3, 2, 1):  # 1 last: N is used below
+        kp.vertex_normals(V, 0.05, N, step)
+        Nref = kp.vertex_normals_ref(V, 0.05, step)
+        np.testing.assert_allclose(N, Nref, atol=1e-5)
+        assert np.array_equal(np.any(N != 0, -1), np.any(Nref != 0, -1))
+        assert not np.any(N[:step]) and not np.any(N[:, -step:])  # no normal within step pixels of the border
     Vd = np.empty((30, 40, 3), np.float32)
     kp.downsample_vertex(V, 0.05, Vd)
     np.testing.assert_allclose(Vd, kp.downsample_vertex_ref(V, 0.05), atol=1e-6)
@@ -73,27 +75,51 @@ def test_vertex_normal_downsample_kernels_match_reference():
     np.testing.assert_allclose(Nd, kp.downsample_normal_ref(V, N, 0.05), atol=1e-5)
 
 
+def test_wider_normals_see_through_disparity_steps():
+    """A slanted plane quantised into constant-depth treads (a structured-light sensor's disparity steps): 1-pixel
+    differences give many treads' normal, the optical axis; differences 2 pixels either side follow the plane."""
+    intr = Intrinsics(150.0, 150.0, 39.5, 29.5, 80, 60)
+    u = np.arange(intr.width, dtype=np.float32)
+    z = np.tile(2.0 + 0.004 * u, (intr.height, 1))  # 4 mm per pixel along u: a plane turned about the y axis
+    args = (intr.fx, intr.fy, intr.cx, intr.cy, 0.1, 5.0)
+    n_true = kp.vertex_normals_ref(kp.depth_to_vertex_ref(z, *args), 0.05)  # exact on a plane
+    stairs = kp.depth_to_vertex_ref((np.round(z / 0.01) * 0.01).astype(np.float32), *args)  # 1 cm steps, ~2.5 px
+    for step in (1, 2):
+        N = kp.vertex_normals_ref(stairs, 0.05, step)
+        ok = np.any(N != 0, -1) & np.any(n_true != 0, -1)
+        on_axis = np.mean(np.abs(N[ok][:, 2]) > 0.9999)  # a tread's normal: along the optical axis
+        err_deg = np.degrees(np.arccos(np.clip(np.sum(N[ok] * n_true[ok], -1), -1, 1)))
+        if step == 1:  # measured: 19 % on the axis, 90th percentile 15.5 deg off
+            assert on_axis > 0.15 and np.percentile(err_deg, 90) > 12.0
+        else:  # measured: none on the axis, 90th percentile 6.2 deg off
+            assert on_axis == 0.0 and np.percentile(err_deg, 90) < 8.0, np.percentile(err_deg, 90)
+
+
 @pytest.mark.parametrize("fy_sign", [1.0, -1.0])
 def test_plane_normals_exact_and_face_camera(fy_sign):
     intr = Intrinsics(150.0, fy_sign * 150.0, 39.5, 29.5, 80, 60)
     n_true = np.array([0.2, -0.3, -1.0]) / np.linalg.norm([0.2, -0.3, -1.0])
-    pyr = build_pyramid(plane_depth(intr), intr, PreprocessConfig(bilateral=False, pyramid_levels=3))
-    for lvl in pyr.levels:
+    cfg = PreprocessConfig(bilateral=False, pyramid_levels=3)
+    pyr = build_pyramid(plane_depth(intr), intr, cfg)
+    for i, lvl in enumerate(pyr.levels):
         ok = np.any(lvl.normal != 0, -1)
-        assert ok[1:-1, 1:-1].all() and not ok[0].any()  # only the border is invalid
+        b = cfg.normal_step_px if i == 0 else 1  # the working level's normals span normal_step_px either side
+        assert ok[b:-b, b:-b].all() and not ok[:b].any()  # only the border is invalid
         assert np.all(np.sum(lvl.normal[ok] * lvl.vertex[ok], -1) < 0)  # faces the camera
         np.testing.assert_allclose(lvl.normal[ok], np.broadcast_to(n_true, lvl.normal[ok].shape), atol=1e-4)
 
 
-def test_normals_invalid_at_holes_and_discontinuities():
+@pytest.mark.parametrize("s", [1, 2])
+def test_normals_invalid_at_holes_and_discontinuities(s):
     z = plane_depth(CAM80)
     z[30, 40] = 0.0
     z[10:20, 10:20] -= 0.5
-    pyr = build_pyramid(z, CAM80, PreprocessConfig(bilateral=False, pyramid_levels=1))
+    pyr = build_pyramid(z, CAM80, PreprocessConfig(bilateral=False, pyramid_levels=1, normal_step_px=s))
     n = pyr[0].normal
-    for v, u in [(30, 40), (29, 40), (31, 40), (30, 39), (30, 41), (15, 9), (15, 10), (15, 19), (15, 20)]:
+    for v, u in [(30, 40), (30 - s, 40), (30 + s, 40), (30, 40 - s), (30, 40 + s), (15, 10 - s), (15, 10),
+                 (15, 20 - s), (15, 20 + s - 1)]:
         assert np.all(n[v, u] == 0), (v, u)
-    assert np.any(n[15, 15] != 0) and np.any(n[15, 22] != 0)
+    assert np.any(n[15, 15] != 0) and np.any(n[15, 22] != 0) and np.any(n[29, 40] != 0) == (s > 1)
 
 
 def test_pyramid_intrinsics_convention_projects_consistently():

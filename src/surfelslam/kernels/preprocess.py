@@ -145,43 +145,50 @@ def depth_to_vertex_ref(depth_m, fx, fy, cx, cy, min_depth_m, max_depth_m):
 
 
 @dual_njit(fastmath=_FASTMATH, error_model="numpy")
-def vertex_normals(vertex, max_depth_jump_m, out):
-    """Normal map from central differences of a vertex map.
+def vertex_normals(vertex, max_depth_jump_m, out, step=1):
+    """Normal map from central differences of a vertex map, ``step`` pixels either side.
 
-    ``n = (V[v, u+1] - V[v, u-1]) x (V[v+1, u] - V[v-1, u])``, normalised and flipped so that
-    ``n . p < 0`` (it faces the camera, whatever the sign of ``fy``). The normal is invalid (zeros) at
-    the image border, when the pixel or any of its 4 neighbours is invalid (``z <= 0``), or when a
-    neighbour's depth differs from the pixel's by more than ``max_depth_jump_m``.
+    ``n = (V[v, u+s] - V[v, u-s]) x (V[v+s, u] - V[v-s, u])`` (``s = step``), normalised and flipped so that
+    ``n . p < 0`` (it faces the camera, whatever the sign of ``fy``). The normal is invalid (zeros) within ``s``
+    pixels of the image border, when the pixel or any of its 4 neighbours is invalid (``z <= 0``), or when a
+    neighbour's depth differs from the pixel's by more than ``s * max_depth_jump_m``.
+
+    Why a step: a structured-light sensor quantises disparity, so a slanted surface comes out as a staircase of
+    constant-depth treads a few pixels wide; 1-pixel differences give the treads' normal (the optical axis), which
+    fuses into the map and pins the camera's motion along its axis. Differences across ``s = 2`` pixels span the
+    risers too.
 
     Args:
         vertex: ``(H, W, 3)`` float32 camera-frame points, ``z <= 0`` = invalid.
         out: ``(H, W, 3)`` float32 unit normals.
+        step: ``s``, pixels (>= 1).
     """
     H, W = vertex.shape[0], vertex.shape[1]
+    s = step
+    jump = max_depth_jump_m * s
     for v in prange(H):
         for u in range(W):
             out[v, u, 0] = 0.0
             out[v, u, 1] = 0.0
             out[v, u, 2] = 0.0
-            if v == 0 or v == H - 1 or u == 0 or u == W - 1:
+            if v < s or v >= H - s or u < s or u >= W - s:
                 continue
             z = vertex[v, u, 2]
             if z <= 0.0:
                 continue
-            zl = vertex[v, u - 1, 2]
-            zr = vertex[v, u + 1, 2]
-            zu = vertex[v - 1, u, 2]
-            zd = vertex[v + 1, u, 2]
+            zl = vertex[v, u - s, 2]
+            zr = vertex[v, u + s, 2]
+            zu = vertex[v - s, u, 2]
+            zd = vertex[v + s, u, 2]
             if zl <= 0.0 or zr <= 0.0 or zu <= 0.0 or zd <= 0.0:
                 continue
-            if (abs(zl - z) > max_depth_jump_m or abs(zr - z) > max_depth_jump_m
-                    or abs(zu - z) > max_depth_jump_m or abs(zd - z) > max_depth_jump_m):
+            if abs(zl - z) > jump or abs(zr - z) > jump or abs(zu - z) > jump or abs(zd - z) > jump:
                 continue
-            ax = np.float64(vertex[v, u + 1, 0]) - vertex[v, u - 1, 0]
-            ay = np.float64(vertex[v, u + 1, 1]) - vertex[v, u - 1, 1]
+            ax = np.float64(vertex[v, u + s, 0]) - vertex[v, u - s, 0]
+            ay = np.float64(vertex[v, u + s, 1]) - vertex[v, u - s, 1]
             az = np.float64(zr) - zl
-            bx = np.float64(vertex[v + 1, u, 0]) - vertex[v - 1, u, 0]
-            by = np.float64(vertex[v + 1, u, 1]) - vertex[v - 1, u, 1]
+            bx = np.float64(vertex[v + s, u, 0]) - vertex[v - s, u, 0]
+            by = np.float64(vertex[v + s, u, 1]) - vertex[v - s, u, 1]
             bz = np.float64(zd) - zu
             nx = ay * bz - az * by
             ny = az * bx - ax * bz
@@ -197,22 +204,23 @@ def vertex_normals(vertex, max_depth_jump_m, out):
             out[v, u, 2] = nz * inv
 
 
-def vertex_normals_ref(vertex, max_depth_jump_m):
+def vertex_normals_ref(vertex, max_depth_jump_m, step=1):
     """Numpy reference of :func:`vertex_normals`; returns ``(H, W, 3)`` float32."""
     V = vertex.astype(np.float64)
     H, W = V.shape[:2]
+    s = step
     out = np.zeros((H, W, 3))
-    c = V[1:-1, 1:-1]
-    left, right, up, down = V[1:-1, :-2], V[1:-1, 2:], V[:-2, 1:-1], V[2:, 1:-1]
+    c = V[s:-s, s:-s]
+    left, right, up, down = V[s:-s, : -2 * s], V[s:-s, 2 * s :], V[: -2 * s, s:-s], V[2 * s :, s:-s]
     ok = c[..., 2] > 0
     for nb in (left, right, up, down):
-        ok &= (nb[..., 2] > 0) & (np.abs(nb[..., 2] - c[..., 2]) <= max_depth_jump_m)
+        ok &= (nb[..., 2] > 0) & (np.abs(nb[..., 2] - c[..., 2]) <= max_depth_jump_m * s)
     n = np.cross(right - left, down - up)
     norm = np.linalg.norm(n, axis=-1)
     ok &= norm > 0
     sign = np.where(np.sum(n * c, axis=-1) > 0, -1.0, 1.0)
     n = n * (sign / np.where(ok, norm, 1.0))[..., None]
-    out[1:-1, 1:-1] = np.where(ok[..., None], n, 0.0)
+    out[s:-s, s:-s] = np.where(ok[..., None], n, 0.0)
     return out.astype(np.float32)
 
 

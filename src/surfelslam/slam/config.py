@@ -81,9 +81,10 @@ class TrackingConfig(Config):
         True, doc="fuse the frame of a degenerate registration (one plane, a corridor: the pose along the directions "
                   "the view constrains, the prediction along the others); off: refuse it, not fused")
     weak_velocity_decay_s: float = setting(
-        3.0, unit="s", ge=0, le=1000, allow_inf=True,
-        doc="after a weak frame the predicted velocity is its step damped by exp(-dt / this): along the directions "
-            "the view leaves free the motion goes on, fading; 0 = held still; inf = constant velocity")
+        0.0, unit="s", ge=0, le=1000, allow_inf=True,
+        doc="through weak frames the prediction carries the last fully tracked frame's velocity on, fading by "
+            "exp(-t / this) (a walk down a corridor); 0 = the camera is predicted to hold still (a sway in front of a "
+            "wall)")
     relocalise_max_speed_m_s: float = setting(
         1.0, unit="m/s", gt=0, le=1000, allow_inf=True,
         doc="a relocalised pose farther from the last tracked pose than this speed allows in the time since it "

@@ -76,6 +76,7 @@ class DenseSlam(FusingMapper):
         self.T_world_cam: np.ndarray | None = None
         self.T_world_last_tracked: np.ndarray | None = None  # pose of the last tracked (fused) frame
         self.velocity = np.eye(4)  # T_prev_cur of the last good step
+        self._v_tracked, self._t_v_tracked = np.eye(4), 0.0  # the last fully tracked step and its time (s)
         self.failures = 0
         self.failures_in_a_row = 0
         self.failure_reasons: dict[str, int] = {}
@@ -183,7 +184,7 @@ class DenseSlam(FusingMapper):
                 status = FrameStatus.RELOCALISED
         if failure is None:
             step, T_new = self._step_and_pose(T_ref, res)
-            self.velocity = self._velocity_after(step, status, frame.timestamp - self.t_last_tracked)
+            self.velocity = self._velocity_after(step, status, frame.timestamp)
             self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
@@ -194,7 +195,7 @@ class DenseSlam(FusingMapper):
             self.failures_in_a_row += 1
             self.failure_reasons[failure] = self.failure_reasons.get(failure, 0) + 1
             if self.failures_in_a_row >= self.cfg.tracking.max_failures_in_a_row_before_reset_velocity:
-                self.velocity = np.eye(4)
+                self.velocity = self._v_tracked = np.eye(4)
         self.T_world_cam = T_new
         self._retire_source()
         return FrameResult(frame.index, frame.timestamp, T_new.copy(), failure is None, failure is None,
@@ -281,20 +282,24 @@ class DenseSlam(FusingMapper):
                   and res.motion_m <= icfg.max_translation_m and res.motion_deg <= icfg.max_rotation_deg)
         return None if usable else failure
 
-    def _velocity_after(self, step: np.ndarray, status: FrameStatus, dt_s: float) -> np.ndarray:
-        """The velocity (``T_prev_cur`` per frame, ``(4, 4)``) after a registered frame whose step was ``step``.
+    def _velocity_after(self, step: np.ndarray, status: FrameStatus, t_s: float) -> np.ndarray:
+        """The velocity (``T_prev_cur`` per frame, ``(4, 4)``) after a registered frame at time ``t_s`` whose step
+        was ``step``.
 
-        A relocalised frame has no known velocity (identity). A weak frame knows it only along the constrained
-        directions; along the others its step is the prediction, so the step carries the last velocity on, damped
-        by ``exp(-dt_s / tracking.weak_velocity_decay_s)`` (a walk down a corridor keeps going; a sway in front of a
-        plain wall does not run away)."""
+        A tracked frame: its step. A relocalised frame has no known velocity (identity). A weak frame's step is
+        known only along the directions the view constrains, so it is not used: the velocity of the last fully
+        tracked frame goes on, fading by ``exp(-(t_s - t_tracked) / tracking.weak_velocity_decay_s)`` (a walk down a
+        corridor keeps going; a weak step never feeds the next prediction, so ICP's slide along a free direction
+        cannot build up speed)."""
         if status is FrameStatus.TRACKED:
+            self._v_tracked, self._t_v_tracked = step, t_s
             return step
         tau_s = self.cfg.tracking.weak_velocity_decay_s
         if status is not FrameStatus.WEAK or tau_s <= 0:
+            self._v_tracked = np.eye(4)
             return np.eye(4)
-        keep = float(np.exp(-max(dt_s, 0.0) / tau_s))
-        return se3.exp(keep * se3.log(step))
+        keep = float(np.exp(-max(t_s - self._t_v_tracked, 0.0) / tau_s))
+        return se3.exp(keep * se3.log(self._v_tracked))
 
     def _mark_tracked(self, T_world_cam: np.ndarray, timestamp: float, status: FrameStatus) -> None:
         """Bookkeeping of a registered frame: the last tracked pose and time, the failure streak, weak counts."""

@@ -45,6 +45,11 @@ class PreprocessConfig(Config):
     normal_max_depth_jump_m: float = setting(
         0.05, unit="m", gt=0, le=10,
         doc="a normal is invalid where a 4-neighbour's depth differs by more than this (level 0; doubled per level)")
+    normal_step_px: int = setting(
+        2, unit="px", ge=1, le=16,
+        doc="normals at the working level from differences this many pixels either side (coarser levels: 1); 2 "
+            "spans the staircase a depth sensor's disparity steps make of slanted surfaces, whose 1-pixel normals "
+            "point along the optical axis and pin the camera's motion along it")
     pyramid_max_depth_diff_m: float = setting(
         0.05, unit="m", gt=0, le=10,
         doc="2x2 block averaging only merges points within this depth of the block's reference point (level 1; "
@@ -186,7 +191,7 @@ class Preprocessor:
         il = self.level_intrinsics[first_level]
         top = pyr[first_level]
         kp.depth_to_vertex(depth, il.fx, il.fy, il.cx, il.cy, c.min_depth_m, c.max_depth_m, top.vertex)
-        kp.vertex_normals(top.vertex, c.normal_max_depth_jump_m * 2.0 ** first_level, top.normal)
+        kp.vertex_normals(top.vertex, c.normal_max_depth_jump_m * 2.0 ** first_level, top.normal, c.normal_step_px)
         for lvl in range(first_level + 1, len(pyr)):
             scale = 2.0 ** (lvl - 1)
             kp.downsample_vertex(pyr[lvl - 1].vertex, c.pyramid_max_depth_diff_m * scale, pyr[lvl].vertex)
