@@ -269,11 +269,14 @@ class HybridSlam(DenseSlam):
         res, failure, T_new = loc.res, loc.failure, loc.T_new
         tracked = res is not None and failure is None
         if tracked:
-            if self.failures_in_a_row < self.cfg.hybrid.relocalise_after_failures:
-                self.velocity = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
-                                 else se3.orthonormalize(se3.invert(T_prev) @ T_new))
             status = (FrameStatus.RELOCALISED if loc.relocalised else
                       FrameStatus.WEAK if res.degenerate else FrameStatus.TRACKED)
+            if self.failures_in_a_row < self.cfg.hybrid.relocalise_after_failures:
+                step = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
+                        else se3.orthonormalize(se3.invert(T_prev) @ T_new))
+                # a weak step is ICP's slide along the free directions: not fed back (DenseSlam._velocity_after)
+                self.velocity = (self._velocity_after(step, status, frame.timestamp)
+                                 if status is not FrameStatus.RELOCALISED else step)
             self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")

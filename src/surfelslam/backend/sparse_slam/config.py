@@ -26,6 +26,10 @@ class DepthOdometryConfig(Config):
     max_shift_m: float = setting(0.1, unit="m", gt=0, le=10,
                                  doc="ICP started from a PnP pose may move it at most this far (farther: PnP kept)")
     max_shift_deg: float = setting(5.0, unit="deg", gt=0, le=180, doc="the same bound on the rotation")
+    hold_after_depth_only: bool = setting(
+        True, doc="a frame registered by depth alone (PnP not trusted) does not set the predicted velocity: the next "
+                  "one is predicted where it is. ICP keeps the prediction along directions the depth leaves free "
+                  "(a ceiling and a wall), so feeding its step back made the pose run away by metres")
 
 
 @dataclass(frozen=True)
