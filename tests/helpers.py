@@ -27,6 +27,21 @@ def ate_m(est: np.ndarray, gt: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[: len(est), :3, 3]) ** 2, axis=1))))
 
 
+def square_walk(n_side: int, side_m: float) -> np.ndarray:
+    """Ground-truth poses walking a square of side ``side_m`` (m), ``n_side`` steps a side, turning 90 deg at the
+    corners: ``(4 n_side, 4, 4)`` (pose-graph tests)."""
+    from surfelslam.geometry.se3 import make_T, so3_exp
+
+    poses, T = [], np.eye(4)
+    step, turn = make_T(np.eye(3), [side_m / n_side, 0.0, 0.0]), make_T(so3_exp([0.0, 0.0, np.pi / 2]), [0.0, 0.0, 0.0])
+    for k in range(4 * n_side):
+        poses.append(T.copy())
+        T = T @ step
+        if (k + 1) % n_side == 0:
+            T = T @ turn
+    return np.array(poses)
+
+
 def shared_sequence(name: str) -> Path:
     """Path of ../shared/data/<name>; skips the test when it is not there."""
     path = SHARED_DATA / name

@@ -13,19 +13,13 @@ from surfelslam.backend.sparse_slam.results import LoopCheck
 from surfelslam.geometry.se3 import exp, invert, make_T, so3_exp
 from surfelslam.tracking.features import MotionResult
 
+from helpers import ate_m, square_walk
+
 N_SIDE = 6  # keyframes per side of the square walk (24 in all, 1.5 m sides)
 
 
 def _square(n_side: int = N_SIDE, side_m: float = 1.5) -> np.ndarray:
-    """Ground-truth keyframe poses walking a square and turning 90 deg at the corners, ``(4 n_side, 4, 4)``."""
-    poses, T = [], np.eye(4)
-    step, turn = make_T(np.eye(3), [side_m / n_side, 0, 0]), make_T(so3_exp([0, 0, np.pi / 2]), [0, 0, 0])
-    for k in range(4 * n_side):
-        poses.append(T.copy())
-        T = T @ step
-        if (k + 1) % n_side == 0:
-            T = T @ turn
-    return np.array(poses)
+    return square_walk(n_side, side_m)
 
 
 def _odometry(gt: np.ndarray, seed: int = 0) -> list[np.ndarray]:
@@ -33,10 +27,6 @@ def _odometry(gt: np.ndarray, seed: int = 0) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     return [invert(gt[k]) @ gt[k + 1] @ exp(np.r_[0, 0, 0.004, 0, 0, 0] + rng.normal(0, 0.001, 6))
             for k in range(len(gt) - 1)]
-
-
-def _ate(est: np.ndarray, gt: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
 
 
 # information of a PnP edge as the RGB-D refinement estimates it (sigma 2 mrad and 5 mm): the graph weighs such edges
@@ -76,20 +66,20 @@ def test_wrong_loop_edges_are_rejected_and_the_right_one_closes_the_loop():
     n = len(gt)
     right = _check(0, invert(gt[0]) @ gt[n - 1])
     odometry_only = _graph(gt, LoopConsistencyConfig())
-    ate_odometry = _ate(odometry_only.poses, gt)
+    ate_odometry = ate_m(odometry_only.poses, gt)
 
     gated = _graph(gt, LoopConsistencyConfig())
     assert gated.apply_loop_checks(n - 1, [right, *_wrong_edges(gt)], min_inliers=30) == 1
     assert gated.n_loops_rejected_inconsistent == 3
     assert gated.loops_accepted == [(0, n - 1, 150)]
     assert [d2 > gated._chain.threshold for _, _, d2 in gated.gate_d2] == [False, True, True, True]
-    ate_gated = _ate(gated.poses, gt)
+    ate_gated = ate_m(gated.poses, gt)
 
     # the same edges without the gate: the Huber kernel alone lets the wrong ones bend the map
     open_gate = _graph(gt, LoopConsistencyConfig(enabled=False))
     assert open_gate.apply_loop_checks(n - 1, [right, *_wrong_edges(gt)], min_inliers=30) == 4
     assert open_gate.n_loops_rejected_inconsistent == 0
-    ate_open = _ate(open_gate.poses, gt)
+    ate_open = ate_m(open_gate.poses, gt)
 
     assert ate_odometry > 0.04  # measured 0.053 m
     assert ate_gated < 0.1 * ate_odometry  # measured 0.003 m
@@ -112,7 +102,7 @@ def test_consistent_loop_edges_are_all_kept_and_change_nothing():
     assert gated.n_loops_rejected_inconsistent == 0 and len(gated.loops_accepted) == 9
     assert len(gated.gate_d2) == 9 and max(d2 for *_, d2 in gated.gate_d2) < gated._chain.threshold
     np.testing.assert_array_equal(gated.poses, open_gate.poses)
-    assert _ate(gated.poses, gt) < 0.3 * _ate(_graph(gt, LoopConsistencyConfig()).poses, gt)
+    assert ate_m(gated.poses, gt) < 0.3 * ate_m(_graph(gt, LoopConsistencyConfig()).poses, gt)
 
 
 def test_the_gate_follows_the_chi_square_law_of_the_drift_model():

@@ -8,19 +8,11 @@ import pytest
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig, optimise
 from surfelslam.geometry.se3 import exp, invert, make_T, so3_exp
 
+from helpers import ate_m, square_walk
+
 
 def _square_loop(n_side: int = 5, side_m: float = 2.0) -> np.ndarray:
-    """Ground-truth poses walking a square (turning 90 deg at the corners), ``(4 n_side, 4, 4)``."""
-    poses = []
-    T = np.eye(4)
-    step = make_T(np.eye(3), [side_m / n_side, 0.0, 0.0])
-    turn = make_T(so3_exp([0.0, 0.0, np.pi / 2]), [0.0, 0.0, 0.0])
-    for k in range(4 * n_side):
-        poses.append(T.copy())
-        T = T @ step
-        if (k + 1) % n_side == 0:
-            T = T @ turn
-    return np.array(poses)
+    return square_walk(n_side, side_m)
 
 
 def _drifted_odometry(gt: np.ndarray, seed: int = 0) -> tuple[np.ndarray, list[PoseEdge]]:
@@ -36,18 +28,14 @@ def _drifted_odometry(gt: np.ndarray, seed: int = 0) -> tuple[np.ndarray, list[P
     return np.array(init), edges
 
 
-def _ate(est: np.ndarray, gt: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
-
-
 def test_loop_edge_corrects_drift() -> None:
     gt = _square_loop()
     init, edges = _drifted_odometry(gt)
     n = len(gt)
     loop = PoseEdge(n - 1, 0, invert(gt[n - 1]) @ gt[0], "loop")
-    before = _ate(init, gt)
-    after_odo = _ate(optimise(init, edges), gt)
-    after = _ate(optimise(init, edges + [loop]), gt)
+    before = ate_m(init, gt)
+    after_odo = ate_m(optimise(init, edges), gt)
+    after = ate_m(optimise(init, edges + [loop]), gt)
     assert before > 0.3  # the bias drifts a lot
     assert after_odo == pytest.approx(before, rel=1e-3)  # odometry alone cannot fix it
     assert after < 0.25 * before
@@ -65,7 +53,7 @@ def test_edge_robust_scale_overrides_the_config() -> None:
     loose = optimise(init, edges + [wrong], PoseGraphConfig(robust_scale_sigma=100.0))
     tight = optimise(init, edges + [PoseEdge(wrong.i, wrong.j, wrong.T_i_j, "loop", robust_scale=0.01)],
                      PoseGraphConfig(robust_scale_sigma=100.0))
-    assert _ate(tight, gt) < _ate(loose, gt) - 0.1
+    assert ate_m(tight, gt) < ate_m(loose, gt) - 0.1
 
 
 @pytest.mark.parametrize("kernel", ["huber", "cauchy"])
@@ -77,9 +65,9 @@ def test_robust_kernel_downweights_outlier_loop(kernel: str) -> None:
     # wrong loop: claims node 10 sits 1.5 m and 60 deg away from node 2's true relation
     bad_rel = invert(gt[2]) @ gt[10] @ make_T(so3_exp([0.0, 0.0, 1.0]), [1.5, -1.0, 0.0])
     bad = PoseEdge(2, 10, bad_rel, "loop")
-    plain = _ate(optimise(init, edges + [good, bad], PoseGraphConfig(robust_kernel="none")), gt)
-    robust = _ate(optimise(init, edges + [good, bad], PoseGraphConfig(robust_kernel=kernel)), gt)
-    clean = _ate(optimise(init, edges + [good], PoseGraphConfig(robust_kernel=kernel)), gt)
+    plain = ate_m(optimise(init, edges + [good, bad], PoseGraphConfig(robust_kernel="none")), gt)
+    robust = ate_m(optimise(init, edges + [good, bad], PoseGraphConfig(robust_kernel=kernel)), gt)
+    clean = ate_m(optimise(init, edges + [good], PoseGraphConfig(robust_kernel=kernel)), gt)
     if kernel == "huber":  # bounded (linear) influence: helps, but the outlier still pulls
         assert robust < 0.75 * plain
     else:  # redescending: the outlier is essentially ignored

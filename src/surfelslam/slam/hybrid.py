@@ -275,8 +275,7 @@ class HybridSlam(DenseSlam):
                 step = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
                         else se3.orthonormalize(se3.invert(T_prev) @ T_new))
                 # a weak step is ICP's slide along the free directions: not fed back (DenseSlam._velocity_after)
-                self.velocity = (self._velocity_after(step, status, frame.timestamp)
-                                 if status is not FrameStatus.RELOCALISED else step)
+                self.velocity = self._velocity_after(step, status, frame.timestamp)
             self._mark_tracked(T_new, frame.timestamp, status)
             self._fuse(frame, T_new)
             t.lap("fuse")

@@ -72,7 +72,6 @@ class SparseSlam:
         self._frame_kf: list[int] = []
         self._T_kf_cam: list[np.ndarray] = []
         self._velocity = np.eye(4)  # T_prev_last: last inter-frame motion (camera frame)
-        self._depth_only = False  # the current frame's pose comes from depth alone (no trusted PnP)
         self._n_failures = 0
         self.rejected: Counter[str] = Counter()
         self._unreported_loops = 0  # loops applied since the last frame result
@@ -223,13 +222,13 @@ class SparseSlam:
         relocalised = False
         res = None
         information = None  # of the measurement behind a new keyframe's edge (None: a dense pose, isotropic)
-        self._depth_only = False  # this frame's pose comes from depth alone (set by _with_depth)
+        depth_only = False  # this frame's pose comes from depth alone (no trusted PnP)
         if T_world_cam_dense is None:
             T_pred_cur_ref = invert(T_pred) @ T_world_kf
             res = estimate_motion(ref.features, feats, self.intr, self.cfg.features, T_init_cur_ref=T_pred_cur_ref)
             if self._depth_cfg is not None:
                 pyr = self.depth_pyramid(frame) if depth_pyramid is None else depth_pyramid
-                res = self._with_depth(res, T_pred_cur_ref, pyr)
+                res, depth_only = self._with_depth(res, T_pred_cur_ref, pyr)
         if T_world_cam_dense is not None:
             T_world_cam = np.asarray(T_world_cam_dense, np.float64)
             T_kf_cam = invert(T_world_kf) @ T_world_cam
@@ -277,23 +276,24 @@ class SparseSlam:
         if relocalised:
             self._velocity = np.eye(4)  # the motion across the loss is unknown
             return SparseFrameResult(T_world_cam.copy(), is_kf, False, res.reason, res.n_inliers, 0, True)
-        if self._depth_only and self._depth_cfg.hold_after_depth_only:
+        if depth_only and self._depth_cfg.hold_after_depth_only:
             self._velocity = np.eye(4)  # its step along the depth's free directions is the prediction: not fed back
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
                                  loops_added)
 
-    def _with_depth(self, res: MotionResult, T_pred_cur_ref: np.ndarray, source: FramePyramid) -> MotionResult:
+    def _with_depth(self, res: MotionResult, T_pred_cur_ref: np.ndarray,
+                    source: FramePyramid) -> tuple[MotionResult, bool]:
         """``res`` (PnP against the reference keyframe) with its pose registered by ICP of the frame's depth
-        ``source`` to the keyframe's (:func:`.depth_odometry.register_depth`); ``res`` itself when ICP fails."""
+        ``source`` to the keyframe's (:func:`.depth_odometry.register_depth`; ``res`` itself when ICP fails), and
+        whether that pose comes from depth alone (PnP not trusted)."""
         out, outcome = register_depth(res, T_pred_cur_ref, source, self._store, self._ref_kf,
                                       self._kfs[self._ref_kf].features, self._depth_cfg,
                                       self.cfg.features.max_motion_norm)
         self.depth_counts[outcome] += 1
-        self._depth_only = outcome == "from_prediction"
         if outcome == "from_prediction":
             self.depth_counts["rescued"] += int(not res.ok)
-        return out
+        return out, outcome == "from_prediction"
 
     def _may_reinitialise(self, feats: Features) -> bool:
         n = self.cfg.reinit_after_failures
