@@ -166,3 +166,34 @@ def test_nearby_edges_are_gated_only_on_request():
 def test_bad_gate_settings_are_rejected(field, value):
     with pytest.raises(ValueError, match=field):
         LoopConsistencyConfig(**{field: value})
+
+
+def test_nearby_pnp_edges_stay_out_of_the_pnp_graph_when_switched_off():
+    """``pnp_nearby`` off (``loop.pnp_nearby_edges`` auto on unregistered colour and depth): a verified nearby edge
+    does not enter the PnP graph (here it has no refined version, so no graph), unless it joins a new segment to
+    the old map."""
+    gt = _square()
+    n = len(gt)
+    near = _check(n - 3, invert(gt[n - 3]) @ gt[n - 1] @ make_T(np.eye(3), [0.02, 0, 0]), "nearby")
+    for pnp_nearby, kept in ((True, 1), (False, 0)):
+        g = KeyframeGraph(PoseGraphConfig(), None, None, LoopConsistencyConfig(), pnp_nearby=pnp_nearby)
+        g.add_node(gt[0], None, None)
+        for k, T in enumerate(_odometry(gt)):
+            g.add_node(g.poses[k] @ T, k, T)
+            g.add_edge(PoseEdge(k, k + 1, T, "odometry"))
+        g.apply_loop_checks(n - 1, [near], min_inliers=30)
+        assert g.n_nearby_edges == kept and g.n_nearby_pnp_left_out == 1 - kept
+    # a new segment starting at keyframe n-2 (placed 1 m off): the nearby edge back to n-3 still merges it
+    g = KeyframeGraph(PoseGraphConfig(), None, None, LoopConsistencyConfig(), pnp_nearby=False)
+    g.add_node(gt[0], None, None)
+    for k in range(1, n):
+        if k == n - 2:
+            g.add_node(gt[k] @ make_T(np.eye(3), [1.0, 0, 0]), None, None)
+            g.start_segment(k)
+        else:
+            T = invert(gt[k - 1]) @ gt[k]
+            g.add_node(g.poses[k - 1] @ T, k - 1, T)
+            g.add_edge(PoseEdge(k - 1, k, T, "odometry"))
+    g.apply_loop_checks(n - 1, [_check(n - 3, invert(gt[n - 3]) @ gt[n - 1], "nearby")], min_inliers=30)
+    assert g.n_segments_merged == 1 and g.n_nearby_pnp_left_out == 0
+    assert np.abs(g.poses[n - 1][:3, 3] - gt[n - 1][:3, 3]).max() < 1e-6

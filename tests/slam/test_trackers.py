@@ -71,12 +71,27 @@ def test_orb_via_run_sequence_within_2x_of_dense(tmp_path):
     for k in ("loops_found", "loops_accepted", "keyframes", "sparse_rejected"):
         assert k in m_orb
     assert m_orb["keyframes"] >= 2 and m_orb["map_points"] > 1000
+    assert m_orb["nearby_edges"] > 0 and m_orb["nearby_pnp_left_out"] == 0  # colour registered: PnP edges in
     assert (tmp_path / "orb" / "map.ply").stat().st_size > 1000
     assert (tmp_path / "orb" / "trajectory.png").exists()
     assert json.loads((tmp_path / "orb" / "metrics.json").read_text())["tracker"] == "orb"
     n_lines = [ln for ln in (tmp_path / "orb" / "trajectory.txt").read_text().splitlines()
                if ln.strip() and not ln.startswith("#")]
     assert len(n_lines) == N_SLOW
+
+
+def test_orb_keeps_nearby_pnp_edges_out_where_colour_and_depth_are_unregistered():
+    """Unregistered colour and depth (7-Scenes): keypoint depths come from another camera's view, and PnP edges
+    between nearby keyframes are biased by more than the odometry drifts (7-Scenes kitchen 0-249, orb: 2.57 cm
+    with them, 1.65 cm without, the odometry-only figure). With ``loop.pnp_nearby_edges`` auto they stay out of
+    the PnP edges' graph."""
+    frames, _ = _frames("slow", N_SLOW)
+    _, res, _ = _run("orb", frames, colour_registered=False)
+    assert res.metrics["nearby_pnp_left_out"] > 0, res.metrics
+    cfg = SlamConfig()
+    on = replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, pnp_nearby_edges="on")))
+    _, res_on, _ = _run("orb", frames, on, colour_registered=False)
+    assert res_on.metrics["nearby_pnp_left_out"] == 0 and res_on.metrics["nearby_edges"] > 0
 
 
 def test_hybrid_no_worse_than_dense_on_slow_sequence():
@@ -166,17 +181,18 @@ def test_orb_starts_a_segment_after_a_gap_into_unseen_views_and_merges_it_by_a_l
     keep = list(range(0, 40)) + list(range(100, 150))
     run = [frames[i] for i in keep]
 
-    def errors(cfg):
-        est, res, _ = _run("orb", run, cfg)
-        return np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est, keep, strict=True)]), res.metrics
+    def errors(cfg, n=len(run)):
+        est, res, _ = _run("orb", run[:n], cfg)
+        return np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est, keep, strict=False)]), res.metrics
 
     err, m = errors(SlamConfig())
     assert m["reinitialisations"] == 1 and m["segments_merged"] == 1 and m["relocalisations"] == 0
     assert m["tracking_failures"] == 5 and m["lost_frames_placed"] >= 3
     assert err[41:].max() < 0.01, np.round(err[40:] * 1e3)
     cfg = SlamConfig()
-    err_off, m_off = errors(replace(cfg, sparse=replace(cfg.sparse, reinit_after_failures=0)))
-    assert m_off["reinitialisations"] == 0 and m_off["tracking_failures"] > 30
+    # the 20 frames after the gap suffice to show it (relocalisation fails on every one of them)
+    err_off, m_off = errors(replace(cfg, sparse=replace(cfg.sparse, reinit_after_failures=0)), 60)
+    assert m_off["reinitialisations"] == 0 and m_off["tracking_failures"] == 20
     assert np.median(err_off[41:]) > 0.5
 
 
@@ -239,19 +255,11 @@ def test_hybrid_relocalises_textureless_frames_by_shape():
         TrackingConfig(relocalise_after_failures=-1)
 
 
-@pytest.mark.parametrize("style", ["fast"])
-def test_hybrid_vs_dense_on_fast_sequence(style):
-    frames, gt = _frames(style, N_SLOW)
-    ate_dense = ate_m(_run("dense", frames)[0], gt)
-    ate_hybrid = ate_m(_run("hybrid", frames)[0], gt)
-    assert ate_hybrid < ate_dense + 2e-3, (ate_hybrid, ate_dense)
-
-
 def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     """Seed 1's fast sequence: geometric ICP slides along weakly constrained geometry. The photometric term of the
-    default dense tracker and the joint dense + feature tracking of hybrid hold the pose better (measured on these
-    48 frames: geometric 5.3 mm, dense 2.6 mm, hybrid 1.7 mm; with 1-pixel normals, which the sensor's disparity
-    steps bias, geometric ICP lost about 30 cm near frame 40)."""
+    default dense tracker and the joint dense + feature tracking of hybrid hold the pose better, the hybrid best
+    (measured on these 48 frames: geometric 5.3 mm, dense 2.6 mm, hybrid 1.7 mm; with 1-pixel normals, which the
+    sensor's disparity steps bias, geometric ICP lost about 30 cm near frame 40)."""
     frames, gt = _frames("fast", 48, seed=1)
     geometric = SlamConfig(tracking=TrackingConfig(photometric="off"))
     ate_geometric = ate_m(_run("dense", frames, geometric)[0], gt)
@@ -262,6 +270,7 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     ate_hybrid = ate_m(est, gt)
     assert slam.joint and res.metrics["joint_features"] is True
     assert ate_hybrid < 0.01 and ate_dense < 0.01, (ate_hybrid, ate_dense)
+    assert ate_hybrid < ate_dense + 2e-3, (ate_hybrid, ate_dense)  # at 3x speed the hybrid is no worse than dense
     assert ate_geometric > 1.5 * max(ate_hybrid, ate_dense), (ate_geometric, ate_hybrid, ate_dense)
     # features alone (no photometric term) hold it too
     features_only = ate_m(_run("hybrid", frames, geometric)[0], gt)
@@ -509,10 +518,9 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     from helpers import shared_sequence
 
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2, end=120))
-    frames = list(seq)  # read once for the four runs
+    frames = list(seq)  # read once for the three runs
     T_gt, _ = seq.gt_poses()
     cfg = SlamConfig()
-    plain = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, enabled=False)))
 
     def run(c: SlamConfig):
         slam = build_slam(seq.intrinsics, c, "hybrid", seq.colour_registered)
@@ -522,7 +530,6 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
         return est, res.metrics
 
     est, m = run(cfg)
-    est_plain, m_plain = run(plain)
     assert m["edges_dense_refined"] > 20 and m["edges_refined_trusted"] is False
     assert m["edge_residual_rad"] > 1.5 * cfg.hybrid.loop_icp.max_trusted_residual_rad
     # no worse than dense: here (joint term off, edges distrusted) the hybrid is the dense trajectory plus its
@@ -531,9 +538,6 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     dense = build_slam(seq.intrinsics, cfg, "dense", seq.colour_registered)
     est_dense = np.stack([dense.process(f).T_world_cam for f in frames])
     assert m["loop_correction_skipped"] == 1 and np.array_equal(est, est_dense)
-    # without refined edges nothing says the depth is biased: the PnP graph's correction is applied (sub-mm here)
-    assert m_plain["loop_correction_skipped"] == 0 and not np.array_equal(est_plain, est_dense)
-    assert np.abs(est_plain[:, :3, 3] - est_dense[:, :3, 3]).max() < cfg.hybrid.untrusted_min_correction_m
     # with every correction applied the graph moves the trajectory, by under a millimetre
     always = replace(cfg, hybrid=replace(cfg.hybrid, untrusted_min_correction_m=0.0))
     est_always, m_always = run(always)

@@ -34,6 +34,11 @@ class LoopConfig(Config):
         10, unit="matches", ge=0, le=1_000_000,
         doc="before PnP-RANSAC a candidate's good matches must hold a rigidly consistent 3D set this large "
             "(cheap rejection of non-overlapping candidates); 0 = off")
+    pnp_nearby_edges: str = setting(
+        "auto", choices=("auto", "on", "off"),
+        doc="whether the PnP-verified edges to nearby keyframes enter the PnP edges' graph (refined ones enter the "
+            "refined graph either way); auto: unless colour and depth are not registered, where keypoint depths "
+            "come from another camera's view and bias these short edges by more than the odometry drifts")
     retrieval: RetrievalConfig = setting(default_factory=RetrievalConfig, doc="descriptor-voting parameters")
     consistency: LoopConsistencyConfig = setting(
         default_factory=LoopConsistencyConfig,

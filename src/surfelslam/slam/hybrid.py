@@ -99,7 +99,8 @@ class HybridSlam(DenseSlam):
             scale = cfg.hybrid.loop_robust_scale_m * np.sqrt(sp.graph.loop_information)
             sp = replace(sp, graph=replace(sp.graph, robust_scale_sigma=float(scale)))
             refined_scale = cfg.hybrid.loop_robust_scale_m / cfg.hybrid.loop_icp.sigma_m
-        self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale)
+        self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale,
+                                 colour_registered=colour_registered)
         self._kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)

@@ -30,6 +30,7 @@ def sparse_metrics(sparse: SparseSlam, res) -> dict:
         "loops_rejected_inconsistent": int(sparse.n_loops_rejected_inconsistent),
         "nearby_rejected_inconsistent": int(sparse.n_nearby_rejected_inconsistent),
         "nearby_edges": int(res.n_nearby_edges),
+        "nearby_pnp_left_out": int(sparse.n_nearby_pnp_left_out),
         "reinitialisations": int(sparse.n_reinitialisations),
         "segments_merged": int(sparse.n_segments_merged),
         "lost_frames_placed": int(sparse.n_lost_placed),
@@ -61,7 +62,6 @@ class OrbSlam:
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
                  colour_camera: ColourCamera | None = None):
-        del colour_registered  # features see the colour image either way
         self.intr = intr
         self.cfg = cfg
         cloud_rgb = None if colour_camera is None else partial(frame_colour_at_depth, intr=intr, cam=colour_camera,
@@ -71,7 +71,8 @@ class OrbSlam:
         if oc.loop_icp.enabled or oc.depth_odometry.enabled:  # the keyframes' depth is kept for either
             store = DenseEdgeRefiner(intr, cfg.preprocess, oc.loop_icp)
         self.sparse = SparseSlam(intr, cfg.sparse, cloud_rgb=cloud_rgb, edge_refiner=store,
-                                 refine_edges=oc.loop_icp.enabled, depth_odometry=oc.depth_odometry)
+                                 refine_edges=oc.loop_icp.enabled, depth_odometry=oc.depth_odometry,
+                                 colour_registered=colour_registered)
         self._stamp_of_frame: dict[int, float] = {}
         self.failures = 0
         self.relocalisations = 0

@@ -27,11 +27,15 @@ class KeyframeGraph:
         refiner: the dense check of keyframe edges, or ``None`` (one graph, of PnP edges).
         refined_robust_scale: scale (whitened units) of the loop kernel on refined edges (``None``: the config's).
         consistency: the chi-square gate of edges against the odometry chain (``None``: the defaults).
+        pnp_nearby: whether PnP edges to nearby keyframes enter the PnP edges' graph (off: only their refined
+            versions enter the refined graph, and a nearby edge that joins a new segment to the old map).
     """
 
     def __init__(self, cfg: PoseGraphConfig, refiner: DenseEdgeRefiner | None,
-                 refined_robust_scale: float | None, consistency: LoopConsistencyConfig | None = None) -> None:
+                 refined_robust_scale: float | None, consistency: LoopConsistencyConfig | None = None,
+                 pnp_nearby: bool = True) -> None:
         self._refiner = refiner
+        self._pnp_nearby = pnp_nearby
         self._refined_robust_scale = refined_robust_scale
         self._graph = PoseGraph(cfg)
         self._graph_refined = None if refiner is None else PoseGraph(cfg)
@@ -50,6 +54,7 @@ class KeyframeGraph:
         self.n_segments_merged = 0  # segments moved onto the older map by a loop edge
         self.n_loops_rejected_inconsistent = 0  # verified far edges the odometry-chain gate rejected
         self.n_nearby_rejected_inconsistent = 0  # ... nearby ones (``gate_nearby``)
+        self.n_nearby_pnp_left_out = 0  # verified nearby PnP edges kept out of the PnP graph (``pnp_nearby`` off)
         self.gate_d2: list[tuple[int, int, float]] = []  # (kf_old, kf_new, squared distance) of every gated edge
 
     @property
@@ -99,6 +104,10 @@ class KeyframeGraph:
                 continue
             if not res.ok or not self._consistent(cand.kf_id, kf_id, res, far):
                 continue
+            crosses = b is not None and cand.kf_id < b <= kf_id
+            if not (far or crosses or self._pnp_nearby):
+                self._add_refined_nearby(cand.kf_id, kf_id, None if check.dense_rejected else refined)
+                continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
             pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
             if check.dense_rejected:  # in the PnP edges' graph only
@@ -120,7 +129,6 @@ class KeyframeGraph:
                 n_loops += 1
             elif added:
                 self.n_nearby_edges += 1
-            crosses = b is not None and cand.kf_id < b <= kf_id
             if added and crosses and (bridging is None or res.n_inliers > bridging[0]):
                 bridging = (res.n_inliers, pnp)
         if bridging is not None:
@@ -128,6 +136,20 @@ class KeyframeGraph:
         if n_loops > 0 or bridging is not None:
             self.optimise()
         return n_loops
+
+    def _add_refined_nearby(self, i: int, j: int, refined_T_cur_ref: np.ndarray | None) -> None:
+        """A verified nearby edge ``i -> j`` kept out of the PnP graph: its refined version (``None``: none, or the
+        dense check rejected it) enters the refined graph alone."""
+        self.n_nearby_pnp_left_out += 1
+        if refined_T_cur_ref is None or self._graph_refined is None:
+            return
+        T_i_j = invert(refined_T_cur_ref)
+        odo = self._chain.poses
+        self._refiner.observe_nearby(T_i_j, invert(odo[i]) @ odo[j])
+        self.n_dense_refined += 1
+        self.n_nearby_edges += 1
+        self._graph_refined.add_edge(PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale,
+                                              information=self._refiner.edge_sigma() ** -2))
 
     def _consistent(self, i: int, j: int, res, far: bool) -> bool:
         """Whether the PnP edge ``res`` from keyframe ``i`` to ``j`` passes the odometry-chain gate (counts the

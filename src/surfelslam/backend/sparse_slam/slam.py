@@ -21,6 +21,7 @@ from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, Spa
 from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
 from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import Features, MotionResult, estimate_motion, extract
+from surfelslam.tracking.photometric import colour_switch
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
@@ -42,13 +43,15 @@ class SparseSlam:
         refine_edges: use ``edge_refiner`` for the keyframe edges (False: it only serves the depth odometry).
         depth_odometry: register frames to the reference keyframe by ICP too (package docstring; needs
             ``edge_refiner``, which keeps the keyframes' depth); ``None`` or disabled: PnP alone.
+        colour_registered: whether colour is registered to depth (``RGBDSequence.colour_registered``): with
+            ``loop.pnp_nearby_edges = "auto"`` PnP edges to nearby keyframes enter the PnP graph only then.
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
                  T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None,
                  refined_robust_scale: float | None = None,
                  cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None, refine_edges: bool = True,
-                 depth_odometry: DepthOdometryConfig | None = None) -> None:
+                 depth_odometry: DepthOdometryConfig | None = None, colour_registered: bool = True) -> None:
         self.intr = intr
         self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
         # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement only
@@ -64,7 +67,9 @@ class SparseSlam:
         self._cloud_rgb = cloud_rgb
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._kfs: list[Keyframe] = []
-        self._graph = KeyframeGraph(self.cfg.graph, self._refiner, refined_robust_scale, self.cfg.loop.consistency)
+        pnp_nearby = colour_switch(self.cfg.loop.pnp_nearby_edges, colour_registered)
+        self._graph = KeyframeGraph(self.cfg.graph, self._refiner, refined_robust_scale, self.cfg.loop.consistency,
+                                    pnp_nearby)
         self._loops = LoopChecker(intr, self.cfg.features, self.cfg.loop, self._refiner, self._kfs)
         self._ref_kf = -1
         # per processed frame: timestamp, reference keyframe, pose relative to it
@@ -146,6 +151,11 @@ class SparseSlam:
     def n_nearby_rejected_inconsistent(self) -> int:
         """Verified nearby edges it rejected (``loop.consistency.gate_nearby``)."""
         return self._graph.n_nearby_rejected_inconsistent
+
+    @property
+    def n_nearby_pnp_left_out(self) -> int:
+        """Verified nearby PnP edges kept out of the PnP graph (``loop.pnp_nearby_edges``)."""
+        return self._graph.n_nearby_pnp_left_out
 
     @property
     def n_segments_merged(self) -> int:
