@@ -114,14 +114,7 @@ class KeyframeGraph:
                 self.n_dense_rejected += 1
                 added = self.add_edge(pnp, dense_rejected=True)
             elif refined is not None:
-                self.n_dense_refined += 1
-                T_i_j = invert(refined)
-                if not far:  # compared with the odometry alone (the graph has been pulled towards the edges)
-                    odo = self._chain.poses
-                    self._refiner.observe_nearby(T_i_j, invert(odo[cand.kf_id]) @ odo[kf_id])
-                # weighed by the refined edges' sigma (isotropic), set when it enters their graph
-                added = self.add_edge(pnp, PoseEdge(pnp.i, pnp.j, T_i_j, "loop",
-                                                    robust_scale=self._refined_robust_scale))
+                added = self.add_edge(pnp, self._refined_edge(cand.kf_id, kf_id, refined, far))
             else:
                 added = self.add_edge(pnp)
             if added and far:
@@ -137,19 +130,25 @@ class KeyframeGraph:
             self.optimise()
         return n_loops
 
+    def _refined_edge(self, i: int, j: int, refined_T_cur_ref: np.ndarray, far: bool) -> PoseEdge:
+        """The refined version of a verified edge ``i -> j`` (counted; a nearby one is also compared with the
+        odometry alone, as the graph has been pulled towards the edges). It is weighed by the refined edges' sigma
+        (isotropic), set when it enters their graph (:meth:`add_edge`)."""
+        self.n_dense_refined += 1
+        T_i_j = invert(refined_T_cur_ref)
+        if not far:
+            odo = self._chain.poses
+            self._refiner.observe_nearby(T_i_j, invert(odo[i]) @ odo[j])
+        return PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale)
+
     def _add_refined_nearby(self, i: int, j: int, refined_T_cur_ref: np.ndarray | None) -> None:
         """A verified nearby edge ``i -> j`` kept out of the PnP graph: its refined version (``None``: none, or the
         dense check rejected it) enters the refined graph alone."""
         self.n_nearby_pnp_left_out += 1
         if refined_T_cur_ref is None or self._graph_refined is None:
             return
-        T_i_j = invert(refined_T_cur_ref)
-        odo = self._chain.poses
-        self._refiner.observe_nearby(T_i_j, invert(odo[i]) @ odo[j])
-        self.n_dense_refined += 1
+        self.add_edge(None, self._refined_edge(i, j, refined_T_cur_ref, far=False))
         self.n_nearby_edges += 1
-        self._graph_refined.add_edge(PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale,
-                                              information=self._refiner.edge_sigma() ** -2))
 
     def _consistent(self, i: int, j: int, res, far: bool) -> bool:
         """Whether the PnP edge ``res`` from keyframe ``i`` to ``j`` passes the odometry-chain gate (counts the
