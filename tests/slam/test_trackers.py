@@ -14,7 +14,10 @@ from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.slam import TRACKERS, HybridSlam, SlamConfig, build_slam
 from surfelslam.slam.config import TrackingConfig
+from surfelslam.slam.frame import FrameStatus
+from surfelslam.slam.orb import DEPTH_ONLY_REASON
 from surfelslam.slam.runner import run_sequence
+from surfelslam.slam.segments import tracking_segments
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory
@@ -212,9 +215,18 @@ def test_orb_tracks_a_plain_walled_office_by_its_depth():
     With the depth odometry every such frame is registered to its keyframe by ICP from the prediction (1.25 mm)."""
     frames, gt = _plain_office_frames()
     cfg = SlamConfig()
-    est, res, _ = _run("orb", frames, cfg)
+    slam = build_slam(INTR, cfg, "orb", True)
+    results = [slam.process(f) for f in frames]
+    res = slam.finish()
+    est = res.trajectory_override.T_world_cam
     depth = res.metrics["depth_odometry"]
     assert res.metrics["tracking_failures"] == 0 and depth["from_prediction"] >= 50 and depth["rescued"] >= 1, depth
+    # those frames are reported weak (the depth leaves directions to the prediction), with the reason
+    weak = [r for r in results if r.status is FrameStatus.WEAK]
+    assert len(weak) == depth["from_prediction"] == res.metrics["weak_frames"]
+    assert all(r.tracked and r.reason == DEPTH_ONLY_REASON for r in weak)
+    segments = tracking_segments([(r.index, r.timestamp, r.status, r.reason) for r in results])
+    assert segments and all(s.kind == "weak" and s.reason == DEPTH_ONLY_REASON for s in segments)
     assert ate_m(est, gt) < 0.003, ate_m(est, gt)
     pnp_only = replace(cfg, orb=replace(cfg.orb, depth_odometry=replace(cfg.orb.depth_odometry, enabled=False)))
     est_pnp, res_pnp, _ = _run("orb", frames, pnp_only)

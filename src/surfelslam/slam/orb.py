@@ -16,10 +16,13 @@ from surfelslam.backend.sparse_slam import (
 )
 from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.dense import warm_up
-from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer, prepared_for
+from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.mapper import frame_colour_at_depth
 from surfelslam.slam.protocol import register_tracker
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
+
+#: the reason a frame posed by the depth odometry alone gives (its weak segments name it)
+DEPTH_ONLY_REASON = "depth alone: too few verified features"
 
 
 def sparse_metrics(sparse: SparseSlam, res) -> dict:
@@ -76,6 +79,7 @@ class OrbSlam:
         self._stamp_of_frame: dict[int, float] = {}
         self.failures = 0
         self.relocalisations = 0
+        self.weak_frames = 0  # frames posed by the depth odometry alone (features too few to verify)
 
     def warmup(self) -> None:
         """Compile the preprocessing and ICP kernels when depth is used (else nothing: OpenCV and gtsam are
@@ -105,14 +109,18 @@ class OrbSlam:
         if not r.ok:
             self.failures += 1
         self.relocalisations += int(r.relocalised)
+        weak = r.ok and r.depth_only  # along the directions the depth leaves free, the pose is the prediction
+        self.weak_frames += int(weak)
         return FrameResult(frame.index, frame.timestamp, r.T_world_cam.copy(), r.ok or r.relocalised, False,
-                           r.reason, t.ms, self.sparse.n_keyframes)
+                           DEPTH_ONLY_REASON if weak else r.reason, t.ms, self.sparse.n_keyframes,
+                           status=FrameStatus.WEAK if weak else None)
 
     def finish(self) -> SlamResult:
         res = self.sparse.finish()
         metrics = {"tracking_failures": self.failures,
                    "tracking_failure_reasons": dict(res.rejected),
                    "relocalisations": self.relocalisations,
+                   "weak_frames": self.weak_frames,
                    "depth_odometry": dict(self.sparse.depth_counts) if self.sparse.uses_depth else None,
                    **sparse_metrics(self.sparse, res)}
         return SlamResult(len(res.map_xyz), metrics, None, trajectory_override=res.trajectory,

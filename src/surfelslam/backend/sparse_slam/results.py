@@ -60,6 +60,8 @@ class SparseFrameResult:
         n_inliers: PnP inliers against the reference keyframe (-1: not computed, a dense pose was given).
         loops_added: edges to older keyframes accepted for this keyframe (nearby edges excluded).
         relocalised: the pose came from :meth:`SparseSlam.relocalise`.
+        depth_only: the pose came from the depth odometry alone, from the prediction (PnP found too few inliers
+            to be trusted): along directions the depth leaves free (a plain wall, a corridor) it is the prediction.
     """
 
     T_world_cam: np.ndarray
@@ -69,6 +71,7 @@ class SparseFrameResult:
     n_inliers: int
     loops_added: int
     relocalised: bool = False
+    depth_only: bool = False
 
 
 @dataclass

@@ -290,7 +290,7 @@ class SparseSlam:
             self._velocity = np.eye(4)  # its step along the depth's free directions is the prediction: not fed back
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
-                                 loops_added)
+                                 loops_added, depth_only=depth_only)
 
     def _with_depth(self, res: MotionResult, T_pred_cur_ref: np.ndarray,
                     source: FramePyramid) -> tuple[MotionResult, bool]:
