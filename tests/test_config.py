@@ -198,7 +198,7 @@ def test_reference_page_covers_every_setting_and_is_current():
     assert committed.read_text() == reference_text(), "docs/config_reference.md is stale: run `make docs`"
 
 
-@pytest.mark.parametrize("name", ["fast", "accurate"])
+@pytest.mark.parametrize("name", ["fast", "accurate", "hybrid-fast"])
 def test_presets_load(name):
     from surfelslam.slam import SlamConfig
 
@@ -209,6 +209,8 @@ def test_presets_load(name):
     assert cfg != SlamConfig()
     if name == "accurate":
         assert cfg.tracking.max_width_px == 0 and cfg.fusion.max_width_px == 0
+    elif name == "hybrid-fast":
+        assert cfg.tracker == "hybrid" and not cfg.hybrid.pnp_check and cfg.hybrid.joint_features == "off"
     else:
         assert cfg.tracking.photometric == "off"
 
