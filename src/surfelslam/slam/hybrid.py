@@ -114,8 +114,12 @@ class HybridSlam(DenseSlam):
                        "pnp_disagreements": 0, "loop_correction_skipped": 0}
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
-        """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`)."""
+        """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`). Without
+        the joint term or the PnP check a frame needs features only when it becomes a keyframe or tracking fails:
+        they are then extracted when needed, not ahead for every frame."""
         p = super().prepare(frame)
+        if not (self.joint or self.cfg.hybrid.pnp_check):
+            return p
         c0, t0 = time.thread_time(), time.perf_counter()
         p.features = self.sparse.features(frame)
         p.timings_ms["orb_extract"] = (time.perf_counter() - t0) * 1e3
@@ -300,7 +304,7 @@ class HybridSlam(DenseSlam):
             # feed the pose in the graph frame, so the odometry edge is exactly the dense relative motion
             T_feed = T_new if K == 0 else self._correction(K - 1) @ T_new
             sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed),
-                                     feats=self._features(frame))
+                                     feats=self._feats)  # None: extracted there if it becomes a keyframe
             t.lap("sparse")
             if sr.is_keyframe:
                 self._kf_dense.append(T_new)

@@ -215,10 +215,13 @@ class SparseSlam:
             frame: the next frame (any resolution matching ``intr``).
             T_world_cam_dense: optional pose from another tracker (hybrid mode). When given it is the
                 frame's pose and the odometry measurement of a new keyframe, and no PnP runs here (the
-                keyframe decision uses that pose; the hybrid tracker does its own PnP check).
+                keyframe decision uses that pose; the hybrid tracker does its own PnP check); features are
+                extracted only for a new keyframe.
             feats: the frame's :meth:`features`, when already extracted.
             depth_pyramid: the frame's :meth:`depth_pyramid`, when already built.
         """
+        if T_world_cam_dense is not None and self._kfs:
+            return self._process_posed(frame, np.asarray(T_world_cam_dense, np.float64), feats)
         feats = self.features(frame) if feats is None else feats
         if not self._kfs:
             T0 = self._T_world_first if T_world_cam_dense is None else np.asarray(T_world_cam_dense, np.float64)
@@ -230,20 +233,14 @@ class SparseSlam:
         T_world_kf = self._kf_poses[self._ref_kf]
         ref = self._kfs[self._ref_kf]
         relocalised = False
-        res = None
-        information = None  # of the measurement behind a new keyframe's edge (None: a dense pose, isotropic)
+        information = None  # of the measurement behind a new keyframe's edge (None: isotropic)
         depth_only = False  # this frame's pose comes from depth alone (no trusted PnP)
-        if T_world_cam_dense is None:
-            T_pred_cur_ref = invert(T_pred) @ T_world_kf
-            res = estimate_motion(ref.features, feats, self.intr, self.cfg.features, T_init_cur_ref=T_pred_cur_ref)
-            if self._depth_cfg is not None:
-                pyr = self.depth_pyramid(frame) if depth_pyramid is None else depth_pyramid
-                res, depth_only = self._with_depth(res, T_pred_cur_ref, pyr)
-        if T_world_cam_dense is not None:
-            T_world_cam = np.asarray(T_world_cam_dense, np.float64)
-            T_kf_cam = invert(T_world_kf) @ T_world_cam
-            ok = True
-        elif res.ok:
+        T_pred_cur_ref = invert(T_pred) @ T_world_kf
+        res = estimate_motion(ref.features, feats, self.intr, self.cfg.features, T_init_cur_ref=T_pred_cur_ref)
+        if self._depth_cfg is not None:
+            pyr = self.depth_pyramid(frame) if depth_pyramid is None else depth_pyramid
+            res, depth_only = self._with_depth(res, T_pred_cur_ref, pyr)
+        if res.ok:
             T_kf_cam = invert(res.T_cur_ref)
             T_world_cam = T_world_kf @ T_kf_cam
             ok = True
@@ -289,8 +286,26 @@ class SparseSlam:
         if depth_only and self._depth_cfg.hold_after_depth_only:
             self._velocity = np.eye(4)  # its step along the depth's free directions is the prediction: not fed back
         loops_added, self._unreported_loops = self._unreported_loops, 0
-        return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, -1 if res is None else res.n_inliers,
-                                 loops_added, depth_only=depth_only)
+        return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, res.n_inliers, loops_added,
+                                 depth_only=depth_only)
+
+    def _process_posed(self, frame: RGBDFrame, T_world_cam: np.ndarray, feats: Features | None) -> SparseFrameResult:
+        """:meth:`process` of a frame posed by another tracker (after the first keyframe): it becomes a keyframe
+        when far enough from the reference one (its features extracted then, unless given), with the dense pose
+        as the odometry measurement (isotropic weight)."""
+        T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+        self._n_failures = 0
+        self._lost = []
+        is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
+        if is_kf:
+            feats = self.features(frame) if feats is None else feats
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam)
+            T_world_cam = self._kf_poses[-1]
+            self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
+        else:
+            self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+        loops_added, self._unreported_loops = self._unreported_loops, 0
+        return SparseFrameResult(T_world_cam.copy(), is_kf, True, None, -1, loops_added)
 
     def _with_depth(self, res: MotionResult, T_pred_cur_ref: np.ndarray,
                     source: FramePyramid) -> tuple[MotionResult, bool]:
