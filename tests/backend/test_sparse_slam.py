@@ -279,3 +279,23 @@ def test_depth_odometry_needs_the_keyframe_depth_store(tmp_path):
     path.write_text("[orb.depth_odometry]\nmax_shift_m = -0.1\n")
     with pytest.raises(ConfigError, match=r"\[orb.depth_odometry\].*max_shift_m"):
         load_toml(SlamConfig, path)
+
+
+def test_posed_frames_are_extracted_only_when_they_become_keyframes(loop_frames) -> None:
+    """Frames posed by another tracker (the hybrid) need ORB features only as keyframes: the others are never
+    extracted, and the keyframes get the given poses."""
+    poses, frames = loop_frames
+
+    class Counting(SparseSlam):
+        extracted: list[int] = []
+
+        def features(self, frame):
+            self.extracted.append(frame.index)
+            return super().features(frame)
+
+    slam = Counting(ROOM_INTR, replace(NO_LOOP_CFG, keyframe_threshold=0.5), T_world_first=poses[0])
+    out = [slam.process(f, T_world_cam_dense=T) for f, T in zip(frames[:12], poses[:12], strict=True)]
+    kf_frames = [f.index for f, r in zip(frames, out, strict=False) if r.is_keyframe]
+    assert 2 < len(kf_frames) < 12 and slam.extracted == kf_frames
+    assert all(r.ok and r.n_inliers == -1 for r in out[1:])
+    np.testing.assert_allclose(slam.keyframe_poses(), poses[kf_frames], atol=1e-9)
