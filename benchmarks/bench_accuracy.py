@@ -18,6 +18,7 @@ import json
 import time
 from pathlib import Path
 
+from benchmarks.common import tracker_setup
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.errors import SurfelSlamError
 from surfelslam.slam import SlamConfig
@@ -66,8 +67,9 @@ def run_tracker(name: str, path: Path, tracker: str, downsample: int, out_dir: P
                 cfg: SlamConfig | None = None) -> dict:
     """``surfelslam run`` on ``path`` (frames ``[0, end)``); the row from its ``metrics.json``."""
     seq = open_sequence(path, DatasetOptions(downsample=downsample, end=end))
+    run_as, preset_cfg = tracker_setup(tracker)
     c0 = time.process_time()
-    run_sequence(seq, out_dir, cfg or SlamConfig(), tracker, progress=False, figures=False)
+    run_sequence(seq, out_dir, cfg or preset_cfg, run_as, progress=False, figures=False)
     cpu_s = time.process_time() - c0
     m = json.loads((out_dir / "metrics.json").read_text())
     return row_from_metrics(name, tracker, m, cpu_s)

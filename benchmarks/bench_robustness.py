@@ -36,9 +36,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.common import tracker_setup
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
-from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
@@ -49,7 +49,8 @@ DRIFT_WINDOW_S = 1.0  # the worst drift is measured over pose pairs this far apa
 OPEN3D_DEPTH_MAX_M = 6.0  # Open3D's example clips depth at 3 m: most of the office is farther
 DOWNSAMPLE_REAL = 2  # the real sequences are 640x480: read at 320x240
 REAL_FIRST_S_PER_FRAME = 0.05  # a-priori dense cost (s/frame) until a run measured it
-TRACKER_COST_VS_DENSE = {"hybrid": 6.0, "orb": 3.0, "open3d": 8.0}  # a-priori, until one run measured it
+# a-priori cost per frame relative to dense, until one run measured it
+TRACKER_COST_VS_DENSE = {"hybrid": 6.0, "hybrid-fast": 1.5, "orb": 3.0, "open3d": 8.0}
 RUN_OVERHEAD_S = 5.0  # per run: opening, map and metrics writing
 SEGMENT_LINES = 3  # segments described per row in the JSON (the counts cover them all)
 CACHE_ENV = "SURFELSLAM_BENCH_CACHE"  # where generated sequences are kept between runs (default: the temp folder)
@@ -134,8 +135,9 @@ def _drift_fields(est: Trajectory, gt: Trajectory) -> dict:
 
 def run_tracker(label: str, seq, tracker: str, out_dir: Path) -> dict:
     """``surfelslam run`` (defaults but the tracker) on ``seq``; the row from its ``metrics.json`` and trajectory."""
+    run_as, cfg = tracker_setup(tracker)
     t0 = time.perf_counter()
-    run_sequence(seq, out_dir, SlamConfig(), tracker, progress=False, figures=False)
+    run_sequence(seq, out_dir, cfg, run_as, progress=False, figures=False)
     wall = time.perf_counter() - t0
     m = json.loads((out_dir / "metrics.json").read_text())
     e = m.get("eval") or {}
@@ -245,7 +247,7 @@ def section_markdown(res: dict) -> list[str]:
     """The ``make bench`` section: one table of every (sequence, tracker) row and how to read it."""
     from benchmarks.report import fmt, table
 
-    order = {"dense": 0, "hybrid": 1, "orb": 2}
+    order = {"dense": 0, "hybrid-fast": 1, "hybrid": 2, "orb": 3}
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in res["rows"]))}
     rows = sorted(res["rows"], key=lambda r: (seq_order[r["sequence"]], order.get(r["tracker"], 9)))
     w, h = res["resolution"]

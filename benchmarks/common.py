@@ -14,6 +14,23 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REDKITCHEN = SHARED_DATA / "7scenes_redkitchen_0000_0499"
 
 
+#: Tracker rows that are a preset (``configs/NAME.toml``) rather than a tracker with the defaults.
+PRESET_TRACKERS = ("hybrid-fast",)
+PRESETS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def tracker_setup(label: str):
+    """``(tracker, SlamConfig)`` of a bench row's tracker label: a tracker with the defaults, or a preset of
+    :data:`PRESET_TRACKERS` (its config, whose ``tracker`` it names)."""
+    from surfelslam.config import load_toml
+    from surfelslam.slam import SlamConfig
+
+    if label not in PRESET_TRACKERS:
+        return label, SlamConfig()
+    cfg = load_toml(SlamConfig, PRESETS / f"{label}.toml")
+    return cfg.tracker, cfg
+
+
 def median_ms(fn: Callable[[], object], reps: int) -> float:
     """Median wall time of ``reps`` calls of ``fn``, in milliseconds."""
     times = []

@@ -73,7 +73,7 @@ SHARED = SHARED_DATA
 RESULTS = HERE / "results"
 STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it
-TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 6.0}
+TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 6.0, "hybrid-fast": 1.5}
 OPEN3D_S_PER_FRAME_GUESS = 0.5  # at 320x240 on 2 cores, until the first Open3D run measured it
 RESERVE_S = 20.0  # kept free at the end of the budget (writing results)
 
@@ -100,11 +100,13 @@ class Plan:
     # (tracker, sequence: "real" | "slow" | "loop" | "fast", max frames), in order of priority; each one runs
     # only when its estimated time still fits in the budget
     extra_runs: tuple[tuple[str, str, int | None], ...] = (
+        ("hybrid-fast", "real", None), ("hybrid-fast", "slow", None), ("hybrid-fast", "loop", None),
+        ("hybrid-fast", "fast", None),
         ("orb", "real", 200), ("hybrid", "real", 200), ("hybrid", "loop", None), ("orb", "loop", None),
         ("hybrid", "slow", 200), ("orb", "slow", 200), ("hybrid", "fast", None), ("orb", "fast", None))
     min_frames: int = 30  # shorter real sequences are listed as too short to track
     fallback_frames: int = 150  # synthetic 640x480 stage sequence when there is no real sequence
-    budget_s: float = 600.0  # optional runs are skipped when they would not fit (0: no limit)
+    budget_s: float = 720.0  # optional runs are skipped when they would not fit (0: no limit)
     viewer_frames: int = 300  # live viewer cost: frames of the generated sequence (0: no viewer section)
     viewer_width: int = 320
     viewer_repeats: int = 5  # runs of each variant (without / with the viewer), interleaved
@@ -116,7 +118,7 @@ class Plan:
     robust_width: int = 320
     robust_synthetic: tuple[str, ...] = bench_robustness.SYNTHETIC_KEYS
     robust_real_frames: int | None = None  # cap on the real sequences' frames (None: all)
-    robust_trackers: tuple[str, ...] = ("hybrid", "orb")  # beside dense, while the budget allows
+    robust_trackers: tuple[str, ...] = ("hybrid-fast", "hybrid", "orb")  # beside dense, while the budget allows
     robust_open3d_frames: int = 1500  # Open3D beside dense on the first generated sequence (0: none)
     robust_budget_s: float = 2700.0  # the section's own budget for the optional runs (0: no limit)
 
