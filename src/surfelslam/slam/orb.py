@@ -26,25 +26,20 @@ DEPTH_ONLY_REASON = "depth alone: too few verified features"
 
 
 def sparse_metrics(sparse: SparseSlam, res) -> dict:
+    """The sparse back end's part of ``metrics.json`` (keyframes, loops, edge counts, the refined edges' gate)."""
     return {
         "keyframes": int(len(res.keyframe_indices)),
         "loops_found": len(res.loops_found),
         "loops_accepted": len(res.loops_accepted),
-        "loops_rejected_inconsistent": int(sparse.n_loops_rejected_inconsistent),
-        "nearby_rejected_inconsistent": int(sparse.n_nearby_rejected_inconsistent),
         "nearby_edges": int(res.n_nearby_edges),
-        "nearby_pnp_left_out": int(sparse.n_nearby_pnp_left_out),
         "reinitialisations": int(sparse.n_reinitialisations),
-        "segments_merged": int(sparse.n_segments_merged),
         "lost_frames_placed": int(sparse.n_lost_placed),
         "sparse_rejected": dict(res.rejected),
-        "edges_dense_refined": int(sparse.n_dense_refined),
-        "edges_dense_rejected": int(sparse.n_dense_rejected),
+        **sparse.edge_counts,
         "edge_sigma_m": sparse.dense_edge_sigma_m,
         "edge_spread_m": sparse.dense_edge_spread_m,
         "edges_refined_trusted": sparse.dense_edges_trusted,
         "edge_residual_rad": sparse.dense_edge_residual_rad,
-        "depth_only_edges": sparse.n_depth_only_edges,
     }
 
 

@@ -57,6 +57,16 @@ class KeyframeGraph:
         self.n_nearby_pnp_left_out = 0  # verified nearby PnP edges kept out of the PnP graph (``pnp_nearby`` off)
         self.gate_d2: list[tuple[int, int, float]] = []  # (kf_old, kf_new, squared distance) of every gated edge
 
+    def edge_counts(self) -> dict[str, int]:
+        """The edge and segment counters, by their ``metrics.json`` names."""
+        return {"loops_rejected_inconsistent": self.n_loops_rejected_inconsistent,
+                "nearby_rejected_inconsistent": self.n_nearby_rejected_inconsistent,
+                "nearby_pnp_left_out": self.n_nearby_pnp_left_out,
+                "segments_merged": self.n_segments_merged,
+                "edges_dense_refined": self.n_dense_refined,
+                "edges_dense_rejected": self.n_dense_rejected,
+                "depth_only_edges": self.n_depth_only_edges}
+
     @property
     def poses(self) -> np.ndarray:
         """``(K, 4, 4)`` current estimates ``T_world_kf`` (a view: writes go to the graph's pose store)."""

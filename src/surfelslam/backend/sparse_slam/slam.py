@@ -127,40 +127,10 @@ class SparseSlam:
         return self._graph.n_nearby_edges
 
     @property
-    def n_dense_refined(self) -> int:
-        """Edges refined by the dense check."""
-        return self._graph.n_dense_refined
-
-    @property
-    def n_dense_rejected(self) -> int:
-        """PnP-verified edges the dense check dropped."""
-        return self._graph.n_dense_rejected
-
-    @property
-    def n_depth_only_edges(self) -> int:
-        """Nearby edges from depth alone where PnP could not verify (refined graph only)."""
-        return self._graph.n_depth_only_edges
-
-    @property
-    def n_loops_rejected_inconsistent(self) -> int:
-        """Verified older-keyframe edges the odometry-chain gate rejected
-        (:mod:`~surfelslam.backend.loop_consistency`)."""
-        return self._graph.n_loops_rejected_inconsistent
-
-    @property
-    def n_nearby_rejected_inconsistent(self) -> int:
-        """Verified nearby edges it rejected (``loop.consistency.gate_nearby``)."""
-        return self._graph.n_nearby_rejected_inconsistent
-
-    @property
-    def n_nearby_pnp_left_out(self) -> int:
-        """Verified nearby PnP edges kept out of the PnP graph (``loop.pnp_nearby_edges``)."""
-        return self._graph.n_nearby_pnp_left_out
-
-    @property
-    def n_segments_merged(self) -> int:
-        """Segments started after a long loss (:attr:`n_reinitialisations`) moved onto the older map by a loop edge."""
-        return self._graph.n_segments_merged
+    def edge_counts(self) -> dict[str, int]:
+        """The keyframe graph's edge and segment counts, by their ``metrics.json`` names
+        (:meth:`KeyframeGraph.edge_counts`)."""
+        return self._graph.edge_counts()
 
     @property
     def n_keyframes(self) -> int:
@@ -271,15 +241,7 @@ class SparseSlam:
             T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
             information = reloc_res.information
 
-        self._n_failures = 0
-        self._lost = []
-        is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
-        if is_kf:
-            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
-            T_world_cam = self._kf_poses[-1]
-            self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
-        else:
-            self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
+        T_world_cam, is_kf = self._keyframe_or_record(frame, feats, T_world_cam, T_kf_cam, information)
         if relocalised:
             self._velocity = np.eye(4)  # the motion across the loss is unknown
             return SparseFrameResult(T_world_cam.copy(), is_kf, False, res.reason, res.n_inliers, 0, True)
@@ -294,18 +256,25 @@ class SparseSlam:
         when far enough from the reference one (its features extracted then, unless given), with the dense pose
         as the odometry measurement (isotropic weight)."""
         T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
+        T_world_cam, is_kf = self._keyframe_or_record(frame, feats, T_world_cam, T_kf_cam)
+        loops_added, self._unreported_loops = self._unreported_loops, 0
+        return SparseFrameResult(T_world_cam.copy(), is_kf, True, None, -1, loops_added)
+
+    def _keyframe_or_record(self, frame: RGBDFrame, feats: Features | None, T_world_cam: np.ndarray,
+                            T_kf_cam: np.ndarray, information: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+        """A placed frame: a keyframe when far enough from the reference one (features extracted then, unless
+        given; ``information`` of its odometry edge), else recorded against it. Returns ``(T_world_cam, is_kf)``."""
         self._n_failures = 0
         self._lost = []
         is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
         if is_kf:
             feats = self.features(frame) if feats is None else feats
-            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam)
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
             T_world_cam = self._kf_poses[-1]
             self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
         else:
             self._record(frame.timestamp, self._ref_kf, T_kf_cam, T_world_cam)
-        loops_added, self._unreported_loops = self._unreported_loops, 0
-        return SparseFrameResult(T_world_cam.copy(), is_kf, True, None, -1, loops_added)
+        return T_world_cam, is_kf
 
     def _with_depth(self, res: MotionResult, T_pred_cur_ref: np.ndarray,
                     source: FramePyramid) -> tuple[MotionResult, bool]:
