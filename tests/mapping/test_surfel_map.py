@@ -163,6 +163,31 @@ def test_render_plane_depth_and_normal_at_known_pixels():
     assert view.vertex_cam[0, 80, 1] > 0 and view.vertex_cam[119, 80, 1] < 0
 
 
+def test_render_draws_the_confident_surface_not_a_noisy_surfel_just_in_front():
+    """A well-observed plane at 2 m (confidence 10) with single-view surfels 8 mm in front of it (confidence 1, the
+    noise of one Kinect frame at 2 m): with ``front_band_rel`` 0.01 (2 cm here) the more confident plane is drawn;
+    with 0, the nearest, as the plain z-test did, the noisy surfels. An object 10 cm in front (outside the band)
+    still occludes the plane."""
+    m = _plane_map(2.0)
+    m.confidence[:] = 10.0
+    rng = np.random.default_rng(3)
+    noisy = rng.uniform([-0.5, -0.4, 1.992], [0.5, 0.4, 1.992], size=(400, 3))
+    m.append(noisy, np.tile([0.0, 0.0, -1.0], (400, 1)), np.full((400, 3), 9.0), 1.0, 0.01, 0)
+    box = np.column_stack([np.full(25, 0.3) + np.repeat(np.arange(5), 5) * 0.01,
+                           np.tile(np.arange(5), 5) * 0.01, np.full(25, 1.9)])
+    m.append(box, np.tile([0.0, 0.0, -1.0], (25, 1)), np.full((25, 3), 200.0), 1.0, 0.01, 0)
+    near = render(m, np.eye(4), CAM_NEG, RenderConfig(front_band_rel=0.0))
+    band = render(m, np.eye(4), CAM_NEG, RenderConfig(front_band_rel=0.01))
+    plane = near.index < m.size - 425
+    in_front = (near.index >= m.size - 425) & (near.index < m.size - 25)
+    assert in_front.sum() > 200  # the plain z-test draws the noisy surfels
+    np.testing.assert_allclose(near.vertex_cam[in_front, 2], 1.992, atol=1e-6)
+    np.testing.assert_allclose(band.vertex_cam[in_front, 2], 2.0, atol=1e-6)  # the band draws the plane there
+    assert np.array_equal(band.index[plane & (near.index >= 0)], near.index[plane & (near.index >= 0)])
+    box_px = near.index >= m.size - 25
+    assert box_px.sum() > 10 and np.array_equal(band.index[box_px], near.index[box_px])  # occluders stay
+
+
 def test_render_from_closer_has_no_holes_thanks_to_splats():
     m = _plane_map(2.0, spacing_m=0.012)
     view = render(m, make_T(np.eye(3), [0, 0, 0.6]), CAM_NEG)  # 1.4 m away: spacing ~1.0 px... closer than creation
@@ -195,13 +220,22 @@ def test_splat_fill_and_index_kernels_match_references():
     H, W = CAM_NEG.shape
     args = (cand, len(cand), a["position"], a["normal"], a["radius"], a["confidence"], a["first_seen"], 2.0, 15,
             R, t, CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, 2.0, 0.1, 8.0, True)
+    for band_rel in (0.0, 0.01, 0.05):  # the nearest disc wins; the most confident within the band
+        depth = np.full((H, W), np.inf)
+        index = np.full((H, W), -1, np.int32)
+        kr.splat_zbuffer(*args, band_rel, depth, index)
+        depth_r, index_r = kr.splat_zbuffer_ref(*args, band_rel, (H, W))
+        assert (index >= 0).mean() > 0.5
+        np.testing.assert_array_equal(index, index_r)
+        np.testing.assert_array_equal(depth, depth_r)
+        if band_rel == 0.0:
+            nearest = depth.copy()
+        else:  # a drawn disc lies within the band of the nearest; some pixels change hands
+            hit = index >= 0
+            assert np.all(depth[hit] <= nearest[hit] * (1 + band_rel)) and np.any(depth[hit] > nearest[hit])
     depth = np.full((H, W), np.inf)
     index = np.full((H, W), -1, np.int32)
-    kr.splat_zbuffer(*args, depth, index)
-    depth_r, index_r = kr.splat_zbuffer_ref(*args, (H, W))
-    assert (index >= 0).mean() > 0.5
-    np.testing.assert_array_equal(index, index_r)
-    np.testing.assert_array_equal(depth, depth_r)
+    kr.splat_zbuffer(*args, 0.0, depth, index)
 
     out = [np.empty((H, W, 3), np.float32), np.empty((H, W, 3), np.float32), np.empty((H, W, 3), np.uint8),
            np.empty((H, W), np.float32)]

@@ -81,7 +81,7 @@ def cull_blocks_ref(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umi
 # ---------------------------------------------------------------------------------------------------- splats
 @njit(cache=True, nogil=True)
 def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
-                  max_splat_px, near, far, cull_back, depth_buf, index_buf):
+                  max_splat_px, near, far, cull_back, band_rel, depth_buf, index_buf):
     """Z-buffer of surfel discs (camera-frame depth of the ray/disc intersection) into ``(H, W)`` buffers.
 
     Args:
@@ -92,8 +92,25 @@ def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from
         R, t: float64 world-to-camera rotation ``(3, 3)`` and translation ``(3,)``.
         max_splat_px: cap of the footprint radius in pixels.
         near, far: depth range in metres; cull_back: skip surfels whose normal faces away from the camera.
+        band_rel: with ``band_rel > 0``, a second pass: among the discs whose depth at a pixel lies within
+            ``(1 + band_rel)`` times the nearest one's, the most confident is drawn (ties: the earlier in ``cand``).
+            The nearest of several noisy surfels over one surface lies in front of it; the most confident one is
+            the best-averaged. 0: the nearest wins.
         depth_buf: float64 ``(H, W)`` initialised to +inf; index_buf: int32 ``(H, W)`` initialised to -1.
     """
+    _splat_pass(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
+                max_splat_px, near, far, cull_back, 0.0, depth_buf, depth_buf, depth_buf, index_buf)
+    if band_rel > 0.0:
+        best = np.full(depth_buf.shape, -1.0)
+        _splat_pass(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
+                    max_splat_px, near, far, cull_back, band_rel, depth_buf.copy(), best, depth_buf, index_buf)
+
+
+@njit(cache=True, nogil=True)
+def _splat_pass(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
+                max_splat_px, near, far, cull_back, band_rel, zmin, best, depth_buf, index_buf):
+    """One pass of :func:`splat_zbuffer`: the z-test (``band_rel == 0``), or the most confident disc within
+    ``(1 + band_rel) zmin`` (``best``: the drawn disc's confidence per pixel, -1 where none yet)."""
     H, W = depth_buf.shape
     afx = abs(fx)
     afy = abs(fy)
@@ -153,13 +170,20 @@ def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from
                         ok = True
                 elif centre:
                     ok = True
-                if ok and depth < depth_buf[pv, pu]:
+                if not ok:
+                    continue
+                if band_rel == 0.0:
+                    if depth < depth_buf[pv, pu]:
+                        depth_buf[pv, pu] = depth
+                        index_buf[pv, pu] = i
+                elif depth <= zmin[pv, pu] * (1.0 + band_rel) and conf[i] > best[pv, pu]:
+                    best[pv, pu] = conf[i]
                     depth_buf[pv, pu] = depth
                     index_buf[pv, pu] = i
 
 
 def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
-                      max_splat_px, near, far, cull_back, shape):
+                      max_splat_px, near, far, cull_back, band_rel, shape):
     """Numpy reference of :func:`splat_zbuffer`; returns ``(depth (H, W) float64, index (H, W) int32)``."""
     H, W = shape
     idx = cand[:m].astype(np.int64)
@@ -219,13 +243,22 @@ def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_
     dep = depth[ci, oi]
     korder = k_order[ci]
     srt = np.lexsort((korder, dep, pix))
-    pix, dep, win = pix[srt], dep[srt], idx[ci[srt]]
+    pix, dep, win, korder = pix[srt], dep[srt], idx[ci[srt]], korder[srt]
     first = np.ones(len(pix), bool)
     first[1:] = pix[1:] != pix[:-1]
     depth_buf = np.full(H * W, np.inf)
     index_buf = np.full(H * W, -1, np.int32)
     depth_buf[pix[first]] = dep[first]
     index_buf[pix[first]] = win[first]
+    if band_rel > 0:  # the most confident within the band of the nearest, ties by candidate order
+        band = dep <= depth_buf[pix] * (1.0 + band_rel)
+        pix, dep, win, korder = pix[band], dep[band], win[band], korder[band]
+        srt = np.lexsort((korder, -conf[win].astype(np.float64), pix))
+        pix, dep, win = pix[srt], dep[srt], win[srt]
+        first = np.ones(len(pix), bool)
+        first[1:] = pix[1:] != pix[:-1]
+        depth_buf[pix[first]] = dep[first]
+        index_buf[pix[first]] = win[first]
     return depth_buf.reshape(H, W), index_buf.reshape(H, W)
 
 

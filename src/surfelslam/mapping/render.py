@@ -33,6 +33,12 @@ class RenderConfig(Config):
                                     doc="surfels first seen within this many frames of the latest fused one are drawn "
                                         "whatever their confidence (a young map still renders)")
     cull_backfaces: bool = setting(True, doc="skip surfels whose normal faces away from the camera")
+    front_band_rel: float = setting(0.0, unit="fraction of depth", ge=0, le=0.1,
+                                    doc="surfels whose disc at a pixel lies within this fraction of the nearest one's "
+                                        "depth compete by confidence: the most confident is drawn, not the nearest "
+                                        "(of a surface's noisy surfels the nearest lies in front of it); 0 (the "
+                                        "default): the nearest wins. Experimental: better on noisy orbits, worse on "
+                                        "textured planes and noiseless data")
     vertex: str = setting("centre", choices=("centre", "disc"),
                           doc="a pixel's point: the winning surfel's centre, or its disc point on the pixel ray")
 
@@ -106,7 +112,8 @@ def render(
 
     Each surfel covers the pixels whose rays meet its disc (footprint radius capped at
     ``cfg.max_splat_radius_px``; the nearest pixel of its centre is always covered); the nearest
-    intersection wins. Returns camera-frame vertex and normal maps (see :class:`RenderedView`).
+    intersection wins, or the most confident within ``cfg.front_band_rel`` of its depth. Returns
+    camera-frame vertex and normal maps (see :class:`RenderedView`).
 
     ``vertex_out`` / ``normal_out``: optional float32 ``(H, W, 3)`` buffers to write the vertex / normal maps
     into (e.g. level 0 of an ICP target pyramid, which :func:`~surfelslam.tracking.preprocess.pyramid_from_maps`
@@ -128,7 +135,7 @@ def render(
         float(cfg.min_confidence), int(young_from), R, t,
         float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
         float(cfg.max_splat_radius_px), float(cfg.min_depth_m), float(cfg.max_depth_m), bool(cfg.cull_backfaces),
-        depth, index,
+        float(cfg.front_band_rel), depth, index,
     )
     vertex = _out_buffer(vertex_out, (H, W, 3), "vertex_out")
     normal = _out_buffer(normal_out, (H, W, 3), "normal_out")
