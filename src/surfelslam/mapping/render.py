@@ -34,11 +34,9 @@ class RenderConfig(Config):
                                         "whatever their confidence (a young map still renders)")
     cull_backfaces: bool = setting(True, doc="skip surfels whose normal faces away from the camera")
     front_band_rel: float = setting(0.0, unit="fraction of depth", ge=0, le=0.1,
-                                    doc="surfels whose disc at a pixel lies within this fraction of the nearest one's "
-                                        "depth compete by confidence: the most confident is drawn, not the nearest "
-                                        "(of a surface's noisy surfels the nearest lies in front of it); 0 (the "
-                                        "default): the nearest wins. Experimental: better on noisy orbits, worse on "
-                                        "textured planes and noiseless data")
+                                    doc="discs within this fraction of the nearest one's depth at a pixel compete by "
+                                        "confidence, the most confident is drawn; 0 (default): the nearest. "
+                                        "Experimental: better on noisy orbits, worse on textured planes")
     vertex: str = setting("centre", choices=("centre", "disc"),
                           doc="a pixel's point: the winning surfel's centre, or its disc point on the pixel ray")
 
