@@ -98,6 +98,7 @@ def splat_zbuffer(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from
             the best-averaged. 0: the nearest wins.
         depth_buf: float64 ``(H, W)`` initialised to +inf; index_buf: int32 ``(H, W)`` initialised to -1.
     """
+    # the z-test (zmin and best unused: depth_buf stands in for them)
     _splat_pass(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_frame, R, t, fx, fy, cx, cy,
                 max_splat_px, near, far, cull_back, 0.0, depth_buf, depth_buf, depth_buf, index_buf)
     if band_rel > 0.0:
@@ -244,22 +245,23 @@ def splat_zbuffer_ref(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_
     korder = k_order[ci]
     srt = np.lexsort((korder, dep, pix))
     pix, dep, win, korder = pix[srt], dep[srt], idx[ci[srt]], korder[srt]
-    first = np.ones(len(pix), bool)
-    first[1:] = pix[1:] != pix[:-1]
     depth_buf = np.full(H * W, np.inf)
     index_buf = np.full(H * W, -1, np.int32)
-    depth_buf[pix[first]] = dep[first]
-    index_buf[pix[first]] = win[first]
+    _draw_first_per_pixel(pix, dep, win, depth_buf, index_buf)
     if band_rel > 0:  # the most confident within the band of the nearest, ties by candidate order
         band = dep <= depth_buf[pix] * (1.0 + band_rel)
         pix, dep, win, korder = pix[band], dep[band], win[band], korder[band]
         srt = np.lexsort((korder, -conf[win].astype(np.float64), pix))
-        pix, dep, win = pix[srt], dep[srt], win[srt]
-        first = np.ones(len(pix), bool)
-        first[1:] = pix[1:] != pix[:-1]
-        depth_buf[pix[first]] = dep[first]
-        index_buf[pix[first]] = win[first]
+        _draw_first_per_pixel(pix[srt], dep[srt], win[srt], depth_buf, index_buf)
     return depth_buf.reshape(H, W), index_buf.reshape(H, W)
+
+
+def _draw_first_per_pixel(pix, dep, win, depth_buf, index_buf) -> None:
+    """Reference helper: for entries sorted by pixel (winner first), write each pixel's first depth and surfel."""
+    first = np.ones(len(pix), bool)
+    first[1:] = pix[1:] != pix[:-1]
+    depth_buf[pix[first]] = dep[first]
+    index_buf[pix[first]] = win[first]
 
 
 # ---------------------------------------------------------------------------------------------------- fill
