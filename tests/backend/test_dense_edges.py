@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner
+from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner, weak_direction_shape
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.synth import make_scene, render
@@ -65,9 +65,9 @@ def test_a_pnp_edge_is_refined_to_dense_precision(room_pair):
     assert se3.pose_error(T_pnp, T_true)[0] > 0.01
     pts, uv = _keypoints(d_ref, T_true, 200, seed=1)
     for features in ((pts, uv), (None, None)):
-        T = ref.refine(0, 1, T_pnp, *features)
-        assert T is not None
-        dt, dr = se3.pose_error(T, T_true)
+        edge = ref.refine(0, 1, T_pnp, *features)
+        assert edge is not None and edge.information_shape is None  # weak_direction_ratio 0: isotropic
+        dt, dr = se3.pose_error(edge.T_cur_ref, T_true)
         assert dt < 1.5e-3 and dr < 0.05, (dt, dr)
 
 
@@ -86,9 +86,9 @@ def test_feature_terms_hold_what_a_plane_leaves_free():
     ref = _refiner(DenseEdgeConfig(feature_weight=0.3))
     ref.add_keyframe(3, d_ref)
     ref.add_keyframe(7, d_cur)
-    T = ref.refine(3, 7, T_pnp, pts, uv)
-    assert T is not None
-    dt, dr = se3.pose_error(T, T_true)
+    edge = ref.refine(3, 7, T_pnp, pts, uv)
+    assert edge is not None
+    dt, dr = se3.pose_error(edge.T_cur_ref, T_true)
     assert dt < 2e-3 and dr < 0.1, (dt, dr)
 
 
@@ -103,8 +103,8 @@ def test_edges_the_depth_moves_beyond_the_gate_are_dropped(room_pair):
     wide = _refiner(DenseEdgeConfig(max_shift_m=0.08))
     wide.add_keyframe(0, d_ref)
     wide.add_keyframe(1, d_cur)
-    T = wide.refine(0, 1, T_far)
-    assert T is not None and se3.pose_error(T, T_true)[0] < 2e-3
+    edge = wide.refine(0, 1, T_far)
+    assert edge is not None and se3.pose_error(edge.T_cur_ref, T_true)[0] < 2e-3
 
 
 def test_keyframe_depth_is_stored_reduced_and_quantised():
@@ -221,3 +221,36 @@ def test_a_frame_is_registered_to_a_keyframe_from_a_prediction(room_pair):
     with ThreadPoolExecutor(max_workers=2) as pool:
         for T_thread in pool.map(register, range(4)):
             np.testing.assert_array_equal(T_thread, T)
+
+
+def _corridor_normal_matrix() -> tuple[np.ndarray, float]:
+    """Point-to-plane normal matrix ``(6, 6)`` (left perturbation, ``(omega, v)``) of a wall (normal x) and a floor
+    (normal y) running along z from 1 to 4 m: translation along z is free; and their mean depth (m)."""
+    rng = np.random.default_rng(0)
+    z, s = rng.uniform(1.0, 4.0, 50), rng.uniform(-1.0, 1.0, 50)
+    wall = np.column_stack([np.full(50, 1.0), s, z])
+    floor = np.column_stack([s, np.full(50, -1.0), z])
+    rows = [np.concatenate([np.cross(p, n), n]) for pts, n in ((wall, [1.0, 0, 0]), (floor, [0, 1.0, 0]))
+            for p in pts]
+    A = np.array(rows)
+    return A.T @ A, float(z.mean())
+
+
+def test_weak_direction_shape_lowers_only_the_direction_icp_leaves_free():
+    """The corridor's free direction (translation along z in the target frame) gets the floor, seen through the
+    edge's right perturbation; well-constrained directions keep information 1; a closed box gives no shape."""
+    H, d = _corridor_normal_matrix()
+    T = se3.exp(np.array([0.1, -0.2, 0.3, 0.5, -0.4, 0.2]))
+    shape = weak_direction_shape(H, d, T, weak_ratio=100.0, floor=1e-4)
+    assert shape is not None
+    np.testing.assert_allclose(shape, shape.T, atol=1e-12)
+    ev = np.linalg.eigvalsh(shape)
+    assert ev[0] == pytest.approx(1e-4, rel=1e-6) and ev[1] == pytest.approx(1.0) and ev[-1] == pytest.approx(1.0)
+    xi_left = np.array([0, 0, 0, 0, 0, 1.0])  # the free direction, as ICP's left perturbation of T
+    xi_right = se3.adjoint(se3.invert(T)) @ xi_left
+    np.testing.assert_allclose(se3.exp(xi_left * 0.01) @ T, T @ se3.exp(xi_right * 0.01), atol=1e-12)
+    assert xi_right @ shape @ xi_right / (xi_right @ xi_right) == pytest.approx(1e-4, rel=1e-3)
+    across = se3.adjoint(se3.invert(T)) @ np.array([0, 0, 0, 1.0, 0, 0])
+    assert across @ shape @ across / (across @ across) > 0.99
+    box = H + np.diag([1.0, 1.0, 1.0, 0, 0, 0]) * d ** 2 * 50 + np.diag([0, 0, 0, 0, 0, 50.0])
+    assert weak_direction_shape(box, d, T, weak_ratio=100.0, floor=1e-4) is None

@@ -110,3 +110,20 @@ def test_estimated_information_weighs_each_axis_by_its_own_certainty() -> None:
         PoseEdge(0, 1, np.eye(4), information_matrix=np.eye(3))
     with pytest.raises(ValueError):
         PoseGraphConfig(edge_information="learned")
+
+
+def test_an_information_shape_frees_the_edge_along_its_weak_direction() -> None:
+    """Two conflicting isotropic measurements of node 1 meet half-way (Gaussian, no kernel); when one of them is
+    weak along x (information shape 1e-4 there), x follows the other one and y is still the plain mean."""
+    t_a, t_b = np.array([1.0, 0.0, 0.0]), np.array([1.1, 0.2, 0.0])
+    shape = np.diag([1.0, 1.0, 1.0, 1e-4, 1.0, 1.0])
+    cfg = PoseGraphConfig(robust_kernel="none", edge_information="isotropic")
+    init = np.array([np.eye(4), make_T(np.eye(3), t_a)])
+    plain = [PoseEdge(0, 1, make_T(np.eye(3), t_a), "loop", information=1e4),
+             PoseEdge(0, 1, make_T(np.eye(3), t_b), "loop", information=1e4)]
+    np.testing.assert_allclose(optimise(init, plain, cfg)[1][:3, 3], 0.5 * (t_a + t_b), atol=1e-6)
+    shaped = [plain[0], PoseEdge(0, 1, make_T(np.eye(3), t_b), "loop", information=1e4, information_shape=shape)]
+    t = optimise(init, shaped, cfg)[1][:3, 3]
+    np.testing.assert_allclose(t, [1.0, 0.1, 0.0], atol=5e-4)  # without the shape: x = 1.05
+    with pytest.raises(ValueError):
+        PoseEdge(0, 1, np.eye(4), information_shape=np.eye(5))

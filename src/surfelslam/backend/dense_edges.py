@@ -33,7 +33,7 @@ from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
 from surfelslam.tracking.features import reprojection_spread_px
-from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp, icp_failure
+from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp, icp_failure
 from surfelslam.tracking.preprocess import (
     MIN_LEVEL_WIDTH_PX,
     FramePyramid,
@@ -93,11 +93,53 @@ class DenseEdgeConfig(Config):
                                  "max_width_px)")
     depth_only_nearby: bool = setting(True, doc="a nearby keyframe pair that PnP cannot verify is registered by ICP "
                                       "from the graph's relative pose, by depth alone (refined graph only)")
+    weak_direction_ratio: float = setting(
+        0.0, unit="ratio", ge=0, le=1e12,
+        doc="a refined edge's information is lowered along the directions its ICP constrains less than 1/this of "
+            "the best one (by that eigenvalue ratio of its depth-scaled Hessian), else isotropic; 0 = isotropic")
+    min_weak_information: float = setting(1e-4, gt=0, le=1,
+                                          doc="floor of that lowering (information relative to the isotropic)")
     depth_only_max_matches: int = setting(100, unit="matches", ge=0, le=1_000_000,
                                           doc="... only where the PnP verification had fewer good matches than this "
                                               "(texture too poor to verify)")
 
     _spread_window = ordered("min_spread_edges", "spread_window_edges", strict=False)
+
+
+@dataclass(frozen=True)
+class RefinedEdge:
+    """A dense-refined keyframe edge.
+
+    Attributes:
+        T_cur_ref: ``(4, 4)`` maps ref points into cur.
+        information_shape: ``(6, 6)`` how the edge's isotropic information is spread over the directions of
+            ``T_ref_cur`` (gtsam's right perturbation, ``(omega, v)``): eigenvalues 1 but below 1 along the
+            directions ICP left weak (:func:`weak_direction_shape`); ``None``: isotropic.
+    """
+
+    T_cur_ref: np.ndarray
+    information_shape: np.ndarray | None = None
+
+
+def weak_direction_shape(normal_matrix: np.ndarray, mean_depth_m: float, T_target_source: np.ndarray,
+                         weak_ratio: float, floor: float) -> np.ndarray | None:
+    """Information shape ``(6, 6)`` of an ICP estimate ``T_target_source`` for gtsam's right perturbation: the
+    identity, lowered along each eigen-direction of the depth-scaled normal matrix ``(6, 6)`` (left perturbation,
+    :attr:`ICPResult.normal_matrix`) whose eigenvalue is below ``1 / weak_ratio`` of the largest, to
+    ``max(floor, ratio * weak_ratio)``. ``None`` when no direction is that weak. Rotations are scaled by the mean
+    depth, as in the condition number, so that a rotation and a translation moving points equally compare equal."""
+    d = max(mean_depth_m, 1e-6)
+    S = np.diag([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
+    mu, V = np.linalg.eigh(S @ normal_matrix @ S)
+    if not mu[-1] > 0:
+        return None
+    w = np.clip(mu / mu[-1] * weak_ratio, floor, 1.0)
+    weak = w < 1.0
+    if not weak.any():
+        return None
+    # weak directions as twists of the right perturbation (xi_r = Ad(T^-1) S y), orthonormalised
+    U, _ = np.linalg.qr(se3.adjoint(se3.invert(T_target_source)) @ S @ V[:, weak])
+    return np.eye(6) - (U * (1.0 - w[weak])) @ U.T
 
 
 class DenseEdgeRefiner:
@@ -222,13 +264,21 @@ class DenseEdgeRefiner:
         return pyr
 
     def refine(self, ref_id: int, cur_id: int, T_cur_ref: np.ndarray, points_ref: np.ndarray | None = None,
-               uv_cur: np.ndarray | None = None) -> np.ndarray | None:
+               uv_cur: np.ndarray | None = None) -> RefinedEdge | None:
         """ICP of keyframe ``cur_id`` against ``ref_id`` from the PnP edge ``T_cur_ref`` ``(4, 4)`` (maps ref
         points into cur), jointly with the PnP inliers ``points_ref`` ``(M, 3)`` (ref camera, m) observed at
         ``uv_cur`` ``(M, 2)`` (pixels of the cur image, the camera given at construction); returns the refined
-        ``T_cur_ref``, or ``None`` when the check fails."""
-        return self.refine_frame(ref_id, self._pyramid(cur_id), T_cur_ref, points_ref, uv_cur,
-                                 self.cfg.max_shift_m, self.cfg.max_shift_deg)
+        edge, or ``None`` when the check fails."""
+        c = self.cfg
+        res = self._register(ref_id, self._pyramid(cur_id), T_cur_ref, points_ref, uv_cur, c.max_shift_m,
+                             c.max_shift_deg)
+        if res is None:
+            return None
+        shape = None
+        if c.weak_direction_ratio > 0:
+            shape = weak_direction_shape(res.normal_matrix, res.mean_depth_m, res.T_target_source,
+                                         c.weak_direction_ratio, c.min_weak_information)
+        return RefinedEdge(se3.orthonormalize(se3.invert(res.T_target_source)), shape)
 
     def refine_frame(self, ref_id: int, source: FramePyramid, T_cur_ref: np.ndarray,
                      points_ref: np.ndarray | None, uv_cur: np.ndarray | None,
@@ -236,6 +286,12 @@ class DenseEdgeRefiner:
         """:meth:`refine` for a frame given by its :meth:`frame_pyramid` ``source`` (camera :attr:`intrinsics`)
         instead of a keyframe, with its own bounds on the move from ``T_cur_ref`` (m, deg; ``inf``: only ICP's
         own implausible-motion bounds, ``ICPConfig.max_translation_m`` / ``max_rotation_deg``)."""
+        res = self._register(ref_id, source, T_cur_ref, points_ref, uv_cur, max_shift_m, max_shift_deg)
+        return None if res is None else se3.orthonormalize(se3.invert(res.T_target_source))
+
+    def _register(self, ref_id: int, source: FramePyramid, T_cur_ref: np.ndarray, points_ref: np.ndarray | None,
+                  uv_cur: np.ndarray | None, max_shift_m: float, max_shift_deg: float) -> ICPResult | None:
+        """The ICP of :meth:`refine_frame`, or ``None`` when it fails its checks."""
         target = self._pyramid(ref_id)
         T_cur_ref = np.asarray(T_cur_ref, np.float64)
         T_init = se3.invert(T_cur_ref)  # T_ref_cur = T_target_source
@@ -246,7 +302,7 @@ class DenseEdgeRefiner:
         dt_m, dr_deg = se3.pose_error(res.T_target_source, T_init)
         if dt_m > max_shift_m or dr_deg > max_shift_deg:
             return None
-        return se3.orthonormalize(se3.invert(res.T_target_source))
+        return res
 
     def _feature_term(self, T_cur_ref: np.ndarray, points_ref: np.ndarray | None,
                       uv_cur: np.ndarray | None) -> ReprojectionTerm | None:

@@ -64,6 +64,8 @@ class PoseEdge:
             ``(omega, v)`` (used in the ``"estimated"`` mode; ``None``: isotropic).
         robust_scale: scale (whitened units) of the m-estimator of a loop edge with isotropic information,
             overriding ``robust_scale_sigma`` (``None``: use the config).
+        information_shape: ``(6, 6)`` symmetric, eigenvalues in ``(0, 1]``: how the isotropic information is spread
+            over the directions of the same tangent (below 1 where the measurement is weak; ``None``: 1 everywhere).
     """
 
     i: int
@@ -73,12 +75,15 @@ class PoseEdge:
     information: float | None = None
     information_matrix: np.ndarray | None = None
     robust_scale: float | None = None
+    information_shape: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in EDGE_KINDS:
             raise ValueError(f"edge kind must be one of {EDGE_KINDS}, got {self.kind!r}")
         if self.information_matrix is not None and np.shape(self.information_matrix) != (6, 6):
             raise ValueError(f"information_matrix must be (6, 6), got {np.shape(self.information_matrix)}")
+        if self.information_shape is not None and np.shape(self.information_shape) != (6, 6):
+            raise ValueError(f"information_shape must be (6, 6), got {np.shape(self.information_shape)}")
 
 
 def _noise(edge: PoseEdge, cfg: PoseGraphConfig):
@@ -89,7 +94,11 @@ def _noise(edge: PoseEdge, cfg: PoseGraphConfig):
     info = edge.information
     if info is None:
         info = cfg.loop_information if edge.kind == "loop" else cfg.odometry_information
-    gauss = gtsam.noiseModel.Isotropic.Sigma(6, float(1.0 / np.sqrt(info)))
+    if edge.information_shape is None:
+        gauss = gtsam.noiseModel.Isotropic.Sigma(6, float(1.0 / np.sqrt(info)))
+    else:
+        shape = np.asarray(edge.information_shape, np.float64)
+        gauss = gtsam.noiseModel.Gaussian.Information(info * 0.5 * (shape + shape.T))
     if edge.kind == "loop" or cfg.robust_odometry:
         return _robust(gauss, cfg.robust_kernel, cfg.robust_scale_sigma if edge.robust_scale is None
                        else edge.robust_scale)

@@ -56,6 +56,17 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
     return T
 
 
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """``(6, 6)`` adjoint of a pose ``(4, 4)`` on twists ``(omega, v)``: ``T exp(xi) T^-1 = exp(adjoint(T) xi)``."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew(t) @ R
+    return A
+
+
 def compose(*Ts: np.ndarray) -> np.ndarray:
     """``compose(A, B, C) = A @ B @ C``."""
     out = np.asarray(Ts[0], dtype=np.float64)

@@ -190,6 +190,9 @@ class ICPResult:
         reason: why ``converged`` is False (``None`` when converged).
         status: the same as a :class:`ICPStatus` (the first rule that fired, in the order of ``reason``).
         motion_m, motion_deg: size of the correction ``T T_init^-1`` (m, deg).
+        normal_matrix: ``(6, 6)`` the finest level's Gauss-Newton matrix ``A^T W A`` at the last linearisation, for a
+            left perturbation ``(omega, v)`` of ``T_target_source`` (how well each direction is constrained).
+        mean_depth_m: mean depth of the finest level's inliers (scales rotations against translations).
     """
 
     T_target_source: np.ndarray
@@ -205,6 +208,8 @@ class ICPResult:
     status: ICPStatus = ICPStatus.CONVERGED
     motion_m: float = 0.0
     motion_deg: float = 0.0
+    normal_matrix: np.ndarray | None = None
+    mean_depth_m: float = 0.0
 
 
 def solve(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky",
@@ -411,6 +416,8 @@ def _verdict(T: np.ndarray, T0: np.ndarray, stats: np.ndarray, infos: list[Level
         status=status,
         motion_m=dt_m,
         motion_deg=dr_deg,
+        normal_matrix=AtA,
+        mean_depth_m=float(mean_depth),
     )
 
 

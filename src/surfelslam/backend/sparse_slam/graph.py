@@ -49,6 +49,7 @@ class KeyframeGraph:
         self.loops_accepted: list[tuple[int, int, int]] = []
         self.n_nearby_edges = 0
         self.n_dense_refined = 0  # edges refined by the dense check
+        self.n_weak_shaped = 0  # refined (or depth-only) edges weighed less along directions their ICP left weak
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
         self.n_depth_only_edges = 0  # nearby edges from depth alone where PnP could not verify (refined graph only)
         self.n_segments_merged = 0  # segments moved onto the older map by a loop edge
@@ -65,7 +66,8 @@ class KeyframeGraph:
                 "segments_merged": self.n_segments_merged,
                 "edges_dense_refined": self.n_dense_refined,
                 "edges_dense_rejected": self.n_dense_rejected,
-                "depth_only_edges": self.n_depth_only_edges}
+                "depth_only_edges": self.n_depth_only_edges,
+                "edges_weak_shaped": self.n_weak_shaped}
 
     @property
     def poses(self) -> np.ndarray:
@@ -110,13 +112,15 @@ class KeyframeGraph:
             if check.depth_only:
                 self.n_depth_only_edges += 1
                 self.add_edge(None, PoseEdge(cand.kf_id, kf_id, invert(refined), "loop",
-                                             robust_scale=self._refined_robust_scale))
+                                             robust_scale=self._refined_robust_scale,
+                                             information_shape=check.refined_shape))
                 continue
             if not res.ok or not self._consistent(cand.kf_id, kf_id, res, far):
                 continue
             crosses = b is not None and cand.kf_id < b <= kf_id
             if not (far or crosses or self._pnp_nearby):
-                self._add_refined_nearby(cand.kf_id, kf_id, None if check.dense_rejected else refined)
+                self._add_refined_nearby(cand.kf_id, kf_id, None if check.dense_rejected else refined,
+                                         check.refined_shape)
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
             pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
@@ -124,7 +128,7 @@ class KeyframeGraph:
                 self.n_dense_rejected += 1
                 added = self.add_edge(pnp, dense_rejected=True)
             elif refined is not None:
-                added = self.add_edge(pnp, self._refined_edge(cand.kf_id, kf_id, refined, far))
+                added = self.add_edge(pnp, self._refined_edge(cand.kf_id, kf_id, refined, far, check.refined_shape))
             else:
                 added = self.add_edge(pnp)
             if added and far:
@@ -140,24 +144,26 @@ class KeyframeGraph:
             self.optimise()
         return n_loops
 
-    def _refined_edge(self, i: int, j: int, refined_T_cur_ref: np.ndarray, far: bool) -> PoseEdge:
+    def _refined_edge(self, i: int, j: int, refined_T_cur_ref: np.ndarray, far: bool,
+                      shape: np.ndarray | None) -> PoseEdge:
         """The refined version of a verified edge ``i -> j`` (counted; a nearby one is also compared with the
-        odometry alone, as the graph has been pulled towards the edges). It is weighed by the refined edges' sigma
-        (isotropic), set when it enters their graph (:meth:`add_edge`)."""
+        odometry alone, as the graph has been pulled towards the edges). It is weighed by the refined edges' sigma,
+        set when it enters their graph (:meth:`add_edge`), spread over directions by ``shape`` (``None``: isotropic)."""
         self.n_dense_refined += 1
         T_i_j = invert(refined_T_cur_ref)
         if not far:
             odo = self._chain.poses
             self._refiner.observe_nearby(T_i_j, invert(odo[i]) @ odo[j])
-        return PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale)
+        return PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale, information_shape=shape)
 
-    def _add_refined_nearby(self, i: int, j: int, refined_T_cur_ref: np.ndarray | None) -> None:
+    def _add_refined_nearby(self, i: int, j: int, refined_T_cur_ref: np.ndarray | None,
+                            shape: np.ndarray | None) -> None:
         """A verified nearby edge ``i -> j`` kept out of the PnP graph: its refined version (``None``: none, or the
         dense check rejected it) enters the refined graph alone."""
         self.n_nearby_pnp_left_out += 1
         if refined_T_cur_ref is None or self._graph_refined is None:
             return
-        self.add_edge(None, self._refined_edge(i, j, refined_T_cur_ref, far=False))
+        self.add_edge(None, self._refined_edge(i, j, refined_T_cur_ref, False, shape))
         self.n_nearby_edges += 1
 
     def _consistent(self, i: int, j: int, res, far: bool) -> bool:
@@ -201,6 +207,7 @@ class KeyframeGraph:
         if refined is None:
             self._graph_refined.add_edge(pnp)
             return True
+        self.n_weak_shaped += refined.information_shape is not None
         self._graph_refined.add_edge(replace(refined, information=self._refiner.edge_sigma() ** -2))
         return True
 

@@ -21,6 +21,8 @@ class LoopCheck:
         refined_T_cur_ref: ``(4, 4)`` the dense-refined ``T_cur_ref``, or ``None`` (no refiner, PnP failed, or the
             dense check rejected the edge).
         dense_rejected: the PnP edge passed but the dense check rejected it (it then enters the PnP graph only).
+        refined_shape: ``(6, 6)`` the refined edge's information shape (:class:`~surfelslam.backend.dense_edges.
+            RefinedEdge`), or ``None`` (isotropic).
         depth_only: PnP failed on this nearby candidate and ``refined_T_cur_ref`` is ICP from the graph's relative
             pose, by depth alone (``DenseEdgeConfig.depth_only_nearby``; it enters the refined edges' graph only).
     """
@@ -30,6 +32,7 @@ class LoopCheck:
     refined_T_cur_ref: np.ndarray | None = None
     dense_rejected: bool = False
     depth_only: bool = False
+    refined_shape: np.ndarray | None = None
 
 
 @dataclass
