@@ -72,7 +72,7 @@ def test_wrong_loop_edges_are_rejected_and_the_right_one_closes_the_loop():
     assert gated.apply_loop_checks(n - 1, [right, *_wrong_edges(gt)], min_inliers=30) == 1
     assert gated.n_loops_rejected_inconsistent == 3
     assert gated.loops_accepted == [(0, n - 1, 150)]
-    assert [d2 > gated._chain.threshold for _, _, d2 in gated.gate_d2] == [False, True, True, True]
+    assert [d2 > gated.gate_threshold for _, _, d2 in gated.gate_d2] == [False, True, True, True]
     ate_gated = ate_m(gated.poses, gt)
 
     # the same edges without the gate: the Huber kernel alone lets the wrong ones bend the map
@@ -100,7 +100,7 @@ def test_consistent_loop_edges_are_all_kept_and_change_nothing():
             g.apply_loop_checks(j, checks[j], min_inliers=30)
     gated, open_gate = graphs
     assert gated.n_loops_rejected_inconsistent == 0 and len(gated.loops_accepted) == 9
-    assert len(gated.gate_d2) == 9 and max(d2 for *_, d2 in gated.gate_d2) < gated._chain.threshold
+    assert len(gated.gate_d2) == 9 and max(d2 for *_, d2 in gated.gate_d2) < gated.gate_threshold
     np.testing.assert_array_equal(gated.poses, open_gate.poses)
     assert ate_m(gated.poses, gt) < 0.3 * ate_m(_graph(gt, LoopConsistencyConfig()).poses, gt)
 

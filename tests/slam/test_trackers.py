@@ -461,7 +461,7 @@ def test_prepared_in_reader_thread_gives_the_same_poses(tracker):
     assert prepared == len(frames)
     np.testing.assert_array_equal(ahead, sync)
     if tracker != "orb":  # the pool holds only what was in flight, then is reused
-        assert len(slam._pool) <= 3 + 2
+        assert slam.pooled_pyramids <= 3 + 2
 
 
 def test_a_wrong_size_frame_prepared_ahead_raises_the_pipelines_own_error():

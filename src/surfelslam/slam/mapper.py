@@ -99,6 +99,12 @@ class FusingMapper:
                    "radius": m.radius, "first_seen": m.first_seen, "last_seen": m.last_seen, "hits": m.hits}
         return SavedMap(surfels, kfs, edges, rel, self.intr, getattr(self, "name", ""))
 
+    @property
+    def pooled_pyramids(self) -> int:
+        """Free source pyramids kept for reuse (at most what was ever in flight at once)."""
+        with self._pool_lock:
+            return len(self._pool)
+
     def _acquire(self) -> FramePyramid:
         with self._pool_lock:
             if self._pool:

@@ -58,6 +58,11 @@ class KeyframeGraph:
         self.n_nearby_pnp_left_out = 0  # verified nearby PnP edges kept out of the PnP graph (``pnp_nearby`` off)
         self.gate_d2: list[tuple[int, int, float]] = []  # (kf_old, kf_new, squared distance) of every gated edge
 
+    @property
+    def gate_threshold(self) -> float:
+        """Squared Mahalanobis distance above which the odometry-chain gate rejects an edge (see :attr:`gate_d2`)."""
+        return self._chain.threshold
+
     def edge_counts(self) -> dict[str, int]:
         """The edge and segment counters, by their ``metrics.json`` names."""
         return {"loops_rejected_inconsistent": self.n_loops_rejected_inconsistent,
