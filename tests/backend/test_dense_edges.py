@@ -146,12 +146,14 @@ def test_edge_sigma_follows_the_spread_of_nearby_edges():
     assert tight.edge_sigma() == 0.003
 
 
-@pytest.mark.parametrize(("sigma_rad", "trusted"), [(0.0001, True), (0.001, False)])
-def test_edges_whose_graph_leaves_large_rotation_residuals_are_not_trusted(sigma_rad, trusted):
-    """The robust spread of the refined edges' rotation residuals at their graph's optimum: mutually consistent
-    edges leave 0.1-0.2 mrad (synthetic Kinect-like noise), biased ones 0.5-1.1 mrad (7-Scenes, distorted synthetic
-    depth); above ``max_trusted_residual_rad`` they are not trusted. Odometry edges do not count, nor do fewer than
-    ``min_spread_edges`` refined edges."""
+@pytest.mark.parametrize(("sigma_rad", "sigma_m", "trusted"),
+                         [(0.0001, 0.0002, True), (0.001, 0.0002, False), (0.0001, 0.002, False)])
+def test_edges_whose_graph_leaves_large_residuals_are_not_trusted(sigma_rad, sigma_m, trusted):
+    """The robust spreads of the refined edges' rotation and translation residuals at their graph's optimum:
+    mutually consistent edges leave 0.1-0.2 mrad and 0.2 mm (synthetic Kinect-like noise); biased ones 0.5-1.1 mrad
+    (7-Scenes, distorted synthetic depth) or, biased along a corridor's axis, about 0.9 mm; above
+    ``max_trusted_residual_rad`` or ``max_trusted_residual_m`` they are not trusted. Odometry edges do not count,
+    nor do fewer than ``min_spread_edges`` refined edges."""
     from surfelslam.backend.pose_graph import PoseEdge
 
     cfg = DenseEdgeConfig(min_spread_edges=10)
@@ -161,11 +163,11 @@ def test_edges_whose_graph_leaves_large_rotation_residuals_are_not_trusted(sigma
     loops = []
     for _ in range(60):
         i, j = rng.choice(30, 2, replace=False)
-        noise = se3.exp(np.r_[rng.normal(0, sigma_rad, 3), rng.normal(0, 0.001, 3)])
+        noise = se3.exp(np.r_[rng.normal(0, sigma_rad, 3), rng.normal(0, sigma_m, 3)])
         loops.append(PoseEdge(int(i), int(j), se3.invert(P[i]) @ P[j] @ noise, "loop"))
     odo = [PoseEdge(k, k + 1, se3.exp(rng.normal(0, 0.1, 6)), "odometry") for k in range(29)]  # far off: ignored
     r = ref.residual_spread(odo + loops, P)
-    assert r == pytest.approx(sigma_rad, rel=0.25)
+    assert r == pytest.approx((sigma_rad, sigma_m), rel=0.25)
     assert ref.trusted(r) == trusted
     assert ref.residual_spread(odo + loops[:9], P) is None and not ref.trusted(None)
 

@@ -362,6 +362,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert m["edges_dense_rejected"] < 0.1 * m["edges_dense_refined"]
     assert m["edge_sigma_m"] == pytest.approx(cfg.hybrid.loop_icp.sigma_m)
     assert m["edges_refined_trusted"] and m["edge_residual_rad"] < cfg.hybrid.loop_icp.max_trusted_residual_rad
+    assert m["edge_residual_m"] < cfg.hybrid.loop_icp.max_trusted_residual_m
     assert ate_m(est, gt) < 0.5 * ate_m(est_pnp, gt), (ate_m(est, gt), ate_m(est_pnp, gt))
 
 

@@ -11,10 +11,11 @@ The trust gate (``max_trusted_residual_rad``): keyframe-to-keyframe ICP inherits
 raw depth, which frame-to-model tracking averages out, and trusted biased edges make the trajectory worse than the
 dense odometry alone. So the refined edges get a pose graph of their own (with the odometry), and at every
 optimisation the robust spread of their rotation residuals at its optimum (:meth:`DenseEdgeRefiner.residual_spread`)
-says whether they are consistent with one another: unbiased edges are, biased ones spread more. Above the gate the
-poses come from the graph of the PnP edges (those the ICP rejected included), as without refinement. Known limit:
-on orbits mildly distorted depth can stay under the gate (docs/trackers.md). Measurements:
-``benchmarks/bench_hybrid.py``.
+says whether they are consistent with one another: unbiased edges are, biased ones spread more. The translation
+residuals are tested too (``max_trusted_residual_m``): edges biased along an axis their ICP barely constrains (a
+corridor's) agree in rotation but not along that axis. Above the gate the poses come from the graph of the PnP
+edges (those the ICP rejected included), as without refinement. Known limit: on orbits mildly distorted depth can
+stay under the gate (docs/trackers.md). Measurements: ``benchmarks/bench_hybrid.py``.
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
 ``max_depth_m / 65535``). The pyramids of the last few keyframes used are cached (the nearby keyframes are checked
@@ -77,6 +78,10 @@ class DenseEdgeConfig(Config):
         0.0003, unit="rad", gt=0, le=3.2,
         doc="the refined edges are trusted while the robust spread of their rotation residuals is at most this "
             "(biased depth spreads more); else the PnP edges' graph gives the poses")
+    max_trusted_residual_m: float = setting(
+        0.0005, unit="m", gt=0, le=100,
+        doc="... and that of their translation residuals at most this (edges biased along a weakly constrained axis, "
+            "e.g. a corridor's, disagree there and not in rotation)")
     min_spread_edges: int = setting(10, unit="edges", ge=1, le=1_000_000,
                                     doc="nearby edges needed before their spread is used, and refined edges before "
                                         "the trust gate decides (untrusted until then)")
@@ -212,25 +217,30 @@ class DenseEdgeRefiner:
             return None
         return float(np.median(np.fromiter(self._spread, float))) / _MAD_TO_SIGMA
 
-    def residual_spread(self, edges: list, poses_world_kf: np.ndarray) -> float | None:
-        """Robust spread (rad) of the rotation residuals of the refined edges among ``edges`` (pose-graph edges of
-        kind ``"loop"``) at the poses ``(K, 4, 4)`` their graph was optimised to; ``None`` with fewer than
-        ``min_spread_edges`` of them."""
+    def residual_spread(self, edges: list, poses_world_kf: np.ndarray) -> tuple[float, float] | None:
+        """Robust spreads ``(rad, m)`` of the rotation and translation residuals of the refined edges among
+        ``edges`` (pose-graph edges of kind ``"loop"``) at the poses ``(K, 4, 4)`` their graph was optimised to;
+        ``None`` with fewer than ``min_spread_edges`` of them."""
         loops = [e for e in edges if e.kind == "loop"]
         if len(loops) < self.cfg.min_spread_edges:
             return None
-        R = np.asarray(poses_world_kf, np.float64)[:, :3, :3]
-        R_ij = np.stack([e.T_i_j[:3, :3] for e in loops])
+        P = np.asarray(poses_world_kf, np.float64)
+        T_ij = np.stack([e.T_i_j for e in loops])
         i = np.fromiter((e.i for e in loops), np.intp, len(loops))
         j = np.fromiter((e.j for e in loops), np.intp, len(loops))
-        # rotation part of each residual, T_i_j^-1 T_world_i^-1 T_world_j, as one batch (K, 3)
-        rot = se3.so3_log(np.swapaxes(R_ij, 1, 2) @ np.swapaxes(R[i], 1, 2) @ R[j])
-        return float(np.median(np.abs(rot))) / _MAD_TO_SIGMA
+        # each residual T_i_j^-1 T_world_i^-1 T_world_j, as one batch: rotation (K, 3) and translation (K, 3)
+        Rt_ij = np.swapaxes(T_ij[:, :3, :3], 1, 2)
+        Rt_i = np.swapaxes(P[i, :3, :3], 1, 2)
+        rot = se3.so3_log(Rt_ij @ Rt_i @ P[j, :3, :3])
+        t_rel = np.einsum("kab,kb->ka", Rt_i, P[j, :3, 3] - P[i, :3, 3])
+        trans = np.einsum("kab,kb->ka", Rt_ij, t_rel - T_ij[:, :3, 3])
+        return (float(np.median(np.abs(rot))) / _MAD_TO_SIGMA, float(np.median(np.abs(trans))) / _MAD_TO_SIGMA)
 
-    def trusted(self, residual_rad: float | None) -> bool:
-        """Whether refined edges whose graph leaves ``residual_rad`` (:meth:`residual_spread`) are trusted (``None``,
-        too few edges to tell: not trusted)."""
-        return residual_rad is not None and residual_rad <= self.cfg.max_trusted_residual_rad
+    def trusted(self, spread: tuple[float, float] | None) -> bool:
+        """Whether refined edges whose graph leaves the residual ``spread`` ``(rad, m)`` (:meth:`residual_spread`)
+        are trusted (``None``, too few edges to tell: not trusted)."""
+        return (spread is not None and spread[0] <= self.cfg.max_trusted_residual_rad
+                and spread[1] <= self.cfg.max_trusted_residual_m)
 
     def edge_sigma(self) -> float:
         """Sigma (m and rad) of a refined edge: ``max(sigma_m, spread of the recent nearby edges)``."""

@@ -40,6 +40,7 @@ def sparse_metrics(sparse: SparseSlam, res) -> dict:
         "edge_spread_m": sparse.dense_edge_spread_m,
         "edges_refined_trusted": sparse.dense_edges_trusted,
         "edge_residual_rad": sparse.dense_edge_residual_rad,
+        "edge_residual_m": sparse.dense_edge_residual_m,
     }
 
 

@@ -44,6 +44,7 @@ class KeyframeGraph:
         self._chain = OdometryChain(consistency or LoopConsistencyConfig())
         self.refined_trusted = False  # until enough refined edges show they are consistent (DenseEdgeRefiner.trusted)
         self.refined_residual_rad: float | None = None
+        self.refined_residual_m: float | None = None
         self._open_bridges: list[int] = []  # first keyframes of segments no loop edge has joined to the old map
         self.loops_found: list[tuple[int, int, int]] = []
         self.loops_accepted: list[tuple[int, int, int]] = []
@@ -194,8 +195,9 @@ class KeyframeGraph:
             self.poses[:] = self._graph.optimise()
             return
         poses = self._graph_refined.optimise()
-        self.refined_residual_rad = self._refiner.residual_spread(self._graph_refined.edges, poses)
-        self.refined_trusted = self._refiner.trusted(self.refined_residual_rad)
+        spread = self._refiner.residual_spread(self._graph_refined.edges, poses)
+        self.refined_residual_rad, self.refined_residual_m = (None, None) if spread is None else spread
+        self.refined_trusted = self._refiner.trusted(spread)
         self.poses[:] = poses if self.refined_trusted else self._graph.optimise()
 
     def add_edge(self, pnp: PoseEdge | None, refined: PoseEdge | None = None, dense_rejected: bool = False) -> bool:

@@ -109,6 +109,11 @@ class SparseSlam:
         (``None`` without an edge refiner or before one)."""
         return self._graph.refined_residual_rad
 
+    @property
+    def dense_edge_residual_m(self) -> float | None:
+        """The same spread (m) of their translation residuals."""
+        return self._graph.refined_residual_m
+
     # edge counts (:class:`KeyframeGraph`)
 
     @property
