@@ -34,7 +34,7 @@ from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
 from surfelslam.tracking.features import reprojection_spread_px
-from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, icp, icp_failure
+from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, depth_scaling, icp, icp_failure
 from surfelslam.tracking.preprocess import (
     MIN_LEVEL_WIDTH_PX,
     FramePyramid,
@@ -133,8 +133,7 @@ def weak_direction_shape(normal_matrix: np.ndarray, mean_depth_m: float, T_targe
     :attr:`ICPResult.normal_matrix`) whose eigenvalue is below ``1 / weak_ratio`` of the largest, to
     ``max(floor, ratio * weak_ratio)``. ``None`` when no direction is that weak. Rotations are scaled by the mean
     depth, as in the condition number, so that a rotation and a translation moving points equally compare equal."""
-    d = max(mean_depth_m, 1e-6)
-    S = np.diag([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
+    S = np.diag(depth_scaling(mean_depth_m))
     mu, V = np.linalg.eigh(S @ normal_matrix @ S)
     if not mu[-1] > 0:
         return None

@@ -16,7 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from surfelslam.config import Config, setting
-from surfelslam.geometry.se3 import invert, log
+from surfelslam.geometry.se3 import adjoint, invert, log
 
 
 @dataclass(frozen=True)
@@ -40,18 +40,6 @@ class LoopConsistencyConfig(Config):
     edge_sigma_m: float = setting(0.01, unit="m", gt=0, le=100,
                                   doc="floor of the edge's own translation sigma (added to its estimated covariance)")
     edge_sigma_rad: float = setting(0.01, unit="rad", gt=0, le=100, doc="the same on the rotation")
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """``(N, 6, 6)`` adjoints of poses ``(N, 4, 4)`` in gtsam's tangent order ``(omega, v)``."""
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    out = np.zeros((len(T), 6, 6))
-    out[:, :3, :3] = R
-    out[:, 3:, 3:] = R
-    t_x = np.zeros((len(T), 3, 3))
-    t_x[:, 0, 1], t_x[:, 0, 2], t_x[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    out[:, 3:, :3] = (t_x - np.swapaxes(t_x, 1, 2)) @ R
-    return out
 
 
 class OdometryChain:
@@ -119,7 +107,7 @@ class OdometryChain:
         if not path:
             return np.zeros((6, 6))
         T_j_c = invert(self.poses[j])[None] @ np.stack([self.poses[k] for k in path])
-        A = _adjoint(T_j_c)
+        A = adjoint(T_j_c)
         var = np.stack([self._step_var[k] for k in path])
         return np.einsum("nab,nb,ncb->ac", A, var, A)
 

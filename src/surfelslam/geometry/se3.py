@@ -57,14 +57,17 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
-    """``(6, 6)`` adjoint of a pose ``(4, 4)`` on twists ``(omega, v)``: ``T exp(xi) T^-1 = exp(adjoint(T) xi)``."""
+    """Adjoint ``(..., 6, 6)`` of poses ``(..., 4, 4)`` on twists ``(omega, v)`` (gtsam's tangent order):
+    ``T exp(xi) T^-1 = exp(adjoint(T) xi)``."""
     T = np.asarray(T, dtype=np.float64)
-    R, t = T[:3, :3], T[:3, 3]
-    A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[3:, :3] = skew(t) @ R
-    return A
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    out = np.zeros(T.shape[:-2] + (6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    t_x = np.zeros(T.shape[:-2] + (3, 3))
+    t_x[..., 0, 1], t_x[..., 0, 2], t_x[..., 1, 2] = -t[..., 2], t[..., 1], -t[..., 0]
+    out[..., 3:, :3] = (t_x - np.swapaxes(t_x, -1, -2)) @ R
+    return out
 
 
 def compose(*Ts: np.ndarray) -> np.ndarray:

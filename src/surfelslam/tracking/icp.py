@@ -243,7 +243,9 @@ def solve(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky",
     raise ConfigError(f"icp: unknown solver {method!r}; choose one of {SOLVERS}")
 
 
-def _depth_scaling(mean_depth_m: float) -> np.ndarray:
+def depth_scaling(mean_depth_m: float) -> np.ndarray:
+    """``(6,)`` scales ``(1/d, 1/d, 1/d, 1, 1, 1)`` of a twist ``(omega, v)``, ``d`` = mean depth (m): a rotation then
+    compares with the translation that moves points as far."""
     d = max(mean_depth_m, 1e-6)
     return np.array([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
 
@@ -254,7 +256,7 @@ def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
     Scaling the rotation columns by the mean depth makes rotational and translational constraints
     comparable (a rotation ``omega`` moves points at depth d by about ``d |omega|``).
     """
-    s = _depth_scaling(mean_depth_m)
+    s = depth_scaling(mean_depth_m)
     ev = np.linalg.eigvalsh(AtA * s[:, None] * s[None, :])
     if ev[-1] <= 0:
         return float("inf")

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from surfelslam.backend.dense_edges import DenseEdgeRefiner
+from surfelslam.backend.dense_edges import DenseEdgeRefiner, RefinedEdge
 from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
 from surfelslam.backend.sparse_slam.results import LoopCheck
@@ -110,23 +110,22 @@ class KeyframeGraph:
         bridging: tuple[int, PoseEdge] | None = None
         b = self._open_bridges[-1] if self._open_bridges else None
         for check in checked:
-            cand, res, refined = check.candidate, check.result, check.refined_T_cur_ref
+            cand, res, refined = check.candidate, check.result, check.refined
             far = cand.source != "nearby"
             if far and res.reason != "too_few_matches" and res.n_inliers >= min_inliers \
                     and res.reason != "motion_too_large":
                 self.loops_found.append((cand.kf_id, kf_id, res.n_inliers))
             if check.depth_only:
                 self.n_depth_only_edges += 1
-                self.add_edge(None, PoseEdge(cand.kf_id, kf_id, invert(refined), "loop",
+                self.add_edge(None, PoseEdge(cand.kf_id, kf_id, invert(refined.T_cur_ref), "loop",
                                              robust_scale=self._refined_robust_scale,
-                                             information_shape=check.refined_shape))
+                                             information_shape=refined.information_shape))
                 continue
             if not res.ok or not self._consistent(cand.kf_id, kf_id, res, far):
                 continue
             crosses = b is not None and cand.kf_id < b <= kf_id
             if not (far or crosses or self._pnp_nearby):
-                self._add_refined_nearby(cand.kf_id, kf_id, None if check.dense_rejected else refined,
-                                         check.refined_shape)
+                self._add_refined_nearby(cand.kf_id, kf_id, None if check.dense_rejected else refined)
                 continue
             # T_i_j = T_cur_ref^-1: a left perturbation of T_cur_ref is minus a right one of T_i_j (same information)
             pnp = PoseEdge(cand.kf_id, kf_id, invert(res.T_cur_ref), "loop", information_matrix=res.information)
@@ -134,7 +133,7 @@ class KeyframeGraph:
                 self.n_dense_rejected += 1
                 added = self.add_edge(pnp, dense_rejected=True)
             elif refined is not None:
-                added = self.add_edge(pnp, self._refined_edge(cand.kf_id, kf_id, refined, far, check.refined_shape))
+                added = self.add_edge(pnp, self._refined_edge(cand.kf_id, kf_id, refined, far))
             else:
                 added = self.add_edge(pnp)
             if added and far:
@@ -150,26 +149,25 @@ class KeyframeGraph:
             self.optimise()
         return n_loops
 
-    def _refined_edge(self, i: int, j: int, refined_T_cur_ref: np.ndarray, far: bool,
-                      shape: np.ndarray | None) -> PoseEdge:
+    def _refined_edge(self, i: int, j: int, refined: RefinedEdge, far: bool) -> PoseEdge:
         """The refined version of a verified edge ``i -> j`` (counted; a nearby one is also compared with the
         odometry alone, as the graph has been pulled towards the edges). It is weighed by the refined edges' sigma,
-        set when it enters their graph (:meth:`add_edge`), spread over directions by ``shape`` (``None``: isotropic)."""
+        set when it enters their graph (:meth:`add_edge`), spread over directions by its information shape."""
         self.n_dense_refined += 1
-        T_i_j = invert(refined_T_cur_ref)
+        T_i_j = invert(refined.T_cur_ref)
         if not far:
             odo = self._chain.poses
             self._refiner.observe_nearby(T_i_j, invert(odo[i]) @ odo[j])
-        return PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale, information_shape=shape)
+        return PoseEdge(i, j, T_i_j, "loop", robust_scale=self._refined_robust_scale,
+                        information_shape=refined.information_shape)
 
-    def _add_refined_nearby(self, i: int, j: int, refined_T_cur_ref: np.ndarray | None,
-                            shape: np.ndarray | None) -> None:
+    def _add_refined_nearby(self, i: int, j: int, refined: RefinedEdge | None) -> None:
         """A verified nearby edge ``i -> j`` kept out of the PnP graph: its refined version (``None``: none, or the
         dense check rejected it) enters the refined graph alone."""
         self.n_nearby_pnp_left_out += 1
-        if refined_T_cur_ref is None or self._graph_refined is None:
+        if refined is None or self._graph_refined is None:
             return
-        self.add_edge(None, self._refined_edge(i, j, refined_T_cur_ref, False, shape))
+        self.add_edge(None, self._refined_edge(i, j, refined, far=False))
         self.n_nearby_edges += 1
 
     def _consistent(self, i: int, j: int, res, far: bool) -> bool:

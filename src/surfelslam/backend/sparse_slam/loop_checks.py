@@ -108,11 +108,8 @@ class LoopChecker:
                 # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
                 refined = self._refiner.refine(cand.kf_id, kf_id, invert(poses[kf_id]) @ poses[cand.kf_id])
                 if refined is not None:
-                    checked.append(LoopCheck(cand, res, refined.T_cur_ref, depth_only=True,
-                                             refined_shape=refined.information_shape))
+                    checked.append(LoopCheck(cand, res, refined, depth_only=True))
                 continue
-            checked.append(LoopCheck(cand, res, None if refined is None else refined.T_cur_ref,
-                                     res.ok and self._refiner is not None and refined is None,
-                                     refined_shape=None if refined is None else refined.information_shape))
+            checked.append(LoopCheck(cand, res, refined, res.ok and self._refiner is not None and refined is None))
         self._index.add(q)
         return kf_id, checked

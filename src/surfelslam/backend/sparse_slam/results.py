@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from surfelslam.backend.dense_edges import RefinedEdge
 from surfelslam.backend.loops import Candidate
 from surfelslam.tracking.features import MotionResult
 from surfelslam.types import Trajectory
@@ -18,21 +19,18 @@ class LoopCheck:
     Attributes:
         candidate: the candidate keyframe and where it came from.
         result: its PnP verification (``result.T_cur_ref`` maps candidate points into the new keyframe).
-        refined_T_cur_ref: ``(4, 4)`` the dense-refined ``T_cur_ref``, or ``None`` (no refiner, PnP failed, or the
-            dense check rejected the edge).
+        refined: the dense-refined edge (its ``T_cur_ref`` and information shape), or ``None`` (no refiner, PnP
+            failed, or the dense check rejected the edge).
         dense_rejected: the PnP edge passed but the dense check rejected it (it then enters the PnP graph only).
-        refined_shape: ``(6, 6)`` the refined edge's information shape (:class:`~surfelslam.backend.dense_edges.
-            RefinedEdge`), or ``None`` (isotropic).
-        depth_only: PnP failed on this nearby candidate and ``refined_T_cur_ref`` is ICP from the graph's relative
-            pose, by depth alone (``DenseEdgeConfig.depth_only_nearby``; it enters the refined edges' graph only).
+        depth_only: PnP failed on this nearby candidate and ``refined`` is ICP from the graph's relative pose, by
+            depth alone (``DenseEdgeConfig.depth_only_nearby``; it enters the refined edges' graph only).
     """
 
     candidate: Candidate
     result: MotionResult
-    refined_T_cur_ref: np.ndarray | None = None
+    refined: RefinedEdge | None = None
     dense_rejected: bool = False
     depth_only: bool = False
-    refined_shape: np.ndarray | None = None
 
 
 @dataclass
