@@ -211,6 +211,7 @@ def test_presets_load(name):
         assert cfg.tracking.max_width_px == 0 and cfg.fusion.max_width_px == 0
     elif name == "hybrid-fast":
         assert cfg.tracker == "hybrid" and not cfg.hybrid.pnp_check and cfg.hybrid.joint_features == "off"
+        assert not cfg.hybrid.loop_icp.pnp_refinement
     else:
         assert cfg.tracking.photometric == "off"
 

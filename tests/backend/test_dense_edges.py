@@ -256,3 +256,33 @@ def test_weak_direction_shape_lowers_only_the_direction_icp_leaves_free():
     assert across @ shape @ across / (across @ across) > 0.99
     box = H + np.diag([1.0, 1.0, 1.0, 0, 0, 0]) * d ** 2 * 50 + np.diag([0, 0, 0, 0, 0, 50.0])
     assert weak_direction_shape(box, d, T, weak_ratio=100.0, floor=1e-4) is None
+
+
+@pytest.mark.parametrize("pnp_refinement", [True, False])
+def test_loop_checks_leave_the_pnp_refinement_to_the_edge_icp_when_asked(pnp_refinement):
+    """With ``pnp_refinement`` off a verified keyframe edge skips the feature refinement (no RGB-D information is
+    computed) and its ICP alone refines it, to the same precision."""
+    from surfelslam.backend.keyframes import Keyframe
+    from surfelslam.backend.loops import LoopConfig
+    from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
+    from surfelslam.tracking.features import FeatureConfig, extract
+
+    from helpers import ROOM_INTR, look_pose, render_room
+
+    poses = np.stack([look_pose(np.array([0.04 * k, 0.0, -0.3]), 0.06 * k) for k in range(3)])
+    feat_cfg = FeatureConfig(n_features=500)
+    refiner = DenseEdgeRefiner(ROOM_INTR, PreprocessConfig(), DenseEdgeConfig(pnp_refinement=pnp_refinement))
+    kfs = []
+    for k, T in enumerate(poses):
+        rgb, depth = render_room(T, ROOM_INTR)
+        refiner.add_keyframe(k, depth)
+        kfs.append(Keyframe(k, k, k / 30, extract(rgb, depth, ROOM_INTR, feat_cfg), np.zeros((0, 3), np.float32),
+                            np.zeros((0, 3), np.uint8)))
+    checker = LoopChecker(ROOM_INTR, feat_cfg, LoopConfig(n_nearby=1, n_random=0, n_retrieved=0), refiner, kfs)
+    kf_id, checks = checker.check(2, kfs[2].features, poses)
+    assert kf_id == 2 and [c.candidate.kf_id for c in checks] == [0]
+    check = checks[0]
+    assert check.result.ok and check.refined is not None
+    assert (check.result.information is not None) == pnp_refinement
+    dt, dr = se3.pose_error(check.refined.T_cur_ref, se3.invert(poses[2]) @ poses[0])
+    assert dt < 1e-3 and dr < 0.05, (dt, dr)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -87,6 +88,18 @@ def loop_candidates(
     return out
 
 
+@functools.lru_cache(maxsize=16)
+def _loop_features(feat_cfg: FeatureConfig, cfg: LoopConfig) -> FeatureConfig:
+    """``feat_cfg`` with the loop bounds (made once per pair of configs: building a config validates every field)."""
+    # too few good matches to ever reach min_loop_inliers: skip RANSAC (cheap rejection of non-overlap)
+    return replace(
+        feat_cfg,
+        max_motion_norm=cfg.max_norm_loop,
+        min_good_matches=max(feat_cfg.min_good_matches, cfg.min_loop_inliers),
+        min_inliers=max(feat_cfg.min_inliers, cfg.min_loop_inliers),  # also lets the 3D consensus stop early
+    )
+
+
 def verify_edge(
     ref: Features, cur: Features, intr: Intrinsics, feat_cfg: FeatureConfig, cfg: LoopConfig
 ) -> MotionResult:
@@ -94,14 +107,7 @@ def verify_edge(
 
     ``result.T_cur_ref`` maps points of the candidate (ref) keyframe into the new (cur) keyframe.
     """
-    # too few good matches to ever reach min_loop_inliers: skip RANSAC (cheap rejection of non-overlap)
-    loop_feat_cfg = replace(
-        feat_cfg,
-        max_motion_norm=cfg.max_norm_loop,
-        min_good_matches=max(feat_cfg.min_good_matches, cfg.min_loop_inliers),
-        min_inliers=max(feat_cfg.min_inliers, cfg.min_loop_inliers),  # also lets the 3D consensus stop early
-    )
-    res = estimate_motion(ref, cur, intr, loop_feat_cfg, min_consistent=cfg.min_consistent_matches)
+    res = estimate_motion(ref, cur, intr, _loop_features(feat_cfg, cfg), min_consistent=cfg.min_consistent_matches)
     if res.ok and (
         res.n_inliers < cfg.min_loop_inliers or res.n_inliers < cfg.min_loop_inlier_ratio * res.n_good
     ):

@@ -4,6 +4,7 @@ or in a background thread, and the descriptor index that retrieves candidates (a
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 
@@ -33,6 +34,8 @@ class LoopChecker:
                  refiner: DenseEdgeRefiner | None, keyframes: list[Keyframe]) -> None:
         self._intr = intr
         self._features_cfg = features_cfg
+        if refiner is not None and not refiner.cfg.pnp_refinement:  # the edge's ICP refines it instead
+            self._features_cfg = replace(features_cfg, projection_search=False, rgbd_refine_iterations=0)
         self._loop_cfg = loop_cfg
         self._refiner = refiner
         self._kfs = keyframes
