@@ -35,6 +35,8 @@ _MAX_MEMORY_SHARE = 0.9
 LOCAL_RAY, RAY_ADDRESS_ENV = "local", "RAY_ADDRESS"
 #: the Ray logger's level in this process: Ray's warnings, not its start-up chatter
 _RAY_LOG_LEVEL = logging.WARNING
+#: the logger of Ray's notice that a cluster it starts uses token authentication (its secure default): no warning
+_RAY_TOKEN_LOGGER = "ray._private.authentication.authentication_token_setup"
 
 OnResult = Callable[[Job, dict[str, Any]], None]
 #: what a task runs for one job: :func:`run_job` (tests wrap it to inject faults or to look inside a worker)
@@ -145,6 +147,7 @@ class RayExecutor:
                                   "logging_level": _RAY_LOG_LEVEL}
         if kwargs["address"] == LOCAL_RAY:
             kwargs["include_dashboard"] = False  # a local Ray for this batch: nobody to look at it
+            logging.getLogger(_RAY_TOKEN_LOGGER).setLevel(logging.ERROR)
         kwargs.update(self.init_kwargs)
         try:
             ray.init(**kwargs)
