@@ -71,7 +71,8 @@ class DenseEdgeConfig(Config):
     max_shift_deg: float = setting(3.0, unit="deg", gt=0, le=180, doc="the same bound on the rotation")
     pnp_refinement: bool = setting(
         True, doc="a verified PnP edge is first refined on features (projection search, RGB-D refinement) before its "
-                  "ICP; off: the ICP alone refines it, at about 60 % of the loop-check time")
+                  "ICP; off: the ICP alone refines it, in about 60 % of the loop-check time (and the chi-square "
+                  "gate weighs the edge by its sigma floors alone)")
     cached_pyramids: int = setting(16, unit="keyframes", ge=0, le=256,
                                    doc="keyframe pyramids kept between checks per thread, least recently used dropped "
                                        "first (2.4 MB each at 320x240); fewer than the keyframes one check touches "
