@@ -15,7 +15,7 @@ REDKITCHEN = SHARED_DATA / "7scenes_redkitchen_0000_0499"
 
 
 #: Tracker rows that are a preset (``configs/NAME.toml``) rather than a tracker with the defaults.
-PRESET_TRACKERS = ("hybrid-fast",)
+PRESET_TRACKERS = ("hybrid-full",)
 PRESETS = Path(__file__).resolve().parents[1] / "configs"
 
 

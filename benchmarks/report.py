@@ -172,7 +172,7 @@ def _grouped(rows: list[dict]) -> list[dict]:
     """Accuracy rows grouped by sequence (first appearance), resolution, frames (most first), tracker."""
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in rows))}
     res_order = {k: i for i, k in enumerate(dict.fromkeys(r["resolution"] for r in rows))}
-    trk = {"dense": 0, "hybrid-fast": 1, "orb": 2, "hybrid": 3}
+    trk = {"dense": 0, "hybrid": 1, "orb": 2, "hybrid-full": 3}
     return sorted(rows, key=lambda r: (seq_order[r["sequence"]], res_order[r["resolution"]], -r["frames"],
                                        trk.get(r["tracker"], 9)))
 

@@ -14,7 +14,8 @@ README) and ``pipeline_cost_<W>x<H>.png`` (per-frame cost against frame index). 
   per-frame cost of the first and last 100 frames and their ratio (flat cost: <= 1.3), plot.
 * ``accuracy``: ATE / RPE / FPS of ``surfelslam run`` (:mod:`benchmarks.bench_accuracy`) on every real sequence
   long enough to track (the others are listed in ``not_tracked``) and on synthetic slow / walking loop / fast
-  sequences; dense tracker, then orb and hybrid while the time budget allows (``skipped`` says what was left out).
+  sequences; dense tracker, then the default hybrid, orb and hybrid-full while the time budget allows (``skipped``
+  says what was left out).
 * ``open3d``: when open3d imports, Open3D's ``t.pipelines.slam`` (CPU, its example's defaults) and ours on the same
   first frames of those sequences at 320x240, with the ratios ours / theirs.
 * ``viewer``: FPS of a dense ``surfelslam run`` without and with ``--viewer save=FILE`` on a generated sequence,
@@ -73,7 +74,7 @@ SHARED = SHARED_DATA
 RESULTS = HERE / "results"
 STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it
-TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 6.0, "hybrid-fast": 1.5}
+TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 1.5, "hybrid-full": 6.0}
 OPEN3D_S_PER_FRAME_GUESS = 0.5  # at 320x240 on 2 cores, until the first Open3D run measured it
 RESERVE_S = 20.0  # kept free at the end of the budget (writing results)
 
@@ -100,10 +101,9 @@ class Plan:
     # (tracker, sequence: "real" | "slow" | "loop" | "fast", max frames), in order of priority; each one runs
     # only when its estimated time still fits in the budget
     extra_runs: tuple[tuple[str, str, int | None], ...] = (
-        ("hybrid-fast", "real", None), ("hybrid-fast", "slow", None), ("hybrid-fast", "loop", None),
-        ("hybrid-fast", "fast", None),
-        ("orb", "real", 200), ("hybrid", "real", 200), ("hybrid", "loop", None), ("orb", "loop", None),
-        ("hybrid", "slow", 200), ("orb", "slow", 200), ("hybrid", "fast", None), ("orb", "fast", None))
+        ("hybrid", "real", None), ("hybrid", "slow", None), ("hybrid", "loop", None), ("hybrid", "fast", None),
+        ("orb", "real", 200), ("hybrid-full", "real", 200), ("hybrid-full", "loop", None), ("orb", "loop", None),
+        ("hybrid-full", "slow", 200), ("orb", "slow", 200), ("hybrid-full", "fast", None), ("orb", "fast", None))
     min_frames: int = 30  # shorter real sequences are listed as too short to track
     fallback_frames: int = 150  # synthetic 640x480 stage sequence when there is no real sequence
     budget_s: float = 720.0  # optional runs are skipped when they would not fit (0: no limit)
@@ -118,7 +118,7 @@ class Plan:
     robust_width: int = 320
     robust_synthetic: tuple[str, ...] = bench_robustness.SYNTHETIC_KEYS
     robust_real_frames: int | None = None  # cap on the real sequences' frames (None: all)
-    robust_trackers: tuple[str, ...] = ("hybrid-fast", "hybrid", "orb")  # beside dense, while the budget allows
+    robust_trackers: tuple[str, ...] = ("hybrid", "hybrid-full", "orb")  # beside dense, while the budget allows
     robust_open3d_frames: int = 1500  # Open3D beside dense on the first generated sequence (0: none)
     robust_budget_s: float = 2700.0  # the section's own budget for the optional runs (0: no limit)
 

@@ -198,7 +198,7 @@ def test_reference_page_covers_every_setting_and_is_current():
     assert committed.read_text() == reference_text(), "docs/config_reference.md is stale: run `make docs`"
 
 
-@pytest.mark.parametrize("name", ["fast", "accurate", "hybrid-fast"])
+@pytest.mark.parametrize("name", ["fast", "accurate", "hybrid-full"])
 def test_presets_load(name):
     from surfelslam.slam import SlamConfig
 
@@ -209,11 +209,12 @@ def test_presets_load(name):
     assert cfg != SlamConfig()
     if name == "accurate":
         assert cfg.tracking.max_width_px == 0 and cfg.fusion.max_width_px == 0
-    elif name == "hybrid-fast":
-        assert cfg.tracker == "hybrid" and not cfg.hybrid.pnp_check and cfg.hybrid.joint_features == "off"
-        assert not cfg.hybrid.loop_icp.pnp_refinement
+    elif name == "hybrid-full":
+        assert cfg.tracker == "hybrid" and cfg.hybrid.pnp_check and cfg.hybrid.joint_features == "auto"
+        assert cfg.hybrid.loop_icp.pnp_refinement and cfg.hybrid.keyframe_threshold == cfg.sparse.keyframe_threshold
+        assert (cfg.hybrid.loop_nearby, cfg.hybrid.loop_random) == (cfg.sparse.loop.n_nearby, cfg.sparse.loop.n_random)
     else:
-        assert cfg.tracking.photometric == "off"
+        assert cfg.tracker == "dense" and cfg.tracking.photometric == "off"
 
 
 def test_every_config_class_is_a_frozen_config():

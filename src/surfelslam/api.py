@@ -3,7 +3,7 @@
     import surfelslam as ss
 
     seq = ss.open_sequence("rgbd_dataset_freiburg3_teddy")
-    slam = ss.Slam(seq.intrinsics, tracker="dense")
+    slam = ss.Slam(seq.intrinsics)  # the default tracker, hybrid
     for frame in seq:
         slam.track(frame)
     run = slam.finish()
@@ -117,7 +117,7 @@ class Slam:
 
     Args:
         intrinsics: the depth camera (``Intrinsics(fx, fy, cx, cy, width, height)``); frames must have its size.
-        tracker: one of :data:`surfelslam.slam.TRACKERS`; default: the config's ``tracker`` (``dense``).
+        tracker: one of :data:`surfelslam.slam.TRACKERS`; default: the config's ``tracker`` (``hybrid``).
         config: a :class:`SlamConfig`, a nested dict of settings, or a TOML file; default settings otherwise.
         colour_registered: whether colour pixels see the same rays as depth pixels (photometric and feature terms
             are used only then, by default).

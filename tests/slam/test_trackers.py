@@ -16,7 +16,7 @@ from surfelslam.slam import TRACKERS, HybridSlam, SlamConfig, build_slam
 from surfelslam.slam.config import TrackingConfig
 from surfelslam.slam.frame import FrameStatus
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
-from surfelslam.slam.runner import run_sequence
+from surfelslam.slam.runner import load_config, run_sequence
 from surfelslam.slam.segments import tracking_segments
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.textures import TextureConfig
@@ -46,6 +46,12 @@ def _run(tracker: str, frames, cfg: SlamConfig | None = None, intr=INTR, colour_
     est = live if res.trajectory_override is None else res.trajectory_override.T_world_cam
     return est, res, slam
 
+
+
+def _full() -> SlamConfig:
+    """The full hybrid (preset ``hybrid-full``): the per-frame PnP check and joint feature term, twice the keyframes,
+    5 + 5 loop candidates. The tests of those mechanisms run it; the rest run the default hybrid."""
+    return load_config("hybrid-full")
 
 
 @cache
@@ -118,6 +124,20 @@ def test_hybrid_with_nothing_to_add_is_dense_bit_for_bit():
     hybrid, res, _ = _run("hybrid", frames[:20], cfg)
     assert res.metrics["keyframes"] >= 2 and res.metrics["pnp_disagreements"] == 0
     np.testing.assert_array_equal(hybrid, dense)
+
+
+def test_default_is_the_hybrid_with_its_own_keyframe_spacing():
+    """The default tracker is the hybrid, and its keyframes follow ``hybrid.keyframe_threshold``, not the orb
+    tracker's ``sparse.keyframe_threshold`` (the dense odometry needs half as many keyframes)."""
+    frames, _ = _frames("fast", N_SLOW)
+    cfg = SlamConfig()
+    assert cfg.tracker == "hybrid" and cfg.hybrid.keyframe_threshold > cfg.sparse.keyframe_threshold
+    kfs = {}
+    for name, c in {"default": cfg,
+                    "sparse changed": replace(cfg, sparse=replace(cfg.sparse, keyframe_threshold=0.05)),
+                    "hybrid changed": replace(cfg, hybrid=replace(cfg.hybrid, keyframe_threshold=0.05))}.items():
+        kfs[name] = _run(cfg.tracker, frames[:20], c)[1].metrics["keyframes"]
+    assert kfs["sparse changed"] == kfs["default"] >= 2 and kfs["hybrid changed"] > 2 * kfs["default"], kfs
 
 
 def test_hybrid_deterministic():
@@ -238,10 +258,10 @@ def test_orb_tracks_a_plain_walled_office_by_its_depth():
 def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
     """Plain-walled office: PnP verifies no nearby keyframe pair, so no refined edge constrains the dense odometry
     and the hybrid is the dense trajectory (11.1 mm by ``ate_m`` over 60 frames when measured). Registered by depth
-    alone from the graph's pose, the nearby pairs become refined edges (about 40), the gate trusts them and the
-    error more than halves (4.9 mm)."""
+    alone from the graph's pose, the nearby pairs become refined edges (about 40 with the full hybrid's keyframes
+    and candidates), the gate trusts them and the error more than halves (4.9 mm)."""
     frames, gt = _plain_office_frames()
-    cfg = SlamConfig()
+    cfg = _full()
     assert cfg.hybrid.loop_icp.depth_only_nearby and not cfg.orb.loop_icp.depth_only_nearby
     est, res, _ = _run("hybrid", frames, cfg)
     off = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, depth_only_nearby=False)))
@@ -275,7 +295,7 @@ def test_hybrid_relocalises_textureless_frames_by_shape():
 
 def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     """Seed 1's fast sequence: geometric ICP slides along weakly constrained geometry. The photometric term of the
-    default dense tracker and the joint dense + feature tracking of hybrid hold the pose better, the hybrid best
+    dense tracker and the joint dense + feature tracking of the full hybrid hold the pose better, the hybrid best
     (measured on these 48 frames: geometric 5.3 mm, dense 2.6 mm, hybrid 1.4 mm, 1.7 mm with the default 5 + 5 loop
     candidates; with 1-pixel normals, which the sensor's disparity steps bias, geometric ICP lost about 30 cm near
     frame 40). The hybrid runs check 2 + 1 loop candidates (:func:`_few_loop_checks`): a keyframe every other frame
@@ -296,12 +316,12 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     # features alone (no photometric term) hold it too
     features_only = ate_m(_run("hybrid", frames, few_geometric)[0], gt)
     assert features_only < 0.01 and ate_geometric > 1.5 * features_only, (features_only, ate_geometric)
-    off = SlamConfig()
+    off = _full()
     off = replace(off, hybrid=replace(off.hybrid, joint_features="off"))
     _, _, slam_off = _run("hybrid", frames[:2], off)
-    assert not slam_off.joint
+    assert not slam_off.joint and SlamConfig().hybrid.joint_features == "off"  # off in the default hybrid
     # colour and depth from unregistered cameras (7-Scenes): "auto" leaves the joint term off
-    assert not HybridSlam(INTR, SlamConfig(), colour_registered=False).joint
+    assert not HybridSlam(INTR, _full(), colour_registered=False).joint
     from surfelslam.datasets.sevenscenes import SevenScenesSequence
     from surfelslam.datasets.tum import TumSequence
     from surfelslam.errors import ConfigError
@@ -313,9 +333,10 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
 
 
 def _few_loop_checks() -> SlamConfig:
-    """The defaults with fewer loop candidates per keyframe (2 nearby, 1 random): cheaper, still closing loops."""
-    cfg = SlamConfig()
-    return replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))
+    """The full hybrid (:func:`_full`) with fewer loop candidates per keyframe (2 nearby, 1 random): cheaper, still
+    closing loops."""
+    cfg = _full()
+    return replace(cfg, hybrid=replace(cfg.hybrid, loop_nearby=2, loop_random=1))
 
 
 @cache
@@ -337,8 +358,8 @@ def test_loop_found_reported_and_closure_reduces_ate():
     assert res.trajectory_override is not None and len(res.trajectory_override) == N_LOOP
     assert ate_m(est, gt) < 0.02
     assert isinstance(slam, HybridSlam) and res.surfel_map is not None
-    no_loop = replace(cheap, sparse=replace(cheap.sparse, loop=replace(cheap.sparse.loop, n_nearby=0, n_random=0,
-                                                                        n_retrieved=0)))
+    no_loop = replace(cheap, hybrid=replace(cheap.hybrid, loop_nearby=0, loop_random=0),
+                      sparse=replace(cheap.sparse, loop=replace(cheap.sparse.loop, n_retrieved=0)))
     est_no, res_no, _ = _run("hybrid", frames, no_loop)
     assert res_no.metrics["loops_accepted"] == 0
     assert ate_m(est, gt) < ate_m(est_no, gt), (ate_m(est, gt), ate_m(est_no, gt))
@@ -542,7 +563,7 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2, end=90))
     frames = list(seq)  # read once for the three runs
     T_gt, _ = seq.gt_poses()
-    cfg = SlamConfig()
+    cfg = _full()
 
     def run(c: SlamConfig):
         slam = build_slam(seq.intrinsics, c, "hybrid", seq.colour_registered)
@@ -604,7 +625,7 @@ def test_refined_edges_are_not_trusted_on_distorted_depth():
     traj = make_trajectory("loop", 60, scene, seed=0)
     gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
     frames = list(iter_frames(scene, traj, INTR, noise_config("kinect-distorted"), 0))
-    cfg = SlamConfig()
+    cfg = _full()
     est, res, _ = _run("hybrid", frames, cfg)
     est_dense, _, _ = _run("dense", frames, cfg)
     m = res.metrics
@@ -627,7 +648,7 @@ def test_trackers_at_640x480_use_unbiased_block_means():
     gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
     frames = list(iter_frames(scene, traj, intr, noise_config("kinect"), 1))
     ate_dense = ate_m(_run("dense", frames, intr=intr)[0], gt)
-    est, res, _ = _run("hybrid", frames, intr=intr)
+    est, res, _ = _run("hybrid", frames, _full(), intr=intr)
     ate_hybrid, m = ate_m(est, gt), res.metrics
     assert m["edges_refined_trusted"] and m["edges_dense_refined"] > 50
     assert ate_dense < 0.0015, ate_dense

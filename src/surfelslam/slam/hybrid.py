@@ -83,10 +83,13 @@ class HybridSlam(DenseSlam):
         super().__init__(intr, cfg, colour_registered, colour_camera)
         mode = cfg.hybrid.joint_features
         self.joint = colour_switch(mode, colour_registered)
-        # the sparse back end with the hybrid's own settings (HybridConfig: graph_edge_information,
-        # pnp_reference_width_px, pnp_depth_edge_rel); the joint term leaves contour keypoints out itself (_pnp_match)
+        # the sparse back end with the hybrid's own settings (HybridConfig: graph_edge_information, keyframe_threshold,
+        # loop_nearby, loop_random, pnp_reference_width_px, pnp_depth_edge_rel); the joint term leaves contour
+        # keypoints out itself (_pnp_match)
         h = cfg.hybrid
-        sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information))
+        sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information),
+                     keyframe_threshold=h.keyframe_threshold,
+                     loop=replace(cfg.sparse.loop, n_nearby=h.loop_nearby, n_random=h.loop_random))
         sp = replace(sp, features_reference_width_px=h.pnp_reference_width_px)
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
         sp = replace(sp, features=replace(sp.features, depth_edge_rel=h.pnp_depth_edge_rel))

@@ -1,4 +1,4 @@
-"""``make demo``: generate the embedded synthetic sequence, run the dense pipeline on it, evaluate.
+"""``make demo``: generate the embedded synthetic sequence, run the default tracker on it, evaluate.
 
 Usage: ``python -m surfelslam.tools.demo OUT_DIR``. Prints ATE and FPS; writes OUT_DIR/sequence (the
 generated TUM-layout sequence) and OUT_DIR/run (trajectory, map, metrics, figures).
@@ -19,7 +19,7 @@ DEMO_SCENE = "room"
 DEMO_TRAJECTORY = "handheld"
 DEMO_FRAMES = 300
 DEMO_SEED = 0
-#: the files are 640x480; the dense tracker works on their unbiased 2x2 block means (``tracking.max_width_px``),
+#: the files are 640x480; the trackers work on their unbiased 2x2 block means (``tracking.max_width_px``),
 #: which is more accurate and faster than reading them with ``--downsample 2`` (every second pixel)
 DEMO_DOWNSAMPLE = 1
 
@@ -44,10 +44,10 @@ def main(argv: list[str] | None = None) -> int:
         from surfelslam.slam import SlamConfig
 
         cfg = SlamConfig()
-        console.print(f"[bold]2/3 run[/]: dense frame-to-model SLAM on {seq.intrinsics.width}x{seq.intrinsics.height} "
+        console.print(f"[bold]2/3 run[/]: tracker '{cfg.tracker}' on {seq.intrinsics.width}x{seq.intrinsics.height} "
                       f"frames (tracked and fused at most {cfg.tracking.max_width_px} px wide)")
         run_dir = out / "run"
-        metrics = run_sequence(seq, run_dir, cfg, "dense", progress=True, figures=True)
+        metrics = run_sequence(seq, run_dir, cfg, progress=True, figures=True)
         print_summary(metrics, run_dir)
         console.print("[bold]3/3 eval[/]")
         ate_cm = metrics["eval"]["ate_rmse_m"] * 100 if "eval" in metrics else float("nan")

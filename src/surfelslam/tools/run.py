@@ -24,10 +24,10 @@ from surfelslam.tools.common import (
     with_dataset_options,
 )
 
-TRACKER_HELP = ("dense: frame-to-model ICP; orb: sparse ORB/PnP odometry + loop-closing pose graph (map = "
-                "keyframe cloud); hybrid: dense ICP + PnP initial guesses, relocalisation and loop-corrected "
-                "trajectory and surfel map. One of " + ", ".join(TRACKERS) + ". Default: the --config file's, "
-                "else dense.")
+TRACKER_HELP = ("hybrid: dense ICP + ORB back end (PnP guesses, relocalisation, loop-corrected trajectory and "
+                "surfel map); dense: frame-to-model ICP alone; orb: sparse ORB/PnP odometry + loop-closing pose graph "
+                "(map = keyframe cloud). One of " + ", ".join(TRACKERS) + ". Default: the --config file's, else "
+                "hybrid.")
 #: Skipped frames quoted under the summary (``metrics.json`` lists them all).
 SUMMARY_EXAMPLES = 5
 
@@ -137,7 +137,7 @@ def register(app: typer.Typer) -> None:
             "--overwrite", help="Replace the previous run in --out (only the run's own files are removed).")] = False,
         config: Annotated[str | None, typer.Option(
             "--config", help="TOML configuration file (e.g. a previous run's config.toml: the whole recipe), or a "
-                             "preset name (configs/NAME.toml: fast, accurate, hybrid-fast).")] = None,
+                             "preset name (configs/NAME.toml: fast, accurate, hybrid-full).")] = None,
         sets: Annotated[list[str] | None, typer.Option(
             "--set", metavar="KEY=VALUE", help="Override one setting, e.g. --set icp.min_inliers=300 --set "
                                                "tracking.photometric=off (repeatable; a TOML value or a bare "
