@@ -214,8 +214,8 @@ class HybridConfig(Config):
 
     keyframe_threshold: float = setting(
         0.2, unit="m + rad", gt=0, le=100,
-        doc="[sparse] keyframe_threshold for the hybrid: motion from the last keyframe that makes a new one (its "
-            "dense odometry needs fewer keyframes than orb's PnP odometry)")
+        doc="[sparse] keyframe_threshold for the hybrid: motion from the last keyframe that makes a new one (twice "
+            "orb's: with fewer keyframes to check, the loop-check thread keeps up with fast motion)")
     loop_nearby: int = setting(2, unit="keyframes", ge=0, le=1000,
                                doc="[sparse.loop] n_nearby for the hybrid: nearby keyframes checked per new keyframe")
     loop_random: int = setting(1, unit="keyframes", ge=0, le=1000,

@@ -40,7 +40,8 @@ class SparseSlamConfig(Config):
     features: FeatureConfig = setting(default_factory=FeatureConfig,
                                       doc="ORB, matching and PnP of the frame-to-keyframe odometry")
     keyframe_threshold: float = setting(0.1, unit="m + rad", gt=0, le=100,
-                                        doc="motion norm from the reference keyframe that makes a new keyframe")
+                                        doc="motion norm from the reference keyframe that makes a new keyframe (the "
+                                            "hybrid tracker has its own: [hybrid] keyframe_threshold)")
     rejected_pose: str = setting("constant_velocity", choices=REJECTED_POSE_MODES, doc="pose of a rejected frame")
     velocity_reset_after_failures: int = setting(
         3, unit="frames", ge=1, le=1_000_000,
