@@ -196,6 +196,25 @@ def _tour_weight(n_frames: int, fps: float, cfg: TrajectoryConfig) -> np.ndarray
     return 0.5 - 0.5 * np.cos(np.pi * np.minimum(ramp_up, ramp_down))
 
 
+def _blend_look(d0: np.ndarray, d1: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Look vectors ``(N, 3)`` from ``d0`` (``w`` 0) to ``d1`` (``w`` 1): azimuth along an arc continuous in time,
+    elevation and length linearly. A linear blend of the look-at points can pass over the eye, where ``look_at``'s
+    roll is undefined and the camera spins by up to 180 deg per frame; this one stays below the higher elevation."""
+    def spherical(d: np.ndarray):
+        r = np.linalg.norm(d, axis=1)
+        return np.arctan2(d[:, 1], d[:, 0]), np.arcsin(np.clip(d[:, 2] / r, -1.0, 1.0)), r
+
+    a0, e0, r0 = spherical(d0)
+    a1, e1, r1 = spherical(d1)
+    da = np.unwrap(a1 - a0)  # continuous in time (a per-frame shorter arc flips where the headings are opposite)
+    turning = (w > 0.0) & (w < 1.0)
+    if turning.any():  # the branch whose turning frames turn least on average
+        da -= 2.0 * np.pi * np.round(da[turning].mean() / (2.0 * np.pi))
+    a = a0 + w * da
+    e, r = (1.0 - w) * e0 + w * e1, (1.0 - w) * r0 + w * r1
+    return r[:, None] * np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+
 def make_trajectory(
     style: str, n_frames: int, scene: Scene, fps: float = 30.0, seed: int = 0,
     cfg: TrajectoryConfig = TrajectoryConfig(),
@@ -228,7 +247,9 @@ def make_trajectory(
         w = _tour_weight(n_frames, fps, cfg)[:, None]
         eye_o, target_o = _orbit_rig(scene, theta, ph, cfg)
         eye_u, target_u = _upward_rig(scene, theta, ph, cfg)
-        eye, target = (1.0 - w) * eye_o + w * eye_u, (1.0 - w) * target_o + w * target_u
+        eye = (1.0 - w) * eye_o + w * eye_u
+        look = _blend_look(target_o - eye_o, target_u - eye_u, w[:, 0])
+        target = np.where(w == 0.0, target_o, np.where(w == 1.0, target_u, eye + look))
         roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
     elif scene.view.kind == "corridor":
         step = np.radians(cfg.slow_step_deg) * (cfg.fast_factor if style == "fast" else 1.0)
