@@ -384,6 +384,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert m["edge_sigma_m"] == pytest.approx(cfg.hybrid.loop_icp.sigma_m)
     assert m["edges_refined_trusted"] and m["edge_residual_rad"] < cfg.hybrid.loop_icp.max_trusted_residual_rad
     assert m["edge_residual_m"] < cfg.hybrid.loop_icp.max_trusted_residual_m
+    assert m["loop_correction_skipped"] == 0 and m["final_correction_m"] > cfg.hybrid.untrusted_min_correction_m
     assert ate_m(est, gt) < 0.5 * ate_m(est_pnp, gt), (ate_m(est, gt), ate_m(est_pnp, gt))
 
 
@@ -581,10 +582,11 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     dense = build_slam(seq.intrinsics, cfg, "dense", seq.colour_registered)
     est_dense = np.stack([dense.process(f).T_world_cam for f in frames])
     assert m["loop_correction_skipped"] == 1 and np.array_equal(est, est_dense)
+    assert 0 < m["final_correction_m"] <= cfg.hybrid.untrusted_min_correction_m  # the correction it left out
     # with every correction applied the graph moves the trajectory, by under a millimetre
     always = replace(cfg, hybrid=replace(cfg.hybrid, untrusted_min_correction_m=0.0))
     est_always, m_always = run(always)
-    assert m_always["loop_correction_skipped"] == 0
+    assert m_always["loop_correction_skipped"] == 0 and m_always["final_correction_m"] == m["final_correction_m"]
     moved = np.linalg.norm(est_always[:, :3, 3] - est_dense[:, :3, 3], axis=1)
     assert 0 < moved.max() < cfg.hybrid.untrusted_min_correction_m * 2, moved.max()
     ate_dense = ate_m(est_dense, se3.invert(T_gt[0]) @ T_gt)

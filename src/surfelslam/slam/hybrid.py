@@ -114,7 +114,8 @@ class HybridSlam(DenseSlam):
         self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "map_corrections": 0,
-                       "pnp_disagreements": 0, "loop_correction_skipped": 0}
+                       "pnp_disagreements": 0, "loop_correction_skipped": 0,
+                       "final_correction_m": None}
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`). Without
@@ -393,21 +394,24 @@ class HybridSlam(DenseSlam):
         T = kf[np.asarray(self._anchor)] @ np.asarray(self._T_kf_cam)
         return Trajectory(np.asarray(self._stamps), T)
 
-    def _correction_is_noise(self, kf_new: np.ndarray) -> bool:
-        """The refined edges are distrusted, and the final graph poses ``kf_new`` (the PnP edges') move no keyframe
-        by more than ``untrusted_min_correction_m`` relative to the first (see :class:`HybridConfig`)."""
-        if self.sparse.dense_edges_trusted is not False or len(kf_new) == 0:
-            return False
+    def _correction_m(self, kf_new: np.ndarray) -> float:
+        """How far (m) the final graph poses ``kf_new`` move the farthest keyframe from its current pose, the first
+        keyframe's rigid move taken out."""
         C0 = kf_new[0] @ se3.invert(self._kf_dense.poses[0])
-        rel = se3.invert(C0) @ kf_new  # the first keyframe's (rigid) move taken out
-        moved = np.linalg.norm(rel[:, :3, 3] - self._kf_dense.poses[:, :3, 3], axis=1)
-        return bool(moved.max() <= self.cfg.hybrid.untrusted_min_correction_m)
+        rel = se3.invert(C0) @ kf_new
+        return float(np.linalg.norm(rel[:, :3, 3] - self._kf_dense.poses[:, :3, 3], axis=1).max())
+
+    def _correction_is_noise(self, moved_m: float) -> bool:
+        """The refined edges are distrusted, and the final graph poses (the PnP edges') move no keyframe by more than
+        ``hybrid.untrusted_min_correction_m`` (``moved_m``: :meth:`_correction_m`; see :class:`HybridConfig`)."""
+        return self.sparse.dense_edges_trusted is False and moved_m <= self.cfg.hybrid.untrusted_min_correction_m
 
     def finish(self) -> SlamResult:
         res = self.sparse.finish()
         kf_final = res.keyframe_poses
         if self.cfg.hybrid.loop_correction and len(self._kf_dense):
-            if self._correction_is_noise(kf_final):
+            self.counts["final_correction_m"] = self._correction_m(kf_final)
+            if self._correction_is_noise(self.counts["final_correction_m"]):
                 self.counts["loop_correction_skipped"] = 1
                 kf_final = self._kf_dense.poses.copy()
             else:
