@@ -12,7 +12,7 @@ import pytest
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
-from surfelslam.slam import TRACKERS, HybridSlam, SlamConfig, build_slam
+from surfelslam.slam import DEFAULT_TRACKER, TRACKERS, HybridSlam, SlamConfig, build_slam
 from surfelslam.slam.config import TrackingConfig
 from surfelslam.slam.frame import FrameStatus
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
@@ -131,7 +131,7 @@ def test_default_is_the_hybrid_with_its_own_keyframe_spacing():
     tracker's ``sparse.keyframe_threshold`` (the dense odometry needs half as many keyframes)."""
     frames, _ = _frames("fast", N_SLOW)
     cfg = SlamConfig()
-    assert cfg.tracker == "hybrid" and cfg.hybrid.keyframe_threshold > cfg.sparse.keyframe_threshold
+    assert cfg.tracker == DEFAULT_TRACKER == "hybrid" and cfg.hybrid.keyframe_threshold > cfg.sparse.keyframe_threshold
     kfs = {}
     for name, c in {"default": cfg,
                     "sparse changed": replace(cfg, sparse=replace(cfg.sparse, keyframe_threshold=0.05)),

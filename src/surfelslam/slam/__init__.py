@@ -28,7 +28,7 @@ from surfelslam.slam.protocol import Tracker, build_tracker, register_tracker, r
 
 # the trackers a user picks with ``--tracker`` (``given`` is chosen by ``--poses``)
 TRACKERS: tuple[str, ...] = tuple(n for n in registered() if n != "given")
-DEFAULT_TRACKER = "dense"
+DEFAULT_TRACKER = "hybrid"  # SlamConfig.tracker's default
 
 
 def build_slam(intr, cfg: SlamConfig, tracker: str, colour_registered: bool = True, colour_camera=None) -> Tracker:
