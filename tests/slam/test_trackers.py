@@ -655,3 +655,20 @@ def test_trackers_at_640x480_use_unbiased_block_means():
     assert m["edges_refined_trusted"] and m["edges_dense_refined"] > 50
     assert ate_dense < 0.0015, ate_dense
     assert ate_hybrid < 0.7 * ate_dense, (ate_hybrid, ate_dense)
+
+
+def test_a_refused_relocalisation_is_no_bridge():
+    """Half a walking lap, three frames without depth, then the lap's start again: PnP against the keyframes
+    relocalises those frames 1.3-1.6 m from the last tracked pose within 0.3 s, faster than a camera moves, and the
+    relocalisation is refused. Such a frame stays lost at the prediction (held after the failures); its refused pose
+    used to be written as a bridge."""
+    frames, _ = _frames("loop", N_LOOP)
+    n = N_LOOP // 2
+    blank = [RGBDFrame(n + i, (n + i) / 30.0, f.rgb, np.zeros_like(f.depth_m)) for i, f in enumerate(frames[n:n + 3])]
+    start = [RGBDFrame(n + 3 + i, (n + 3 + i) / 30.0, f.rgb, f.depth_m) for i, f in enumerate(frames[1:7])]
+    slam = build_slam(INTR, SlamConfig(), "hybrid")
+    results = [slam.process(f) for f in frames[:n] + blank + start]
+    assert slam.failure_reasons.get("relocalisation_implausible") == len(start), slam.failure_reasons
+    held = results[n + 2].T_world_cam  # the last blank frame's prediction
+    for r in results[n + 3:]:
+        assert r.status == FrameStatus.LOST and np.array_equal(r.T_world_cam, held), (r.index, r.status)

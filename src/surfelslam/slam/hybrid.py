@@ -215,7 +215,9 @@ class HybridSlam(DenseSlam):
             if loc.failure is None:
                 self.counts["relocalisations_tracked"] += 1
                 self.velocity = np.eye(4)
-            loc.guess = found[0]
+            elif loc.failure != "relocalisation_implausible" and self.plausible_jump(found[0], frame.timestamp):
+                loc.guess = found[0]  # ICP failed from a reachable PnP pose: the frame is bridged there
+            # a pose refused as out of reach is no bridge either: the frame stays lost at the prediction
         if (loc.res is None or loc.failure is not None) and self.cfg.tracking.relocalise_after_failures > 0:
             shape = self._relocalise_shape(T_prev, frame.timestamp)  # no PnP pose (no texture): from the depth alone
             t.lap("relocalise")
