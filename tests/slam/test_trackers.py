@@ -128,7 +128,7 @@ def test_hybrid_with_nothing_to_add_is_dense_bit_for_bit():
 
 def test_default_is_the_hybrid_with_its_own_keyframe_spacing():
     """The default tracker is the hybrid, and its keyframes follow ``hybrid.keyframe_threshold``, not the orb
-    tracker's ``sparse.keyframe_threshold`` (the dense odometry needs half as many keyframes)."""
+    tracker's ``sparse.keyframe_threshold`` (twice orb's spacing, so that the loop checks keep up)."""
     frames, _ = _frames("fast", N_SLOW)
     cfg = SlamConfig()
     assert cfg.tracker == DEFAULT_TRACKER == "hybrid" and cfg.hybrid.keyframe_threshold > cfg.sparse.keyframe_threshold

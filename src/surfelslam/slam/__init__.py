@@ -18,7 +18,7 @@ from surfelslam.slam import orb  # noqa: F401
 from surfelslam.slam import hybrid  # noqa: F401
 from surfelslam.slam import given  # noqa: F401
 # isort: on
-from surfelslam.slam.config import SlamConfig
+from surfelslam.slam.config import DEFAULT_TRACKER, SlamConfig
 from surfelslam.slam.dense import DenseSlam, warm_up
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult
 from surfelslam.slam.given import GivenPoseMapper, poses_for_mapping
@@ -28,7 +28,6 @@ from surfelslam.slam.protocol import Tracker, build_tracker, register_tracker, r
 
 # the trackers a user picks with ``--tracker`` (``given`` is chosen by ``--poses``)
 TRACKERS: tuple[str, ...] = tuple(n for n in registered() if n != "given")
-DEFAULT_TRACKER = "hybrid"  # SlamConfig.tracker's default
 
 
 def build_slam(intr, cfg: SlamConfig, tracker: str, colour_registered: bool = True, colour_camera=None) -> Tracker:

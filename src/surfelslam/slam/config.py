@@ -142,6 +142,9 @@ def _hybrid_loop_icp() -> DenseEdgeConfig:
     return DenseEdgeConfig(pnp_refinement=False)
 
 
+#: the tracker a run uses unless told otherwise (``SlamConfig.tracker``'s default)
+DEFAULT_TRACKER = "hybrid"
+
 JOINT_MODES = PHOTOMETRIC_MODES  # the same auto | on | off colour switch (tracking.photometric.colour_switch)
 
 
@@ -253,7 +256,7 @@ class SlamConfig(Config):
     """Every setting of a run, with its tracker and dataset options (``[dataset]``, the ``--start`` ...
     ``--depth-scale`` options; unset ones are left out): saved as ``config.toml``, the whole recipe of the run."""
 
-    tracker: str = setting("hybrid", doc="the tracker: hybrid, dense or orb (the registered ones; --tracker)")
+    tracker: str = setting(DEFAULT_TRACKER, doc="the tracker: hybrid, dense or orb (the registered ones; --tracker)")
     dataset: DatasetOptions = setting(default_factory=DatasetOptions,
                                       doc="how the sequence is read (the CLI's dataset options)")
     io: IOConfig = setting(default_factory=IOConfig, doc="frame reading")
