@@ -17,17 +17,24 @@ REDKITCHEN = SHARED_DATA / "7scenes_redkitchen_0000_0499"
 #: Tracker rows that are a preset (``configs/NAME.toml``) rather than a tracker with the defaults.
 PRESET_TRACKERS = ("hybrid-full",)
 PRESETS = Path(__file__).resolve().parents[1] / "configs"
+#: Bench-only rows: the defaults with some settings changed (label -> those settings, as in a TOML file).
+#: ``hybrid-odometry``: the default hybrid without its loop corrections, the reference of "loop closure never makes
+#: the trajectory worse than the odometry alone".
+VARIANT_TRACKERS = {"hybrid-odometry": {"tracker": "hybrid", "hybrid": {"loop_correction": False}}}
 
 
 def tracker_setup(label: str):
-    """``(tracker, SlamConfig)`` of a bench row's tracker label: a tracker with the defaults, or a preset of
-    :data:`PRESET_TRACKERS` (its config, whose ``tracker`` it names)."""
-    from surfelslam.config import load_toml
+    """``(tracker, SlamConfig)`` of a bench row's tracker label: a tracker with the defaults, a preset of
+    :data:`PRESET_TRACKERS` or a variant of :data:`VARIANT_TRACKERS` (its config, whose ``tracker`` it names)."""
+    from surfelslam.config import from_dict, load_toml
     from surfelslam.slam import SlamConfig
 
-    if label not in PRESET_TRACKERS:
+    if label in VARIANT_TRACKERS:
+        cfg = from_dict(SlamConfig, VARIANT_TRACKERS[label], base=SlamConfig())
+    elif label in PRESET_TRACKERS:
+        cfg = load_toml(SlamConfig, PRESETS / f"{label}.toml")
+    else:
         return label, SlamConfig()
-    cfg = load_toml(SlamConfig, PRESETS / f"{label}.toml")
     return cfg.tracker, cfg
 
 

@@ -172,7 +172,7 @@ def _grouped(rows: list[dict]) -> list[dict]:
     """Accuracy rows grouped by sequence (first appearance), resolution, frames (most first), tracker."""
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in rows))}
     res_order = {k: i for i, k in enumerate(dict.fromkeys(r["resolution"] for r in rows))}
-    trk = {"dense": 0, "hybrid": 1, "orb": 2, "hybrid-full": 3}
+    trk = {"dense": 0, "hybrid": 1, "hybrid-odometry": 2, "orb": 3, "hybrid-full": 4}
     return sorted(rows, key=lambda r: (seq_order[r["sequence"]], res_order[r["resolution"]], -r["frames"],
                                        trk.get(r["tracker"], 9)))
 

@@ -74,7 +74,7 @@ SHARED = SHARED_DATA
 RESULTS = HERE / "results"
 STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it
-TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 1.5, "hybrid-full": 6.0}
+TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 1.5, "hybrid-full": 6.0, "hybrid-odometry": 1.5}
 OPEN3D_S_PER_FRAME_GUESS = 0.5  # at 320x240 on 2 cores, until the first Open3D run measured it
 RESERVE_S = 20.0  # kept free at the end of the budget (writing results)
 
@@ -103,7 +103,8 @@ class Plan:
     extra_runs: tuple[tuple[str, str, int | None], ...] = (
         ("hybrid", "real", None), ("hybrid", "slow", None), ("hybrid", "loop", None), ("hybrid", "fast", None),
         ("orb", "real", 200), ("hybrid-full", "real", 200), ("hybrid-full", "loop", None), ("orb", "loop", None),
-        ("hybrid-full", "slow", 200), ("orb", "slow", 200), ("hybrid-full", "fast", None), ("orb", "fast", None))
+        ("hybrid-full", "slow", 200), ("orb", "slow", 200), ("hybrid-full", "fast", None), ("orb", "fast", None),
+        ("hybrid-odometry", "slow", None), ("hybrid-odometry", "loop", None), ("hybrid-odometry", "fast", None))
     min_frames: int = 30  # shorter real sequences are listed as too short to track
     fallback_frames: int = 150  # synthetic 640x480 stage sequence when there is no real sequence
     budget_s: float = 720.0  # optional runs are skipped when they would not fit (0: no limit)
@@ -118,7 +119,8 @@ class Plan:
     robust_width: int = 320
     robust_synthetic: tuple[str, ...] = bench_robustness.SYNTHETIC_KEYS
     robust_real_frames: int | None = None  # cap on the real sequences' frames (None: all)
-    robust_trackers: tuple[str, ...] = ("hybrid", "hybrid-full", "orb")  # beside dense, while the budget allows
+    # beside dense, while the budget allows
+    robust_trackers: tuple[str, ...] = ("hybrid", "hybrid-odometry", "hybrid-full", "orb")
     robust_open3d_frames: int = 1500  # Open3D beside dense on the first generated sequence (0: none)
     robust_budget_s: float = 2700.0  # the section's own budget for the optional runs (0: no limit)
 

@@ -127,17 +127,25 @@ def test_hybrid_with_nothing_to_add_is_dense_bit_for_bit():
 
 
 def test_default_is_the_hybrid_with_its_own_keyframe_spacing():
-    """The default tracker is the hybrid, and its keyframes follow ``hybrid.keyframe_threshold``, not the orb
-    tracker's ``sparse.keyframe_threshold`` (twice orb's spacing, so that the loop checks keep up)."""
+    """The default tracker is the hybrid, and its keyframes follow ``hybrid.keyframe_threshold`` and
+    ``hybrid.keyframe_min_gap_frames``, not the orb tracker's ``[sparse]`` ones: under fast motion at most one
+    keyframe every 3 frames, so that the loop checks keep up."""
     frames, _ = _frames("fast", N_SLOW)
     cfg = SlamConfig()
-    assert cfg.tracker == DEFAULT_TRACKER == "hybrid" and cfg.hybrid.keyframe_threshold > cfg.sparse.keyframe_threshold
-    kfs = {}
+    assert cfg.tracker == DEFAULT_TRACKER == "hybrid" and cfg.sparse.keyframe_min_gap_frames == 1
+    kf_frames = {}
     for name, c in {"default": cfg,
                     "sparse changed": replace(cfg, sparse=replace(cfg.sparse, keyframe_threshold=0.05)),
-                    "hybrid changed": replace(cfg, hybrid=replace(cfg.hybrid, keyframe_threshold=0.05))}.items():
-        kfs[name] = _run(cfg.tracker, frames[:20], c)[1].metrics["keyframes"]
-    assert kfs["sparse changed"] == kfs["default"] >= 2 and kfs["hybrid changed"] > 2 * kfs["default"], kfs
+                    "no gap": replace(cfg, hybrid=replace(cfg.hybrid, keyframe_min_gap_frames=1)),
+                    "hybrid changed": replace(cfg, hybrid=replace(cfg.hybrid, keyframe_threshold=0.05,
+                                                                  keyframe_min_gap_frames=1))}.items():
+        kf_frames[name] = _run(cfg.tracker, frames[:20], c)[2].sparse.keyframe_frame_indices()
+    gaps = np.diff(kf_frames["default"])
+    # measured: keyframes every 3 frames by default, every 2 without the gap, almost every frame at 0.05
+    assert len(kf_frames["default"]) >= 5 and gaps.min() == cfg.hybrid.keyframe_min_gap_frames, kf_frames
+    np.testing.assert_array_equal(kf_frames["sparse changed"], kf_frames["default"])
+    assert np.diff(kf_frames["no gap"]).min() < cfg.hybrid.keyframe_min_gap_frames, kf_frames
+    assert len(kf_frames["hybrid changed"]) > len(kf_frames["no gap"]) > len(kf_frames["default"]), kf_frames
 
 
 def test_hybrid_deterministic():

@@ -138,8 +138,10 @@ class MapReuseConfig(Config):
 
 def _hybrid_loop_icp() -> DenseEdgeConfig:
     """The hybrid's keyframe-edge ICP: without the feature refinement before it (``pnp_refinement`` off), which
-    costs about 40 % of the loop-check time for little gain once ICP refines the edge."""
-    return DenseEdgeConfig(pnp_refinement=False)
+    costs about 40 % of the loop-check time for little gain once ICP refines the edge; an edge's information lowered
+    along the directions its depth leaves weak (``weak_direction_ratio`` 100), so that edges between views of a
+    ceiling and a wall do not pull the trajectory along the planes' intersection."""
+    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0)
 
 
 #: the tracker a run uses unless told otherwise (``SlamConfig.tracker``'s default)
@@ -216,9 +218,13 @@ class HybridConfig(Config):
             "contours for the keyframe edges (the joint term leaves them out itself)")
 
     keyframe_threshold: float = setting(
-        0.2, unit="m + rad", gt=0, le=100,
-        doc="[sparse] keyframe_threshold for the hybrid: motion from the last keyframe that makes a new one (twice "
-            "orb's: with fewer keyframes to check, the loop-check thread keeps up with fast motion)")
+        0.1, unit="m + rad", gt=0, le=100,
+        doc="[sparse] keyframe_threshold for the hybrid: motion from the last keyframe that makes a new one (at 0.2 "
+            "the keyframe edges spread more, fail the trust gate and leave the odometry uncorrected)")
+    keyframe_min_gap_frames: int = setting(
+        3, unit="frames", ge=1, le=1_000_000,
+        doc="[sparse] keyframe_min_gap_frames for the hybrid: under fast motion at most one keyframe every this "
+            "many frames, so that the loop-check thread keeps up")
     loop_nearby: int = setting(2, unit="keyframes", ge=0, le=1000,
                                doc="[sparse.loop] n_nearby for the hybrid: nearby keyframes checked per new keyframe")
     loop_random: int = setting(1, unit="keyframes", ge=0, le=1000,

@@ -88,7 +88,7 @@ class HybridSlam(DenseSlam):
         # keypoints out itself (_pnp_match)
         h = cfg.hybrid
         sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information),
-                     keyframe_threshold=h.keyframe_threshold,
+                     keyframe_threshold=h.keyframe_threshold, keyframe_min_gap_frames=h.keyframe_min_gap_frames,
                      loop=replace(cfg.sparse.loop, n_nearby=h.loop_nearby, n_random=h.loop_random))
         sp = replace(sp, features_reference_width_px=h.pnp_reference_width_px)
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features

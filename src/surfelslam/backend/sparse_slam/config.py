@@ -42,6 +42,10 @@ class SparseSlamConfig(Config):
     keyframe_threshold: float = setting(0.1, unit="m + rad", gt=0, le=100,
                                         doc="motion norm from the reference keyframe that makes a new keyframe (the "
                                             "hybrid tracker has its own: [hybrid] keyframe_threshold)")
+    keyframe_min_gap_frames: int = setting(
+        1, unit="frames", ge=1, le=1_000_000,
+        doc="a frame becomes a keyframe only this many frames after the reference keyframe at the earliest (caps the "
+            "keyframe rate, and the loop checks' load, under fast motion)")
     rejected_pose: str = setting("constant_velocity", choices=REJECTED_POSE_MODES, doc="pose of a rejected frame")
     velocity_reset_after_failures: int = setting(
         3, unit="frames", ge=1, le=1_000_000,

@@ -75,6 +75,7 @@ class SparseSlam:
         # per processed frame: timestamp, reference keyframe, pose relative to it
         self._timestamps: list[float] = []
         self._frame_kf: list[int] = []
+        self._frames_since_kf = 0  # frames placed since the last keyframe was added
         self._T_kf_cam: list[np.ndarray] = []
         self._velocity = np.eye(4)  # T_prev_last: last inter-frame motion (camera frame)
         self._n_failures = 0
@@ -271,7 +272,9 @@ class SparseSlam:
         given; ``information`` of its odometry edge), else recorded against it. Returns ``(T_world_cam, is_kf)``."""
         self._n_failures = 0
         self._lost = []
-        is_kf = motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
+        self._frames_since_kf += 1
+        is_kf = (motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
+                 and self._frames_since_kf >= self.cfg.keyframe_min_gap_frames)
         if is_kf:
             feats = self.features(frame) if feats is None else feats
             self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
@@ -353,6 +356,7 @@ class SparseSlam:
         # but not the depth image (only the current side's depth is used)
         self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
         self._ref_kf = kf_id
+        self._frames_since_kf = 0
         if prev_kf is not None and T_prev_new is not None:
             self._graph.add_edge(PoseEdge(prev_kf, kf_id, T_prev_new, "odometry", information_matrix=information))
         if prev_kf is None:
