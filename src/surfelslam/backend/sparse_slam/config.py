@@ -44,8 +44,9 @@ class SparseSlamConfig(Config):
                                             "hybrid tracker has its own: [hybrid] keyframe_threshold)")
     keyframe_min_gap_frames: int = setting(
         1, unit="frames", ge=1, le=1_000_000,
-        doc="a frame becomes a keyframe only this many frames after the reference keyframe at the earliest (caps the "
-            "keyframe rate, and the loop checks' load, under fast motion)")
+        doc="a frame becomes a keyframe only this many placed frames after the reference keyframe at the earliest "
+            "(caps the keyframe rate under fast motion; the hybrid tracker has its own: [hybrid] "
+            "keyframe_min_gap_frames)")
     rejected_pose: str = setting("constant_velocity", choices=REJECTED_POSE_MODES, doc="pose of a rejected frame")
     velocity_reset_after_failures: int = setting(
         3, unit="frames", ge=1, le=1_000_000,
