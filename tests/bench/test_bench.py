@@ -263,3 +263,26 @@ def test_robustness_section_spliced_into_the_last_results(tmp_path, monkeypatch)
     assert md == run_all.to_markdown(json.loads((out / "latest.json").read_text()))
     assert "### Robustness: long near-degenerate sequences (33 generated frames at 80x60" in md
     assert "| close wall, textured (plane) | 33 | dense |" in md and "Skipped (time budget of the section)" in md
+
+
+def test_odometry_only_variant_and_the_loops_ratio_line() -> None:
+    """``hybrid-odometry`` is the default hybrid with its loop corrections off (nothing else changed), and the
+    robustness page gives, per sequence, the default's ATE over that variant's (item: loops never worse)."""
+    from dataclasses import replace
+
+    from benchmarks.bench_robustness import _loops_against_odometry
+    from benchmarks.common import tracker_setup
+    from surfelslam.slam import SlamConfig
+
+    tracker, cfg = tracker_setup("hybrid-odometry")
+    default = SlamConfig()
+    assert tracker == default.tracker == "hybrid" and not cfg.hybrid.loop_correction
+    assert cfg == replace(default, hybrid=replace(default.hybrid, loop_correction=False))
+    rows = [{"sequence": "tour", "tracker": "hybrid", "ate_rmse_cm": 0.5386},
+            {"sequence": "tour", "tracker": "hybrid-odometry", "ate_rmse_cm": 0.8702},
+            {"sequence": "wall", "tracker": "hybrid", "ate_rmse_cm": 0.0834},
+            {"sequence": "wall", "tracker": "hybrid-odometry", "ate_rmse_cm": 0.0811},
+            {"sequence": "corridor", "tracker": "hybrid", "ate_rmse_cm": 0.72}]  # no odometry row: left out
+    [line, blank] = _loops_against_odometry(rows)
+    assert "tour 0.62; wall 1.03. Worst: 1.03." in line and "corridor" not in line and blank == ""
+    assert _loops_against_odometry(rows[-1:]) == []
