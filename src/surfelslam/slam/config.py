@@ -225,7 +225,7 @@ class HybridConfig(Config):
         3, unit="frames", ge=1, le=1_000_000,
         doc="[sparse] keyframe_min_gap_frames for the hybrid: under fast motion at most one keyframe every this "
             "many frames, so that the loop-check thread keeps up")
-    loop_nearby: int = setting(2, unit="keyframes", ge=0, le=1000,
+    loop_nearby: int = setting(3, unit="keyframes", ge=0, le=1000,
                                doc="[sparse.loop] n_nearby for the hybrid: nearby keyframes checked per new keyframe")
     loop_random: int = setting(1, unit="keyframes", ge=0, le=1000,
                                doc="[sparse.loop] n_random for the hybrid: random older keyframes checked per new one")
