@@ -13,8 +13,9 @@ from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.slam import DEFAULT_TRACKER, TRACKERS, HybridSlam, SlamConfig, build_slam
-from surfelslam.slam.config import TrackingConfig
+from surfelslam.slam.config import HybridConfig, TrackingConfig
 from surfelslam.slam.frame import FrameStatus
+from surfelslam.slam.hybrid import joint_term_weight
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
 from surfelslam.slam.runner import load_config, run_sequence
 from surfelslam.slam.segments import tracking_segments
@@ -327,7 +328,8 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
     off = _full()
     off = replace(off, hybrid=replace(off.hybrid, joint_features="off"))
     _, _, slam_off = _run("hybrid", frames[:2], off)
-    assert not slam_off.joint and SlamConfig().hybrid.joint_features == "off"  # off in the default hybrid
+    assert not slam_off.joint and SlamConfig().hybrid.joint_features == "auto"
+    assert _run("hybrid", frames[:2])[2].joint  # on in the default hybrid where colour and depth are registered
     # colour and depth from unregistered cameras (7-Scenes): "auto" leaves the joint term off
     assert not HybridSlam(INTR, _full(), colour_registered=False).joint
     from surfelslam.datasets.sevenscenes import SevenScenesSequence
@@ -680,3 +682,19 @@ def test_a_refused_relocalisation_is_no_bridge():
     held = results[n + 2].T_world_cam  # the last blank frame's prediction
     for r in results[n + 3:]:
         assert r.status == FrameStatus.LOST and np.array_equal(r.T_world_cam, held), (r.index, r.status)
+
+
+def test_joint_term_weight_follows_the_measured_depth_noise():
+    """The default joint term weighs a feature residual as ``joint_weight`` point-to-plane pairs at the depth noise the
+    last frame's ICP measured, so noisier depth gives the features more say; before any measurement, and with
+    ``joint_weight_unit = "robust_scale"`` (``hybrid-full``), the unit is the finest robust scale."""
+    h = SlamConfig().hybrid
+    assert h.joint_features == "auto" and h.joint_weight_unit == "depth_noise"
+    scale = SlamConfig().icp.finest_robust_scale_m
+    assert joint_term_weight(h, scale, 0.004) == pytest.approx(h.joint_weight * 0.004**2)
+    assert joint_term_weight(h, scale, 0.004) == pytest.approx(4 * joint_term_weight(h, scale, 0.002))
+    assert joint_term_weight(h, scale, 0.0) == pytest.approx(h.joint_weight * scale**2)
+    fixed = replace(h, joint_weight_unit="robust_scale")
+    assert joint_term_weight(fixed, scale, 0.004) == pytest.approx(h.joint_weight * scale**2)
+    with pytest.raises(ConfigError, match="joint_weight_unit"):
+        HybridConfig(joint_weight_unit="metres")

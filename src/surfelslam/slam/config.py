@@ -148,6 +148,7 @@ def _hybrid_loop_icp() -> DenseEdgeConfig:
 DEFAULT_TRACKER = "hybrid"
 
 JOINT_MODES = PHOTOMETRIC_MODES  # the same auto | on | off colour switch (tracking.photometric.colour_switch)
+JOINT_WEIGHT_UNITS = ("robust_scale", "depth_noise")  # hybrid.joint_weight_unit
 
 
 @dataclass(frozen=True)
@@ -195,15 +196,22 @@ class HybridConfig(Config):
     loop_icp: DenseEdgeConfig = setting(default_factory=_hybrid_loop_icp,
                                         doc="dense (ICP) refinement of the PnP keyframe edges, behind a trust gate")
     joint_features: str = setting(
-        "off", choices=JOINT_MODES,
+        "auto", choices=JOINT_MODES,
         doc="add the PnP inliers against the reference keyframe as reprojection terms to every ICP iteration (ORB "
             "features and PnP on every frame); auto: on unless colour and depth are not registered")
     joint_sigma_px: float = setting(1.0, unit="px", gt=0, le=100, doc="pixel noise of those terms (residual unit)")
     joint_huber: float = setting(2.0, unit="sigmas", gt=0, le=100, doc="Huber threshold of their residual norm")
     joint_weight: float = setting(
-        0.1, ge=0, le=1000,
-        doc="a feature residual of joint_sigma_px costs this many point-to-plane pairs at [icp] "
-            "finest_robust_scale_m")
+        50.0, ge=0, le=1e6,
+        doc="a feature residual of joint_sigma_px costs this many point-to-plane pairs with a residual of one "
+            "joint_weight_unit")
+    joint_fine_match: bool = setting(
+        False, doc="the joint term's PnP match also searches by projection and refines on RGB-D jointly (about 1.5x "
+                   "the per-frame time at 320x240); the inlier pixels are sub-pixel tracked either way")
+    joint_weight_unit: str = setting(
+        "depth_noise", choices=JOINT_WEIGHT_UNITS,
+        doc="robust_scale: [icp] finest_robust_scale_m; depth_noise: the depth's own point-to-plane noise, measured "
+            "in the last tracked frame's ICP (noisier depth, as from a real sensor, gives the features more say)")
     graph_edge_information: str = setting(
         "isotropic", choices=EDGE_INFORMATION_MODES,
         doc="the hybrid's pose-graph edge weighting, in place of [sparse.graph] edge_information: isotropic, since "

@@ -45,7 +45,7 @@ from surfelslam.backend.sparse_slam import (
     features_for_width,
 )
 from surfelslam.geometry import se3
-from surfelslam.slam.config import SlamConfig
+from surfelslam.slam.config import HybridConfig, SlamConfig
 from surfelslam.slam.dense import DenseSlam
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
@@ -69,6 +69,14 @@ class _Localised:
     guess: np.ndarray | None = None
     from_prev: bool = False
     relocalised: bool = False  # the result comes from a relocalisation (after too many failures)
+
+
+def joint_term_weight(h: HybridConfig, finest_robust_scale_m: float, depth_noise_m: float) -> float:
+    """Weight (m^2) of a unit feature residual in the joint term: ``hybrid.joint_weight`` point-to-plane pairs whose
+    residual is ``hybrid.joint_weight_unit``: the finest robust scale, or ``depth_noise_m``, the depth noise the last
+    tracked frame's ICP measured (the scale until one was measured, ``depth_noise_m`` 0)."""
+    unit_m = depth_noise_m if h.joint_weight_unit == "depth_noise" and depth_noise_m > 0 else finest_robust_scale_m
+    return h.joint_weight * unit_m**2
 
 
 @register_tracker("hybrid")
@@ -112,6 +120,7 @@ class HybridSlam(DenseSlam):
         self._fused_anchor: list[int] = []
         self._stamp_of_frame: dict[int, float] = {}
         self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
+        self._depth_noise_m = 0.0  # finest-level point-to-plane noise of the last tracked frame (0: none yet)
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "map_corrections": 0,
                        "pnp_disagreements": 0, "loop_correction_skipped": 0,
@@ -156,7 +165,7 @@ class HybridSlam(DenseSlam):
         pts_t = se3.transform_points(se3.invert(T_render), match.points_world)
         sigma = max(h.joint_sigma_px, self._match_spread_px(match))
         return ReprojectionTerm(pts_t, match.uv_cur, self.intr, sigma, h.joint_huber,
-                                h.joint_weight * self.cfg.icp.finest_robust_scale_m ** 2)
+                                joint_term_weight(h, self.cfg.icp.finest_robust_scale_m, self._depth_noise_m))
 
     def _match_spread_px(self, match: KeyframeMatch) -> float:
         """Robust spread (px) of the inliers' reprojection residuals at the PnP pose: the data's own pixel noise
@@ -288,6 +297,8 @@ class HybridSlam(DenseSlam):
                 # a weak step is ICP's slide along the free directions: not fed back (DenseSlam._velocity_after)
                 self.velocity = self._velocity_after(step, status, frame.timestamp)
             self._mark_tracked(T_new, frame.timestamp, status)
+            if res.levels and res.levels[-1].level == 0:
+                self._depth_noise_m = res.levels[-1].geometric_noise_m
             self._fuse(frame, T_new)
             t.lap("fuse")
         else:
@@ -354,11 +365,12 @@ class HybridSlam(DenseSlam):
 
     def _pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:
         """PnP pose and inliers against the reference keyframe, in the dense frame (the graph frame may have
-        moved: the keyframe's pending correction is undone). Without the joint term the pose only checks ICP
-        (``pnp_check``, a 5 cm / 5 deg gate) or starts it again, so the coarse PnP pose is enough."""
+        moved: the keyframe's pending correction is undone). The coarse match (PnP-RANSAC, sub-pixel inliers) serves
+        unless ``hybrid.joint_fine_match``: the pose only checks ICP (``pnp_check``, a 5 cm / 5 deg gate) or starts
+        it again, and the joint term uses the inliers, not the pose."""
         C = self._correction(self.sparse.n_keyframes - 1)
         m = self.sparse.match_reference_keyframe(frame, C @ T_pred, feats=self._features(frame),
-                                                 coarse=not self.joint)
+                                                 coarse=not (self.joint and self.cfg.hybrid.joint_fine_match))
         if m is None:
             return None
         C_inv = se3.invert(self._correction(m.kf_id))

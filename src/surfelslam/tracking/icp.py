@@ -171,6 +171,9 @@ class LevelInfo:
     update_norm: float
     stop: str  # "update" | "residual" | "max_iterations" | "too_few_inliers" | "solver"
     frozen_directions: int = 0  # weak directions left at the initial guess in the level's last iteration
+    # robust RMS of the point-to-plane residuals alone (m; in the level's depth-normalised units, Huber-weighted),
+    # before any feature or photometric term: the depth data's own noise at the last linearisation
+    geometric_noise_m: float = 0.0
 
 
 @dataclass
@@ -319,10 +322,12 @@ def _register_level(src, tgt, lvl: int, T: np.ndarray, cfg: ICPConfig, stats: np
     upd = np.inf
     its = 0
     frozen = 0
+    geo_sse = geo_n = 0.0
     for _ in range(cfg.iterations[lvl]):
         kicp.accumulate_normal_equations(src.vertex, src.normal, tgt.vertex, tgt.normal, T,
                                          ti.fx, ti.fy, ti.cx, ti.cy, cfg.dist_thresh_m[lvl], cos_thr,
                                          robust, scale, stats, stride, depth_ref)
+        geo_sse, geo_n = stats[27], stats[29]
         if reprojection is not None:
             reprojection.add_to(stats, T)
         if photometric is not None:
@@ -361,7 +366,8 @@ def _register_level(src, tgt, lvl: int, T: np.ndarray, cfg: ICPConfig, stats: np
         prev_mse = mse
     n_in = int(stats[29])
     return T, LevelInfo(lvl, its, n_in, n_in / max(stats[31], 1.0),
-                        float(np.sqrt(stats[28] / max(stats[29], 1.0))), upd, stop, frozen)
+                        float(np.sqrt(stats[28] / max(stats[29], 1.0))), upd, stop, frozen,
+                        float(np.sqrt(geo_sse / max(geo_n, 1.0))))
 
 
 def _solve_step(stats: np.ndarray, T: np.ndarray, method: str) -> tuple[np.ndarray, float] | None:
