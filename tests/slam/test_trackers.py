@@ -23,7 +23,7 @@ from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, generate_sequence, iter_frames, noise_config
-from surfelslam.types import RGBDFrame
+from surfelslam.types import Intrinsics, RGBDFrame
 
 from helpers import INTR, ate_m
 
@@ -698,3 +698,17 @@ def test_joint_term_weight_follows_the_measured_depth_noise():
     assert joint_term_weight(fixed, scale, 0.004) == pytest.approx(h.joint_weight * scale**2)
     with pytest.raises(ConfigError, match="joint_weight_unit"):
         HybridConfig(joint_weight_unit="metres")
+
+
+def test_negative_fy_sequence_gives_the_same_trajectory():
+    """ICL-NUIM's convention: images upside down and fy < 0 (cy mirrored). The camera-frame points, hence the poses,
+    are unchanged, so the default hybrid (ICP, photometric and joint feature terms, ORB + PnP keyframes and loops)
+    must track the flipped sequence as well as the original."""
+    frames, gt = _frames("slow", N_SLOW)
+    flipped_intr = Intrinsics(INTR.fx, -INTR.fy, INTR.cx, INTR.height - 1 - INTR.cy, INTR.width, INTR.height)
+    flipped = [replace(f, rgb=f.rgb[::-1].copy(), depth_m=f.depth_m[::-1].copy()) for f in frames]
+    est, res, slam = _run("hybrid", frames)
+    est_flip, res_flip, slam_flip = _run("hybrid", flipped, intr=flipped_intr)
+    assert slam_flip.joint and res_flip.metrics["keyframes"] >= 2 and res_flip.metrics["tracking_failures"] == 0
+    ate, ate_flip = ate_m(est, gt), ate_m(est_flip, gt)
+    assert ate_flip < 3e-3 and abs(ate_flip - ate) < 1e-3, (ate, ate_flip)
