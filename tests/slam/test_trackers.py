@@ -710,5 +710,6 @@ def test_negative_fy_sequence_gives_the_same_trajectory():
     est = _run("hybrid", frames)[0]
     est_flip, res_flip, slam_flip = _run("hybrid", flipped, intr=flipped_intr)
     assert slam_flip.joint and res_flip.metrics["keyframes"] >= 2 and res_flip.metrics["tracking_failures"] == 0
+    assert 0.5e-3 < res_flip.metrics["depth_noise_m"] < 3e-3  # Kinect-like noise: the generator's 1-2 mm
     ate, ate_flip = ate_m(est, gt), ate_m(est_flip, gt)
     assert ate_flip < 3e-3 and abs(ate_flip - ate) < 1e-3, (ate, ate_flip)

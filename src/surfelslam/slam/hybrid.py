@@ -121,6 +121,7 @@ class HybridSlam(DenseSlam):
         self._stamp_of_frame: dict[int, float] = {}
         self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
         self._depth_noise_m = 0.0  # finest-level point-to-plane noise of the last tracked frame (0: none yet)
+        self._depth_noise_per_frame: list[float] = []  # the same for every tracked frame (reported as a median)
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "map_corrections": 0,
                        "pnp_disagreements": 0, "loop_correction_skipped": 0,
@@ -299,6 +300,7 @@ class HybridSlam(DenseSlam):
             self._mark_tracked(T_new, frame.timestamp, status)
             if res.levels and res.levels[-1].level == 0:
                 self._depth_noise_m = res.levels[-1].geometric_noise_m
+                self._depth_noise_per_frame.append(self._depth_noise_m)
             self._fuse(frame, T_new)
             t.lap("fuse")
         else:
@@ -438,6 +440,8 @@ class HybridSlam(DenseSlam):
                             "shape_relocalisations": self.relocalisations["tracked"],
                             "relocalisations_refused": self.relocalisations["refused_implausible"],
                             "weak_frames": self.weak_frames,
+                            "depth_noise_m": (float(np.median(self._depth_noise_per_frame))
+                                              if self._depth_noise_per_frame else None),
                             # recovered frames by either route, the key every tracker reports
                             "relocalisations": self.counts["relocalisations_tracked"] + self.relocalisations["tracked"],
                             **sparse_metrics(self.sparse, res)})
