@@ -120,8 +120,9 @@ class HybridSlam(DenseSlam):
         self._fused_anchor: list[int] = []
         self._stamp_of_frame: dict[int, float] = {}
         self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
-        self._depth_noise_m = 0.0  # finest-level point-to-plane noise of the last tracked frame (0: none yet)
-        self._depth_noise_per_frame: list[float] = []  # the same for every tracked frame (reported as a median)
+        # finest-level point-to-plane noise of every tracked frame (the last weighs the joint term; the median is
+        # reported)
+        self._depth_noise_per_frame: list[float] = []
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "map_corrections": 0,
                        "pnp_disagreements": 0, "loop_correction_skipped": 0,
@@ -166,7 +167,9 @@ class HybridSlam(DenseSlam):
         pts_t = se3.transform_points(se3.invert(T_render), match.points_world)
         sigma = max(h.joint_sigma_px, self._match_spread_px(match))
         return ReprojectionTerm(pts_t, match.uv_cur, self.intr, sigma, h.joint_huber,
-                                joint_term_weight(h, self.cfg.icp.finest_robust_scale_m, self._depth_noise_m))
+                                joint_term_weight(h, self.cfg.icp.finest_robust_scale_m,
+                                                  self._depth_noise_per_frame[-1] if self._depth_noise_per_frame
+                                                  else 0.0))
 
     def _match_spread_px(self, match: KeyframeMatch) -> float:
         """Robust spread (px) of the inliers' reprojection residuals at the PnP pose: the data's own pixel noise
@@ -299,8 +302,7 @@ class HybridSlam(DenseSlam):
                 self.velocity = self._velocity_after(step, status, frame.timestamp)
             self._mark_tracked(T_new, frame.timestamp, status)
             if res.levels and res.levels[-1].level == 0:
-                self._depth_noise_m = res.levels[-1].geometric_noise_m
-                self._depth_noise_per_frame.append(self._depth_noise_m)
+                self._depth_noise_per_frame.append(res.levels[-1].geometric_noise_m)
             self._fuse(frame, T_new)
             t.lap("fuse")
         else:
