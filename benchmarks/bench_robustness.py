@@ -36,7 +36,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.common import tracker_setup
+from benchmarks.common import tracker_cost_vs_dense, tracker_rank, tracker_setup
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
 from surfelslam.slam.runner import run_sequence
@@ -50,7 +50,6 @@ OPEN3D_DEPTH_MAX_M = 6.0  # Open3D's example clips depth at 3 m: most of the off
 DOWNSAMPLE_REAL = 2  # the real sequences are 640x480: read at 320x240
 REAL_FIRST_S_PER_FRAME = 0.05  # a-priori dense cost (s/frame) until a run measured it
 # a-priori cost per frame relative to dense, until one run measured it
-TRACKER_COST_VS_DENSE = {"hybrid": 1.5, "hybrid-odometry": 1.5, "hybrid-full": 6.0, "orb": 3.0, "open3d": 8.0}
 RUN_OVERHEAD_S = 5.0  # per run: opening, map and metrics writing
 SEGMENT_LINES = 3  # segments described per row in the JSON (the counts cover them all)
 CACHE_ENV = "SURFELSLAM_BENCH_CACHE"  # where generated sequences are kept between runs (default: the temp folder)
@@ -211,7 +210,7 @@ def section(n_frames: int, width: int, work: Path, budget, *, synthetic: tuple[s
 
     def estimate(tracker: str, n: int) -> float:
         dense = per_frame.get("dense", REAL_FIRST_S_PER_FRAME)
-        return n * per_frame.get(tracker, TRACKER_COST_VS_DENSE.get(tracker, 1.0) * dense) + RUN_OVERHEAD_S
+        return n * per_frame.get(tracker, tracker_cost_vs_dense(tracker) * dense) + RUN_OVERHEAD_S
 
     def one(tracker: str, label: str, seq, idx: int) -> None:
         if tracker != "dense" and not budget.fits(f"robustness {tracker} on {label} ({len(seq)} frames)",
@@ -247,9 +246,8 @@ def section_markdown(res: dict) -> list[str]:
     """The ``make bench`` section: one table of every (sequence, tracker) row and how to read it."""
     from benchmarks.report import fmt, table
 
-    order = {"dense": 0, "hybrid": 1, "hybrid-odometry": 2, "hybrid-full": 3, "orb": 4}
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in res["rows"]))}
-    rows = sorted(res["rows"], key=lambda r: (seq_order[r["sequence"]], order.get(r["tracker"], 9)))
+    rows = sorted(res["rows"], key=lambda r: (seq_order[r["sequence"]], tracker_rank(r["tracker"])))
     w, h = res["resolution"]
     md = [f"### Robustness: long near-degenerate sequences ({res['frames']} generated frames at {w}x{h}, "
           f"{res['noise']} noise) and real ones", ""]

@@ -21,6 +21,22 @@ PRESETS = Path(__file__).resolve().parents[1] / "configs"
 #: ``hybrid-odometry``: the default hybrid without its loop corrections, the reference of "loop closure never makes
 #: the trajectory worse than the odometry alone".
 VARIANT_TRACKERS = {"hybrid-odometry": {"tracker": "hybrid", "hybrid": {"loop_correction": False}}}
+#: Order of the tracker rows in every table (unknown labels last).
+TRACKER_ORDER = ("dense", "hybrid", "hybrid-odometry", "hybrid-full", "orb", "open3d")
+#: Seconds per frame of a tracker row against the dense tracker's on the same sequence: what the budgets assume
+#: before a row of that tracker has run (unknown labels: :data:`UNKNOWN_TRACKER_COST`).
+TRACKER_COST_VS_DENSE = {"hybrid": 1.5, "hybrid-odometry": 1.5, "hybrid-full": 6.0, "orb": 3.0, "open3d": 8.0}
+UNKNOWN_TRACKER_COST = 5.0
+
+
+def tracker_rank(label: str) -> int:
+    """Position of a tracker label in :data:`TRACKER_ORDER` (unknown labels after all of them)."""
+    return TRACKER_ORDER.index(label) if label in TRACKER_ORDER else len(TRACKER_ORDER)
+
+
+def tracker_cost_vs_dense(label: str) -> float:
+    """:data:`TRACKER_COST_VS_DENSE` of a label, :data:`UNKNOWN_TRACKER_COST` for others."""
+    return TRACKER_COST_VS_DENSE.get(label, UNKNOWN_TRACKER_COST)
 
 
 def tracker_setup(label: str):

@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 
 from benchmarks import bench_icp, bench_mesh, bench_robustness, bench_viewer
+from benchmarks.common import tracker_rank
 from surfelslam.io.jsonio import json_default
 
 DOCS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"  # written by every full run
@@ -172,9 +173,8 @@ def _grouped(rows: list[dict]) -> list[dict]:
     """Accuracy rows grouped by sequence (first appearance), resolution, frames (most first), tracker."""
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in rows))}
     res_order = {k: i for i, k in enumerate(dict.fromkeys(r["resolution"] for r in rows))}
-    trk = {"dense": 0, "hybrid": 1, "hybrid-odometry": 2, "orb": 3, "hybrid-full": 4}
     return sorted(rows, key=lambda r: (seq_order[r["sequence"]], res_order[r["resolution"]], -r["frames"],
-                                       trk.get(r["tracker"], 9)))
+                                       tracker_rank(r["tracker"])))
 
 
 def write(res: dict, out_dir: Path) -> None:

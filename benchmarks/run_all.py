@@ -62,7 +62,7 @@ from benchmarks import (
     bench_viewer,
     open3d_slam,
 )
-from benchmarks.common import SHARED_DATA
+from benchmarks.common import SHARED_DATA, tracker_cost_vs_dense
 from benchmarks.report import DOCS_HEADER, DOCS_PAGE, table, to_markdown, write, write_docs_page  # noqa: F401
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.kernels import threads
@@ -74,7 +74,6 @@ SHARED = SHARED_DATA
 RESULTS = HERE / "results"
 STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it
-TRACKER_COST_VS_DENSE = {"orb": 2.5, "hybrid": 1.5, "hybrid-full": 6.0, "hybrid-odometry": 1.5}
 OPEN3D_S_PER_FRAME_GUESS = 0.5  # at 320x240 on 2 cores, until the first Open3D run measured it
 RESERVE_S = 20.0  # kept free at the end of the budget (writing results)
 
@@ -448,7 +447,7 @@ def _per_frame_estimate(measured: dict, tracker: str, kind: str, dense_s: float)
     if (tracker, kind) in measured:
         return measured[(tracker, kind)]
     other = [v for (t, _), v in measured.items() if t == tracker]
-    return 3.0 * max(other) if other else TRACKER_COST_VS_DENSE.get(tracker, 5.0) * dense_s
+    return 3.0 * max(other) if other else tracker_cost_vs_dense(tracker) * dense_s
 
 
 def _mean(v: list[float], default: float) -> float:
