@@ -321,6 +321,19 @@ def test_sevenscenes_tum_copy_masks_65535(tmp_path):
     assert d[1, 2] == 0 and (d > 0).sum() == W * H - 1 and np.allclose(d[d > 0], 1.0)
 
 
+def test_renamed_kitchen_copy_is_known_by_its_info(tmp_path):
+    """A TUM-layout copy of 7-Scenes under another name is still 7-Scenes (colour not registered to depth) when its
+    INFO.txt says so; a TUM folder whose INFO.txt does not, or a generated one that mentions it, is not."""
+    root = make_tum(tmp_path / "kitchen_0500_0999", n=2)
+    assert detect_layout(root) == "tum"
+    (root / "INFO.txt").write_text("original dataset: Microsoft 7-Scenes, scene redkitchen\n"
+                                   "depth scale : 1000\n")
+    seq = open_sequence(root)
+    assert seq.layout == "7scenes" and not seq.colour_registered
+    (root / "INFO.txt").write_text("generator : surfelslam synth\nnote : a room like 7-Scenes\n")
+    assert detect_layout(root) != "7scenes"
+
+
 def test_plain_folder_needs_camera_from_options_or_info(tmp_path):
     root = tmp_path / "capture"
     for n in (2, 10, 1):  # numeric, not lexicographic, order

@@ -4,7 +4,7 @@
   ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world). Give the ``seq-XX`` folder, or a scene folder holding
   exactly one ``seq-XX``. Timestamps are ``frame number / 30`` s.
 * The TUM layout (rgb.txt / depth.txt / groundtruth.txt) in a folder whose name (or parent's) contains
-  ``7scenes``, ``7-scenes``, ``7_scenes`` or ``sevenscenes``.
+  ``7scenes``, ``7-scenes``, ``7_scenes`` or ``sevenscenes``, or whose ``INFO.txt`` names 7-Scenes in a value.
 
 Camera: fx=fy=585, cx=320, cy=240 (the depth camera; colour is not registered to it); depth in
 millimetres (scale 1000), raw 0 and 65535 are invalid.
@@ -64,6 +64,12 @@ def _has_frames(folder: Path) -> bool:
 
 def name_says_7scenes(root: Path) -> bool:
     return any(_NAME.search(n.lower()) for n in (root.name, root.parent.name))
+
+
+def info_says_7scenes(meta: FolderMetadata) -> bool:
+    """Whether the folder's INFO.txt names 7-Scenes in any value (a copy renamed on disk is still 7-Scenes: its
+    colour is not registered to depth); never for generated sequences."""
+    return not meta.is_synthetic and any(_NAME.search(v.lower()) for v in meta.fields.values())
 
 
 def _native_folder(root: Path) -> Path | None:
@@ -132,12 +138,13 @@ class SevenScenesSequence(RGBDSequence):
     colour_registered = False  # 7-Scenes colour and depth come from separate, uncalibrated Kinect cameras
     expects = (
         "seq-XX/frame-XXXXXX.{color.png|color.jpg,depth.png,pose.txt}, or the TUM layout in a folder named "
-        "7scenes / 7-scenes; depth in mm"
+        "7scenes / 7-scenes (or whose INFO.txt names 7-Scenes); depth in mm"
     )
 
     @classmethod
     def detect(cls, root: Path, meta: FolderMetadata) -> bool:
-        return _native_folder(root) is not None or (has_tum_index(root) and name_says_7scenes(root))
+        return _native_folder(root) is not None or (
+            has_tum_index(root) and (name_says_7scenes(root) or info_says_7scenes(meta)))
 
     @classmethod
     def open(cls, root: Path, options: DatasetOptions, meta: FolderMetadata | None = None) -> RGBDSequence:
