@@ -84,6 +84,98 @@ def nearest_two_mutual(query, train, best_d, second_d, best_idx, col_idx):
     _search(query, train, best_d, second_d, best_idx, col_idx, True)
 
 
+@njit(cache=True, nogil=True)
+def nearest_mutual_within(query, pred_uv, train, train_uv, cell_start, cell_order, cell_px, n_cols, n_rows,
+                          radius_px, best_d, best_idx, col_idx):
+    """Guided matching: for each query row, its nearest train row among those within ``radius_px`` of its predicted
+    pixel, and for each train row its nearest query row among the queries predicted within that radius of it (a
+    cross-check restricted to the same discs).
+
+    Args:
+        query: ``(N, W)`` uint64; pred_uv: ``(N, 2)`` float64 predicted pixels (non-finite: no candidates).
+        train: ``(M, W)`` uint64; train_uv: ``(M, 2)`` float64 keypoint pixels.
+        cell_start: ``(n_rows * n_cols + 1,)`` int64 and cell_order: ``(M,)`` int64: train rows grouped by grid
+            cell of ``cell_px`` pixels (row-major), see :func:`grid_cells`.
+        best_d, best_idx: ``(N,)`` int64 outputs (``NO_MATCH`` / -1 without candidates); col_idx: ``(M,)`` int64
+            output (-1 when no query has the train row as a candidate). Ties go to the lowest index, as in
+            :func:`nearest_two_mutual`.
+    """
+    n_words = query.shape[1]
+    col_d = np.full(train.shape[0], NO_MATCH, np.int64)
+    col_idx[:] = -1
+    r2 = radius_px * radius_px
+    for i in range(query.shape[0]):
+        best_d[i] = NO_MATCH
+        best_idx[i] = -1
+        pu, pv = pred_uv[i, 0], pred_uv[i, 1]
+        if not (np.isfinite(pu) and np.isfinite(pv)):
+            continue
+        # cells the disc overlaps; points outside the image sit in the border cells, so the range is clamped
+        # to the grid (before the int conversion, which could overflow) and the exact distance test decides
+        cx0 = int(np.floor(min(max((pu - radius_px) / cell_px, 0.0), n_cols - 1.0)))
+        cx1 = int(np.floor(min(max((pu + radius_px) / cell_px, 0.0), n_cols - 1.0)))
+        cy0 = int(np.floor(min(max((pv - radius_px) / cell_px, 0.0), n_rows - 1.0)))
+        cy1 = int(np.floor(min(max((pv + radius_px) / cell_px, 0.0), n_rows - 1.0)))
+        for cy in range(cy0, cy1 + 1):
+            for cx in range(cx0, cx1 + 1):
+                c = cy * n_cols + cx
+                for t in range(cell_start[c], cell_start[c + 1]):
+                    j = cell_order[t]
+                    du = train_uv[j, 0] - pu
+                    dv = train_uv[j, 1] - pv
+                    if du * du + dv * dv > r2:
+                        continue
+                    d = 0
+                    for w in range(n_words):
+                        d += int(_popcount64(query[i, w] ^ train[j, w]))
+                    if d < best_d[i] or (d == best_d[i] and j < best_idx[i]):
+                        best_d[i] = d
+                        best_idx[i] = j
+                    if d < col_d[j]:  # queries come in increasing order: the first one wins ties
+                        col_d[j] = d
+                        col_idx[j] = i
+
+
+def grid_cells(uv: np.ndarray, cell_px: float, width: int, height: int):
+    """Rows of ``uv (M, 2)`` grouped by square grid cell: ``(cell_start (C + 1,), cell_order (M,), n_cols, n_rows)``
+    for :func:`nearest_mutual_within` (points outside the image go to the nearest border cell)."""
+    n_cols, n_rows = max(int(np.ceil(width / cell_px)), 1), max(int(np.ceil(height / cell_px)), 1)
+    cu = np.clip((uv[:, 0] // cell_px).astype(np.int64), 0, n_cols - 1)
+    cv = np.clip((uv[:, 1] // cell_px).astype(np.int64), 0, n_rows - 1)
+    cell = cv * n_cols + cu
+    order = np.argsort(cell, kind="stable").astype(np.int64)
+    start = np.zeros(n_cols * n_rows + 1, np.int64)
+    np.cumsum(np.bincount(cell, minlength=n_cols * n_rows), out=start[1:])
+    return start, order, n_cols, n_rows
+
+
+def nearest_mutual_within_words(query_words: np.ndarray, pred_uv: np.ndarray, train_words: np.ndarray,
+                                train_uv: np.ndarray, radius_px: float, width: int, height: int):
+    """:func:`nearest_mutual_within` on word arrays (see :func:`as_words`) -> ``(best_d, best_idx, col_idx)``;
+    the grid's cells are ``radius_px`` wide."""
+    n, m = len(query_words), len(train_words)
+    best_d, best_idx, col_idx = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(m, np.int64)
+    train_uv = np.ascontiguousarray(train_uv, np.float64)
+    start, order, n_cols, n_rows = grid_cells(train_uv, float(radius_px), width, height)
+    nearest_mutual_within(query_words, np.ascontiguousarray(pred_uv, np.float64), train_words, train_uv, start,
+                          order, float(radius_px), n_cols, n_rows, float(radius_px), best_d, best_idx, col_idx)
+    return best_d, best_idx, col_idx
+
+
+def nearest_mutual_within_ref(query: np.ndarray, pred_uv: np.ndarray, train: np.ndarray, train_uv: np.ndarray,
+                              radius_px: float):
+    """Numpy reference of :func:`nearest_mutual_within_words` on uint8 descriptors (full distance matrix, masked)."""
+    n, m = len(query), len(train)
+    D = np.unpackbits(np.bitwise_xor(query[:, None, :], train[None, :, :]), axis=2).sum(axis=2).astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        near = ((pred_uv[:, None, :] - train_uv[None, :, :]) ** 2).sum(axis=2) <= radius_px ** 2  # NaN: False
+    D = np.where(near, D, NO_MATCH)
+    best_idx = np.where(near.any(axis=1), np.argmin(D, axis=1), -1) if m else np.full(n, -1)
+    best_d = np.where(best_idx >= 0, D[np.arange(n), np.maximum(best_idx, 0)], NO_MATCH) if m else np.full(n, NO_MATCH)
+    col_idx = np.where(near.any(axis=0), np.argmin(D, axis=0), -1) if n else np.full(m, -1)
+    return best_d, best_idx, col_idx
+
+
 def as_words(descriptors: np.ndarray) -> np.ndarray:
     """``(N, B)`` uint8 descriptors (B a multiple of 8) -> ``(N, B / 8)`` uint64 words (a view when possible)."""
     d = np.ascontiguousarray(descriptors, dtype=np.uint8)

@@ -224,6 +224,11 @@ class HybridConfig(Config):
         0.0, unit="fraction", ge=0, le=100,
         doc="[sparse.features] depth_edge_rel for the hybrid's sparse side: 0 keeps keypoints on occluding "
             "contours for the keyframe edges (the joint term leaves them out itself)")
+    guided_match_deg: float = setting(
+        2.6, unit="deg", ge=0, le=45,
+        doc="[sparse.features] guided_radius_px for the hybrid, as an angle (pixels = focal length x tan): the "
+            "per-frame PnP match seeks each keyframe keypoint within this angle of where the motion prediction puts "
+            "it (brute force when that finds too few); 0 = always brute force")
 
     keyframe_threshold: float = setting(
         0.1, unit="m + rad", gt=0, le=100,

@@ -92,7 +92,8 @@ class HybridSlam(DenseSlam):
         mode = cfg.hybrid.joint_features
         self.joint = colour_switch(mode, colour_registered)
         # the sparse back end with the hybrid's own settings (HybridConfig: graph_edge_information, keyframe_threshold,
-        # keyframe_min_gap_frames, loop_nearby, loop_random, pnp_reference_width_px, pnp_depth_edge_rel); the joint
+        # keyframe_min_gap_frames, loop_nearby, loop_random, pnp_reference_width_px, pnp_depth_edge_rel,
+        # guided_match_deg); the joint
         # term leaves contour keypoints out itself (_pnp_match)
         h = cfg.hybrid
         sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information),
@@ -100,7 +101,8 @@ class HybridSlam(DenseSlam):
                      loop=replace(cfg.sparse.loop, n_nearby=h.loop_nearby, n_random=h.loop_random))
         sp = replace(sp, features_reference_width_px=h.pnp_reference_width_px)
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
-        sp = replace(sp, features=replace(sp.features, depth_edge_rel=h.pnp_depth_edge_rel))
+        guided_px = abs(intr.fx) * float(np.tan(np.radians(h.guided_match_deg)))
+        sp = replace(sp, features=replace(sp.features, depth_edge_rel=h.pnp_depth_edge_rel, guided_radius_px=guided_px))
         if cfg.hybrid.dense_odometry_sigma_m > 0:
             sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         refiner, refined_scale = None, None

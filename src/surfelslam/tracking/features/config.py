@@ -36,6 +36,12 @@ class FeatureConfig(Config):
                                   doc="good matches have distance < k * max(min_distance, floor); inf keeps every "
                                       "match")
     good_match_floor_bits: float = setting(10.0, unit="bits", ge=0, le=256, doc="the floor of that rule")
+    guided_radius_px: float = setting(
+        0.0, unit="px", ge=0, le=10_000,
+        doc="with a pose prediction, match each reference keypoint only to current keypoints within this radius of "
+            "its predicted pixel (mutual nearest neighbours within the discs); 0 = always brute force")
+    guided_min_matches: int = setting(50, unit="matches", ge=0, le=1_000_000,
+                                      doc="fewer good guided matches: match by brute force instead")
     depth_median_3x3: bool = setting(True, doc="lift keypoints with the median of the valid depths in their 3x3 "
                                      "neighbourhood instead of the nearest pixel's")
     depth_plane_radius_px: int = setting(

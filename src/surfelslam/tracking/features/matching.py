@@ -32,11 +32,16 @@ class MatchResult:
     max_dist: float
 
 
-def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
+def match(ref: Features, cur: Features, cfg: FeatureConfig, pred_uv: np.ndarray | None = None,
+          image_size: tuple[int, int] | None = None) -> MatchResult:
     """Match ``ref`` descriptors to ``cur`` descriptors and keep the good matches.
 
     Good matches: Hamming distance ``< good_match_k * max(min_dist, good_match_floor_bits)`` where
     ``min_dist`` is the smallest distance of all raw matches (the reference assignment's rule).
+
+    ``pred_uv``: ``(N, 2)`` predicted pixels of the reference keypoints in the current image (non-finite: not
+    matched) and ``image_size`` ``(W, H)``: guided matching within ``cfg.guided_radius_px`` of them (ORB only,
+    always mutual nearest neighbours) instead of brute force.
     """
     empty = MatchResult(np.zeros((0, 2), np.int64), np.zeros(0, np.float32), 0, 0, 0.0, 0.0)
     if len(ref) == 0 or len(cur) == 0:
@@ -44,7 +49,11 @@ def match(ref: Features, cur: Features, cfg: FeatureConfig) -> MatchResult:
     if ref.descriptors.dtype != np.uint8 or cur.descriptors.dtype != np.uint8:
         return _match_float(ref, cur, cfg)
     ref_w, cur_w = hamming.as_words(ref.descriptors), hamming.as_words(cur.descriptors)
-    if cfg.matching == "crosscheck":  # brute force, numba (see kernels.hamming); both directions in one pass
+    if pred_uv is not None and image_size is not None and cfg.guided_radius_px > 0:
+        d12, j12, i21 = hamming.nearest_mutual_within_words(ref_w, pred_uv, cur_w, cur.keypoints_uv,
+                                                            cfg.guided_radius_px, *image_size)
+        keep = (j12 >= 0) & (i21[np.maximum(j12, 0)] == np.arange(len(ref)))
+    elif cfg.matching == "crosscheck":  # brute force, numba (see kernels.hamming); both directions in one pass
         d12, d12_second, j12, i21 = hamming.nearest_two_mutual_words(ref_w, cur_w)
         keep = i21[j12] == np.arange(len(ref))  # mutual nearest neighbours
     else:

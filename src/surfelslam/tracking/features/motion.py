@@ -12,12 +12,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surfelslam.geometry.camera import project
 from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
 from surfelslam.tracking.consensus import has_consistent_set, rigid_consensus
 from surfelslam.tracking.features.config import FeatureConfig
 from surfelslam.tracking.features.depth import keypoint_depth
 from surfelslam.tracking.features.extract import Features, extract
-from surfelslam.tracking.features.matching import match
+from surfelslam.tracking.features.matching import MatchResult, match
 from surfelslam.tracking.features.refine import refine_rgbd
 from surfelslam.tracking.features.reprojection import reprojection_inliers
 from surfelslam.tracking.features.subpixel import search_by_projection, track_subpixel
@@ -177,6 +178,20 @@ def _refined_pose(ref: Features, cur: Features, obj: np.ndarray, img: np.ndarray
     return T, rvec, tvec, information, len(pts_final)
 
 
+def _guided_match(ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureConfig,
+                  T_init_cur_ref: np.ndarray | None):
+    """Matches of the reference keypoints with depth near where ``T_init_cur_ref`` projects them
+    (``cfg.guided_radius_px``), or ``None`` (no prediction, guided matching off, or fewer good matches than
+    ``cfg.guided_min_matches``: the caller then matches by brute force)."""
+    if T_init_cur_ref is None or cfg.guided_radius_px <= 0 or not np.all(np.isfinite(T_init_cur_ref)):
+        return None
+    T = np.asarray(T_init_cur_ref, np.float64)
+    u, v, z = project(ref.points_cam.astype(np.float64) @ T[:3, :3].T + T[:3, 3], intr)
+    pred = np.where(((z > 0) & ref.valid)[:, None], np.column_stack([u, v]), np.nan)  # NaN depth stays NaN
+    m = match(ref, cur, cfg, pred_uv=pred, image_size=(intr.width, intr.height))
+    return m if m.n_good >= max(cfg.guided_min_matches, 1) else None
+
+
 def estimate_motion(
     ref: Features,
     cur: Features,
@@ -197,10 +212,24 @@ def estimate_motion(
             not overlap still give a hundred or more good matches, and RANSAC then runs all its iterations in
             vain; loop and relocalisation checks use it (``LoopConfig.min_consistent_matches``).
 
+    With ``cfg.guided_radius_px`` and a guess, the matches are searched near where the guess projects the
+    reference keypoints; when that gives fewer than ``cfg.guided_min_matches`` good matches or PnP inliers, or
+    fails, the result is that of brute-force matching.
+
     Returns:
         :class:`MotionResult`; ``ok`` is False with a ``reason`` when a rejection rule fired.
     """
-    m = match(ref, cur, cfg)
+    guided = _guided_match(ref, cur, intr, cfg, T_init_cur_ref)
+    if guided is not None:
+        res = _motion_from_matches(guided, ref, cur, intr, cfg, T_init_cur_ref, min_consistent)
+        if res.ok and res.n_inliers >= cfg.guided_min_matches:
+            return res
+    return _motion_from_matches(match(ref, cur, cfg), ref, cur, intr, cfg, T_init_cur_ref, min_consistent)
+
+
+def _motion_from_matches(m: MatchResult, ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureConfig,
+                         T_init_cur_ref: np.ndarray | None, min_consistent: int) -> MotionResult:
+    """:func:`estimate_motion` from the matches ``m``."""
     pairs = m.pairs[ref.valid[m.pairs[:, 0]]] if m.n_good else m.pairs
     n_good = len(pairs)
     if n_good < max(cfg.min_good_matches, 4):
