@@ -93,8 +93,7 @@ class HybridSlam(DenseSlam):
         self.joint = colour_switch(mode, colour_registered)
         # the sparse back end with the hybrid's own settings (HybridConfig: graph_edge_information, keyframe_threshold,
         # keyframe_min_gap_frames, loop_nearby, loop_random, pnp_reference_width_px, pnp_depth_edge_rel,
-        # guided_match_deg); the joint
-        # term leaves contour keypoints out itself (_pnp_match)
+        # guided_match_deg); the joint term leaves contour keypoints out itself (_pnp_match)
         h = cfg.hybrid
         sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information),
                      keyframe_threshold=h.keyframe_threshold, keyframe_min_gap_frames=h.keyframe_min_gap_frames,

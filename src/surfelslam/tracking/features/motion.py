@@ -179,7 +179,7 @@ def _refined_pose(ref: Features, cur: Features, obj: np.ndarray, img: np.ndarray
 
 
 def _guided_match(ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureConfig,
-                  T_init_cur_ref: np.ndarray | None):
+                  T_init_cur_ref: np.ndarray | None) -> MatchResult | None:
     """Matches of the reference keypoints with depth near where ``T_init_cur_ref`` projects them
     (``cfg.guided_radius_px``), or ``None`` (no prediction, guided matching off, or fewer good matches than
     ``cfg.guided_min_matches``: the caller then matches by brute force)."""
