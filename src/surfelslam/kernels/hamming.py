@@ -1,4 +1,5 @@
-"""Brute-force Hamming nearest neighbours of binary descriptors (numba), with a numpy reference.
+"""Hamming nearest neighbours of binary descriptors, brute force or guided by predicted pixels (numba), with numpy
+references.
 
 ORB descriptors are 256 bits = 32 bytes, read as four 64-bit words; the distance of two descriptors is the
 number of set bits of their XOR (a SWAR popcount, which LLVM turns into the CPU's popcount instruction).
@@ -6,6 +7,8 @@ number of set bits of their XOR (a SWAR popcount, which LLVM turns into the CPU'
 set and the index of the nearest one (the first one on ties), i.e. what a cross-check or a ratio test needs. On
 this 2-core VM it takes 3 ms for 1000 x 1000 descriptors, against 16-25 ms for OpenCV's ``BFMatcher`` (whose
 Hamming norm this OpenCV build does not dispatch to popcount); the results are the same (tested).
+:func:`nearest_mutual_within` compares each query only with the train rows within a radius of its predicted pixel
+(a grid of the train keypoints): 0.25 ms instead of 1.6 ms for 1000 x 1000 descriptors at 640x480 and 20 px.
 """
 
 from __future__ import annotations
