@@ -62,6 +62,16 @@ class ColourRegistrationConfig(Config):
     fallback_depth_m: float = setting(2.0, unit="m", gt=0, le=100,
                                       doc="depth assumed where the depth pixel is invalid (sets the parallax of its "
                                           "colour)")
+    check: bool = setting(
+        True, doc="when the layout takes colour as registered to depth (TUM, ICL-NUIM, plain folders), fit a separate "
+                  "colour camera on a few frames first; if it lines colour edges up with depth edges much better, "
+                  "colour is taken as not registered (colour terms under auto turn off)")
+    check_frames: int = setting(6, unit="frames", ge=1, le=1000, doc="frames of that check, spread over the selection")
+    check_min_gain_px: float = setting(
+        1.0, unit="px at 640 wide", gt=0, le=1000,
+        doc="the fit must lower the mean edge distance by at least this much (scaled with the image width)")
+    check_min_gain_fraction: float = setting(0.35, unit="fraction", gt=0, le=1,
+                                             doc="and by at least this fraction of the same-pixel distance")
 
 
 @lru_cache(maxsize=8)

@@ -38,6 +38,7 @@ from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
+from surfelslam.slam.colour_check import check_colour_registration
 from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 
@@ -204,8 +205,9 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     recipe = dumps_toml(cfg)
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
     check_map_options(tracker, prior_map, localize_only, poses)
-    slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given",
-                      colour_registered=getattr(seq, "colour_registered", True),
+    colour_check = check_colour_registration(seq, cfg.colour_registration)
+    colour_registered = getattr(seq, "colour_registered", True) and (colour_check is None or colour_check["registered"])
+    slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given", colour_registered=colour_registered,
                       colour_camera=getattr(seq, "colour_camera", None))
     if prior_map is not None:
         slam.use_prior_map(prior_map, localize_only)
@@ -218,6 +220,12 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
             on_start(stage)
         write_text_atomic(stage / "config.toml", recipe)
         metrics = _run(seq, stage, cfg, slam, tracker, given, poses, progress, figures, on_frame, recipe)
+        metrics["colour_check"] = colour_check
+        if colour_check is not None and not colour_check["registered"]:
+            metrics["warnings"].append(
+                f"colour does not line up with depth (mean edge distance {colour_check['edge_distance_same_pixel_px']}"
+                f" px at the same pixel, {colour_check['edge_distance_fitted_px']} px through a fitted colour camera):"
+                " taken as not registered, colour terms under auto are off (colour_registration.check)")
         metrics.update(complete=True, started=started, finished=_now())
         write_text_atomic(stage / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
         if before_commit is not None:
