@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from surfelslam.geometry.camera import project
-from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log
+from surfelslam.geometry.se3 import invert, make_T, motion_norm, so3_exp, so3_log, transform_points
 from surfelslam.tracking.consensus import has_consistent_set, rigid_consensus
 from surfelslam.tracking.features.config import FeatureConfig
 from surfelslam.tracking.features.depth import keypoint_depth
@@ -185,8 +185,8 @@ def _guided_match(ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureCo
     ``cfg.guided_min_matches``: the caller then matches by brute force)."""
     if T_init_cur_ref is None or cfg.guided_radius_px <= 0 or not np.all(np.isfinite(T_init_cur_ref)):
         return None
-    T = np.asarray(T_init_cur_ref, np.float64)
-    u, v, z = project(ref.points_cam.astype(np.float64) @ T[:3, :3].T + T[:3, 3], intr)
+    u, v, z = project(transform_points(np.asarray(T_init_cur_ref, np.float64), ref.points_cam.astype(np.float64)),
+                      intr)
     pred = np.where(((z > 0) & ref.valid)[:, None], np.column_stack([u, v]), np.nan)  # NaN depth stays NaN
     m = match(ref, cur, cfg, pred_uv=pred, image_size=(intr.width, intr.height))
     return m if m.n_good >= max(cfg.guided_min_matches, 1) else None
