@@ -3,7 +3,7 @@
     import surfelslam as ss
 
     seq = ss.open_sequence("rgbd_dataset_freiburg3_teddy")
-    slam = ss.Slam(seq.intrinsics)  # the default tracker, hybrid
+    slam = ss.Slam.from_sequence(seq)  # the default tracker, hybrid, set up for this sequence's cameras
     for frame in seq:
         slam.track(frame)
     run = slam.finish()
@@ -30,6 +30,7 @@ from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
 from surfelslam.eval.metrics import evaluate as _evaluate
 from surfelslam.slam import TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
+from surfelslam.slam.colour_check import check_colour_registration
 from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 from surfelslam.tracking.icp import ICPConfig
@@ -149,6 +150,24 @@ class Slam:
             self.tracker.warmup()
         self._results: list[FrameResult] = []
         self._finished = False
+        #: the pre-run colour registration check (:meth:`from_sequence`; ``None``: not run or not applicable)
+        self.colour_check: dict | None = None
+
+    @classmethod
+    def from_sequence(cls, seq: RGBDSequence, tracker: str | None = None,
+                      config: SlamConfig | dict | str | Path | None = None, **kwargs: Any) -> Slam:
+        """A session set up for ``seq``'s cameras, as ``surfelslam run`` sets it up: its intrinsics, whether its
+        colour is registered to depth (the layout's word, checked on a few frames for the layouts that take it as
+        registered: ``colour_registration.check``), and its separate colour camera if the layout knows one.
+        ``kwargs``: the other :class:`Slam` arguments (``warmup``, ``prior_map``, ``localize_only``).
+        """
+        cfg = replace(_as_config(config), dataset=seq.options)
+        check = check_colour_registration(seq, cfg.colour_registration)
+        registered = seq.colour_registered and (check is None or check["registered"])
+        slam = cls(seq.intrinsics, tracker, cfg, colour_registered=registered, colour_camera=seq.colour_camera,
+                   **kwargs)
+        slam.colour_check = check
+        return slam
 
     def track(self, frame: RGBDFrame | np.ndarray, depth_m: np.ndarray | None = None,
               timestamp: float | None = None) -> FrameResult:
@@ -191,6 +210,8 @@ class Slam:
             traj = Trajectory(stamps, poses)
         frames = [(r.index, r.timestamp, r.status, r.reason) for r in self._results]
         metrics = {**res.metrics, **segments_report(tracking_segments(frames))}
+        if self.colour_check is not None:
+            metrics["colour_check"] = self.colour_check
         return SlamRun(traj, res.surfel_map, metrics, self.config, self.tracker_name, res, self._results)
 
 

@@ -23,7 +23,7 @@ def test_slam_track_finish_equals_the_run_loop(seq_path, tmp_path, tracker):
     """``Slam.track`` frame by frame, then ``finish().trajectory``, is the trajectory ``surfelslam run`` writes, bit
     for bit, for every tracker (orb and hybrid: the pose-graph-optimised one)."""
     seq = ss.open_sequence(seq_path)
-    slam = ss.Slam(seq.intrinsics, tracker=tracker, colour_registered=seq.colour_registered)
+    slam = ss.Slam.from_sequence(seq, tracker=tracker)
     results = [slam.track(f) for f in seq]
     run = slam.finish()
     assert len(results) == len(seq) == len(run.trajectory)

@@ -1,10 +1,12 @@
 """The pre-run check that colour taken as registered lines up with depth."""
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pytest
 
+import surfelslam as ss
+from surfelslam.datasets.base import DatasetOptions
 from surfelslam.geometry.camera import ColourRegistrationConfig
 from surfelslam.geometry.colour_fit import ColourFit, fit_says_unregistered
 from surfelslam.slam.colour_check import check_colour_registration
@@ -22,6 +24,8 @@ class _Frames:
     intrinsics: Intrinsics
     layout: str = "tum"
     colour_registered: bool = True
+    options: DatasetOptions = field(default_factory=DatasetOptions)
+    colour_camera: ColourCamera | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -54,6 +58,21 @@ def test_shifted_colour_is_found_out_and_aligned_colour_is_not(office):
     assert check_colour_registration(_Frames(shifted, intr, layout="synthetic"), cfg) is None
     assert check_colour_registration(_Frames(shifted, intr, colour_registered=False), cfg) is None
     assert check_colour_registration(_Frames(shifted, intr), replace(cfg, check=False)) is None
+
+
+def test_the_api_session_for_a_sequence_runs_the_check(office):
+    """``Slam.from_sequence`` sets colour up as ``surfelslam run`` does: colour that does not line up with depth
+    turns the hybrid's joint feature term off, and the run's metrics say why."""
+    frames, intr = office
+    shifted = _Frames([replace(f, rgb=np.roll(f.rgb, 5, axis=1)) for f in frames], intr)
+    for seq, registered in ((_Frames(frames, intr), True), (shifted, False)):
+        slam = ss.Slam.from_sequence(seq, tracker="hybrid", warmup=False)
+        assert slam.colour_check["registered"] is registered
+        for f in seq.frames:
+            slam.track(f)
+        run = slam.finish()
+        assert run.metrics["joint_features"] is registered
+        assert run.metrics["colour_check"] == slam.colour_check
 
 
 def test_the_gain_bound_scales_with_the_image_width():

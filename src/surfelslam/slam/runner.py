@@ -205,14 +205,14 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     recipe = dumps_toml(cfg)
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
     check_map_options(tracker, prior_map, localize_only, poses)
+    folder = RunFolder(out_dir, overwrite=overwrite)
+    folder.check()  # nothing written yet; before the colour check, which reads frames
     colour_check = check_colour_registration(seq, cfg.colour_registration)
     colour_registered = getattr(seq, "colour_registered", True) and (colour_check is None or colour_check["registered"])
     slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given", colour_registered=colour_registered,
                       colour_camera=getattr(seq, "colour_camera", None))
     if prior_map is not None:
         slam.use_prior_map(prior_map, localize_only)
-    folder = RunFolder(out_dir, overwrite=overwrite)
-    folder.check()  # nothing written yet
     with folder:
         stage = folder.open()
         started = _now()
