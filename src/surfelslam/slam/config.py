@@ -208,6 +208,10 @@ class HybridConfig(Config):
     joint_fine_match: bool = setting(
         False, doc="the joint term's PnP match also searches by projection and refines on RGB-D jointly (about 1.5x "
                    "the per-frame time at 320x240); the inlier pixels are sub-pixel tracked either way")
+    pnp_rgbd_refine: bool = setting(
+        True, doc="refine the per-frame PnP pose on the keypoints' pixels and depths jointly ([sparse.features] "
+                  "rgbd_refine_iterations): the joint term's pixel noise, the inliers' spread at that pose, then also "
+                  "shows where colour keypoints and depth disagree")
     joint_weight_unit: str = setting(
         "depth_noise", choices=JOINT_WEIGHT_UNITS,
         doc="robust_scale: [icp] finest_robust_scale_m; depth_noise: the depth's own point-to-plane noise, measured "

@@ -112,7 +112,7 @@ class HybridSlam(DenseSlam):
             sp = replace(sp, graph=replace(sp.graph, robust_scale_sigma=float(scale)))
             refined_scale = cfg.hybrid.loop_robust_scale_m / cfg.hybrid.loop_icp.sigma_m
         self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale,
-                                 colour_registered=colour_registered)
+                                 colour_registered=colour_registered, coarse_rgbd_refine=h.pnp_rgbd_refine)
         self._kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
@@ -370,9 +370,10 @@ class HybridSlam(DenseSlam):
 
     def _pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:
         """PnP pose and inliers against the reference keyframe, in the dense frame (the graph frame may have
-        moved: the keyframe's pending correction is undone). The coarse match (PnP-RANSAC, sub-pixel inliers) serves
-        unless ``hybrid.joint_fine_match``: the pose only checks ICP (``pnp_check``, a 5 cm / 5 deg gate) or starts
-        it again, and the joint term uses the inliers, not the pose."""
+        moved: the keyframe's pending correction is undone). The coarse match (PnP-RANSAC, sub-pixel inliers, the
+        RGB-D refinement with ``hybrid.pnp_rgbd_refine``) serves unless ``hybrid.joint_fine_match``: the pose only
+        checks ICP (``pnp_check``, a 5 cm / 5 deg gate), starts it again or measures the joint term's pixel noise,
+        and the joint term uses the inliers."""
         C = self._correction(self.sparse.n_keyframes - 1)
         m = self.sparse.match_reference_keyframe(frame, C @ T_pred, feats=self._features(frame),
                                                  coarse=not (self.joint and self.cfg.hybrid.joint_fine_match))

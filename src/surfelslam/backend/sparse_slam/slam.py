@@ -45,17 +45,23 @@ class SparseSlam:
             ``edge_refiner``, which keeps the keyframes' depth); ``None`` or disabled: PnP alone.
         colour_registered: whether colour is registered to depth (``RGBDSequence.colour_registered``): with
             ``loop.pnp_nearby_edges = "auto"`` PnP edges to nearby keyframes enter the PnP graph only then.
+        coarse_rgbd_refine: the coarse match (:meth:`match_reference_keyframe`) keeps the joint RGB-D refinement of
+            the pose (``features.rgbd_refine_iterations``).
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
                  T_world_first: np.ndarray | None = None, edge_refiner: DenseEdgeRefiner | None = None,
                  refined_robust_scale: float | None = None,
                  cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None, refine_edges: bool = True,
-                 depth_odometry: DepthOdometryConfig | None = None, colour_registered: bool = True) -> None:
+                 depth_odometry: DepthOdometryConfig | None = None, colour_registered: bool = True,
+                 coarse_rgbd_refine: bool = False) -> None:
         self.intr = intr
         self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
-        # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement only
-        self._coarse_features = replace(self.cfg.features, projection_search=False, rgbd_refine_iterations=0)
+        # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement, without
+        # search by projection (and without the RGB-D refinement unless coarse_rgbd_refine)
+        rgbd_iterations = self.cfg.features.rgbd_refine_iterations if coarse_rgbd_refine else 0
+        self._coarse_features = replace(self.cfg.features, projection_search=False,
+                                        rgbd_refine_iterations=rgbd_iterations)
         self._depth_cfg = depth_odometry if depth_odometry is not None and depth_odometry.enabled else None
         if self._depth_cfg is not None and edge_refiner is None:
             raise ValueError("depth odometry needs an edge_refiner (the keyframes' depth store)")
@@ -420,9 +426,10 @@ class SparseSlam:
                                  feats: Features | None = None, coarse: bool = False) -> KeyframeMatch | None:
         """PnP pose of ``frame`` against the reference keyframe, with the inlier correspondences.
 
-        ``coarse``: PnP-RANSAC and its inlier refinement only, without search by projection and the joint RGB-D
-        refinement (:func:`~surfelslam.tracking.features.estimate_motion`; same rejection rules): enough for a
-        sanity check or an ICP start, at a third to half the cost.
+        ``coarse``: PnP-RANSAC and its inlier refinement, without search by projection (and without the joint
+        RGB-D refinement unless the constructor's ``coarse_rgbd_refine``;
+        :func:`~surfelslam.tracking.features.estimate_motion`; same rejection rules): enough for a sanity check, an
+        ICP start or the joint term's inliers, at a third to half the cost.
 
         Returns:
             :class:`KeyframeMatch` (poses and points in the graph's world frame), or ``None`` when there is no
