@@ -134,6 +134,24 @@ def test_coarse_reference_match_is_close_to_the_precise_one(loop_frames, loop_ru
     np.testing.assert_array_equal(coarse.uv_cur, fine.uv_cur)
 
 
+def test_coarse_match_keeps_the_rgbd_refinement_when_asked(loop_frames) -> None:
+    """``coarse_rgbd_refine`` (the hybrid's ``pnp_rgbd_refine``): the coarse match's pose is refined on the keypoints'
+    pixels and depths too; the inliers stay the PnP ones, and the pose stays on the ground truth."""
+    poses, frames = loop_frames
+    plain = SparseSlam(ROOM_INTR, NO_LOOP_CFG, T_world_first=poses[0])
+    rgbd = SparseSlam(ROOM_INTR, NO_LOOP_CFG, T_world_first=poses[0], coarse_rgbd_refine=True)
+    for f in frames[:6]:
+        plain.process(f)
+        rgbd.process(f)
+    a = plain.match_reference_keyframe(frames[6], poses[6], coarse=True)
+    b = rgbd.match_reference_keyframe(frames[6], poses[6], coarse=True)
+    assert a is not None and b is not None and a.kf_id == b.kf_id
+    np.testing.assert_array_equal(a.uv_cur, b.uv_cur)
+    assert 1e-5 < pose_error(a.T_world_cam, b.T_world_cam)[0] < 0.01
+    # 1 % depth noise: the depths move the pose closer to the truth (3.3 against 3.6 mm)
+    assert pose_error(b.T_world_cam, poses[6])[0] < min(0.005, pose_error(a.T_world_cam, poses[6])[0])
+
+
 def test_rejected_frames_counted_and_predicted(loop_frames) -> None:
     poses, frames = loop_frames
     cfg = replace(NO_LOOP_CFG, relocalise_after_failures=100)
