@@ -202,7 +202,7 @@ class HybridConfig(Config):
     joint_sigma_px: float = setting(1.0, unit="px", gt=0, le=100, doc="pixel noise of those terms (residual unit)")
     joint_huber: float = setting(2.0, unit="sigmas", gt=0, le=100, doc="Huber threshold of their residual norm")
     joint_weight: float = setting(
-        50.0, ge=0, le=1e6,
+        100.0, ge=0, le=1e6,
         doc="a feature residual of joint_sigma_px costs this many point-to-plane pairs with a residual of one "
             "joint_weight_unit")
     joint_fine_match: bool = setting(
