@@ -1,10 +1,15 @@
-"""Joint RGB-D refinement of a PnP pose: reprojection plus inverse-depth residuals (Gauss-Newton, Huber)."""
+"""Joint RGB-D refinement of a PnP pose: reprojection plus inverse-depth residuals (Gauss-Newton, Huber).
+
+:func:`refine_rgbd` runs the numba kernel :func:`surfelslam.kernels.rgbd_refine.rgbd_refine`; :func:`refine_rgbd_ref`
+is its numpy reference.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
 from surfelslam.geometry.se3 import exp as se3_exp
+from surfelslam.kernels.rgbd_refine import rgbd_refine
 from surfelslam.tracking.features.config import FeatureConfig
 from surfelslam.tracking.features.reprojection import MIN_POINTS_FOR_SPREAD, reprojection_spread_px, robust_sigma
 from surfelslam.types import Intrinsics
@@ -57,6 +62,27 @@ def _rgbd_system(T: np.ndarray, P: np.ndarray, uv: np.ndarray, q: np.ndarray, w_
 
 def refine_rgbd(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, inv_depth_cur: np.ndarray,
                 intr: Intrinsics, cfg: FeatureConfig, with_information: bool = False):
+    """Joint reprojection + inverse-depth refinement of ``T_cur_ref``: :func:`refine_rgbd_ref` (arguments and
+    results) in a numba kernel."""
+    T0 = np.ascontiguousarray(T_cur_ref, np.float64)
+    P = np.ascontiguousarray(pts_ref, np.float64).reshape(-1, 3)
+    uv = np.ascontiguousarray(uv_cur, np.float64).reshape(-1, 2)
+    inv = np.asarray(inv_depth_cur, np.float64)
+    w_inv = np.isfinite(inv)
+    q = np.where(w_inv, inv, 0.0)
+    T = np.empty((4, 4))
+    H = np.empty((6, 6))
+    has_info = rgbd_refine(T0, P, uv, q, w_inv, float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
+                           int(cfg.rgbd_refine_iterations), float(cfg.rgbd_huber), MIN_POINTS_FOR_SPREAD,
+                           float(cfg.rgbd_pixel_sigma_px), float(cfg.rgbd_min_pixel_sigma_px), _MIN_POINTS_FOR_SPREAD,
+                           float(cfg.rgbd_inverse_depth_sigma), _RGBD_CONVERGED_UPDATE, with_information, T, H)
+    if not with_information:
+        return T
+    return T, (H if has_info else None)
+
+
+def refine_rgbd_ref(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv_cur: np.ndarray, inv_depth_cur: np.ndarray,
+                    intr: Intrinsics, cfg: FeatureConfig, with_information: bool = False):
     """Joint reprojection + inverse-depth refinement of ``T_cur_ref`` (see ``FeatureConfig.rgbd_refine_iterations``).
 
     Args:
