@@ -30,7 +30,7 @@ from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
 from surfelslam.eval.metrics import evaluate as _evaluate
 from surfelslam.slam import TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
-from surfelslam.slam.colour_check import check_colour_registration
+from surfelslam.slam.colour_check import colour_is_registered
 from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 from surfelslam.tracking.icp import ICPConfig
@@ -162,8 +162,7 @@ class Slam:
         ``kwargs``: the other :class:`Slam` arguments (``warmup``, ``prior_map``, ``localize_only``).
         """
         cfg = replace(_as_config(config), dataset=seq.options)
-        check = check_colour_registration(seq, cfg.colour_registration)
-        registered = seq.colour_registered and (check is None or check["registered"])
+        registered, check = colour_is_registered(seq, cfg.colour_registration)
         slam = cls(seq.intrinsics, tracker, cfg, colour_registered=registered, colour_camera=seq.colour_camera,
                    **kwargs)
         slam.colour_check = check

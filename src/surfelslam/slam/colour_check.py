@@ -41,3 +41,10 @@ def check_colour_registration(seq, cfg: ColourRegistrationConfig) -> dict | None
                                          cfg.check_min_gain_fraction)
     return {"registered": not unregistered, "edge_distance_same_pixel_px": round(fit.edge_distance_same_pixel_px, 3),
             "edge_distance_fitted_px": round(fit.edge_distance_px, 3), "frames": len(frames)}
+
+
+def colour_is_registered(seq, cfg: ColourRegistrationConfig) -> tuple[bool, dict | None]:
+    """``(registered, check)``: whether ``seq``'s colour is taken as registered to depth (its layout's word, unless
+    :func:`check_colour_registration` finds otherwise) and that check's report (``None``: not run)."""
+    check = check_colour_registration(seq, cfg)
+    return getattr(seq, "colour_registered", True) and (check is None or check["registered"]), check

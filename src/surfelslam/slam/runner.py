@@ -38,7 +38,7 @@ from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
-from surfelslam.slam.colour_check import check_colour_registration
+from surfelslam.slam.colour_check import colour_is_registered
 from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 
@@ -207,8 +207,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     check_map_options(tracker, prior_map, localize_only, poses)
     folder = RunFolder(out_dir, overwrite=overwrite)
     folder.check()  # nothing written yet; before the colour check, which reads frames
-    colour_check = check_colour_registration(seq, cfg.colour_registration)
-    colour_registered = getattr(seq, "colour_registered", True) and (colour_check is None or colour_check["registered"])
+    colour_registered, colour_check = colour_is_registered(seq, cfg.colour_registration)
     slam = build_slam(seq.intrinsics, cfg, tracker if given is None else "given", colour_registered=colour_registered,
                       colour_camera=getattr(seq, "colour_camera", None))
     if prior_map is not None:
