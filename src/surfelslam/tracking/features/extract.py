@@ -119,7 +119,7 @@ def extract(rgb: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, cfg: Feature
             empty2, no_desc, np.zeros((0, 3), np.float32),
             np.zeros(0, bool), np.zeros(0, np.float32), grey, depth_m,
         )
-    uv = np.array([kp.pt for kp in kps], dtype=np.float32).reshape(-1, 2)
+    uv = cv2.KeyPoint_convert(kps).astype(np.float32, copy=False).reshape(-1, 2)  # C++: no Python loop
     response = np.array([kp.response for kp in kps], dtype=np.float32)
     keep = bucket_keypoints(uv, response, grey.shape, cfg)
     uv, response, desc = uv[keep], response[keep], np.ascontiguousarray(desc[keep])
