@@ -1,9 +1,9 @@
 """Joint RGB-D refinement of a PnP pose in one kernel: Gauss-Newton over reprojection and inverse-depth residuals.
 
 The numpy reference is :func:`surfelslam.tracking.features.refine.refine_rgbd_ref`. It runs on every frame's PnP
-match in the hybrid and on every keyframe edge check, on a few hundred points: its cost there was numpy's per-call
-overhead (1.6 ms per call at 5 iterations), not arithmetic. Results agree with the reference to float rounding
-(the sums run in another order than BLAS's).
+match in the hybrid and on every keyframe edge check, on a few hundred points, where numpy's per-call overhead, not
+the arithmetic, was the cost. Results agree with the reference to float rounding (the sums run in another order
+than BLAS's).
 """
 
 from __future__ import annotations

@@ -206,8 +206,9 @@ class HybridConfig(Config):
         doc="a feature residual of joint_sigma_px costs this many point-to-plane pairs with a residual of one "
             "joint_weight_unit")
     joint_fine_match: bool = setting(
-        False, doc="the joint term's PnP match also searches by projection and refines on RGB-D jointly (about 1.5x "
-                   "the per-frame time at 320x240); the inlier pixels are sub-pixel tracked either way")
+        False, doc="the joint term's PnP match also searches by projection, and refines on RGB-D jointly even with "
+                   "pnp_rgbd_refine off (about 1.5x the per-frame time at 320x240); the inliers are sub-pixel tracked "
+                   "either way")
     pnp_rgbd_refine: bool = setting(
         True, doc="refine the per-frame PnP pose on the keypoints' pixels and depths jointly ([sparse.features] "
                   "rgbd_refine_iterations): the joint term's pixel noise, the inliers' spread at that pose, then also "
