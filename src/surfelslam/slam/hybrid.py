@@ -51,6 +51,7 @@ from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamR
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.protocol import register_tracker
 from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_inliers, reprojection_spread_px
+from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.tracking.icp import ICPResult, ReprojectionTerm, icp
 from surfelslam.tracking.photometric import (
     colour_switch,
@@ -128,6 +129,12 @@ class HybridSlam(DenseSlam):
                        "relocalisations_tracked": 0, "map_corrections": 0,
                        "pnp_disagreements": 0, "loop_correction_skipped": 0,
                        "final_correction_m": None}
+
+    def warmup(self) -> None:
+        """The dense kernels, then the feature side's (matching, PnP, keypoint depth, RGB-D refinement); excluded
+        from FPS."""
+        super().warmup()
+        warm_up_features(self.sparse.cfg.features)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`). Without

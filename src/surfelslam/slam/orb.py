@@ -19,6 +19,7 @@ from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.mapper import frame_colour_at_depth
 from surfelslam.slam.protocol import register_tracker
+from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
 #: the reason a frame posed by the depth odometry alone gives (its weak segments name it)
@@ -78,8 +79,9 @@ class OrbSlam:
         self.weak_frames = 0  # frames posed by the depth odometry alone (features too few to verify)
 
     def warmup(self) -> None:
-        """Compile the preprocessing and ICP kernels when depth is used (else nothing: OpenCV and gtsam are
-        precompiled)."""
+        """Compile the feature side's kernels, and the preprocessing and ICP kernels when depth is used (OpenCV and
+        gtsam are precompiled)."""
+        warm_up_features(self.sparse.cfg.features)
         if self.sparse.uses_depth or self.cfg.orb.loop_icp.enabled:
             warm_up(self.cfg)
 
