@@ -50,6 +50,7 @@ from surfelslam.slam.dense import DenseSlam
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.protocol import register_tracker
+from surfelslam.slam.warmup_run import warm_up_run
 from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_inliers, reprojection_spread_px
 from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.tracking.icp import ICPResult, ReprojectionTerm, icp
@@ -131,10 +132,11 @@ class HybridSlam(DenseSlam):
                        "final_correction_m": None}
 
     def warmup(self) -> None:
-        """The dense kernels, then the feature side's (matching, PnP, keypoint depth, RGB-D refinement); excluded
-        from FPS."""
+        """The dense kernels, the feature side's (matching, PnP, keypoint depth, RGB-D refinement), then a throwaway
+        hybrid run on a few synthetic frames (keyframes, loop checks, the joint term); excluded from FPS."""
         super().warmup()
         warm_up_features(self.sparse.cfg.features)
+        warm_up_run(self.cfg, "hybrid")
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseSlam.prepare`). Without

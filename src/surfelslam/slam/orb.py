@@ -19,6 +19,7 @@ from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.mapper import frame_colour_at_depth
 from surfelslam.slam.protocol import register_tracker
+from surfelslam.slam.warmup_run import warm_up_run
 from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
@@ -84,6 +85,7 @@ class OrbSlam:
         warm_up_features(self.sparse.cfg.features)
         if self.sparse.uses_depth or self.cfg.orb.loop_icp.enabled:
             warm_up(self.cfg)
+        warm_up_run(self.cfg, "orb")  # keyframes and loop checks
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """ORB extraction and the depth pyramid, for another thread to do ahead (see :meth:`DenseSlam.prepare`)."""

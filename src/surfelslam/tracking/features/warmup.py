@@ -12,6 +12,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from surfelslam.kernels import hamming
 from surfelslam.tracking.features.config import FeatureConfig
 from surfelslam.tracking.features.depth import keypoint_depth
 from surfelslam.tracking.features.extract import extract
@@ -43,6 +44,8 @@ def warm_up_features(cfg: FeatureConfig) -> None:
     guided = replace(cfg, guided_radius_px=cfg.guided_radius_px or _GUIDED_RADIUS_PX)
     estimate_motion(ref, cur, _INTR, guided, T_cur_ref, min_consistent=cfg.min_inliers)
     estimate_motion(ref, cur, _INTR, cfg)
+    if ref.descriptors.dtype == np.uint8:  # ORB: the place-recognition query (nearest two of a keyframe database)
+        hamming.nearest_two_words(hamming.as_words(cur.descriptors), hamming.as_words(ref.descriptors))
     uv = np.column_stack([np.linspace(20.0, 140.0, 12), np.linspace(20.0, 100.0, 12)])
     z = keypoint_depth(depth_m, uv, cfg)
     pts = np.column_stack([(uv[:, 0] - _INTR.cx) / _INTR.fx * z, (uv[:, 1] - _INTR.cy) / _INTR.fy * z, z])
