@@ -14,7 +14,7 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 # numba compiles for types, not sizes; wider than the 320 px working width, so that the reduced-input paths run too
 _INTR = Intrinsics(130.0, 130.0, 175.5, 63.5, 352, 128)
-_FRAMES = 18  # six keyframes at the default spacing: nearby and retrieved loop candidates
+_FRAMES = 18  # five or six keyframes at the default spacing, with nearby loop checks
 _SHIFT_PX = 3  # the camera moves sideways by this much of the image per frame
 _BLOCK_PX = 4  # texture block size (corners for ORB)
 
