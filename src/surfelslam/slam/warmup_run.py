@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 
+from surfelslam.tracking.features.warmup import block_texture
 from surfelslam.types import Intrinsics, RGBDFrame
 
 # numba compiles for types, not sizes; wider than the 320 px working width, so that the reduced-input paths run too
@@ -21,10 +21,8 @@ _BLOCK_PX = 4  # texture block size (corners for ORB)
 
 def _frames() -> list[RGBDFrame]:
     """A textured plane at 1.5 m with a bump (the depth constrains ICP), passing sideways across the view."""
-    rng = np.random.default_rng(0)
     h, w = _INTR.height, _INTR.width
-    blocks = rng.integers(0, 256, (h // _BLOCK_PX, w // _BLOCK_PX)).astype(np.uint8)
-    rgb = np.repeat(cv2.resize(blocks, (w, h), interpolation=cv2.INTER_NEAREST)[:, :, None], 3, axis=2)
+    rgb = block_texture(h, w, _BLOCK_PX)
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     depth_m = (1.5 - 0.15 * np.exp(-((u - w / 2) ** 2 + (v - h / 2) ** 2) / 300.0)).astype(np.float32)
     return [RGBDFrame(k, k / 30.0, np.roll(rgb, -_SHIFT_PX * k, axis=1), np.roll(depth_m, -_SHIFT_PX * k, axis=1))

@@ -27,15 +27,19 @@ _BLOCK_PX = 4  # texture block size (corners for ORB)
 _GUIDED_RADIUS_PX = 8.0  # the guided match's radius when the config has it off (its kernel is compiled too)
 
 
+def block_texture(height: int, width: int, block_px: int) -> np.ndarray:
+    """``(height, width, 3)`` uint8 grey blocks of random levels (fixed seed): corners everywhere for ORB."""
+    blocks = np.random.default_rng(0).integers(0, 256, (height // block_px, width // block_px)).astype(np.uint8)
+    grey = cv2.resize(blocks, (width, height), interpolation=cv2.INTER_NEAREST)
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
 def warm_up_features(cfg: FeatureConfig) -> None:
     """Run extraction, guided and brute-force matching, PnP with the consensus test and the refinements on two views
     of a synthetic textured plane, and the keypoint-depth and RGB-D refinement kernels directly (they run only
     after PnP succeeds). Nothing is kept."""
-    rng = np.random.default_rng(0)
     h, w = _INTR.height, _INTR.width
-    blocks = rng.integers(0, 256, (h // _BLOCK_PX, w // _BLOCK_PX)).astype(np.uint8)
-    grey = cv2.resize(blocks, (w, h), interpolation=cv2.INTER_NEAREST)
-    rgb = np.repeat(grey[:, :, None], 3, axis=2)
+    rgb = block_texture(h, w, _BLOCK_PX)
     depth_m = np.full((h, w), _DEPTH_M, np.float32)
     ref = extract(rgb, depth_m, _INTR, cfg)
     cur = extract(np.roll(rgb, _SHIFT_PX, axis=1), depth_m, _INTR, cfg)
