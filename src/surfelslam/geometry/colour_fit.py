@@ -177,10 +177,8 @@ GAIN_REFERENCE_WIDTH_PX = 640
 def fit_says_unregistered(fit: ColourFit, width_px: int, min_gain_px: float, min_gain_fraction: float) -> bool:
     """Whether a fitted colour camera lines colour edges up with depth edges so much better than the same pixel
     that colour cannot be registered to depth: the mean edge distance drops by at least ``min_gain_px`` (given
-    for 640-pixel-wide images, scaled with ``width_px``) and by ``min_gain_fraction`` of the same-pixel one.
-
-    On 6 frames: 7-Scenes (two cameras) 4.7 -> 2.5 px at 640 wide; TUM fr3/teddy 2.9 -> 2.7, fr1/xyz 2.5 -> 2.0,
-    ICL-NUIM renders 1.03 -> 1.00.
+    for 640-pixel-wide images, scaled with ``width_px``) and by ``min_gain_fraction`` of the same-pixel one
+    (measured distances on real datasets: docs/datasets.md).
     """
     gain = fit.edge_distance_same_pixel_px - fit.edge_distance_px
     return bool(gain >= min_gain_px * width_px / GAIN_REFERENCE_WIDTH_PX

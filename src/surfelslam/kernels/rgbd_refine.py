@@ -22,6 +22,15 @@ def _robust_sigma(v):
     return _MAD_TO_SIGMA * np.median(np.abs(v - np.median(v)))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _to_cam(T, P, i):
+    """Point ``P[i]`` in the camera frame of ``T``: ``(x, y, z)``."""
+    x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
+    y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
+    z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+    return x, y, z
+
+
 @njit(cache=True, nogil=True)
 def _sigmas(T, P, uv, q, w_inv, fx, fy, cx, cy, min_points_pixel, default_pixel_sigma, min_pixel_sigma,
             min_points_depth, model_inv_sigma):
@@ -34,16 +43,13 @@ def _sigmas(T, P, uv, q, w_inv, fx, fy, cx, cy, min_points_pixel, default_pixel_
         res = np.empty(2 * n)
         k = 0
         for i in range(n):
-            x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
-            y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
-            z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+            x, y, z = _to_cam(T, P, i)
             if z > 0:
                 res[k] = fx * x / z + cx - uv[i, 0]
                 k += 1
         m = k
         for i in range(n):
-            y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
-            z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+            _, y, z = _to_cam(T, P, i)
             if z > 0:
                 res[k] = fy * y / z + cy - uv[i, 1]
                 k += 1
@@ -59,7 +65,7 @@ def _sigmas(T, P, uv, q, w_inv, fx, fy, cx, cy, min_points_pixel, default_pixel_
     k = 0
     for i in range(n):
         if w_inv[i]:
-            z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+            z = _to_cam(T, P, i)[2]
             d[k] = 1.0 / z - q[i]
             k += 1
     return sp, max(model_inv_sigma, _robust_sigma(d))
@@ -74,9 +80,7 @@ def _normal_equations(T, P, uv, q, w_inv, sp, si, fx, fy, cx, cy, huber, H, g):
     J = np.empty((3, 6))
     r = np.empty(3)
     for i in range(P.shape[0]):
-        x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]
-        y = T[1, 0] * P[i, 0] + T[1, 1] * P[i, 1] + T[1, 2] * P[i, 2] + T[1, 3]
-        z = T[2, 0] * P[i, 0] + T[2, 1] * P[i, 1] + T[2, 2] * P[i, 2] + T[2, 3]
+        x, y, z = _to_cam(T, P, i)
         if z <= 0:
             return False
         iz = 1.0 / z
@@ -123,6 +127,15 @@ def _normal_equations(T, P, uv, q, w_inv, sp, si, fx, fy, cx, cy, huber, H, g):
 
 
 @njit(cache=True, nogil=True)
+def _any_behind(T, P):
+    """Whether a point of ``P`` is not in front of the camera of ``T``."""
+    for i in range(P.shape[0]):
+        if _to_cam(T, P, i)[2] <= 0:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def rgbd_refine(T0, P, uv, q, w_inv, fx, fy, cx, cy, iterations, huber, min_points_pixel, default_pixel_sigma,
                 min_pixel_sigma, min_points_depth, model_inv_sigma, converged, with_information, T_out, H_out):
     """Refine ``T0 (4, 4)`` (``T_cur_ref``) on ``P (N, 3)`` reference points, ``uv (N, 2)`` their current pixels and
@@ -133,14 +146,8 @@ def rgbd_refine(T0, P, uv, q, w_inv, fx, fy, cx, cy, iterations, huber, min_poin
     T_next = np.empty((4, 4))
     H = np.empty((6, 6))
     g = np.empty(6)
-    n = P.shape[0]
     for _ in range(iterations):
-        behind = False
-        for i in range(n):
-            if P[i, 0] * T[2, 0] + P[i, 1] * T[2, 1] + P[i, 2] * T[2, 2] + T[2, 3] <= 0:
-                behind = True
-                break
-        if behind:
+        if _any_behind(T, P):
             break
         sp, si = _sigmas(T, P, uv, q, w_inv, fx, fy, cx, cy, min_points_pixel, default_pixel_sigma,
                          min_pixel_sigma, min_points_depth, model_inv_sigma)
@@ -156,9 +163,8 @@ def rgbd_refine(T0, P, uv, q, w_inv, fx, fy, cx, cy, iterations, huber, min_poin
     T_out[:, :] = T
     if not with_information or not np.all(np.isfinite(T)):
         return False
-    for i in range(n):
-        if P[i, 0] * T[2, 0] + P[i, 1] * T[2, 1] + P[i, 2] * T[2, 2] + T[2, 3] <= 0:
-            return False
+    if _any_behind(T, P):
+        return False
     sp, si = _sigmas(T, P, uv, q, w_inv, fx, fy, cx, cy, min_points_pixel, default_pixel_sigma, min_pixel_sigma,
                      min_points_depth, model_inv_sigma)
     if not _normal_equations(T, P, uv, q, w_inv, sp, si, fx, fy, cx, cy, huber, H_out, g):

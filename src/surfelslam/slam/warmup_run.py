@@ -16,13 +16,12 @@ from surfelslam.types import Intrinsics, RGBDFrame
 _INTR = Intrinsics(130.0, 130.0, 175.5, 63.5, 352, 128)
 _FRAMES = 18  # five or six keyframes at the default spacing, with nearby loop checks
 _SHIFT_PX = 3  # the camera moves sideways by this much of the image per frame
-_BLOCK_PX = 4  # texture block size (corners for ORB)
 
 
 def _frames() -> list[RGBDFrame]:
     """A textured plane at 1.5 m with a bump (the depth constrains ICP), passing sideways across the view."""
     h, w = _INTR.height, _INTR.width
-    rgb = block_texture(h, w, _BLOCK_PX)
+    rgb = block_texture(h, w)
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     depth_m = (1.5 - 0.15 * np.exp(-((u - w / 2) ** 2 + (v - h / 2) ** 2) / 300.0)).astype(np.float32)
     return [RGBDFrame(k, k / 30.0, np.roll(rgb, -_SHIFT_PX * k, axis=1), np.roll(depth_m, -_SHIFT_PX * k, axis=1))

@@ -27,7 +27,7 @@ _BLOCK_PX = 4  # texture block size (corners for ORB)
 _GUIDED_RADIUS_PX = 8.0  # the guided match's radius when the config has it off (its kernel is compiled too)
 
 
-def block_texture(height: int, width: int, block_px: int) -> np.ndarray:
+def block_texture(height: int, width: int, block_px: int = _BLOCK_PX) -> np.ndarray:
     """``(height, width, 3)`` uint8 grey blocks of random levels (fixed seed): corners everywhere for ORB."""
     blocks = np.random.default_rng(0).integers(0, 256, (height // block_px, width // block_px)).astype(np.uint8)
     grey = cv2.resize(blocks, (width, height), interpolation=cv2.INTER_NEAREST)
@@ -39,7 +39,7 @@ def warm_up_features(cfg: FeatureConfig) -> None:
     of a synthetic textured plane, and the keypoint-depth and RGB-D refinement kernels directly (they run only
     after PnP succeeds). Nothing is kept."""
     h, w = _INTR.height, _INTR.width
-    rgb = block_texture(h, w, _BLOCK_PX)
+    rgb = block_texture(h, w)
     depth_m = np.full((h, w), _DEPTH_M, np.float32)
     ref = extract(rgb, depth_m, _INTR, cfg)
     cur = extract(np.roll(rgb, _SHIFT_PX, axis=1), depth_m, _INTR, cfg)
