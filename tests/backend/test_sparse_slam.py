@@ -317,3 +317,44 @@ def test_posed_frames_are_extracted_only_when_they_become_keyframes(loop_frames)
     assert 2 < len(kf_frames) < 12 and slam.extracted == kf_frames
     assert all(r.ok and r.n_inliers == -1 for r in out[1:])
     np.testing.assert_allclose(slam.keyframe_poses(), poses[kf_frames], atol=1e-9)
+
+
+def test_keyframe_clouds_can_be_left_out(loop_frames) -> None:
+    """A caller with its own map (the hybrid's surfels) leaves the keyframe clouds out: the poses are the same, the
+    sparse map is empty; by default the map holds the keyframes' points."""
+    poses, frames = loop_frames
+    runs = []
+    for clouds in (True, False):
+        slam = SparseSlam(ROOM_INTR, replace(NO_LOOP_CFG, keyframe_threshold=0.3), T_world_first=poses[0],
+                          keyframe_clouds=clouds)
+        for f, T in zip(frames[:10], poses[:10], strict=True):
+            slam.process(f, T_world_cam_dense=T)
+        runs.append(slam.finish())
+    with_clouds, without = runs
+    assert len(with_clouds.map_xyz) > 1000 and len(without.map_xyz) == 0 and without.map_rgb.shape == (0, 3)
+    np.testing.assert_array_equal(with_clouds.keyframe_poses, without.keyframe_poses)
+
+
+def test_nearby_pairs_are_matched_near_the_graphs_prediction(loop_frames, monkeypatch) -> None:
+    """With the graph's relative pose of a nearby pair, :func:`verify_edge` matches near where it projects the
+    keypoints (a guided match); a prior far off finds too few there and falls back to brute force. Both verify the
+    edge to the true pose."""
+    from surfelslam.backend import loops
+    from surfelslam.geometry.se3 import invert, make_T
+    from surfelslam.tracking.features import extract, motion
+
+    poses, frames = loop_frames
+    cfg = FeatureConfig(n_features=400, guided_radius_px=8.0)
+    ref, cur = (extract(frames[k].rgb, frames[k].depth_m, ROOM_INTR, cfg) for k in (0, 2))
+    T_true = invert(poses[2]) @ poses[0]
+    guided = []
+    real_match = motion.match
+    monkeypatch.setattr(motion, "match", lambda *a, **k: guided.append(k.get("pred_uv") is not None)
+                        or real_match(*a, **k))
+    off = make_T(np.eye(3), np.array([0.3, 0.0, 0.0])) @ T_true  # 30 cm: far outside the 8 px discs
+    for prior, expect in ((T_true, [True]), (off, [True, False]), (None, [False])):
+        guided.clear()
+        res = loops.verify_edge(ref, cur, ROOM_INTR, cfg, LoopConfig(), prior)
+        dt_m, dr_deg = pose_error(res.T_cur_ref, T_true)
+        assert res.ok and dt_m < 0.01 and dr_deg < 0.5, (prior is None, dt_m, dr_deg)
+        assert guided == expect

@@ -103,13 +103,18 @@ def _loop_features(feat_cfg: FeatureConfig, cfg: LoopConfig) -> FeatureConfig:
 
 
 def verify_edge(
-    ref: Features, cur: Features, intr: Intrinsics, feat_cfg: FeatureConfig, cfg: LoopConfig
+    ref: Features, cur: Features, intr: Intrinsics, feat_cfg: FeatureConfig, cfg: LoopConfig,
+    T_prior_cur_ref: np.ndarray | None = None,
 ) -> MotionResult:
     """PnP between two keyframes with the loop bounds; ``ok`` only if the inlier rules pass too.
 
     ``result.T_cur_ref`` maps points of the candidate (ref) keyframe into the new (cur) keyframe.
+    ``T_prior_cur_ref``: ``(4, 4)`` the graph's estimate of that pose, for a nearby pair (the odometry's, good to
+    a few pixels): the matches are then searched near where it projects the keypoints (``guided_radius_px``;
+    brute force when that finds too few, see :func:`estimate_motion`).
     """
-    res = estimate_motion(ref, cur, intr, _loop_features(feat_cfg, cfg), min_consistent=cfg.min_consistent_matches)
+    res = estimate_motion(ref, cur, intr, _loop_features(feat_cfg, cfg), T_init_cur_ref=T_prior_cur_ref,
+                          min_consistent=cfg.min_consistent_matches)
     if res.ok and (
         res.n_inliers < cfg.min_loop_inliers or res.n_inliers < cfg.min_loop_inlier_ratio * res.n_good
     ):

@@ -50,12 +50,13 @@ def _search(query, train, best_d, second_d, best_idx, col_idx, columns):
             d = 0
             for w in range(n_words):
                 d += int(_popcount64(query[i, w] ^ train[j, w]))
-            if d < b1:
-                b2 = b1
-                b1 = d
-                bi = j
-            elif d < b2:
-                b2 = d
+            if d < b2:  # rarely true: one well-predicted branch for most rows
+                if d < b1:
+                    b2 = b1
+                    b1 = d
+                    bi = j
+                else:
+                    b2 = d
             if columns and d < col_d[j]:
                 col_d[j] = d
                 col_idx[j] = i

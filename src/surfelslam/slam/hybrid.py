@@ -114,7 +114,8 @@ class HybridSlam(DenseSlam):
             sp = replace(sp, graph=replace(sp.graph, robust_scale_sigma=float(scale)))
             refined_scale = cfg.hybrid.loop_robust_scale_m / cfg.hybrid.loop_icp.sigma_m
         self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale,
-                                 colour_registered=colour_registered, coarse_rgbd_refine=h.pnp_rgbd_refine)
+                                 colour_registered=colour_registered, coarse_rgbd_refine=h.pnp_rgbd_refine,
+                                 keyframe_clouds=False)  # the map is the surfels
         self._kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)

@@ -98,7 +98,9 @@ class LoopChecker:
         q = self.query_descriptors(feats)
         checked = []
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self._loop_cfg):
-            res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg)
+            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if cand.source == "nearby" else None
+            res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg,
+                              prior)
             refined = None
             if res.ok and self._refiner is not None:
                 inl = res.pairs[res.inlier_mask]
@@ -109,7 +111,7 @@ class LoopChecker:
                   and self._refiner.cfg.depth_only_nearby
                   and res.n_good < self._refiner.cfg.depth_only_max_matches):
                 # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
-                refined = self._refiner.refine(cand.kf_id, kf_id, invert(poses[kf_id]) @ poses[cand.kf_id])
+                refined = self._refiner.refine(cand.kf_id, kf_id, prior)
                 if refined is not None:
                     checked.append(LoopCheck(cand, res, refined, depth_only=True))
                 continue

@@ -47,6 +47,8 @@ class SparseSlam:
             ``loop.pnp_nearby_edges = "auto"`` PnP edges to nearby keyframes enter the PnP graph only then.
         coarse_rgbd_refine: the coarse match (:meth:`match_reference_keyframe`) keeps the joint RGB-D refinement of
             the pose (``features.rgbd_refine_iterations``).
+        keyframe_clouds: keep each keyframe's voxel-filtered cloud for :meth:`map_points` (False: the map is made
+            elsewhere, e.g. the hybrid's surfels; :meth:`map_points` is then empty).
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
@@ -54,7 +56,7 @@ class SparseSlam:
                  refined_robust_scale: float | None = None,
                  cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None, refine_edges: bool = True,
                  depth_odometry: DepthOdometryConfig | None = None, colour_registered: bool = True,
-                 coarse_rgbd_refine: bool = False) -> None:
+                 coarse_rgbd_refine: bool = False, keyframe_clouds: bool = True) -> None:
         self.intr = intr
         self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
         # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement, without
@@ -71,6 +73,7 @@ class SparseSlam:
         # ICP failed (the PnP pose or the rejection stands)
         self.depth_counts = {"refined": 0, "from_prediction": 0, "rescued": 0, "icp_failed": 0}
         self._cloud_rgb = cloud_rgb
+        self._keyframe_clouds = keyframe_clouds
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, np.float64)
         self._kfs: list[Keyframe] = []
         pnp_nearby = colour_switch(self.cfg.loop.pnp_nearby_edges, colour_registered)
@@ -356,8 +359,11 @@ class SparseSlam:
         kf_id = self._graph.add_node(T_world_cam, prev_kf, T_prev_new)
         if self._store is not None:
             self._store.add_keyframe(kf_id, frame.depth_m)
-        xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map,
-                                  None if self._cloud_rgb is None else self._cloud_rgb(frame))
+        if self._keyframe_clouds:
+            xyz, rgb = keyframe_cloud(frame, self.intr, self.cfg.map,
+                                      None if self._cloud_rgb is None else self._cloud_rgb(frame))
+        else:
+            xyz, rgb = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         # a keyframe is only ever the reference side of a pair: it keeps its grey image (sub-pixel tracking)
         # but not the depth image (only the current side's depth is used)
         self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
@@ -461,7 +467,7 @@ class SparseSlam:
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframe clouds in the world frame, joined and voxel-filtered: ``(xyz (M, 3) f32, rgb (M, 3) u8)``."""
-        if not self._kfs:
+        if not self._kfs or not self._keyframe_clouds:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
         n = sum(len(k.cloud_xyz_cam) for k in self._kfs)
         xyz = np.empty((n, 3), np.float32)
