@@ -1,4 +1,6 @@
-"""Sparse odometry timings (ms per call, median after warm-up): ORB extract, match, PnP-RANSAC.
+"""Sparse odometry timings (ms per call, median after warm-up): ORB extract, match, PnP-RANSAC; and the two-nearest
+Hamming search of the matching (:mod:`surfelslam.kernels.hamming`) against OpenCV's ``BFMatcher.knnMatch`` on the
+same descriptors (why the search is a numba kernel).
 
 Frames: consecutive 7-Scenes redkitchen pairs (i, i+5) from ../shared/data when present, otherwise a
 synthetic textured plane (random grey blocks, 2 m away, shifted 3 cm between the two frames). Run at
@@ -12,9 +14,11 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from benchmarks.common import REDKITCHEN, median_ms
+from surfelslam.kernels import hamming
 from surfelslam.tracking.features import FeatureConfig, estimate_motion, extract, match
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -49,18 +53,28 @@ def _pairs(downsample: int, n: int) -> tuple[Intrinsics, list[tuple[RGBDFrame, R
     return intr, _synthetic_pairs(intr, n), "synthetic"
 
 
+def _knn_ms(fa, fb) -> tuple[float, float]:
+    """Median ms of the two nearest neighbours of every ``fb`` descriptor among ``fa``'s: the numba kernel, then
+    OpenCV's brute-force matcher (Hamming norm)."""
+    qa, qb = hamming.as_words(fa.descriptors), hamming.as_words(fb.descriptors)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    return (median_ms(lambda: hamming.nearest_two_words(qb, qa), 5),
+            median_ms(lambda: bf.knnMatch(fb.descriptors, fa.descriptors, k=2), 5))
+
+
 def _time_pairs(pairs, intr: Intrinsics, cfg: FeatureConfig):
-    ext, mat, pnp, inl = [], [], [], []
+    ext, mat, pnp, inl, knn = [], [], [], [], []
     for a, b in pairs:
         fa = extract(a.rgb, a.depth_m, intr, cfg)
         fb = extract(b.rgb, b.depth_m, intr, cfg)
+        knn.append(_knn_ms(fa, fb))
         ext.append(median_ms(lambda a=a: extract(a.rgb, a.depth_m, intr, cfg), 3))
         mat.append(median_ms(lambda fa=fa, fb=fb: match(fa, fb, cfg), 3))
         # PnP alone: estimate_motion minus its matching
         tot = median_ms(lambda fa=fa, fb=fb: estimate_motion(fa, fb, intr, cfg), 3)
         pnp.append(max(tot - mat[-1], 0.0))
         inl.append(estimate_motion(fa, fb, intr, cfg).n_inliers)
-    return ext, mat, pnp, inl
+    return ext, mat, pnp, inl, np.array(knn)
 
 
 def run(quick: bool = False) -> list[dict]:
@@ -69,11 +83,12 @@ def run(quick: bool = False) -> list[dict]:
     for downsample, n_feat in ((1, 1000), (2, 500)):
         intr, pairs, source = _pairs(downsample, n_pairs)
         cfg = replace(FeatureConfig(), n_features=n_feat)
-        ext, mat, pnp, inl = _time_pairs(pairs, intr, cfg)
+        ext, mat, pnp, inl, knn = _time_pairs(pairs, intr, cfg)
         rows.append({
             "resolution": f"{intr.width}x{intr.height}", "source": source, "n_features": n_feat,
             "extract_ms": float(np.median(ext)), "match_ms": float(np.median(mat)),
             "pnp_ms": float(np.median(pnp)), "median_inliers": float(np.median(inl)),
+            "knn_numba_ms": float(np.median(knn[:, 0])), "knn_bfmatcher_ms": float(np.median(knn[:, 1])),
         })
     return rows
 

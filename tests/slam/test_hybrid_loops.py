@@ -77,7 +77,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
 
 @pytest.mark.xdist_group("hybrid_loop_run")  # shares a cached run or render: one worker
 def test_background_loop_checks_keep_poses_rigid_and_close_to_inline():
-    """Loop checks in the background thread are applied one keyframe later: keyframe poses stay rigid (no
+    """Loop checks in the background thread are applied keyframes later: keyframe poses stay rigid (no
     compounding of rounding through re-based poses) and the trajectory stays close to the inline one."""
     frames, gt = _frames("loop", N_LOOP)
     assert SlamConfig().sparse.background_loop_checks and _few_loop_checks().sparse.background_loop_checks

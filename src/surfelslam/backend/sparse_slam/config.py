@@ -75,7 +75,12 @@ class SparseSlamConfig(Config):
             "for wider ones (the same angle); 0 = as given")
     background_loop_checks: bool = setting(
         True, doc="verify a keyframe's loop candidates in a background thread; results are applied at fixed points of "
-                  "the stream (deterministic), one keyframe later")
+                  "the stream (deterministic), loop_check_lag_keyframes later")
+    loop_check_lag_keyframes: int = setting(
+        2, unit="keyframes", ge=1, le=16,
+        doc="with background_loop_checks, a keyframe's checks are applied when this many newer keyframes have been "
+            "added (1: at the next one, which then waits for them; 2 lets the tracking run on while the checks of "
+            "one keyframe are still running)")
 
     @check
     def _orb_descriptors(self) -> str | None:

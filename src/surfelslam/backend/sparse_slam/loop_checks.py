@@ -3,6 +3,7 @@ or in a background thread, and the descriptor index that retrieves candidates (a
 
 from __future__ import annotations
 
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
@@ -42,7 +43,7 @@ class LoopChecker:
         self._index = DescriptorIndex(loop_cfg.retrieval)
         self._rng = np.random.default_rng(loop_cfg.seed)
         self._pool: ThreadPoolExecutor | None = None
-        self._pending: Future | None = None  # loop checks of the last keyframe, not applied yet
+        self._pending: deque[Future] = deque()  # loop checks of the last keyframes, oldest first, not applied yet
 
     def query_descriptors(self, feats: Features) -> np.ndarray:
         """The descriptors of ``feats`` that enter the retrieval index and its queries."""
@@ -67,18 +68,24 @@ class LoopChecker:
         return self._check(kf_id, feats, self._nearby_poses(kf_id, poses_world_kf))
 
     def submit(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray) -> None:
-        """:meth:`check` in the background thread; :meth:`collect` returns the result. The nearby poses are copied
-        here, on the caller's thread."""
+        """:meth:`check` in the background thread, after the checks already submitted (one worker: the keyframes
+        are checked and indexed in order); :meth:`collect` returns the results in that order. The nearby poses are
+        copied here, on the caller's thread."""
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
-        self._pending = self._pool.submit(self._check, kf_id, feats, self._nearby_poses(kf_id, poses_world_kf))
+        self._pending.append(self._pool.submit(self._check, kf_id, feats, self._nearby_poses(kf_id, poses_world_kf)))
+
+    @property
+    def n_pending(self) -> int:
+        """Keyframes submitted whose checks were not collected yet."""
+        return len(self._pending)
 
     def collect(self) -> tuple[int, list[LoopCheck]] | None:
-        """Wait for the background loop checks of the last keyframe, if any: ``(kf_id, checks)``, or ``None``."""
-        if self._pending is None:
+        """Wait for the background loop checks of the oldest pending keyframe, if any: ``(kf_id, checks)``, or
+        ``None``."""
+        if not self._pending:
             return None
-        pending, self._pending = self._pending, None
-        return pending.result()
+        return self._pending.popleft().result()
 
     def shutdown(self) -> None:
         """Stop the background thread (after :meth:`collect`)."""

@@ -345,14 +345,15 @@ class SparseSlam:
     def _add_keyframe(self, frame: RGBDFrame, feats: Features, T_world_cam: np.ndarray,
                       prev_kf: int | None, T_prev_new: np.ndarray | None,
                       information: np.ndarray | None = None) -> None:
-        """Add a keyframe and its odometry edge, and start its loop checks (the previous keyframe's are applied
-        first: they may move ``prev_kf``, and the new keyframe is placed by its odometry from there).
+        """Add a keyframe and its odometry edge, and start its loop checks (the checks of the keyframe
+        ``loop_check_lag_keyframes`` back are applied first: they may move ``prev_kf``, and the new keyframe is placed
+        by its odometry from there).
 
         ``information``: ``(6, 6)`` of the odometry measurement (the PnP's, see ``MotionResult.information``), or
         ``None`` (a dense pose: isotropic weight)."""
         if prev_kf is not None:
             T_prev_before = self._kf_poses[prev_kf].copy()
-        self._collect_loop_checks()
+        self._collect_loop_checks(keep=self.cfg.loop_check_lag_keyframes - 1)
         if prev_kf is not None and not np.array_equal(self._kf_poses[prev_kf], T_prev_before):
             # the graph moved the previous keyframe: keep the new one's pose relative to it
             T_world_cam = orthonormalize(self._kf_poses[prev_kf] @ invert(T_prev_before) @ T_world_cam)
@@ -383,11 +384,11 @@ class SparseSlam:
         """Add the verified edges of keyframe ``kf_id`` to the graph (:meth:`KeyframeGraph.apply_loop_checks`)."""
         self._unreported_loops += self._graph.apply_loop_checks(kf_id, checked, self.cfg.features.min_inliers)
 
-    def _collect_loop_checks(self) -> None:
-        """Wait for the background loop checks of the last keyframe, if any, and apply them."""
-        done = self._loops.collect()
-        if done is not None:
-            self._apply_loop_checks(*done)
+    def _collect_loop_checks(self, keep: int = 0) -> None:
+        """Wait for the background loop checks of the oldest keyframes until at most ``keep`` are pending, and apply
+        them in keyframe order."""
+        while self._loops.n_pending > keep:
+            self._apply_loop_checks(*self._loops.collect())
 
     # --- queries for the dense pipeline ---------------------------------------------------------------
 
