@@ -5,7 +5,7 @@ ORB descriptors are 256 bits = 32 bytes, read as four 64-bit words; the distance
 number of set bits of their XOR (a SWAR popcount, which LLVM turns into the CPU's popcount instruction).
 :func:`nearest_two` gives, for every query descriptor, the smallest and second-smallest distance over the train
 set and the index of the nearest one (the first one on ties), i.e. what a cross-check or a ratio test needs: the
-same results as OpenCV's ``BFMatcher`` (tested), several times faster (``benchmarks/bench_orb.py`` times both).
+same results as OpenCV's ``BFMatcher`` (tested), in less time (``benchmarks/bench_orb.py`` times both).
 :func:`nearest_mutual_within` compares each query only with the train rows within a radius of its predicted pixel
 (a grid of the train keypoints), not with all of them.
 """
