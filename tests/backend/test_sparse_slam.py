@@ -360,16 +360,15 @@ def test_nearby_pairs_are_matched_near_the_graphs_prediction(loop_frames, monkey
         assert guided == expect
 
 
-@pytest.mark.parametrize("lag", [1, 3])
-def test_background_checks_find_the_inline_loops_whatever_the_lag(loop_frames, loop_run, lag) -> None:
+def test_background_checks_find_the_inline_loops_whatever_the_lag(loop_frames, loop_run) -> None:
     """Candidates depend on keyframe ids, descriptors and the seeded draws, not on when the results are applied:
-    background checks applied 1, 2 (the module's run) or 3 keyframes later verify the same pairs as inline checks,
-    and the trajectory stays within a millimetre of the inline one."""
+    background checks applied 2 (the module's run) or 1 keyframe later verify the same pairs as inline checks, and
+    the trajectory stays within a millimetre of the inline one."""
     poses, frames = loop_frames
     _, _, lag2 = loop_run
     assert LOOP_CFG.background_loop_checks and LOOP_CFG.loop_check_lag_keyframes == 2
     _, _, inline = _run(replace(LOOP_CFG, background_loop_checks=False), poses, frames)
-    _, _, other = _run(replace(LOOP_CFG, loop_check_lag_keyframes=lag), poses, frames)
+    _, _, other = _run(replace(LOOP_CFG, loop_check_lag_keyframes=1), poses, frames)
     assert len(inline.loops_found) > 10
     for res in (lag2, other):
         assert res.loops_found == inline.loops_found
