@@ -16,7 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from surfelslam.config import Config, setting
-from surfelslam.geometry.se3 import adjoint, invert, log
+from surfelslam.geometry.se3 import adjoint, invert, log, rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class OdometryChain:
             return
         T = np.asarray(T_parent_kf, np.float64)
         dist_m = float(np.linalg.norm(T[:3, 3]))
-        angle_rad = float(np.arccos(np.clip(0.5 * (np.trace(T[:3, :3]) - 1.0), -1.0, 1.0)))
+        angle_rad = float(np.radians(rotation_angle_deg(T[:3, :3])))
         var_rot = c.drift_rad_per_sqrt_m ** 2 * dist_m + c.drift_rad_per_sqrt_rad ** 2 * angle_rad
         var_t = c.drift_m_per_sqrt_m ** 2 * dist_m
         self.poses.append(self.poses[parent] @ T)
