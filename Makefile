@@ -50,7 +50,7 @@ test: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
 warmup: $(STAMP)
-	@$(PY) -m surfelslam.warmup dense & dense=$$!; $(PY) -m surfelslam.warmup sparse outputs; sparse=$$?; \
+	@$(PY) -m surfelslam.warmup dense outputs & dense=$$!; $(PY) -m surfelslam.warmup sparse; sparse=$$?; \
 	wait $$dense; exit $$(( $$? || sparse ))
 
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).

@@ -23,7 +23,7 @@ _PARALLEL_EPS = 1e-12  # |direction component| below this counts as parallel to 
 _FACE_UV_SHIFT_M = 1.37
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _hit_quad(ox, oy, oz, dx, dy, dz, sx, sy, t_min, t_best):
     if abs(dz) < _PARALLEL_EPS:
         return -1.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -37,7 +37,7 @@ def _hit_quad(ox, oy, oz, dx, dy, dz, sx, sy, t_min, t_best):
     return t, 0.0, 0.0, 1.0, px, py
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _hit_box(ox, oy, oz, dx, dy, dz, sx, sy, sz, t_min, t_best):
     t_near = -np.inf
     t_far = np.inf
@@ -87,7 +87,7 @@ def _hit_box(ox, oy, oz, dx, dy, dz, sx, sy, sz, t_min, t_best):
     return t, 0.0, 0.0, 1.0 if pz > 0 else -1.0, px + shift, py
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _hit_cylinder(ox, oy, oz, dx, dy, dz, r, h, t_min, t_best):
     best = t_best
     nx = 0.0
@@ -137,7 +137,7 @@ def _hit_cylinder(ox, oy, oz, dx, dy, dz, r, h, t_min, t_best):
     return best, nx, ny, nz, uu, vv
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _hit_sphere(ox, oy, oz, dx, dy, dz, r, t_min, t_best):
     a = dx * dx + dy * dy + dz * dz
     b = ox * dx + oy * dy + oz * dz
@@ -157,7 +157,7 @@ def _hit_sphere(ox, oy, oz, dx, dy, dz, r, t_min, t_best):
     return t, px / r, py / r, pz / r, r * math.atan2(py, px), r * math.asin(min(1.0, max(-1.0, pz / r)))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _hit(kind, ox, oy, oz, dx, dy, dz, sx, sy, sz, t_min, t_best):
     if kind == PRIM_QUAD:
         return _hit_quad(ox, oy, oz, dx, dy, dz, sx, sy, t_min, t_best)
@@ -168,7 +168,7 @@ def _hit(kind, ox, oy, oz, dx, dy, dz, sx, sy, sz, t_min, t_best):
     return _hit_sphere(ox, oy, oz, dx, dy, dz, sx, t_min, t_best)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _sample_texture(textures, tex, u_m, v_m, texel_m):
     """Bilinear, wrapped texture lookup at ``(u_m, v_m)`` metres -> (r, g, b) floats.
 
