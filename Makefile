@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-fast warmup bench lint docs clean
+.PHONY: demo test test-all test-fast warmup bench lint docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,10 @@ $(VIZ_STAMP): $(PY) pyproject.toml
 PYTEST_WORKERS ?= auto
 PYTEST_DIST := --dist loadgroup
 test: $(VIZ_STAMP) warmup
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST) -m "not heavy"
+
+# Everything, with the tests that run several long tracker configurations each (marked `heavy`).
+test-all: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
 warmup: $(STAMP)

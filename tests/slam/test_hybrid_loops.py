@@ -163,7 +163,7 @@ def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     seq = open_sequence(shared_sequence("7scenes_redkitchen_0000_0499"), DatasetOptions(downsample=2, end=90))
     frames = list(seq)  # read once for the three runs
     T_gt, _ = seq.gt_poses()
-    cfg = _full()
+    cfg = _few_loop_checks()
 
     def run(c: SlamConfig):
         slam = build_slam(seq.intrinsics, c, "hybrid", seq.colour_registered)
@@ -217,6 +217,7 @@ def test_refined_edges_are_not_trusted_before_the_gate_can_decide():
     assert abs(out["hybrid"][0] - out["dense"][0]) < 2e-4, (out["hybrid"][0], out["dense"][0])
 
 
+@pytest.mark.heavy
 def test_refined_edges_are_not_trusted_on_distorted_depth():
     """Walking loop, 60 frames, depth with a fixed radial disparity distortion (``kinect-distorted``): the refined
     keyframe edges are inconsistent with one another (rotation residuals at their graph's optimum about 2.1 mrad;
