@@ -365,8 +365,7 @@ class SparseSlam:
                                       None if self._cloud_rgb is None else self._cloud_rgb(frame))
         else:
             xyz, rgb = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-        # a keyframe is only ever the reference side of a pair: it keeps its grey image (sub-pixel tracking)
-        # but not the depth image (only the current side's depth is used)
+        # a keyframe is only ever a pair's reference side: its grey image is kept (sub-pixel tracking), its depth not
         self._kfs.append(Keyframe(kf_id, frame.index, frame.timestamp, replace(feats, depth_m=None), xyz, rgb))
         self._ref_kf = kf_id
         self._frames_since_kf = 0
@@ -385,8 +384,7 @@ class SparseSlam:
         self._unreported_loops += self._graph.apply_loop_checks(kf_id, checked, self.cfg.features.min_inliers)
 
     def _collect_loop_checks(self, keep: int = 0) -> None:
-        """Wait for the background loop checks of the oldest keyframes until at most ``keep`` are pending, and apply
-        them in keyframe order."""
+        """Apply the oldest keyframes' background loop checks, in keyframe order, until at most ``keep`` pend."""
         while self._loops.n_pending > keep:
             self._apply_loop_checks(*self._loops.collect())
 
