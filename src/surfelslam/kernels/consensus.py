@@ -101,7 +101,8 @@ def greedy_clique(C, seeds, degree, min_size, stop_at, members):
                 count[cand[a]] -= c
         if m > best and m >= min_size:
             best = m
-            members[:m] = grown[:m]
+            for k in range(m):  # not members[:m] = grown[:m]: see icp.copy_pose
+                members[k] = grown[k]
             if m == stop_at:
                 break
     return best

@@ -74,6 +74,151 @@ def robust_weight_ref(r: np.ndarray, kind: int, scale: float) -> np.ndarray:
     return np.ones_like(r)
 
 
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _normal_equations_chunk(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy, dist_thresh_m,
+                            cos_angle_thresh, robust_kind, robust_scale_m, src_stride, depth_ref_m, c, pc):
+    """Chunk ``c`` of :func:`accumulate_normal_equations` (its source rows), sums into ``pc (N_STATS,)``.
+
+    A function of its own, called from the ``prange`` loop: numba's parallel pass then handles a loop of one call
+    instead of this body, which cuts the parallel twin's compile time several-fold (same code, same results).
+    """
+    H, W = src_vertex.shape[0], src_vertex.shape[1]
+    Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
+    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    d2max = dist_thresh_m * dist_thresh_m
+    zref2 = depth_ref_m * depth_ref_m if depth_ref_m > 0.0 else 0.0
+    # scalar accumulators (kept in registers): s0..s20 AtA, s21..s26 Atb, then the counters
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
+    s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
+    s21 = s22 = s23 = s24 = s25 = s26 = 0.0
+    s27 = s28 = s29 = s30 = s31 = 0.0
+    row0 = (c * H) // N_CHUNKS
+    row1 = ((c + 1) * H) // N_CHUNKS
+    for v in range(row0, row1):
+        if v % src_stride != 0:
+            continue
+        for u in range(0, W, src_stride):
+            pz0 = np.float64(src_vertex[v, u, 2])
+            if pz0 <= 0.0:
+                continue
+            nx0 = np.float64(src_normal[v, u, 0])
+            ny0 = np.float64(src_normal[v, u, 1])
+            nz0 = np.float64(src_normal[v, u, 2])
+            if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
+                continue
+            s31 += 1.0
+            px0 = np.float64(src_vertex[v, u, 0])
+            py0 = np.float64(src_vertex[v, u, 1])
+            px = r00 * px0 + r01 * py0 + r02 * pz0 + t0
+            py = r10 * px0 + r11 * py0 + r12 * pz0 + t1
+            pz = r20 * px0 + r21 * py0 + r22 * pz0 + t2
+            if pz <= 0.0:
+                continue
+            iz = 1.0 / pz
+            uf = fx * px * iz + cx + 0.5  # nearest pixel = floor(uf)
+            vf = fy * py * iz + cy + 0.5
+            if uf < 0.0 or uf >= Wt or vf < 0.0 or vf >= Ht:
+                continue
+            ui = int(uf)
+            vi = int(vf)
+            qz = np.float64(tgt_vertex[vi, ui, 2])
+            if qz <= 0.0:
+                continue
+            dx = px - tgt_vertex[vi, ui, 0]
+            dy = py - tgt_vertex[vi, ui, 1]
+            dz = pz - qz
+            if dx * dx + dy * dy + dz * dz >= d2max:
+                continue
+            mx = np.float64(tgt_normal[vi, ui, 0])
+            my = np.float64(tgt_normal[vi, ui, 1])
+            mz = np.float64(tgt_normal[vi, ui, 2])
+            rnx = r00 * nx0 + r01 * ny0 + r02 * nz0
+            rny = r10 * nx0 + r11 * ny0 + r12 * nz0
+            rnz = r20 * nx0 + r21 * ny0 + r22 * nz0
+            if rnx * mx + rny * my + rnz * mz < cos_angle_thresh:
+                continue
+            b = mx * dx + my * dy + mz * dz
+            if zref2 > 0.0:
+                isz = zref2 * iz * iz  # 1 / s with s = (p'_z / depth_ref_m)^2 (iz = 1 / p'_z, from above)
+                w = _robust_weight(b * isz, robust_kind, robust_scale_m) * (isz * isz)
+            else:
+                w = _robust_weight(b, robust_kind, robust_scale_m)
+            a0 = py * mz - pz * my
+            a1 = pz * mx - px * mz
+            a2 = px * my - py * mx
+            wa0 = w * a0
+            wa1 = w * a1
+            wa2 = w * a2
+            wa3 = w * mx
+            wa4 = w * my
+            wa5 = w * mz
+            s0 += wa0 * a0
+            s1 += wa0 * a1
+            s2 += wa0 * a2
+            s3 += wa0 * mx
+            s4 += wa0 * my
+            s5 += wa0 * mz
+            s6 += wa1 * a1
+            s7 += wa1 * a2
+            s8 += wa1 * mx
+            s9 += wa1 * my
+            s10 += wa1 * mz
+            s11 += wa2 * a2
+            s12 += wa2 * mx
+            s13 += wa2 * my
+            s14 += wa2 * mz
+            s15 += wa3 * mx
+            s16 += wa3 * my
+            s17 += wa3 * mz
+            s18 += wa4 * my
+            s19 += wa4 * mz
+            s20 += wa5 * mz
+            s21 += wa0 * b
+            s22 += wa1 * b
+            s23 += wa2 * b
+            s24 += wa3 * b
+            s25 += wa4 * b
+            s26 += wa5 * b
+            s27 += w * b * b
+            s28 += b * b
+            s29 += 1.0
+            s30 += pz0
+    pc[0] = s0
+    pc[1] = s1
+    pc[2] = s2
+    pc[3] = s3
+    pc[4] = s4
+    pc[5] = s5
+    pc[6] = s6
+    pc[7] = s7
+    pc[8] = s8
+    pc[9] = s9
+    pc[10] = s10
+    pc[11] = s11
+    pc[12] = s12
+    pc[13] = s13
+    pc[14] = s14
+    pc[15] = s15
+    pc[16] = s16
+    pc[17] = s17
+    pc[18] = s18
+    pc[19] = s19
+    pc[20] = s20
+    pc[21] = s21
+    pc[22] = s22
+    pc[23] = s23
+    pc[24] = s24
+    pc[25] = s25
+    pc[26] = s26
+    pc[27] = s27
+    pc[28] = s28
+    pc[29] = s29
+    pc[30] = s30
+    pc[31] = s31
+
+
 @dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy,
                                 dist_thresh_m, cos_angle_thresh, robust_kind, robust_scale_m, out,
@@ -94,144 +239,11 @@ def accumulate_normal_equations(src_vertex, src_normal, tgt_vertex, tgt_normal, 
             transformed source point in the target camera, within the distance gate of ``q_z``), the robust
             weight is taken of ``b / s`` and the pair's weight is divided by ``s^2``.
     """
-    H, W = src_vertex.shape[0], src_vertex.shape[1]
-    Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
-    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
-    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
-    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
-    d2max = dist_thresh_m * dist_thresh_m
-    zref2 = depth_ref_m * depth_ref_m if depth_ref_m > 0.0 else 0.0
     partial = np.zeros((N_CHUNKS, N_STATS))
     for c in prange(N_CHUNKS):
-        # scalar accumulators (kept in registers): s0..s20 AtA, s21..s26 Atb, then the counters
-        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
-        s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
-        s21 = s22 = s23 = s24 = s25 = s26 = 0.0
-        s27 = s28 = s29 = s30 = s31 = 0.0
-        row0 = (c * H) // N_CHUNKS
-        row1 = ((c + 1) * H) // N_CHUNKS
-        for v in range(row0, row1):
-            if v % src_stride != 0:
-                continue
-            for u in range(0, W, src_stride):
-                pz0 = np.float64(src_vertex[v, u, 2])
-                if pz0 <= 0.0:
-                    continue
-                nx0 = np.float64(src_normal[v, u, 0])
-                ny0 = np.float64(src_normal[v, u, 1])
-                nz0 = np.float64(src_normal[v, u, 2])
-                if nx0 == 0.0 and ny0 == 0.0 and nz0 == 0.0:
-                    continue
-                s31 += 1.0
-                px0 = np.float64(src_vertex[v, u, 0])
-                py0 = np.float64(src_vertex[v, u, 1])
-                px = r00 * px0 + r01 * py0 + r02 * pz0 + t0
-                py = r10 * px0 + r11 * py0 + r12 * pz0 + t1
-                pz = r20 * px0 + r21 * py0 + r22 * pz0 + t2
-                if pz <= 0.0:
-                    continue
-                iz = 1.0 / pz
-                uf = fx * px * iz + cx + 0.5  # nearest pixel = floor(uf)
-                vf = fy * py * iz + cy + 0.5
-                if uf < 0.0 or uf >= Wt or vf < 0.0 or vf >= Ht:
-                    continue
-                ui = int(uf)
-                vi = int(vf)
-                qz = np.float64(tgt_vertex[vi, ui, 2])
-                if qz <= 0.0:
-                    continue
-                dx = px - tgt_vertex[vi, ui, 0]
-                dy = py - tgt_vertex[vi, ui, 1]
-                dz = pz - qz
-                if dx * dx + dy * dy + dz * dz >= d2max:
-                    continue
-                mx = np.float64(tgt_normal[vi, ui, 0])
-                my = np.float64(tgt_normal[vi, ui, 1])
-                mz = np.float64(tgt_normal[vi, ui, 2])
-                rnx = r00 * nx0 + r01 * ny0 + r02 * nz0
-                rny = r10 * nx0 + r11 * ny0 + r12 * nz0
-                rnz = r20 * nx0 + r21 * ny0 + r22 * nz0
-                if rnx * mx + rny * my + rnz * mz < cos_angle_thresh:
-                    continue
-                b = mx * dx + my * dy + mz * dz
-                if zref2 > 0.0:
-                    isz = zref2 * iz * iz  # 1 / s with s = (p'_z / depth_ref_m)^2 (iz = 1 / p'_z, from above)
-                    w = _robust_weight(b * isz, robust_kind, robust_scale_m) * (isz * isz)
-                else:
-                    w = _robust_weight(b, robust_kind, robust_scale_m)
-                a0 = py * mz - pz * my
-                a1 = pz * mx - px * mz
-                a2 = px * my - py * mx
-                wa0 = w * a0
-                wa1 = w * a1
-                wa2 = w * a2
-                wa3 = w * mx
-                wa4 = w * my
-                wa5 = w * mz
-                s0 += wa0 * a0
-                s1 += wa0 * a1
-                s2 += wa0 * a2
-                s3 += wa0 * mx
-                s4 += wa0 * my
-                s5 += wa0 * mz
-                s6 += wa1 * a1
-                s7 += wa1 * a2
-                s8 += wa1 * mx
-                s9 += wa1 * my
-                s10 += wa1 * mz
-                s11 += wa2 * a2
-                s12 += wa2 * mx
-                s13 += wa2 * my
-                s14 += wa2 * mz
-                s15 += wa3 * mx
-                s16 += wa3 * my
-                s17 += wa3 * mz
-                s18 += wa4 * my
-                s19 += wa4 * mz
-                s20 += wa5 * mz
-                s21 += wa0 * b
-                s22 += wa1 * b
-                s23 += wa2 * b
-                s24 += wa3 * b
-                s25 += wa4 * b
-                s26 += wa5 * b
-                s27 += w * b * b
-                s28 += b * b
-                s29 += 1.0
-                s30 += pz0
-        pc = partial[c]
-        pc[0] = s0
-        pc[1] = s1
-        pc[2] = s2
-        pc[3] = s3
-        pc[4] = s4
-        pc[5] = s5
-        pc[6] = s6
-        pc[7] = s7
-        pc[8] = s8
-        pc[9] = s9
-        pc[10] = s10
-        pc[11] = s11
-        pc[12] = s12
-        pc[13] = s13
-        pc[14] = s14
-        pc[15] = s15
-        pc[16] = s16
-        pc[17] = s17
-        pc[18] = s18
-        pc[19] = s19
-        pc[20] = s20
-        pc[21] = s21
-        pc[22] = s22
-        pc[23] = s23
-        pc[24] = s24
-        pc[25] = s25
-        pc[26] = s26
-        pc[27] = s27
-        pc[28] = s28
-        pc[29] = s29
-        pc[30] = s30
-        pc[31] = s31
+        _normal_equations_chunk(src_vertex, src_normal, tgt_vertex, tgt_normal, T, fx, fy, cx, cy, dist_thresh_m,
+                                cos_angle_thresh, robust_kind, robust_scale_m, src_stride, depth_ref_m, np.int64(c),
+                                partial[c])
     for k in range(N_STATS):
         s = 0.0
         for c in range(N_CHUNKS):
@@ -309,6 +321,41 @@ def _unpack_lower(stats, H):
 
 
 @njit(cache=True, nogil=True)
+def cholesky_solve6(L, rhs, x):
+    """Solve ``A x = rhs`` for a symmetric positive definite ``A (6, 6)`` given by its lower triangle in ``L``.
+
+    ``L`` is factorised in place (``A = L L^T``); ``x (6,)`` receives the solution. Returns ``False`` (``x``
+    untouched) when ``A`` is not positive definite. A hand-written 6x6 Cholesky: numba's LAPACK-backed
+    ``np.linalg.solve`` costs seconds of compile time per kernel that uses it.
+    """
+    for j in range(6):
+        d = L[j, j]
+        for m in range(j):
+            d -= L[j, m] * L[j, m]
+        if not d > 0.0:
+            return False
+        d = np.sqrt(d)
+        L[j, j] = d
+        for i in range(j + 1, 6):
+            s = L[i, j]
+            for m in range(j):
+                s -= L[i, m] * L[j, m]
+            L[i, j] = s / d
+    # forward (L y = rhs) and backward (L^T x = y) substitution
+    for i in range(6):
+        s = rhs[i]
+        for m in range(i):
+            s -= L[i, m] * x[m]
+        x[i] = s / L[i, i]
+    for i in range(5, -1, -1):
+        s = x[i]
+        for m in range(i + 1, 6):
+            s -= L[m, i] * x[m]
+        x[i] = s / L[i, i]
+    return True
+
+
+@njit(cache=True, nogil=True)
 def gauss_newton_step(stats, T, T_out):
     """Cholesky solve of the accumulated normal equations and the update ``T_out = exp(xi) T``.
 
@@ -319,42 +366,33 @@ def gauss_newton_step(stats, T, T_out):
     Returns:
         the twist norm ``|xi|``, or ``-1.0`` when ``A^T W A`` is not positive definite (``T_out = T``).
     """
-    # unpack the upper triangle and factorise A^T W A = L L^T (6x6, in place)
     L = np.zeros((6, 6))
     _unpack_lower(stats, L)
-    for j in range(6):
-        d = L[j, j]
-        for m in range(j):
-            d -= L[j, m] * L[j, m]
-        if not d > 0.0:
-            T_out[:, :] = T
-            return -1.0
-        d = np.sqrt(d)
-        L[j, j] = d
-        for i in range(j + 1, 6):
-            s = L[i, j]
-            for m in range(j):
-                s -= L[i, m] * L[j, m]
-            L[i, j] = s / d
-    # forward (L y = -Atb) and backward (L^T xi = y) substitution
-    xi = np.empty(6)
+    rhs = np.empty(6)
     for i in range(6):
-        s = -stats[21 + i]
-        for m in range(i):
-            s -= L[i, m] * xi[m]
-        xi[i] = s / L[i, i]
-    for i in range(5, -1, -1):
-        s = xi[i]
-        for m in range(i + 1, 6):
-            s -= L[m, i] * xi[m]
-        xi[i] = s / L[i, i]
+        rhs[i] = -stats[21 + i]
+    xi = np.empty(6)
+    if not cholesky_solve6(L, rhs, xi):
+        copy_pose(T, T_out)
+        return -1.0
     se3_exp_left_update(xi, T, T_out)
     return np.sqrt(np.sum(xi * xi))
 
 
 @njit(cache=True, nogil=True)
+def copy_pose(T, T_out):
+    """``T_out[:, :] = T`` for ``(4, 4)`` poses, as a loop: numba's array-to-array slice assignment compiles its
+    shape-mismatch error message, seconds of compile time for a 16-element copy."""
+    for i in range(4):
+        for j in range(4):
+            T_out[i, j] = T[i, j]
+
+
+@njit(cache=True, nogil=True)
 def se3_exp_left_update(xi, T, T_out):
-    """``T_out = exp(xi) @ T`` for a twist ``xi = (omega, v)`` (closed-form SE(3) exponential)."""
+    """``T_out = exp(xi) @ T`` for a twist ``xi = (omega, v)`` (closed-form SE(3) exponential, Rodrigues).
+
+    Written out in scalars: small-matrix products through numba's BLAS bindings cost seconds of compile time."""
     wx, wy, wz = xi[0], xi[1], xi[2]
     th2 = wx * wx + wy * wy + wz * wz
     th = np.sqrt(th2)
@@ -366,15 +404,25 @@ def se3_exp_left_update(xi, T, T_out):
         a = np.sin(th) / th
         b = (1.0 - np.cos(th)) / th2
         c = (th - np.sin(th)) / (th2 * th)
-    W = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
-    W2 = W @ W
-    R = np.eye(3) + a * W + b * W2
-    V = np.eye(3) + b * W + c * W2
-    t = V @ xi[3:]
-    E = np.eye(4)
-    E[:3, :3] = R
-    E[:3, 3] = t
-    T_out[:, :] = E @ T
+    # W = [omega]_x and W^2 = omega omega^T - |omega|^2 I
+    W = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
+    w = (wx, wy, wz)
+    E = np.empty((3, 4))
+    for i in range(3):
+        for j in range(3):
+            w2 = w[i] * w[j] - (th2 if i == j else 0.0)
+            eye = 1.0 if i == j else 0.0
+            E[i, j] = eye + a * W[i][j] + b * w2
+        t = 0.0
+        for j in range(3):
+            w2 = w[i] * w[j] - (th2 if i == j else 0.0)
+            t += ((1.0 if i == j else 0.0) + b * W[i][j] + c * w2) * xi[3 + j]
+        E[i, 3] = t
+    for j in range(4):  # T may be T_out: read the column first
+        c0, c1, c2, c3 = T[0, j], T[1, j], T[2, j], T[3, j]
+        for i in range(3):
+            T_out[i, j] = E[i, 0] * c0 + E[i, 1] * c1 + E[i, 2] * c2 + E[i, 3] * c3
+        T_out[3, j] = c3
 
 
 @njit(cache=True, nogil=True)

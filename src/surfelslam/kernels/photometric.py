@@ -44,6 +44,139 @@ def _bilinear(img, x0, y0, ax, ay, ch):
             + ay * ((1.0 - ax) * img[y0 + 1, x0, ch] + ax * img[y0 + 1, x0 + 1, ch]))
 
 
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _photometric_chunk(src_vertex, src_intensity, tgt_vertex, tgt_igg, T, fx, fy, cx, cy, dist_thresh_m, sigma, huber,
+                       weight, offset, src_stride, c, pc):
+    """Chunk ``c`` of :func:`accumulate_photometric` (its source rows), sums into ``pc (N_STATS + N_AUX,)``; a
+    function of its own for the parallel twin's compile time (as ``icp._normal_equations_chunk``)."""
+    H, W = src_vertex.shape[0], src_vertex.shape[1]
+    Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
+    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    isig = 1.0 / sigma
+    # scalar accumulators (kept in registers): s0..s20 AtA, s21..s26 Atb, s27 cost, then aux sums
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
+    s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
+    s21 = s22 = s23 = s24 = s25 = s26 = s27 = 0.0
+    x0_ = x1_ = x2_ = 0.0
+    row0 = (c * H) // N_CHUNKS
+    row1 = ((c + 1) * H) // N_CHUNKS
+    for v in range(row0, row1):
+        if v % src_stride != 0:
+            continue
+        for u in range(0, W, src_stride):
+            pz0 = np.float64(src_vertex[v, u, 2])
+            if pz0 <= 0.0:
+                continue
+            i_s = np.float64(src_intensity[v, u])
+            if not np.isfinite(i_s):
+                continue
+            px0 = np.float64(src_vertex[v, u, 0])
+            py0 = np.float64(src_vertex[v, u, 1])
+            px = r00 * px0 + r01 * py0 + r02 * pz0 + t0
+            py = r10 * px0 + r11 * py0 + r12 * pz0 + t1
+            pz = r20 * px0 + r21 * py0 + r22 * pz0 + t2
+            if pz <= 0.0:
+                continue
+            iz = 1.0 / pz
+            xf = fx * px * iz + cx
+            yf = fy * py * iz + cy
+            if not (xf >= 0.0 and xf < Wt - 1 and yf >= 0.0 and yf < Ht - 1):
+                continue
+            x0 = int(xf)
+            y0 = int(yf)
+            ax = xf - x0
+            ay = yf - y0
+            qz = np.float64(tgt_vertex[int(yf + 0.5), int(xf + 0.5), 2])
+            if qz <= 0.0 or abs(qz - pz) >= dist_thresh_m:
+                continue
+            i_t = _bilinear(tgt_igg, x0, y0, ax, ay, 0)
+            gx = _bilinear(tgt_igg, x0, y0, ax, ay, 1)
+            gy = _bilinear(tgt_igg, x0, y0, ax, ay, 2)
+            if not np.isfinite(i_t + gx + gy):  # NaN at any corner propagates
+                continue
+            d = i_t - i_s
+            e = (d - offset) * isig
+            ae = abs(e)
+            h = 1.0 if ae <= huber else huber / ae
+            g0 = gx * fx * iz * isig
+            g1 = gy * fy * iz * isig
+            g2 = -(g0 * px + g1 * py) * iz
+            a0 = py * g2 - pz * g1
+            a1 = pz * g0 - px * g2
+            a2 = px * g1 - py * g0
+            w = weight * h
+            wa0 = w * a0
+            wa1 = w * a1
+            wa2 = w * a2
+            wa3 = w * g0
+            wa4 = w * g1
+            wa5 = w * g2
+            s0 += wa0 * a0
+            s1 += wa0 * a1
+            s2 += wa0 * a2
+            s3 += wa0 * g0
+            s4 += wa0 * g1
+            s5 += wa0 * g2
+            s6 += wa1 * a1
+            s7 += wa1 * a2
+            s8 += wa1 * g0
+            s9 += wa1 * g1
+            s10 += wa1 * g2
+            s11 += wa2 * a2
+            s12 += wa2 * g0
+            s13 += wa2 * g1
+            s14 += wa2 * g2
+            s15 += wa3 * g0
+            s16 += wa3 * g1
+            s17 += wa3 * g2
+            s18 += wa4 * g1
+            s19 += wa4 * g2
+            s20 += wa5 * g2
+            s21 += wa0 * e
+            s22 += wa1 * e
+            s23 += wa2 * e
+            s24 += wa3 * e
+            s25 += wa4 * e
+            s26 += wa5 * e
+            s27 += w * e * e
+            x0_ += h
+            x1_ += h * d
+            x2_ += 1.0
+    pc[0] = s0
+    pc[1] = s1
+    pc[2] = s2
+    pc[3] = s3
+    pc[4] = s4
+    pc[5] = s5
+    pc[6] = s6
+    pc[7] = s7
+    pc[8] = s8
+    pc[9] = s9
+    pc[10] = s10
+    pc[11] = s11
+    pc[12] = s12
+    pc[13] = s13
+    pc[14] = s14
+    pc[15] = s15
+    pc[16] = s16
+    pc[17] = s17
+    pc[18] = s18
+    pc[19] = s19
+    pc[20] = s20
+    pc[21] = s21
+    pc[22] = s22
+    pc[23] = s23
+    pc[24] = s24
+    pc[25] = s25
+    pc[26] = s26
+    pc[27] = s27
+    pc[N_STATS] = x0_
+    pc[N_STATS + 1] = x1_
+    pc[N_STATS + 2] = x2_
+
+
 @dual_njit(fastmath=_FASTMATH, error_model="numpy")
 def accumulate_photometric(src_vertex, src_intensity, tgt_vertex, tgt_igg, T, fx, fy, cx, cy, dist_thresh_m, sigma,
                            huber, weight, offset, out, aux, src_stride=1):
@@ -62,135 +195,10 @@ def accumulate_photometric(src_vertex, src_intensity, tgt_vertex, tgt_igg, T, fx
         out: ``(N_STATS,)`` float64 (added to). aux: ``(N_AUX,)`` float64 (overwritten).
         src_stride: use only source pixels ``[::src_stride, ::src_stride]``.
     """
-    H, W = src_vertex.shape[0], src_vertex.shape[1]
-    Ht, Wt = tgt_vertex.shape[0], tgt_vertex.shape[1]
-    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
-    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
-    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
-    isig = 1.0 / sigma
     partial = np.zeros((N_CHUNKS, N_STATS + N_AUX))
     for c in prange(N_CHUNKS):
-        # scalar accumulators (kept in registers): s0..s20 AtA, s21..s26 Atb, s27 cost, then aux sums
-        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
-        s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
-        s21 = s22 = s23 = s24 = s25 = s26 = s27 = 0.0
-        x0_ = x1_ = x2_ = 0.0
-        row0 = (c * H) // N_CHUNKS
-        row1 = ((c + 1) * H) // N_CHUNKS
-        for v in range(row0, row1):
-            if v % src_stride != 0:
-                continue
-            for u in range(0, W, src_stride):
-                pz0 = np.float64(src_vertex[v, u, 2])
-                if pz0 <= 0.0:
-                    continue
-                i_s = np.float64(src_intensity[v, u])
-                if not np.isfinite(i_s):
-                    continue
-                px0 = np.float64(src_vertex[v, u, 0])
-                py0 = np.float64(src_vertex[v, u, 1])
-                px = r00 * px0 + r01 * py0 + r02 * pz0 + t0
-                py = r10 * px0 + r11 * py0 + r12 * pz0 + t1
-                pz = r20 * px0 + r21 * py0 + r22 * pz0 + t2
-                if pz <= 0.0:
-                    continue
-                iz = 1.0 / pz
-                xf = fx * px * iz + cx
-                yf = fy * py * iz + cy
-                if not (xf >= 0.0 and xf < Wt - 1 and yf >= 0.0 and yf < Ht - 1):
-                    continue
-                x0 = int(xf)
-                y0 = int(yf)
-                ax = xf - x0
-                ay = yf - y0
-                qz = np.float64(tgt_vertex[int(yf + 0.5), int(xf + 0.5), 2])
-                if qz <= 0.0 or abs(qz - pz) >= dist_thresh_m:
-                    continue
-                i_t = _bilinear(tgt_igg, x0, y0, ax, ay, 0)
-                gx = _bilinear(tgt_igg, x0, y0, ax, ay, 1)
-                gy = _bilinear(tgt_igg, x0, y0, ax, ay, 2)
-                if not np.isfinite(i_t + gx + gy):  # NaN at any corner propagates
-                    continue
-                d = i_t - i_s
-                e = (d - offset) * isig
-                ae = abs(e)
-                h = 1.0 if ae <= huber else huber / ae
-                g0 = gx * fx * iz * isig
-                g1 = gy * fy * iz * isig
-                g2 = -(g0 * px + g1 * py) * iz
-                a0 = py * g2 - pz * g1
-                a1 = pz * g0 - px * g2
-                a2 = px * g1 - py * g0
-                w = weight * h
-                wa0 = w * a0
-                wa1 = w * a1
-                wa2 = w * a2
-                wa3 = w * g0
-                wa4 = w * g1
-                wa5 = w * g2
-                s0 += wa0 * a0
-                s1 += wa0 * a1
-                s2 += wa0 * a2
-                s3 += wa0 * g0
-                s4 += wa0 * g1
-                s5 += wa0 * g2
-                s6 += wa1 * a1
-                s7 += wa1 * a2
-                s8 += wa1 * g0
-                s9 += wa1 * g1
-                s10 += wa1 * g2
-                s11 += wa2 * a2
-                s12 += wa2 * g0
-                s13 += wa2 * g1
-                s14 += wa2 * g2
-                s15 += wa3 * g0
-                s16 += wa3 * g1
-                s17 += wa3 * g2
-                s18 += wa4 * g1
-                s19 += wa4 * g2
-                s20 += wa5 * g2
-                s21 += wa0 * e
-                s22 += wa1 * e
-                s23 += wa2 * e
-                s24 += wa3 * e
-                s25 += wa4 * e
-                s26 += wa5 * e
-                s27 += w * e * e
-                x0_ += h
-                x1_ += h * d
-                x2_ += 1.0
-        pc = partial[c]
-        pc[0] = s0
-        pc[1] = s1
-        pc[2] = s2
-        pc[3] = s3
-        pc[4] = s4
-        pc[5] = s5
-        pc[6] = s6
-        pc[7] = s7
-        pc[8] = s8
-        pc[9] = s9
-        pc[10] = s10
-        pc[11] = s11
-        pc[12] = s12
-        pc[13] = s13
-        pc[14] = s14
-        pc[15] = s15
-        pc[16] = s16
-        pc[17] = s17
-        pc[18] = s18
-        pc[19] = s19
-        pc[20] = s20
-        pc[21] = s21
-        pc[22] = s22
-        pc[23] = s23
-        pc[24] = s24
-        pc[25] = s25
-        pc[26] = s26
-        pc[27] = s27
-        pc[N_STATS] = x0_
-        pc[N_STATS + 1] = x1_
-        pc[N_STATS + 2] = x2_
+        _photometric_chunk(src_vertex, src_intensity, tgt_vertex, tgt_igg, T, fx, fy, cx, cy, dist_thresh_m, sigma,
+                           huber, weight, offset, src_stride, np.int64(c), partial[c])
     for k in range(N_STATS + N_AUX):
         s = 0.0
         for c in range(N_CHUNKS):
@@ -308,7 +316,9 @@ def pack_target(img):
     :func:`accumulate_photometric` (gradients as :func:`gradients`)."""
     H, W = img.shape
     out = np.empty((H, W, 3), np.float32)
-    out[:, :, 0] = img
+    for v in range(H):  # a loop, not out[:, :, 0] = img: the slice assignment compiles seconds of error handling
+        for u in range(W):
+            out[v, u, 0] = img[v, u]
     _gradients_into(img, out[:, :, 1], out[:, :, 2])  # written in place: no temporary gradient images
     return out
 

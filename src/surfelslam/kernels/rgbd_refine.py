@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from surfelslam.kernels.icp import se3_exp_left_update
+from surfelslam.kernels.icp import cholesky_solve6, copy_pose, se3_exp_left_update
 
 _MAD_TO_SIGMA = 1.4826  # median absolute deviation -> standard deviation of a Gaussian (as robust_sigma)
 
@@ -127,6 +127,16 @@ def _normal_equations(T, P, uv, q, w_inv, sp, si, fx, fy, cx, cy, huber, H, g):
 
 
 @njit(cache=True, nogil=True)
+def _all_finite(A):
+    """Whether every entry of the 2-D ``A`` is finite."""
+    for i in range(A.shape[0]):
+        for j in range(A.shape[1]):
+            if not np.isfinite(A[i, j]):
+                return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def _any_behind(T, P):
     """Whether a point of ``P`` is not in front of the camera of ``T``."""
     for i in range(P.shape[0]):
@@ -146,6 +156,8 @@ def rgbd_refine(T0, P, uv, q, w_inv, fx, fy, cx, cy, iterations, huber, min_poin
     T_next = np.empty((4, 4))
     H = np.empty((6, 6))
     g = np.empty(6)
+    rhs = np.empty(6)
+    xi = np.empty(6)
     for _ in range(iterations):
         if _any_behind(T, P):
             break
@@ -153,15 +165,18 @@ def rgbd_refine(T0, P, uv, q, w_inv, fx, fy, cx, cy, iterations, huber, min_poin
                          min_pixel_sigma, min_points_depth, model_inv_sigma)
         if not _normal_equations(T, P, uv, q, w_inv, sp, si, fx, fy, cx, cy, huber, H, g):
             break
-        if abs(np.linalg.det(H)) == 0.0 or not np.all(np.isfinite(H)):
+        if not _all_finite(H):
             break
-        xi = -np.linalg.solve(H, g)
+        for c in range(6):
+            rhs[c] = -g[c]
+        if not cholesky_solve6(H, rhs, xi):  # H is J^T W J: singular or not positive definite, no step
+            break
         se3_exp_left_update(xi, T, T_next)
-        T[:, :] = T_next
+        copy_pose(T_next, T)
         if np.sqrt(np.sum(xi * xi)) < converged:
             break
-    T_out[:, :] = T
-    if not with_information or not np.all(np.isfinite(T)):
+    copy_pose(T, T_out)
+    if not with_information or not _all_finite(T):
         return False
     if _any_behind(T, P):
         return False
@@ -169,4 +184,4 @@ def rgbd_refine(T0, P, uv, q, w_inv, fx, fy, cx, cy, iterations, huber, min_poin
                      min_points_depth, model_inv_sigma)
     if not _normal_equations(T, P, uv, q, w_inv, sp, si, fx, fy, cx, cy, huber, H_out, g):
         return False
-    return bool(np.all(np.isfinite(H_out)))
+    return _all_finite(H_out)

@@ -209,6 +209,59 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
     return n_blocks, n_vis, False
 
 
+@njit(cache=True, nogil=True)
+def _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible, coords,
+                     tsdf, weight, colour, colour_weight, max_weight, q):
+    """Item ``q`` of :func:`integrate`'s parallel loop, a function of its own: numba's parallel pass then
+    handles a loop of one call (see ``icp._normal_equations_chunk``)."""
+    H, W = depth.shape
+    inv_t = 1.0 / trunc_m
+    c_max = 255.0 * COLOUR_SCALE
+    cw_max = min(max_weight, _U16_MAX)
+    # camera-frame steps of one voxel along world x, y, z
+    ax, ay, az = T_cam_world[0, 0] * voxel_m, T_cam_world[1, 0] * voxel_m, T_cam_world[2, 0] * voxel_m
+    bx, by, bz = T_cam_world[0, 1] * voxel_m, T_cam_world[1, 1] * voxel_m, T_cam_world[2, 1] * voxel_m
+    cx_, cy_, cz_ = T_cam_world[0, 2] * voxel_m, T_cam_world[1, 2] * voxel_m, T_cam_world[2, 2] * voxel_m
+    b = visible[q]
+    gx, gy, gz = coords[b, 0] * BLOCK, coords[b, 1] * BLOCK, coords[b, 2] * BLOCK
+    ox = ax * gx + bx * gy + cx_ * gz + T_cam_world[0, 3]
+    oy = ay * gx + by * gy + cy_ * gz + T_cam_world[1, 3]
+    oz = az * gx + bz * gy + cz_ * gz + T_cam_world[2, 3]
+    for kz in range(BLOCK):
+        for ky in range(BLOCK):
+            rx = ox + bx * ky + cx_ * kz
+            ry = oy + by * ky + cy_ * kz
+            rz = oz + bz * ky + cz_ * kz
+            for kx in range(BLOCK):
+                zc = rz + az * kx
+                if zc <= 1e-6:
+                    continue
+                inv_z = 1.0 / zc
+                uf = fx * (rx + ax * kx) * inv_z + cx + 0.5
+                vf = fy * (ry + ay * kx) * inv_z + cy + 0.5
+                if not (uf >= 0.0 and vf >= 0.0 and uf < W and vf < H):
+                    continue
+                u = int(uf)
+                v = int(vf)
+                d = depth[v, u]
+                if not (d >= min_depth and d <= max_depth):
+                    continue
+                sdf = d - zc
+                if sdf < -trunc_m:
+                    continue
+                k = kx + BLOCK * ky + BLOCK * BLOCK * kz
+                w0 = weight[b, k]
+                tsdf[b, k] = (tsdf[b, k] * w0 + min(1.0, sdf * inv_t)) / (w0 + 1.0)
+                weight[b, k] = min(w0 + 1.0, max_weight)
+                if sdf < trunc_m:
+                    cw = np.float64(colour_weight[b, k])
+                    inv_w = 1.0 / (cw + 1.0)
+                    for c in range(3):
+                        val = (colour[b, k, c] * cw + rgb[v, u, c] * COLOUR_SCALE) * inv_w + 0.5
+                        colour[b, k, c] = np.uint16(min(val, c_max))
+                    colour_weight[b, k] = np.uint16(min(cw + 1.0, cw_max))
+
+
 @dual_njit()
 def integrate(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible, coords,
               tsdf, weight, colour, colour_weight, max_weight):
@@ -219,53 +272,9 @@ def integrate(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, tru
     ``>= -trunc_m`` gets ``min(1, sdf / trunc_m)`` averaged in with weight 1 (the weight saturates at
     ``max_weight``, so old frames fade); within ``|sdf| < trunc_m`` its colour is averaged too.
     """
-    H, W = depth.shape
-    inv_t = 1.0 / trunc_m
-    c_max = 255.0 * COLOUR_SCALE
-    cw_max = min(max_weight, _U16_MAX)
-    # camera-frame steps of one voxel along world x, y, z
-    ax, ay, az = T_cam_world[0, 0] * voxel_m, T_cam_world[1, 0] * voxel_m, T_cam_world[2, 0] * voxel_m
-    bx, by, bz = T_cam_world[0, 1] * voxel_m, T_cam_world[1, 1] * voxel_m, T_cam_world[2, 1] * voxel_m
-    cx_, cy_, cz_ = T_cam_world[0, 2] * voxel_m, T_cam_world[1, 2] * voxel_m, T_cam_world[2, 2] * voxel_m
     for q in prange(visible.shape[0]):
-        b = visible[q]
-        gx, gy, gz = coords[b, 0] * BLOCK, coords[b, 1] * BLOCK, coords[b, 2] * BLOCK
-        ox = ax * gx + bx * gy + cx_ * gz + T_cam_world[0, 3]
-        oy = ay * gx + by * gy + cy_ * gz + T_cam_world[1, 3]
-        oz = az * gx + bz * gy + cz_ * gz + T_cam_world[2, 3]
-        for kz in range(BLOCK):
-            for ky in range(BLOCK):
-                rx = ox + bx * ky + cx_ * kz
-                ry = oy + by * ky + cy_ * kz
-                rz = oz + bz * ky + cz_ * kz
-                for kx in range(BLOCK):
-                    zc = rz + az * kx
-                    if zc <= 1e-6:
-                        continue
-                    inv_z = 1.0 / zc
-                    uf = fx * (rx + ax * kx) * inv_z + cx + 0.5
-                    vf = fy * (ry + ay * kx) * inv_z + cy + 0.5
-                    if not (uf >= 0.0 and vf >= 0.0 and uf < W and vf < H):
-                        continue
-                    u = int(uf)
-                    v = int(vf)
-                    d = depth[v, u]
-                    if not (d >= min_depth and d <= max_depth):
-                        continue
-                    sdf = d - zc
-                    if sdf < -trunc_m:
-                        continue
-                    k = kx + BLOCK * ky + BLOCK * BLOCK * kz
-                    w0 = weight[b, k]
-                    tsdf[b, k] = (tsdf[b, k] * w0 + min(1.0, sdf * inv_t)) / (w0 + 1.0)
-                    weight[b, k] = min(w0 + 1.0, max_weight)
-                    if sdf < trunc_m:
-                        cw = np.float64(colour_weight[b, k])
-                        inv_w = 1.0 / (cw + 1.0)
-                        for c in range(3):
-                            val = (colour[b, k, c] * cw + rgb[v, u, c] * COLOUR_SCALE) * inv_w + 0.5
-                            colour[b, k, c] = np.uint16(min(val, c_max))
-                        colour_weight[b, k] = np.uint16(min(cw + 1.0, cw_max))
+        _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible,
+                         coords, tsdf, weight, colour, colour_weight, max_weight, np.int64(q))
 
 
 # ---------------------------------------------------------------------------------------------- extraction
@@ -319,21 +328,82 @@ def _gradient(nbr, tsdf, weight, min_weight, b, i, j, k):
     return g
 
 
+@njit(cache=True, nogil=True)
+def _count_vertices_block(nbr, tsdf, weight, min_weight, counts, b):
+    """Item ``b`` of :func:`count_vertices`'s parallel loop, a function of its own: numba's parallel pass then
+    handles a loop of one call (see ``icp._normal_equations_chunk``)."""
+    c = 0
+    for k in range(BLOCK_VOXELS):
+        if weight[b, k] < min_weight:
+            continue
+        i, j, l = k & 7, (k >> 3) & 7, k >> 6
+        neg = tsdf[b, k] < 0
+        for a in range(3):
+            nb, nk = _voxel(nbr, b, i + int(a == 0), j + int(a == 1), l + int(a == 2))
+            if nb >= 0 and weight[nb, nk] >= min_weight and (tsdf[nb, nk] < 0) != neg:
+                c += 1
+    counts[b] = c
+
+
 @dual_njit()
 def count_vertices(nbr, tsdf, weight, min_weight, counts):
     """``counts[b]``: the surface crossings on the edges owned by block ``b``'s voxels (both ends observed)."""
     for b in prange(counts.shape[0]):
-        c = 0
-        for k in range(BLOCK_VOXELS):
-            if weight[b, k] < min_weight:
+        _count_vertices_block(nbr, tsdf, weight, min_weight, counts, np.int64(b))
+
+
+@njit(cache=True, nogil=True)
+def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts,
+                         normals, rgb, b):
+    """Item ``b`` of :func:`fill_vertices`'s parallel loop, a function of its own: numba's parallel pass then
+    handles a loop of one call (see ``icp._normal_equations_chunk``)."""
+    n = start[b]
+    ox = coords[b, 0] * BLOCK
+    oy = coords[b, 1] * BLOCK
+    oz = coords[b, 2] * BLOCK
+    for k in range(BLOCK_VOXELS):
+        for a in range(3):
+            vid[b, k, a] = -1
+        if weight[b, k] < min_weight:
+            continue
+        i, j, l = k & 7, (k >> 3) & 7, k >> 6
+        f0 = tsdf[b, k]
+        for a in range(3):
+            di, dj, dl = int(a == 0), int(a == 1), int(a == 2)
+            nb, nk = _voxel(nbr, b, i + di, j + dj, l + dl)
+            if nb < 0 or weight[nb, nk] < min_weight:
                 continue
-            i, j, l = k & 7, (k >> 3) & 7, k >> 6
-            neg = tsdf[b, k] < 0
-            for a in range(3):
-                nb, nk = _voxel(nbr, b, i + int(a == 0), j + int(a == 1), l + int(a == 2))
-                if nb >= 0 and weight[nb, nk] >= min_weight and (tsdf[nb, nk] < 0) != neg:
-                    c += 1
-        counts[b] = c
+            f1 = tsdf[nb, nk]
+            if (f1 < 0) == (f0 < 0):
+                continue
+            t = f0 / (f0 - f1)
+            verts[n, 0] = (ox + i + t * di) * voxel_m
+            verts[n, 1] = (oy + j + t * dj) * voxel_m
+            verts[n, 2] = (oz + l + t * dl) * voxel_m
+            g0 = _gradient(nbr, tsdf, weight, min_weight, b, i, j, l)
+            g1 = _gradient(nbr, tsdf, weight, min_weight, b, i + di, j + dj, l + dl)
+            gx = (1 - t) * g0[0] + t * g1[0]
+            gy = (1 - t) * g0[1] + t * g1[1]
+            gz = (1 - t) * g0[2] + t * g1[2]
+            norm = np.sqrt(gx * gx + gy * gy + gz * gz)
+            if norm > 0:
+                normals[n, 0] = gx / norm
+                normals[n, 1] = gy / norm
+                normals[n, 2] = gz / norm
+            else:
+                normals[n, 0] = normals[n, 1] = normals[n, 2] = 0.0
+            w0 = (1.0 - t) if colour_weight[b, k] > 0 else 0.0
+            w1 = t if colour_weight[nb, nk] > 0 else 0.0
+            if w0 + w1 <= 0.0:
+                w0 = w1 = 0.0
+            else:
+                s = 1.0 / ((w0 + w1) * COLOUR_SCALE)
+                w0 *= s
+                w1 *= s
+            for c in range(3):
+                rgb[n, c] = np.uint8(min(w0 * colour[b, k, c] + w1 * colour[nb, nk, c] + 0.5, 255.0))
+            vid[b, k, a] = n
+            n += 1
 
 
 @dual_njit()
@@ -343,53 +413,8 @@ def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, 
     the zero crossing), normal (interpolated TSDF gradient, unit length, towards the free side), colour
     (interpolated between the ends that have one); and their indices into ``vid[b, k, axis]`` (-1 elsewhere)."""
     for b in prange(coords.shape[0]):
-        n = start[b]
-        ox = coords[b, 0] * BLOCK
-        oy = coords[b, 1] * BLOCK
-        oz = coords[b, 2] * BLOCK
-        for k in range(BLOCK_VOXELS):
-            for a in range(3):
-                vid[b, k, a] = -1
-            if weight[b, k] < min_weight:
-                continue
-            i, j, l = k & 7, (k >> 3) & 7, k >> 6
-            f0 = tsdf[b, k]
-            for a in range(3):
-                di, dj, dl = int(a == 0), int(a == 1), int(a == 2)
-                nb, nk = _voxel(nbr, b, i + di, j + dj, l + dl)
-                if nb < 0 or weight[nb, nk] < min_weight:
-                    continue
-                f1 = tsdf[nb, nk]
-                if (f1 < 0) == (f0 < 0):
-                    continue
-                t = f0 / (f0 - f1)
-                verts[n, 0] = (ox + i + t * di) * voxel_m
-                verts[n, 1] = (oy + j + t * dj) * voxel_m
-                verts[n, 2] = (oz + l + t * dl) * voxel_m
-                g0 = _gradient(nbr, tsdf, weight, min_weight, b, i, j, l)
-                g1 = _gradient(nbr, tsdf, weight, min_weight, b, i + di, j + dj, l + dl)
-                gx = (1 - t) * g0[0] + t * g1[0]
-                gy = (1 - t) * g0[1] + t * g1[1]
-                gz = (1 - t) * g0[2] + t * g1[2]
-                norm = np.sqrt(gx * gx + gy * gy + gz * gz)
-                if norm > 0:
-                    normals[n, 0] = gx / norm
-                    normals[n, 1] = gy / norm
-                    normals[n, 2] = gz / norm
-                else:
-                    normals[n, 0] = normals[n, 1] = normals[n, 2] = 0.0
-                w0 = (1.0 - t) if colour_weight[b, k] > 0 else 0.0
-                w1 = t if colour_weight[nb, nk] > 0 else 0.0
-                if w0 + w1 <= 0.0:
-                    w0 = w1 = 0.0
-                else:
-                    s = 1.0 / ((w0 + w1) * COLOUR_SCALE)
-                    w0 *= s
-                    w1 *= s
-                for c in range(3):
-                    rgb[n, c] = np.uint8(min(w0 * colour[b, k, c] + w1 * colour[nb, nk, c] + 0.5, 255.0))
-                vid[b, k, a] = n
-                n += 1
+        _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts,
+                             normals, rgb, np.int64(b))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -405,37 +430,52 @@ def _cube_case(nbr, tsdf, weight, min_weight, b, i, j, l):
     return case
 
 
+@njit(cache=True, nogil=True)
+def _count_triangles_block(nbr, tsdf, weight, min_weight, tri_count, counts, b):
+    """Item ``b`` of :func:`count_triangles`'s parallel loop, a function of its own: numba's parallel pass then
+    handles a loop of one call (see ``icp._normal_equations_chunk``)."""
+    c = 0
+    for k in range(BLOCK_VOXELS):
+        if weight[b, k] < min_weight:
+            continue
+        case = _cube_case(nbr, tsdf, weight, min_weight, b, k & 7, (k >> 3) & 7, k >> 6)
+        if case > 0:
+            c += tri_count[case]
+    counts[b] = c
+
+
 @dual_njit()
 def count_triangles(nbr, tsdf, weight, min_weight, tri_count, counts):
     """``counts[b]``: triangles of the cubes whose lowest corner is a voxel of block ``b``."""
     for b in prange(counts.shape[0]):
-        c = 0
-        for k in range(BLOCK_VOXELS):
-            if weight[b, k] < min_weight:
-                continue
-            case = _cube_case(nbr, tsdf, weight, min_weight, b, k & 7, (k >> 3) & 7, k >> 6)
-            if case > 0:
-                c += tri_count[case]
-        counts[b] = c
+        _count_triangles_block(nbr, tsdf, weight, min_weight, tri_count, counts, np.int64(b))
+
+
+@njit(cache=True, nogil=True)
+def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start,
+                          faces, b):
+    """Item ``b`` of :func:`fill_triangles`'s parallel loop, a function of its own: numba's parallel pass then
+    handles a loop of one call (see ``icp._normal_equations_chunk``)."""
+    n = start[b]
+    for k in range(BLOCK_VOXELS):
+        if weight[b, k] < min_weight:
+            continue
+        i, j, l = k & 7, (k >> 3) & 7, k >> 6
+        case = _cube_case(nbr, tsdf, weight, min_weight, b, i, j, l)
+        if case <= 0:
+            continue
+        for t in range(tri_count[case]):
+            for m in range(3):
+                e = tri_table[case, 3 * t + m]
+                c = edge_corner[e]
+                nb, nk = _voxel(nbr, b, i + (c & 1), j + ((c >> 1) & 1), l + (c >> 2))
+                faces[n, m] = vid[nb, nk, edge_axis[e]]
+            n += 1
 
 
 @dual_njit()
 def fill_triangles(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start, faces):
     """Write the triangles counted by :func:`count_triangles` (vertex indices from ``vid``) from ``start[b]`` on."""
     for b in prange(start.shape[0]):
-        n = start[b]
-        for k in range(BLOCK_VOXELS):
-            if weight[b, k] < min_weight:
-                continue
-            i, j, l = k & 7, (k >> 3) & 7, k >> 6
-            case = _cube_case(nbr, tsdf, weight, min_weight, b, i, j, l)
-            if case <= 0:
-                continue
-            for t in range(tri_count[case]):
-                for m in range(3):
-                    e = tri_table[case, 3 * t + m]
-                    c = edge_corner[e]
-                    nb, nk = _voxel(nbr, b, i + (c & 1), j + ((c >> 1) & 1), l + (c >> 2))
-                    faces[n, m] = vid[nb, nk, edge_axis[e]]
-                n += 1
-
+        _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start,
+                              faces, np.int64(b))
