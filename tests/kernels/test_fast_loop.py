@@ -59,7 +59,7 @@ def test_serial_and_parallel_twins_agree_bitwise():
         try:
             stats = np.zeros(kicp.N_STATS)
             kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal, T,
-                                             CAM64.fx, CAM64.fy, CAM64.cx, CAM64.cy, 0.1, 0.5, 1, 0.02, stats, 1)
+                                             CAM64.fx, CAM64.fy, CAM64.cx, CAM64.cy, 0.1, 0.5, 1, 0.02, stats, 1, 0.0)
             out[on] = stats
         finally:
             threads.set_parallel(False)

@@ -139,7 +139,7 @@ def test_kernel_is_deterministic_across_thread_counts(pair_pyramids):
             numba.set_num_threads(n)
             s = np.zeros(kicp.N_STATS)
             kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, tgt[0].vertex, tgt[0].normal,
-                                             MOTIONS[4], i.fx, i.fy, i.cx, i.cy, 0.1, 0.5, 1, 0.02, s)
+                                             MOTIONS[4], i.fx, i.fy, i.cx, i.cy, 0.1, 0.5, 1, 0.02, s, 1, 0.0)
             results.append(s)
             results.append(icp(src, tgt).T_target_source)
     finally:
