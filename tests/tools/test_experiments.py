@@ -38,7 +38,7 @@ def experiment(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("exp")
     seq_dir = generate_sequence(root / "seq", scene="room", style="handheld", n_frames=60, noise="kinect", seed=1,
-                                width=320, height=240)
+                                width=160, height=120)
     out = root / "out"
     r = CliRunner().invoke(app, ["experiments", str(seq_dir), "--out", str(out), "--frames", str(FRAMES),
                                  "--pair-gaps", ",".join(map(str, GAPS)), "--pair-start", str(START),
@@ -86,7 +86,7 @@ def test_fusion_numbers_match_run_sequence(experiment, tmp_path):
     row = _row(_section(report, 2), "ground-truth poses")
     assert int(row[1]) == FRAMES == m["frames_processed"]
     assert int(row[2]) == m["map_points"]
-    assert row[3] == f"{100 * m['map_points'] / (FRAMES * 320 * 240):.2f}%"
+    assert row[3] == f"{100 * m['map_points'] / (FRAMES * 160 * 120):.2f}%"
     res = json.loads((out / "results.json").read_text())
     assert res["fusion"]["ground-truth poses"]["map_points"] == m["map_points"]
     # the dense-pose map is in the same range as the GT map on this easy synthetic sequence
