@@ -176,6 +176,28 @@ def test_solvers_agree():
         solve(AtA, Atb, "magic")
 
 
+def test_left_update_and_cholesky_kernels_match_scipy():
+    """``se3_exp_left_update`` is ``expm(xi^) @ T`` from tiny to large rotations, also written in place (``T`` is
+    ``T_out``); ``cholesky_solve6`` solves a positive definite system and refuses an indefinite one."""
+    rng = np.random.default_rng(3)
+    for sigma in (1e-9, 1e-3, 0.3, 2.0):
+        xi = rng.normal(0.0, sigma, 6)
+        T = se3.exp(rng.normal(size=6))
+        hat = np.zeros((4, 4))
+        hat[:3, :3] = [[0.0, -xi[2], xi[1]], [xi[2], 0.0, -xi[0]], [-xi[1], xi[0], 0.0]]
+        hat[:3, 3] = xi[3:]
+        T_out = np.empty((4, 4))
+        kicp.se3_exp_left_update(xi, T, T_out)
+        np.testing.assert_allclose(T_out, scipy.linalg.expm(hat) @ T, atol=1e-12)
+        kicp.se3_exp_left_update(xi, T, T)
+        assert np.array_equal(T, T_out)
+    A = rng.normal(size=(20, 6))
+    H, rhs, x = A.T @ A, rng.normal(size=6), np.full(6, 7.0)
+    assert kicp.cholesky_solve6(np.tril(H), rhs, x)
+    np.testing.assert_allclose(x, np.linalg.solve(H, rhs), rtol=1e-10)
+    H[5, 5] = -1.0
+    assert not kicp.cholesky_solve6(H.copy(), rhs, x)
+
 def test_robust_weights_reference():
     r = np.array([0.0, 0.005, -0.02, 0.05])
     np.testing.assert_allclose(kicp.robust_weight_ref(r, kicp.ROBUST_HUBER, 0.01), [1, 1, 0.5, 0.2])
