@@ -7,10 +7,13 @@ All functions accept a single pose ``(4, 4)`` or a batch ``(N, 4, 4)`` where not
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 _SMALL_ANGLE_RAD = 1e-8  # below this angle, series expansions replace the closed forms
+_LOG_SERIES_RAD = 1e-3  # below this angle the log's scale angle / sin(angle / 2) is its series (as scipy)
 
 
 def skew(w: np.ndarray) -> np.ndarray:
@@ -94,8 +97,41 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation(s) ``(..., 3, 3)`` -> axis-angle(s) ``(..., 3)`` (robust near 0 and pi via scipy)."""
-    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+    """Rotation(s) ``(..., 3, 3)`` -> axis-angle(s) ``(..., 3)``, robust near 0 and pi.
+
+    One matrix goes through :func:`_so3_log_one` (the trackers call this per frame and per edge: scipy's
+    ``Rotation`` costs about 0.1 ms a call in object overhead); stacks go through scipy.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape == (3, 3):
+        return _so3_log_one(R)
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def _so3_log_one(R: np.ndarray) -> np.ndarray:
+    """Axis-angle ``(3,)`` of one rotation ``(3, 3)``: scipy's method in scalars (Markley's quaternion from the
+    largest of four candidates, sign fixed to ``w >= 0``, then ``2 atan2(|v|, w)``, series below 1e-3 rad)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    tr = r00 + r11 + r22
+    if tr >= r00 and tr >= r11 and tr >= r22:
+        x, y, z, w = r21 - r12, r02 - r20, r10 - r01, 1.0 + tr
+    elif r00 >= r11 and r00 >= r22:
+        x, y, z, w = 1.0 - tr + 2.0 * r00, r10 + r01, r20 + r02, r21 - r12
+    elif r11 >= r22:
+        x, y, z, w = r01 + r10, 1.0 - tr + 2.0 * r11, r21 + r12, r02 - r20
+    else:
+        x, y, z, w = r02 + r20, r12 + r21, 1.0 - tr + 2.0 * r22, r10 - r01
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0.0:
+        n = -n
+    x, y, z, w = x / n, y / n, z / n, w / n
+    angle = 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), w)
+    if angle <= _LOG_SERIES_RAD:
+        a2 = angle * angle
+        scale = 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0
+    else:
+        scale = angle / math.sin(angle / 2.0)
+    return np.array([scale * x, scale * y, scale * z])
 
 
 def _left_jacobian(omega: np.ndarray) -> np.ndarray:
