@@ -525,12 +525,17 @@ def test_register_init_auto_keeps_the_pose_the_depth_prefers(tmp_path):
 
     from typer.testing import CliRunner
 
+    from surfelslam.synth.trajectories import make_trajectory
     from surfelslam.synth.writer import generate_sequence
+    from surfelslam.types import Trajectory
 
-    seq = generate_sequence(tmp_path / "seq", "room", "handheld", 191, "kinect", 0, 320, 240)
+    # frames 100 and 190 of the hand-held orbit, rendered alone: a two-frame replay of those two poses
+    T_wc = make_trajectory("handheld", 191, make_scene("room", 0), seed=0).T_world_cam
+    pair = Trajectory(np.array([0.0, 1.0 / 30.0]), T_wc[[100, 190]])
+    seq = generate_sequence(tmp_path / "seq", "room", "handheld", 2, "kinect", 0, 320, 240, motion=pair)
     out = {}
     for init in ("identity", "auto"):
-        res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "100", "--target", "190",
+        res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "0", "--target", "1",
                                                   "--init", init, "--out", str(tmp_path / init)])
         assert res.exit_code == 0, res.output
         out[init] = json.loads((tmp_path / init / "registration.json").read_text())
