@@ -390,9 +390,11 @@ def copy_pose(T, T_out):
 
 @njit(cache=True, nogil=True)
 def se3_exp_left_update(xi, T, T_out):
-    """``T_out = exp(xi) @ T`` for a twist ``xi = (omega, v)`` (closed-form SE(3) exponential, Rodrigues).
+    """``T_out = exp(xi) @ T`` for a twist ``xi = (omega, v)`` (closed-form SE(3) exponential).
 
-    Written out in scalars: small-matrix products through numba's BLAS bindings cost seconds of compile time."""
+    The small products go through numba's BLAS bindings, as they always have: a scalar rewrite compiles faster
+    but rounds differently, and every tracker's poses would move in the last bits.
+    """
     wx, wy, wz = xi[0], xi[1], xi[2]
     th2 = wx * wx + wy * wy + wz * wz
     th = np.sqrt(th2)
@@ -404,25 +406,17 @@ def se3_exp_left_update(xi, T, T_out):
         a = np.sin(th) / th
         b = (1.0 - np.cos(th)) / th2
         c = (th - np.sin(th)) / (th2 * th)
-    # W = [omega]_x and W^2 = omega omega^T - |omega|^2 I
-    W = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
-    w = (wx, wy, wz)
-    E = np.empty((3, 4))
-    for i in range(3):
+    W = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    W2 = W @ W
+    R = np.eye(3) + a * W + b * W2
+    V = np.eye(3) + b * W + c * W2
+    t = V @ xi[3:]
+    E = np.eye(4)
+    for i in range(3):  # loops, not slice assignments: see copy_pose
         for j in range(3):
-            w2 = w[i] * w[j] - (th2 if i == j else 0.0)
-            eye = 1.0 if i == j else 0.0
-            E[i, j] = eye + a * W[i][j] + b * w2
-        t = 0.0
-        for j in range(3):
-            w2 = w[i] * w[j] - (th2 if i == j else 0.0)
-            t += ((1.0 if i == j else 0.0) + b * W[i][j] + c * w2) * xi[3 + j]
-        E[i, 3] = t
-    for j in range(4):  # T may be T_out: read the column first
-        c0, c1, c2, c3 = T[0, j], T[1, j], T[2, j], T[3, j]
-        for i in range(3):
-            T_out[i, j] = E[i, 0] * c0 + E[i, 1] * c1 + E[i, 2] * c2 + E[i, 3] * c3
-        T_out[3, j] = c3
+            E[i, j] = R[i, j]
+        E[i, 3] = t[i]
+    copy_pose(E @ T, T_out)
 
 
 @njit(cache=True, nogil=True)
