@@ -406,16 +406,23 @@ def se3_exp_left_update(xi, T, T_out):
         a = np.sin(th) / th
         b = (1.0 - np.cos(th)) / th2
         c = (th - np.sin(th)) / (th2 * th)
-    W = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    W = np.empty((3, 3))
+    W[0, 0], W[0, 1], W[0, 2] = 0.0, -wz, wy
+    W[1, 0], W[1, 1], W[1, 2] = wz, 0.0, -wx
+    W[2, 0], W[2, 1], W[2, 2] = -wy, wx, 0.0
     W2 = W @ W
-    R = np.eye(3) + a * W + b * W2
-    V = np.eye(3) + b * W + c * W2
-    t = V @ xi[3:]
-    E = np.eye(4)
-    for i in range(3):  # loops, not slice assignments: see copy_pose
+    # R = I + a W + b W2 and V = I + b W + c W2, element by element (the same roundings as the array expressions)
+    E = np.zeros((4, 4))
+    V = np.empty((3, 3))
+    for i in range(3):
         for j in range(3):
-            E[i, j] = R[i, j]
+            eye = 1.0 if i == j else 0.0
+            E[i, j] = (eye + a * W[i, j]) + b * W2[i, j]
+            V[i, j] = (eye + b * W[i, j]) + c * W2[i, j]
+    t = V @ xi[3:]
+    for i in range(3):
         E[i, 3] = t[i]
+    E[3, 3] = 1.0
     copy_pose(E @ T, T_out)
 
 
