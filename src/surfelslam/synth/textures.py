@@ -77,9 +77,18 @@ def fractal_noise(rng: np.random.Generator, size_px: int, cells_px: tuple[int, .
 
 
 def _mix(c0, c1, t: np.ndarray) -> np.ndarray:
+    """``c0 + (c1 - c0) t`` per pixel: ``(S, S)`` weights -> ``(S, S, 3)`` colours (float32 for float32 ``t``).
+
+    One channel plane at a time: broadcasting over a last axis of 3 makes numpy's inner loops 3 long (about 5x
+    slower); the values are the same."""
     c0 = np.asarray(c0, np.float32)
     c1 = np.asarray(c1, np.float32)
-    return c0 + (c1 - c0) * t[..., None]
+    d = c1 - c0
+    out = np.empty(np.shape(t) + (3,), np.result_type(c0, t))
+    for k in range(3):
+        np.multiply(t, d[k], out=out[..., k])
+        out[..., k] += c0[k]
+    return out
 
 
 def _speckle(rng: np.random.Generator, img: np.ndarray, n: int, radius_px: tuple[int, int], palette) -> None:
