@@ -91,6 +91,22 @@ def _mix(c0, c1, t: np.ndarray) -> np.ndarray:
     return out
 
 
+def _add_rgb(img: np.ndarray, rgb) -> np.ndarray:
+    """``img + rgb`` for ``(S, S, 3)`` ``img`` and ``(3,)`` ``rgb``, in place, a channel plane at a time (see
+    :func:`_mix`); returns ``img``."""
+    for k in range(3):
+        img[..., k] += rgb[k]
+    return img
+
+
+def _scale(img: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``img * w[..., None]`` for ``(S, S, 3)`` ``img`` and weights broadcastable to ``(S, S)``, in place, a
+    channel plane at a time (see :func:`_mix`); returns ``img``."""
+    for k in range(3):
+        img[..., k] *= w
+    return img
+
+
 def _speckle(rng: np.random.Generator, img: np.ndarray, n: int, radius_px: tuple[int, int], palette) -> None:
     """Draw ``n`` small filled discs of palette colours (high-contrast corners for ORB), in place."""
     s = img.shape[0]
@@ -132,10 +148,10 @@ def make_texture(kind: str, rng: np.random.Generator, size_px: int, style: str =
     detail = fractal_noise(rng, s, (4, 16, 64))
     if kind == "wallpaper":
         t = fractal_noise(rng, s, (8, 32, 128, 256))
-        img = _mix((200, 180, 150), (110, 80, 60), t) + base * 0.5
+        img = _add_rgb(_mix((200, 180, 150), (110, 80, 60), t), base * 0.5)
         v = np.arange(s, dtype=np.float32)
         stripes = (np.sin(v * 2 * np.pi / 48.0) > 0.6).astype(np.float32)[None, :]
-        img *= (1.0 - 0.35 * stripes)[..., None]
+        _scale(img, 1.0 - 0.35 * stripes)
         _speckle(rng, img, 900, (2, 9), [(40, 30, 30), (240, 230, 210), (150, 40, 40), (30, 60, 120)])
     elif kind == "plaster":
         t = fractal_noise(rng, s, (4, 16, 64, 256))
@@ -151,14 +167,13 @@ def make_texture(kind: str, rng: np.random.Generator, size_px: int, style: str =
         v = np.arange(s, dtype=np.float32)[:, None]
         rings = 0.5 + 0.5 * np.sin(v / 6.0 + 8.0 * grain)
         t = np.clip(0.45 * rings + 0.35 * plank_tone + 0.2 * grain, 0, 1)
-        img = _mix((190, 140, 90), (90, 55, 30), t) + base * 0.3
-        img *= (1.0 - 0.7 * seam)[..., None]
+        img = _scale(_add_rgb(_mix((190, 140, 90), (90, 55, 30), t), base * 0.3), 1.0 - 0.7 * seam)
         _speckle(rng, img, 400, (1, 4), [(40, 25, 10), (220, 180, 130)])
     elif kind == "checker":
         cell = int(rng.integers(24, 48))
         yy, xx = np.mgrid[0:s, 0:s]
         chk = ((xx // cell + yy // cell) % 2).astype(np.float32)
-        img = _mix((235, 230, 220), (35, 40, 60), chk) + base * 0.4
+        img = _add_rgb(_mix((235, 230, 220), (35, 40, 60), chk), base * 0.4)
         _speckle(rng, img, 500, (2, 8), [(200, 40, 30), (30, 150, 60), (240, 200, 40)])
     elif kind == "blobs":
         img = _mix((210, 200, 190), (150, 140, 130), fractal_noise(rng, s, (32, 128)))
@@ -170,7 +185,7 @@ def make_texture(kind: str, rng: np.random.Generator, size_px: int, style: str =
         t = fractal_noise(rng, s, (4, 8, 64))
         yy, xx = np.mgrid[0:s, 0:s]
         weave = (((xx // 6) + (yy // 6)) % 2).astype(np.float32)
-        img = _mix((60, 90, 140), (150, 170, 200), 0.6 * t + 0.4 * weave) + base * 0.5
+        img = _add_rgb(_mix((60, 90, 140), (150, 170, 200), 0.6 * t + 0.4 * weave), base * 0.5)
         _speckle(rng, img, 600, (2, 6), [(230, 220, 200), (20, 20, 40), (180, 60, 60)])
     elif kind == "books":
         img = np.full((s, s, 3), 50.0, np.float32)
@@ -194,7 +209,7 @@ def make_texture(kind: str, rng: np.random.Generator, size_px: int, style: str =
         _speckle(rng, img, 400, (3, 12), palette)
     else:
         raise ValueError(f"unknown texture kind {kind!r}; known: {TEXTURE_KINDS}")
-    img = img * (0.8 + 0.4 * detail[..., None])  # fine-scale detail everywhere
+    img = _scale(img, 0.8 + 0.4 * detail)  # fine-scale detail everywhere
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
