@@ -97,11 +97,14 @@ class RGBDFrame:
 
     Attributes:
         index: position of the frame in its sequence (0-based, after start/stride selection).
-        timestamp: seconds (the colour image's capture stamp).
+        timestamp: the colour image's capture stamp, as the dataset gives it (written to the trajectory as is).
         rgb: ``(H, W, 3)`` uint8, RGB order.
         depth_m: ``(H, W)`` float32 metres, 0 = invalid.
-        depth_timestamp: the depth image's capture stamp (s) when the sensor records a separate one (TUM), else
+        depth_timestamp: the depth image's capture stamp when the sensor records a separate one (TUM), else
             ``None`` (taken together with the colour).
+        seconds_per_stamp: seconds per unit of the stamps: 1 for stamps in seconds (almost every dataset); ICL-NUIM
+            stamps frames by their number, 1 apart, which is 1/30 s. Motion bounds and velocities use
+            :attr:`time_s`, so they hold in real time whatever the dataset's unit.
     """
 
     index: int
@@ -109,16 +112,24 @@ class RGBDFrame:
     rgb: np.ndarray
     depth_m: np.ndarray
     depth_timestamp: float | None = None
+    seconds_per_stamp: float = 1.0
+
+    @property
+    def time_s(self) -> float:
+        """The frame's capture time (s): its stamp in seconds."""
+        return float(self.timestamp) * self.seconds_per_stamp
 
     @property
     def colour_minus_depth_s(self) -> float:
         """Colour stamp minus depth stamp (s); 0 when they were taken together."""
-        return 0.0 if self.depth_timestamp is None else float(self.timestamp - self.depth_timestamp)
+        if self.depth_timestamp is None:
+            return 0.0
+        return float(self.timestamp - self.depth_timestamp) * self.seconds_per_stamp
 
     @property
     def depth_stamp_s(self) -> float:
-        """The depth image's capture stamp (s)."""
-        return float(self.timestamp if self.depth_timestamp is None else self.depth_timestamp)
+        """The depth image's capture time (s)."""
+        return float(self.timestamp if self.depth_timestamp is None else self.depth_timestamp) * self.seconds_per_stamp
 
     def __post_init__(self) -> None:
         if self.depth_m.ndim != 2:

@@ -441,12 +441,22 @@ def test_a_refused_relocalisation_is_no_bridge():
     n = N_LOOP // 2
     blank = [RGBDFrame(n + i, (n + i) / 30.0, f.rgb, np.zeros_like(f.depth_m)) for i, f in enumerate(frames[n:n + 3])]
     start = [RGBDFrame(n + 3 + i, (n + 3 + i) / 30.0, f.rgb, f.depth_m) for i, f in enumerate(frames[1:7])]
-    slam = build_slam(INTR, SlamConfig(), "hybrid")
-    results = [slam.process(f) for f in frames[:n] + blank + start]
-    assert slam.failure_reasons.get("relocalisation_implausible") == len(start), slam.failure_reasons
+
+    def run(run_frames):
+        slam = build_slam(INTR, SlamConfig(), "hybrid")
+        return [slam.process(f) for f in run_frames], slam.failure_reasons
+
+    results, reasons = run(frames[:n] + blank + start)
+    assert reasons.get("relocalisation_implausible") == len(start), reasons
     held = results[n + 2].T_world_cam  # the last blank frame's prediction
     for r in results[n + 3:]:
         assert r.status == FrameStatus.LOST and np.array_equal(r.T_world_cam, held), (r.index, r.status)
+    # stamped by frame number (ICL-NUIM): the bound holds in seconds all the same; taken as seconds, those stamps
+    # would allow 30 times the motion, and the wrong relocalisations would be followed
+    numbered = [replace(f, timestamp=float(f.index), seconds_per_stamp=1 / 30) for f in frames[:n] + blank + start]
+    assert run(numbered)[1].get("relocalisation_implausible") == len(start)
+    as_seconds = [replace(f, seconds_per_stamp=1.0) for f in numbered]
+    assert "relocalisation_implausible" not in run(as_seconds)[1]
 
 
 def test_joint_term_weight_follows_the_measured_depth_noise():

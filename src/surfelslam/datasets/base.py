@@ -18,6 +18,18 @@ from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 #: Largest gap (s) between two ground-truth poses that :meth:`RGBDSequence.gt_poses` interpolates across
 #: (TUM motion capture runs at 100 Hz; a longer gap is a dropout, where the nearest pose is used instead).
 GT_INTERPOLATION_MAX_GAP_S = 0.05
+#: Frame rate (Hz) taken for sequences stamped by frame number (ICL-NUIM renders its trajectories at 30 Hz).
+FRAME_NUMBER_RATE_HZ = 30.0
+
+
+def stamps_are_frame_numbers(stamps: np.ndarray) -> bool:
+    """Whether ``stamps`` ``(N,)`` count frames rather than seconds: all whole numbers, and consecutive frames
+    at least 1 apart (ICL-NUIM's frame ids; no RGB-D camera records at 1 Hz or slower with whole-second stamps)."""
+    t = np.asarray(stamps, np.float64)
+    if len(t) < 2 or not np.all(np.isfinite(t)) or np.any(t != np.round(t)):
+        return False
+    steps = np.diff(t)
+    return bool(np.all(steps > 0) and np.median(steps) >= 1.0)
 
 
 @dataclass(frozen=True)
@@ -137,6 +149,10 @@ class RGBDSequence:
     depth_scale_source: str = "unknown"
     #: "option" (--intrinsics), "file" (a metadata file in the folder) or "default" (the layout's)
     intrinsics_kind: str = "default"
+    #: whether the layout's stamps may count frames instead of seconds (:func:`stamps_are_frame_numbers`)
+    stamps_may_be_frame_numbers: bool = False
+    #: seconds per unit of the frame stamps (1/30 when they count frames); the frames carry it (``time_s``)
+    seconds_per_stamp: float = 1.0
 
     def __init__(
         self,
@@ -221,7 +237,8 @@ class RGBDSequence:
         if f > 1:
             rgb = rgb[::f, ::f]
             depth_m = depth_m[::f, ::f]
-        return RGBDFrame(i, e.timestamp, np.ascontiguousarray(rgb), np.ascontiguousarray(depth_m), e.depth_timestamp)
+        return RGBDFrame(i, e.timestamp, np.ascontiguousarray(rgb), np.ascontiguousarray(depth_m), e.depth_timestamp,
+                         self.seconds_per_stamp)
 
     def __iter__(self):
         for i in range(len(self)):
@@ -266,6 +283,7 @@ class RGBDSequence:
             "resolution": [intr.width, intr.height],
             "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
             "depth_scale": self.depth_scale,
+            "seconds_per_stamp": self.seconds_per_stamp,
             "downsample": self.options.downsample,
             "ground_truth_poses": 0 if self.ground_truth is None else len(self.ground_truth),
             "frames_with_ground_truth": int(gt_valid.sum()),

@@ -4,7 +4,8 @@
   ``*.gt.freiburg`` trajectory whose first column is a frame id starting at 1. ICL uses frame ids as
   timestamps; the i-th ground-truth line belongs to the i-th image, so image ``n`` gets timestamp
   ``n + (first GT id - first image number)`` (``n + 1`` for the official release) and matches its GT line
-  exactly. Timestamps are therefore in *frames*, not seconds (1 frame apart).
+  exactly. Timestamps are therefore in *frames*, not seconds (1 frame apart): the trajectory keeps them, so it
+  matches the ``*.gt.freiburg`` file, while motion checks take them at 30 Hz (``seconds_per_stamp``).
 * The TUM layout (rgb.txt / depth.txt) in a folder whose name (or parent's) says ``icl``,
   ``living_room`` / ``livingRoom`` or ``office`` (but not ``redwood``, ``aug``, ``freiburg``, ``frN``,
   ``tum`` or ``rgbd_dataset``, which are Augmented ICL-NUIM / TUM). Ground truth: ``groundtruth.txt`` or
@@ -56,6 +57,7 @@ class IclSequence(RGBDSequence):
     """ICL-NUIM living room / office (synthetic, negative fy)."""
 
     layout = "icl"
+    stamps_may_be_frame_numbers = True  # frame ids: motion checks take them at 30 Hz
     expects = (
         "numbered rgb/ + depth/ with a *.gt.freiburg file, or the TUM layout in a folder named "
         "icl / living_room / office; fy=-480, depth scale 5000"

@@ -25,7 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.datasets.base import DatasetOptions, FrameEntry, RGBDSequence, UnpairedFrame
+from surfelslam.datasets.base import (
+    FRAME_NUMBER_RATE_HZ,
+    DatasetOptions,
+    FrameEntry,
+    RGBDSequence,
+    UnpairedFrame,
+    stamps_are_frame_numbers,
+)
 from surfelslam.errors import ConfigError, DatasetError, FrameError
 from surfelslam.types import ColourCamera, Intrinsics, Trajectory
 
@@ -290,6 +297,10 @@ def build_sequence(
         )
     seq = cls(root, entries, cam.intrinsics, cam.depth_scale, options, ground_truth, depth_invalid_raw)
     seq.unpaired = list(unpaired or [])
+    if cls.stamps_may_be_frame_numbers and stamps_are_frame_numbers(np.array([e.timestamp for e in entries])):
+        seq.seconds_per_stamp = 1.0 / FRAME_NUMBER_RATE_HZ
+        seq.warnings.append(f"{root}: timestamps count frames (whole numbers, 1 or more apart), not seconds: taken "
+                            f"as {FRAME_NUMBER_RATE_HZ:g} Hz for the motion checks; the trajectory keeps them")
     seq.intrinsics_kind = cam.intrinsics_kind
     if meta.colour_intrinsics is not None:  # colour images have the depth images' size (checked per frame)
         seq.full_colour_camera = ColourCamera(Intrinsics(*meta.colour_intrinsics, cam.intrinsics.width,

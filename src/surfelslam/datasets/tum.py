@@ -246,6 +246,7 @@ class TumSequence(RGBDSequence):
     """TUM RGB-D benchmark layout."""
 
     layout = "tum"
+    stamps_may_be_frame_numbers = True  # TUM-layout copies of ICL-NUIM keep its frame ids
     expects = "rgb.txt + depth.txt ('timestamp filename' lines), optional groundtruth.txt; depth scale 5000"
 
     @classmethod

@@ -81,7 +81,7 @@ class DenseSlam(FusingMapper):
         self.failures_in_a_row = 0
         self.failure_reasons: dict[str, int] = {}
         self.relocalisations = {"tried": 0, "tracked": 0, "refused_implausible": 0}
-        self.t_last_tracked = 0.0  # timestamp (s) of the last tracked frame
+        self.t_last_tracked = 0.0  # time (s) of the last tracked frame
         self.weak_frames = 0  # frames registered with weak directions held at the prediction
         self._localiser: MapLocaliser | None = None  # with a loaded map, until the first frame is localised
 
@@ -154,7 +154,7 @@ class DenseSlam(FusingMapper):
                 return self._not_localised(frame, t)
             self.T_world_cam = T_first
             self.T_world_last_tracked = self.T_world_cam.copy()
-            self.t_last_tracked = frame.timestamp
+            self.t_last_tracked = frame.time_s
             self._fuse(frame, self.T_world_cam)
             t.lap("fuse")
             self._retire_source()
@@ -177,15 +177,15 @@ class DenseSlam(FusingMapper):
         T_ref = T_prev
         n_reloc = self.cfg.tracking.relocalise_after_failures
         if failure is not None and n_reloc > 0 and self.failures_in_a_row >= n_reloc:
-            found = self._relocalise_shape(timestamp=frame.timestamp)
+            found = self._relocalise_shape(time_s=frame.time_s)
             t.lap("relocalise")
             if found is not None:
                 res, failure, T_ref = found[0], None, found[1]
                 status = FrameStatus.RELOCALISED
         if failure is None:
             step, T_new = self._step_and_pose(T_ref, res)
-            self.velocity = self._velocity_after(step, status, frame.timestamp)
-            self._mark_tracked(T_new, frame.timestamp, status)
+            self.velocity = self._velocity_after(step, status, frame.time_s)
+            self._mark_tracked(T_new, frame.time_s, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
         else:
@@ -301,22 +301,22 @@ class DenseSlam(FusingMapper):
         keep = float(np.exp(-max(t_s - self._t_v_tracked, 0.0) / tau_s))
         return se3.exp(keep * se3.log(self._v_tracked))
 
-    def _mark_tracked(self, T_world_cam: np.ndarray, timestamp: float, status: FrameStatus) -> None:
+    def _mark_tracked(self, T_world_cam: np.ndarray, time_s: float, status: FrameStatus) -> None:
         """Bookkeeping of a registered frame: the last tracked pose and time, the failure streak, weak counts."""
         self.T_world_last_tracked = T_world_cam.copy()
-        self.t_last_tracked = timestamp
+        self.t_last_tracked = time_s
         self.failures_in_a_row = 0
         if status is FrameStatus.WEAK:
             self.weak_frames += 1
 
-    def plausible_jump(self, T_world_new: np.ndarray, timestamp: float) -> bool:
+    def plausible_jump(self, T_world_new: np.ndarray, time_s: float) -> bool:
         """Whether a relocalised pose is reachable from the last tracked one in the time since it
         (``tracking.relocalise_max_speed_m_s`` / ``_max_rate_deg_s`` plus a slack): a relocalisation that would
         move the camera faster than a hand-held or robot camera moves is refused rather than followed."""
         tc = self.cfg.tracking
         if self.T_world_last_tracked is None:
             return True
-        dt_s = max(timestamp - self.t_last_tracked, 0.0)
+        dt_s = max(time_s - self.t_last_tracked, 0.0)
         d_m, d_deg = se3.pose_error(T_world_new, self.T_world_last_tracked)
         ok = (d_m <= tc.relocalise_slack_m + tc.relocalise_max_speed_m_s * dt_s
               and d_deg <= tc.relocalise_slack_deg + tc.relocalise_max_rate_deg_s * dt_s)
@@ -334,11 +334,11 @@ class DenseSlam(FusingMapper):
         return step, se3.orthonormalize(T_ref @ step)
 
     def _relocalise_shape(self, T_world_render: np.ndarray | None = None,
-                          timestamp: float | None = None) -> tuple[ICPResult, np.ndarray] | None:
+                          time_s: float | None = None) -> tuple[ICPResult, np.ndarray] | None:
         """The current source against the map rendered at ``T_world_render`` (default: the last tracked pose),
-        from the shape-feature guess: ``(ICP result, T_world_render)`` when ICP from the guess succeeds and, with
-        the frame's ``timestamp``, the pose is reachable from the last tracked one (:meth:`plausible_jump`); else
-        ``None``."""
+        from the shape-feature guess: ``(ICP result, T_world_render)`` when ICP from the guess succeeds and, given
+        the frame's time ``time_s`` (s), the pose is reachable from the last tracked one (:meth:`plausible_jump`);
+        else ``None``."""
         self.relocalisations["tried"] += 1
         T_ref = self.T_world_last_tracked if T_world_render is None else T_world_render
         target = self.render_target(T_ref)
@@ -350,7 +350,7 @@ class DenseSlam(FusingMapper):
         res = icp(src, target, T_init=g.T_target_source, cfg=self.cfg.icp, photometric=self.photometric_term())
         if icp_failure(res) is not None:
             return None
-        if timestamp is not None and not self.plausible_jump(self._step_and_pose(T_ref, res)[1], timestamp):
+        if time_s is not None and not self.plausible_jump(self._step_and_pose(T_ref, res)[1], time_s):
             return None
         self.relocalisations["tracked"] += 1
         return res, T_ref

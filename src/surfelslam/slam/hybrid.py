@@ -203,7 +203,7 @@ class HybridSlam(DenseSlam):
             if T_new is None:
                 return self._not_localised(frame, t)
             status = self._first_status()
-            self._mark_tracked(T_new, frame.timestamp, status)
+            self._mark_tracked(T_new, frame.time_s, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
             self._after_tracking(frame, T_new, True, t)
@@ -234,16 +234,16 @@ class HybridSlam(DenseSlam):
             found = (se3.orthonormalize(se3.invert(self._correction(found[1])) @ found[0]), found[1])
             loc.res, loc.failure, loc.T_new = self._icp_from(found[0], np.eye(4))
             t.lap("icp")
-            if loc.failure is None and not self.plausible_jump(loc.T_new, frame.timestamp):
+            if loc.failure is None and not self.plausible_jump(loc.T_new, frame.time_s):
                 loc.failure = "relocalisation_implausible"
             if loc.failure is None:
                 self.counts["relocalisations_tracked"] += 1
                 self.velocity = np.eye(4)
-            elif loc.failure != "relocalisation_implausible" and self.plausible_jump(found[0], frame.timestamp):
+            elif loc.failure != "relocalisation_implausible" and self.plausible_jump(found[0], frame.time_s):
                 loc.guess = found[0]  # ICP failed from a reachable PnP pose: the frame is bridged there
             # a pose refused as out of reach is no bridge either: the frame stays lost at the prediction
         if (loc.res is None or loc.failure is not None) and self.cfg.tracking.relocalise_after_failures > 0:
-            shape = self._relocalise_shape(T_prev, frame.timestamp)  # no PnP pose (no texture): from the depth alone
+            shape = self._relocalise_shape(T_prev, frame.time_s)  # no PnP pose (no texture): from the depth alone
             t.lap("relocalise")
             if shape is not None:
                 loc.res, loc.failure = shape[0], None
@@ -310,8 +310,8 @@ class HybridSlam(DenseSlam):
                 step = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
                         else se3.orthonormalize(se3.invert(T_prev) @ T_new))
                 # a weak step is ICP's slide along the free directions: not fed back (DenseSlam._velocity_after)
-                self.velocity = self._velocity_after(step, status, frame.timestamp)
-            self._mark_tracked(T_new, frame.timestamp, status)
+                self.velocity = self._velocity_after(step, status, frame.time_s)
+            self._mark_tracked(T_new, frame.time_s, status)
             if res.levels and res.levels[-1].level == 0:
                 self._depth_noise_per_frame.append(res.levels[-1].geometric_noise_m)
             self._fuse(frame, T_new)

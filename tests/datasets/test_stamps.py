@@ -1,0 +1,54 @@
+"""Frame stamps that count frames (ICL-NUIM's frame ids) against stamps in seconds: the trajectory keeps the
+dataset's stamps, the motion checks get seconds (``RGBDFrame.time_s``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_datasets import make_tum, write_frame
+
+from surfelslam.datasets import open_sequence
+from surfelslam.datasets.base import FRAME_NUMBER_RATE_HZ, stamps_are_frame_numbers
+from surfelslam.types import RGBDFrame
+
+
+@pytest.mark.parametrize(("stamps", "expected"), [
+    ([1, 2, 3, 4], True),  # ICL-NUIM ids
+    ([2, 301, 601, 901, 1201], True),  # every 300th ICL frame
+    ([0, 1, 2, 4, 5], True),  # one frame missing
+    ([100.0, 100.0 + 1 / 30, 100.0 + 2 / 30], False),  # seconds at 30 Hz
+    ([1305031102.175304, 1305031102.211214], False),  # TUM
+    ([0, 30, 60, 61], True),  # whole numbers at least 1 apart: frame numbers with gaps
+    ([10.0, 10.5, 11.0, 11.5], False),  # half seconds
+    ([3, 3, 4], False),  # not increasing
+    ([5], False),
+])
+def test_frame_number_stamps_are_told_from_seconds(stamps, expected):
+    assert stamps_are_frame_numbers(np.array(stamps, np.float64)) is expected
+
+
+def test_icl_frame_ids_stay_in_the_trajectory_and_are_seconds_for_motion(tmp_path):
+    root = tmp_path / "lr_kt2"
+    for n in range(4):
+        write_frame(root, f"rgb/{n}.png", f"depth/{n}.png")
+    (root / "livingRoom2.gt.freiburg").write_text("".join(f"{k} {0.1 * k} 0 -2.25 0 0 0 1\n" for k in range(1, 5)))
+    seq = open_sequence(root)
+    assert seq.layout == "icl" and seq.seconds_per_stamp == pytest.approx(1 / FRAME_NUMBER_RATE_HZ)
+    frame = seq[2]
+    assert frame.timestamp == 3.0 and frame.time_s == pytest.approx(3 / 30) and frame.depth_stamp_s == frame.time_s
+    assert any("count frames" in w for w in seq.warnings) and seq.info()["seconds_per_stamp"] == seq.seconds_per_stamp
+
+
+def test_tum_layout_stamps_are_seconds_unless_they_count_frames(tmp_path):
+    seconds = open_sequence(make_tum(tmp_path / "fr1_desk", n=4))
+    assert seconds.seconds_per_stamp == 1.0 and not any("count frames" in w for w in seconds.warnings)
+    f = seconds[1]
+    assert f.time_s == f.timestamp and f.colour_minus_depth_s == 0.0
+    counted = open_sequence(make_tum(tmp_path / "counted", n=4, dt_s=1.0))
+    assert counted.layout == "tum" and counted.seconds_per_stamp == pytest.approx(1 / 30)
+    assert counted[3].timestamp == 103.0 and counted[3].time_s == pytest.approx(103 / 30)
+
+
+def test_a_separate_depth_stamp_is_scaled_too():
+    f = RGBDFrame(0, 12.0, np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.float32), 11.0, 0.5)
+    assert f.time_s == 6.0 and f.depth_stamp_s == 5.5 and f.colour_minus_depth_s == 0.5
