@@ -124,7 +124,9 @@ def _cm(v: float | None, nd: int = 2) -> float | None:
     return None if v is None else round(100.0 * v, nd)
 
 
-def _drift_fields(est: Trajectory, gt: Trajectory) -> dict:
+def _drift_fields(est: Trajectory, gt: Trajectory, seconds_per_stamp: float = 1.0) -> dict:
+    """The worst 1 s drift, with stamps in seconds (ICL-NUIM's frame ids are 1/30 s apart)."""
+    est, gt = (Trajectory(t.timestamps * seconds_per_stamp, t.T_world_cam) for t in (est, gt))
     try:
         d, at = worst_drift(est, gt)
     except ValueError as exc:  # EvaluationError: too short for a 1 s pair
@@ -152,7 +154,7 @@ def run_tracker(label: str, seq, tracker: str, out_dir: Path) -> dict:
         "weak_frames": sum(s["frames"] for s in segs if s["kind"] == "weak"),
         "lost_at_end": bool(m.get("lost_at_end", False)),
         "segments": [_describe(s) for s in segs[:SEGMENT_LINES]],
-        **_drift_fields(est, seq.ground_truth),
+        **_drift_fields(est, seq.ground_truth, seq.seconds_per_stamp),
         "fps": round(m["fps"], 2), "wall_s": round(wall, 1),
     }
     if "eval_error" in m:
@@ -175,7 +177,8 @@ def run_open3d(label: str, seq) -> dict:
             "resolution": f"{seq.intrinsics.width}x{seq.intrinsics.height}",
             "ate_rmse_cm": _cm(a.rmse_m), "ate_max_cm": _cm(a.max_m), "failures": o3["failed"],
             "lost_segments": None, "weak_segments": None, "lost_frames": None, "weak_frames": None,
-            "lost_at_end": None, "segments": [], **_drift_fields(o3["trajectory"], seq.ground_truth),
+            "lost_at_end": None, "segments": [],
+            **_drift_fields(o3["trajectory"], seq.ground_truth, seq.seconds_per_stamp),
             "fps": round(o3["fps"], 2), "wall_s": round(o3["wall_s"], 1)}
 
 
