@@ -8,6 +8,10 @@ depth discontinuities and random small holes. The distortion mimics uncalibrated
 Jancosek, Pajdla 2011; Herrera, Kannala, Heikkila, PAMI 2012: a per-pixel disparity offset, so a depth error
 that grows with z^2) by a radial bowl: the offset grows with the squared distance from the image centre.
 Colour: a slight Gaussian blur and Gaussian pixel noise.
+ICL-NUIM's synthetic sensor noise (Handa, Whelan, McDonald, Davison, ICRA 2014, after Barron and Malik) is the
+same chain with other settings (``"icl"`` in :func:`surfelslam.synth.writer.noise_config`): the depth is first
+looked up at per-pixel Gaussian offsets (``lateral_jitter_px``, bilinear, so edges mix), then the disparity gets
+Gaussian noise (``disparity_sigma_px``) and is rounded to the sensor's steps; no axial noise, holes or dropouts.
 Every random draw comes from the generator passed in; :func:`frame_rng` makes it from ``(seed, frame)``
 so that any frame can be regenerated on its own.
 """
@@ -41,6 +45,11 @@ class KinectNoiseConfig(Config):
         None, unit="px", gt=0, le=1e6,
         doc="focal length of the disparity camera; none: the image's |fx| scaled to a 640-pixel width")
     disparity_step_px: float = setting(0.125, unit="px", ge=0, le=100, doc="disparity quantisation step; 0 = off")
+    disparity_sigma_px: float = setting(0.0, unit="px", ge=0, le=100,
+                                        doc="Gaussian noise on the disparity before its quantisation; 0 = off")
+    lateral_jitter_px: float = setting(
+        0.0, unit="px", ge=0, le=10,
+        doc="look each depth up (bilinear) at a Gaussian offset of this sigma, for a 640-pixel-wide image; 0 = off")
     disparity_distortion_px: float = setting(
         0.0, unit="px", ge=-100, le=100,
         doc="fixed disparity error at the image corners, growing with r^2 from the centre; positive = nearer; 0 = off")
@@ -111,15 +120,22 @@ def noisy_depth(
     d = depth_m.astype(np.float32)
     valid = d > 0
     valid &= ray_normal_cos(normal_cam, intr) >= np.float32(np.cos(np.radians(cfg.grazing_angle_deg)))
+    z = d if cfg.lateral_jitter_px <= 0 else _jittered(d, cfg.lateral_jitter_px * intr.width / _REFERENCE_WIDTH_PX,
+                                                       rng)
+    valid &= z > 0
     sigma = axial_sigma_m(d, cfg).astype(np.float32)
-    z = d + rng.standard_normal(d.shape, dtype=np.float32) * sigma
+    z = z + rng.standard_normal(d.shape, dtype=np.float32) * sigma
     bf = cfg.baseline_m * disparity_focal_px(intr, cfg)
     if cfg.disparity_distortion_px != 0:
         offset = _radial_r2(intr.cx, intr.cy, intr.width, intr.height) * np.float32(cfg.disparity_distortion_px / bf)
         z = np.where(z > 0, 1.0 / (1.0 / np.where(z > 0, z, np.float32(1.0)) + offset), z).astype(np.float32)
     if cfg.disparity_step_px > 0:
         zpos = z > 0
-        disp_steps = np.round(np.float32(bf / cfg.disparity_step_px) / np.where(zpos, z, np.float32(np.inf)))
+        disp_steps = np.float32(bf / cfg.disparity_step_px) / np.where(zpos, z, np.float32(np.inf))
+        if cfg.disparity_sigma_px > 0:
+            disp_steps += rng.standard_normal(d.shape, dtype=np.float32) * np.float32(
+                cfg.disparity_sigma_px / cfg.disparity_step_px)
+        disp_steps = np.round(disp_steps)
         ok = disp_steps > 0
         z = np.where(ok, np.float32(bf / cfg.disparity_step_px) / np.where(ok, disp_steps, 1.0), 0.0)
         z = z.astype(np.float32)
@@ -146,6 +162,18 @@ def noisy_depth(
             cv2.circle(mask, (int(a), int(b)), max(1, int(round(r * scale))), 1, -1)
         valid &= mask == 0
     return np.where(valid, z, np.float32(0.0)).astype(np.float32)
+
+
+def _jittered(depth_m: np.ndarray, sigma_px: float, rng: np.random.Generator) -> np.ndarray:
+    """``(H, W)`` depth looked up bilinearly at Gaussian offsets (``sigma_px``) from each pixel; 0 where the lookup
+    touches a pixel without depth (so no depth is mixed with a hole)."""
+    h, w = depth_m.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    u += rng.standard_normal((h, w), dtype=np.float32) * np.float32(sigma_px)
+    v += rng.standard_normal((h, w), dtype=np.float32) * np.float32(sigma_px)
+    z = cv2.remap(depth_m, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    full = cv2.remap((depth_m > 0).astype(np.float32), u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.where(full >= np.float32(1.0), z, np.float32(0.0)).astype(np.float32)
 
 
 def noisy_rgb(rgb: np.ndarray, cfg: KinectNoiseConfig, rng: np.random.Generator) -> np.ndarray:

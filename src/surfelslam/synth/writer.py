@@ -38,10 +38,17 @@ from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory, replay_motion
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
-NOISE_MODELS = ["kinect", "kinect-distorted", "none"]
+NOISE_MODELS = ["kinect", "kinect-distorted", "icl", "none"]
 # "kinect-distorted": disparity error at the image corners (px); 0.1 px is 0.25 cm at 1 m, 1.0 cm at 2 m (the
 # order of the low-frequency errors of uncalibrated Kinect v1 depth)
 DISTORTED_DISPARITY_PX = 0.1
+#: "icl": ICL-NUIM's synthetic depth noise. Its disparity is 35130 / z (z in cm) in steps of 1 (1/8 px of a Kinect,
+#: baseline 7.5 cm, focal 585.5 px) with Gaussian noise of 1/6 step, after a bilinear lookup at 0.5 px Gaussian
+#: offsets; every pixel keeps a depth (no axial noise, holes, grazing or edge dropouts).
+ICL_NOISE = KinectNoiseConfig(
+    min_depth_m=0.1, max_depth_m=10.0, axial_sigma_base_m=0.0, axial_sigma_quad_per_m=0.0, baseline_m=0.075,
+    disparity_focal_px=585.5, disparity_step_px=0.125, disparity_sigma_px=0.125 / 6, lateral_jitter_px=0.5,
+    grazing_angle_deg=90.0, edge_dropout_prob=0.0, holes_per_frame_mean=0.0)
 DEPTH_SCALE = 5000.0  # raw depth units per metre (TUM)
 _UINT16_MAX = 65535
 _BASE_FOCAL_PX = 525.0  # default intrinsics at 640x480 (TUM / Kinect v1 defaults)
@@ -64,11 +71,14 @@ def default_intrinsics(width: int = 640, height: int = 480) -> Intrinsics:
 
 def noise_config(name: str) -> KinectNoiseConfig | None:
     """``"kinect"`` -> default :class:`KinectNoiseConfig`; ``"kinect-distorted"`` -> the same with a fixed
-    low-frequency depth distortion (:data:`DISTORTED_DISPARITY_PX`); ``"none"`` -> None (exact depth and colour)."""
+    low-frequency depth distortion (:data:`DISTORTED_DISPARITY_PX`); ``"icl"`` -> ICL-NUIM's synthetic noise
+    (:data:`ICL_NOISE`); ``"none"`` -> None (exact depth and colour)."""
     if name == "kinect":
         return KinectNoiseConfig()
     if name == "kinect-distorted":
         return KinectNoiseConfig(disparity_distortion_px=DISTORTED_DISPARITY_PX)
+    if name == "icl":
+        return ICL_NOISE
     if name == "none":
         return None
     raise ConfigError(f"unknown noise model {name!r}; known: {', '.join(NOISE_MODELS)}")

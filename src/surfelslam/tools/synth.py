@@ -22,7 +22,8 @@ def register(app: typer.Typer) -> None:
         frames: Annotated[int, typer.Option("--frames", help="Number of frames.")] = 300,
         noise: Annotated[str, typer.Option(
             "--noise", help="kinect (Kinect-v1-like), kinect-distorted (the same with a fixed low-frequency depth "
-                            "distortion) or none (exact).")] = "kinect",
+                            "distortion), icl (ICL-NUIM's synthetic noise: jittered, quantised disparity, no holes) "
+                            "or none (exact).")] = "kinect",
         seed: Annotated[int, typer.Option("--seed", help="Seed of textures, motion jitter and noise.")] = 0,
         trajectory: Annotated[
             str, typer.Option("--trajectory", help="Motion: slow, fast, handheld, loop, upward (ceiling, "
