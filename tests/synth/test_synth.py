@@ -186,7 +186,7 @@ def test_trajectory_styles_speeds_and_loop_closure(scenes):
         assert np.linalg.norm(loop.positions[-1] - loop.positions[0]) < 0.3
         assert np.ptp(loop.positions[:, 0]) > 1.0  # it really walks round the room
         assert np.allclose(slow.timestamps, np.arange(90) / 30.0)
-    assert STYLES == ["slow", "fast", "handheld", "loop", "upward", "tour"]
+    assert STYLES == ["slow", "fast", "handheld", "loop", "upward", "tour", "tour-across"]
     up = make_trajectory("upward", 90, scenes["room"], seed=2)
     pitch_deg = np.degrees(np.arcsin(up.T_world_cam[:, 2, 2]))  # the optical axis' elevation (z up)
     assert np.all((pitch_deg > 30) & (pitch_deg < 55)), pitch_deg  # looking up at the ceiling and one wall
@@ -210,11 +210,23 @@ def test_tour_turns_without_spinning(name):
     undefined): it spun by up to 180 deg in one frame, and the tracker lost such a sequence."""
     for seed in range(5):  # the old blend spun on seeds 1, 2 and 4 of these
         scene = make_scene(name, seed)
-        T = make_trajectory("tour", 1500, scene, seed=seed).T_world_cam
-        cos = (np.einsum("nij,nij->n", T[:-1, :3, :3], T[1:, :3, :3]) - 1.0) / 2.0  # of each frame-to-frame turn
-        rot = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-        elevation_deg = np.degrees(np.arcsin(T[:, 2, 2]))
-        assert rot.max() < 7.0 and elevation_deg.max() < 50.0, (seed, rot.max(), elevation_deg.max())
+        for style in ("tour", "tour-across"):
+            T = make_trajectory(style, 1500, scene, seed=seed).T_world_cam
+            cos = (np.einsum("nij,nij->n", T[:-1, :3, :3], T[1:, :3, :3]) - 1.0) / 2.0  # each frame-to-frame turn
+            rot = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+            elevation_deg = np.degrees(np.arcsin(T[:, 2, 2]))
+            assert rot.max() < 7.0 and elevation_deg.max() < 50.0, (seed, style, rot.max(), elevation_deg.max())
+
+
+def test_tour_across_looks_across_the_office(scenes):
+    """``tour-across`` orbits behind the office's centre, looking across it: on its orbit (the first and last
+    frames) most depth lies beyond 3 m, where the ``tour`` looks at the nearer walls from under 2.5 m."""
+    intr = default_intrinsics(80, 60)
+    medians = {}
+    for style in ("tour", "tour-across"):
+        T = make_trajectory(style, 600, scenes["office"], seed=9).T_world_cam
+        medians[style] = [float(np.median(render(scenes["office"], T[k], intr).depth_m)) for k in (0, 50, 550, 599)]
+    assert min(medians["tour-across"]) > 3.0 and max(medians["tour"]) < 2.5, medians
 
 
 def test_every_scene_has_orb_features(scenes):

@@ -35,7 +35,7 @@ from surfelslam.geometry.se3 import invert as se3_invert
 from surfelslam.synth.scenes import Scene
 from surfelslam.types import Trajectory
 
-STYLES = ["slow", "fast", "handheld", "loop", "upward", "tour"]
+STYLES = ["slow", "fast", "handheld", "loop", "upward", "tour", "tour-across"]
 UPWARD_LOOK_M, UPWARD_RISE_M = 1.6, 1.5  # "upward": the look-at point is this far ahead and up (about 43 deg)
 REPLAY_HEADINGS = 8  # headings (evenly spaced) tried for a replayed motion in a "room" scene
 _REPLAY_MAX_GAP_S = 0.1  # a recorded motion may not have a gap longer than this (s) where it is replayed
@@ -67,6 +67,9 @@ class TrajectoryConfig(Config):
                                           doc="tour: share of the frames spent looking up (ceiling and one wall)")
     tour_turn_s: float = setting(3.0, unit="s", gt=0, le=60,
                                  doc="tour: duration of each turn between the room and the upward view")
+    across_radius_m: float = setting(
+        1.5, unit="m", gt=0, le=100,
+        doc="tour-across: the orbit's eye this far behind the room's centre, looking across it (far views)")
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, roll_rad: np.ndarray | float = 0.0) -> np.ndarray:
@@ -91,7 +94,10 @@ def look_at(eye: np.ndarray, target: np.ndarray, roll_rad: np.ndarray | float = 
     return T
 
 
-def _orbit_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig):
+def _orbit_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryConfig,
+               radius_m: float | None = None):
+    """``(eye, target)`` ``(N, 3)`` each along the scene's orbit (or wall sway); ``radius_m`` replaces the view's
+    orbit radius (positive: the eye behind the centre, looking across the room)."""
     v = scene.view
     c = np.asarray(v.centre)
     if v.kind == "wall":
@@ -104,9 +110,10 @@ def _orbit_rig(scene: Scene, theta: np.ndarray, ph: np.ndarray, cfg: TrajectoryC
         target = c + v.look_distance_m * f + (0.5 * sway)[:, None] * lat
         target[:, 2] = v.look_height_m + 0.3 * np.sin(3.6 * theta + ph[3])
         return eye, target
+    r = v.orbit_radius_m if radius_m is None else radius_m
     eye = np.column_stack([
-        c[0] - v.orbit_radius_m * np.cos(theta) + cfg.wobble_m * np.sin(2.1 * theta + ph[0]),
-        c[1] - v.orbit_radius_m * np.sin(theta) + cfg.wobble_m * np.sin(1.6 * theta + ph[1]),
+        c[0] - r * np.cos(theta) + cfg.wobble_m * np.sin(2.1 * theta + ph[0]),
+        c[1] - r * np.sin(theta) + cfg.wobble_m * np.sin(1.6 * theta + ph[1]),
         v.eye_height_m + cfg.bob_m * np.sin(2.7 * theta + ph[2]),
     ])
     psi = theta + cfg.target_sway_rad * np.sin(1.3 * theta + ph[3])
@@ -242,10 +249,10 @@ def make_trajectory(
         theta = theta0 + np.radians(cfg.slow_step_deg) * k
         eye, target = _upward_rig(scene, theta, ph, cfg)
         roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
-    elif style == "tour" and scene.view.kind == "room":
+    elif style in ("tour", "tour-across") and scene.view.kind == "room":
         theta = theta0 + np.radians(cfg.slow_step_deg) * k
         w = _tour_weight(n_frames, fps, cfg)[:, None]
-        eye_o, target_o = _orbit_rig(scene, theta, ph, cfg)
+        eye_o, target_o = _orbit_rig(scene, theta, ph, cfg, cfg.across_radius_m if style == "tour-across" else None)
         eye_u, target_u = _upward_rig(scene, theta, ph, cfg)
         eye = (1.0 - w) * eye_o + w * eye_u
         look = _blend_look(target_o - eye_o, target_u - eye_u, w[:, 0])

@@ -26,8 +26,9 @@ def register(app: typer.Typer) -> None:
                             "or none (exact).")] = "kinect",
         seed: Annotated[int, typer.Option("--seed", help="Seed of textures, motion jitter and noise.")] = 0,
         trajectory: Annotated[
-            str, typer.Option("--trajectory", help="Motion: slow, fast, handheld, loop, upward (ceiling, "
-                                                                "one wall) or tour (slow with an upward stretch).")
+            str, typer.Option("--trajectory", help="Motion: slow, fast, handheld, loop, upward (ceiling, one "
+                                                   "wall), tour (slow with an upward stretch) or tour-across (the "
+                                                   "tour looking across the room: far views).")
         ] = "slow",
         width: Annotated[int, typer.Option("--width", help="Image width (intrinsics scaled from 640).")] = 640,
         height: Annotated[int, typer.Option("--height", help="Image height (intrinsics scaled from 480).")] = 480,
