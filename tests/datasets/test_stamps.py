@@ -6,10 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from test_datasets import make_tum, write_frame
+from typer.testing import CliRunner
 
 from surfelslam.datasets import open_sequence
 from surfelslam.datasets.base import FRAME_NUMBER_RATE_HZ, stamps_are_frame_numbers
 from surfelslam.types import RGBDFrame
+
+from helpers import command_app
 
 
 @pytest.mark.parametrize(("stamps", "expected"), [
@@ -37,6 +40,8 @@ def test_icl_frame_ids_stay_in_the_trajectory_and_are_seconds_for_motion(tmp_pat
     frame = seq[2]
     assert frame.timestamp == 3.0 and frame.time_s == pytest.approx(3 / 30) and frame.depth_stamp_s == frame.time_s
     assert any("count frames" in w for w in seq.warnings) and seq.info()["seconds_per_stamp"] == seq.seconds_per_stamp
+    res = CliRunner().invoke(command_app("info"), ["info", str(root)], terminal_width=200)
+    assert res.exit_code == 0 and "frame numbers, 30 Hz for motion checks" in res.output, res.output
 
 
 def test_tum_layout_stamps_are_seconds_unless_they_count_frames(tmp_path):

@@ -29,6 +29,7 @@ def info_table(d: dict) -> Table:
     table.add_column("value")
     intr = d["intrinsics"]
     med = d["first_frame_median_depth_m"]
+    seconds = d.get("seconds_per_stamp", 1.0) == 1.0  # else frame numbers (ICL-NUIM)
     rows = [
         ("layout", d["layout"]),
         ("frames", f"{d['frames']} selected of {d['frames_total']}"),
@@ -38,8 +39,10 @@ def info_table(d: dict) -> Table:
                        f"  (from {d['intrinsics_source']})"),
         ("depth scale", f"{d['depth_scale']:g} units/m  (from {d['depth_scale_source']})"),
         ("ground truth", f"{d['ground_truth_poses']} poses; {d['frames_with_ground_truth']} of {d['frames']} "
-                         "frames have one within 0.02 s"),
+                         f"frames have one within 0.02 {'s' if seconds else 'of a frame'}"),
         ("colour", _colour_row(d)),
+        ("timestamps", "seconds" if seconds else
+         f"frame numbers, {1 / d['seconds_per_stamp']:g} Hz for motion checks (kept in the trajectory)"),
         ("first frame depth", "no valid pixel" if med is None else
          f"median {med:.3f} m, {100 * d['first_frame_valid_depth_fraction']:.1f}% valid"),
     ]
