@@ -9,6 +9,8 @@ and read back like real data; generated once and cached, keyed by their settings
   moves sideways along it: two planes leave translation along their edge to the texture), plain and textured;
 * a single close wall: the ``plane`` scene (one wall about 1.5 m ahead), plain and textured;
 * a corridor: the ``corridor`` scene walked back and forth (two long walls), plain and textured;
+* the office looking across the room (``tour-across``: most depth beyond 3 m) with ICL-NUIM's synthetic sensor
+  noise (``icl``: jittered, quantised disparity, far depth kept), plain: the conditions of the ICL-NUIM office;
 * real: TUM fr3/teddy (first 200 frames) and the two halves of the 7-Scenes kitchen sequence (frames 0-249 and
   250-499), at 320x240, when ``../shared/data`` holds them (otherwise listed in ``not_run`` with the reason).
 
@@ -43,7 +45,7 @@ from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
 
-NOISE = "kinect"
+NOISE = "kinect"  # the generated sequences' noise model unless their spec names another
 SEED = 0
 DRIFT_WINDOW_S = 1.0  # the worst drift is measured over pose pairs this far apart (s)
 OPEN3D_DEPTH_MAX_M = 6.0  # Open3D's example clips depth at 3 m: most of the office is farther
@@ -57,13 +59,14 @@ CACHE_ENV = "SURFELSLAM_BENCH_CACHE"  # where generated sequences are kept betwe
 
 @dataclass(frozen=True)
 class Synthetic:
-    """One generated sequence: a key, a label, the scene, trajectory style and texture style."""
+    """One generated sequence: a key, a label, the scene, trajectory style, texture style and noise model."""
 
     key: str
     label: str
     scene: str
     style: str
     texture: str
+    noise: str = NOISE
 
 
 SYNTHETIC = (
@@ -74,6 +77,8 @@ SYNTHETIC = (
     Synthetic("wall_textured", "close wall, textured (plane)", "plane", "slow", "rich"),
     Synthetic("corridor_plain", "corridor, plain", "corridor", "slow", "plain"),
     Synthetic("corridor_textured", "corridor, textured", "corridor", "slow", "rich"),
+    Synthetic("across_icl_plain", "office looking across, ICL-NUIM noise, plain (office, tour-across)", "office",
+              "tour-across", "plain", "icl"),
 )
 SYNTHETIC_KEYS = tuple(s.key for s in SYNTHETIC)
 #: (label, folder under the shared data, first frame, end frame or None)
@@ -101,12 +106,13 @@ def _generator_hash() -> str:
 def synthetic_sequence(spec: Synthetic, n_frames: int, width: int, cache: Path) -> Path:
     """The generated sequence of ``spec`` (from the cache when it is there; written atomically otherwise)."""
     height = width * 3 // 4
-    key = f"{spec.scene}_{spec.style}_{spec.texture}_{n_frames}f_{width}x{height}_{NOISE}_s{SEED}_{_generator_hash()}"
+    key = (f"{spec.scene}_{spec.style}_{spec.texture}_{n_frames}f_{width}x{height}_{spec.noise}_s{SEED}_"
+           f"{_generator_hash()}")
     path = cache / "robustness" / key
     if not (path / "groundtruth.txt").is_file():
         part = path.with_name(f".{key}.partial-{os.getpid()}")
         shutil.rmtree(part, ignore_errors=True)
-        generate_sequence(part, scene=spec.scene, style=spec.style, n_frames=n_frames, noise=NOISE, seed=SEED,
+        generate_sequence(part, scene=spec.scene, style=spec.style, n_frames=n_frames, noise=spec.noise, seed=SEED,
                           width=width, height=height, texture=spec.texture)
         shutil.rmtree(path, ignore_errors=True)
         part.rename(path)
@@ -259,11 +265,13 @@ def section_markdown(res: dict) -> list[str]:
                     [[r["sequence"], r["frames"], r["tracker"], fmt(r["ate_rmse_cm"], 2), fmt(r["ate_max_cm"], 2),
                       r["failures"], _seg(r, "lost") + (" **lost at end**" if r.get("lost_at_end") else ""),
                       _seg(r, "weak"), fmt(r["worst_1s_drift_cm"], 2), r["fps"]] for r in rows]))
-    md += ["Generated sequences: `surfelslam synth` scenes with Kinect-like noise, cached between runs. Ceiling + "
+    md += ["Generated sequences: `surfelslam synth` scenes with Kinect-like noise unless the row says ICL-NUIM noise "
+           "(`--noise icl`), cached between runs. Ceiling + "
            "wall: `office`, style `upward`; close wall: `plane` (one wall about 1.5 m ahead); corridor: `corridor` "
            "walked back and forth; plain = flat paint on walls, ceiling and floor covering, textured = the "
            "default textures; office tour: `office`, style `tour` (the slow orbit with an upward stretch in its middle "
-           "third). Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
+           "third); looking across: style `tour-across`, the same with the orbit looking across the room (most depth "
+           "beyond 3 m). Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
            f"the largest translation error of the relative pose over every pair of poses {res['drift_window_s']:g} "
            "s apart (`eval.metrics.rpe`, `delta_unit=\"seconds\"`), unaligned. FPS: wall clock, JIT warm-up "
            "excluded." + (f" Open3D: `t.pipelines.slam` with its example's settings but depth up to "
