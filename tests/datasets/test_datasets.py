@@ -270,20 +270,6 @@ def test_icl_by_name_keeps_negative_fy_and_redwood_is_tum(tmp_path):
     assert detect_layout(make_tum(tmp_path / "redwood_aug_icl_lr1", n=2)) == "tum"
 
 
-def test_icl_native_numbering(tmp_path):
-    """rgb/0.png.. with GT ids from 1: the i-th GT line belongs to the i-th image (timestamp n + 1)."""
-    root = tmp_path / "lr_kt2"
-    for n in range(4):
-        write_frame(root, f"rgb/{n}.png", f"depth/{n}.png")
-    (root / "livingRoom2.gt.freiburg").write_text("".join(f"{k} {0.1 * k} 0 -2.25 0 0 0 1\n" for k in range(1, 5)))
-    seq = open_sequence(root)
-    assert seq.layout == "icl"
-    assert np.allclose(seq.timestamps, [1, 2, 3, 4])
-    T, valid = seq.gt_poses()
-    assert valid.all() and np.allclose(T[:, 0, 3], [0.1, 0.2, 0.3, 0.4])
-    assert seq.entries[0].rgb_path.name == "0.png"
-
-
 def test_sevenscenes_native_layout(tmp_path):
     scene = tmp_path / "chess"
     folder = scene / "seq-01"

@@ -3,6 +3,8 @@ dataset's stamps, the motion checks get seconds (``RGBDFrame.time_s``)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_datasets import make_tum, write_frame
@@ -13,6 +15,24 @@ from surfelslam.datasets.base import FRAME_NUMBER_RATE_HZ, stamps_are_frame_numb
 from surfelslam.types import RGBDFrame
 
 from helpers import command_app
+
+
+def make_icl_native(root: Path, n: int = 4) -> Path:
+    """A tiny native ICL-NUIM folder: rgb/0.png.. depth/0.png.., GT ids 1..n moving 0.1 m along x per frame."""
+    for k in range(n):
+        write_frame(root, f"rgb/{k}.png", f"depth/{k}.png")
+    (root / "livingRoom2.gt.freiburg").write_text("".join(f"{k} {0.1 * k} 0 -2.25 0 0 0 1\n" for k in range(1, n + 1)))
+    return root
+
+
+def test_icl_native_numbering(tmp_path):
+    """rgb/0.png.. with GT ids from 1: the i-th GT line belongs to the i-th image (timestamp n + 1)."""
+    seq = open_sequence(make_icl_native(tmp_path / "lr_kt2"))
+    assert seq.layout == "icl"
+    assert np.allclose(seq.timestamps, [1, 2, 3, 4])
+    T, valid = seq.gt_poses()
+    assert valid.all() and np.allclose(T[:, 0, 3], [0.1, 0.2, 0.3, 0.4])
+    assert seq.entries[0].rgb_path.name == "0.png"
 
 
 @pytest.mark.parametrize(("stamps", "expected"), [
@@ -31,10 +51,7 @@ def test_frame_number_stamps_are_told_from_seconds(stamps, expected):
 
 
 def test_icl_frame_ids_stay_in_the_trajectory_and_are_seconds_for_motion(tmp_path):
-    root = tmp_path / "lr_kt2"
-    for n in range(4):
-        write_frame(root, f"rgb/{n}.png", f"depth/{n}.png")
-    (root / "livingRoom2.gt.freiburg").write_text("".join(f"{k} {0.1 * k} 0 -2.25 0 0 0 1\n" for k in range(1, 5)))
+    root = make_icl_native(tmp_path / "lr_kt2")
     seq = open_sequence(root)
     assert seq.layout == "icl" and seq.seconds_per_stamp == pytest.approx(1 / FRAME_NUMBER_RATE_HZ)
     frame = seq[2]
