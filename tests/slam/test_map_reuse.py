@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import functools
 import json
+import shutil
+import tempfile
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,6 +33,15 @@ N_FRAMES = 30
 HALF = 15
 CFG = {"tracking": {"photometric": "off"}}
 runner = CliRunner()
+_SAVED: list[Path] = []  # the folders the cached first halves were saved into, removed with the module
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _remove_saved_maps():
+    yield
+    _first_half.cache_clear()
+    for folder in _SAVED:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @functools.cache
@@ -51,11 +63,9 @@ def _track(frames, tracker, **kw):
 @functools.cache
 def _first_half(tracker: str):
     """The first half mapped by ``tracker``: ``(SlamRun, path of its saved map)``."""
-    import tempfile
-    from pathlib import Path
-
     run = _track(_sequence()[0][:HALF], tracker)
-    out = Path(tempfile.mkdtemp(prefix=f"map-{tracker}-"))
+    out = Path(tempfile.mkdtemp(prefix=f"surfelslam-test-map-{tracker}-"))
+    _SAVED.append(out)
     run.save(out)
     return run, out / "map.npz"
 
