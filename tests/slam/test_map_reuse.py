@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
-import shutil
-import tempfile
 import zipfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,15 +30,6 @@ N_FRAMES = 30
 HALF = 15
 CFG = {"tracking": {"photometric": "off"}}
 runner = CliRunner()
-_SAVED: list[Path] = []  # the folders the cached first halves were saved into, removed with the module
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _remove_saved_maps():
-    yield
-    _first_half.cache_clear()
-    for folder in _SAVED:
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @functools.cache
@@ -60,14 +48,19 @@ def _track(frames, tracker, **kw):
     return slam.finish()
 
 
-@functools.cache
-def _first_half(tracker: str):
-    """The first half mapped by ``tracker``: ``(SlamRun, path of its saved map)``."""
-    run = _track(_sequence()[0][:HALF], tracker)
-    out = Path(tempfile.mkdtemp(prefix=f"surfelslam-test-map-{tracker}-"))
-    _SAVED.append(out)
-    run.save(out)
-    return run, out / "map.npz"
+@pytest.fixture(scope="module")
+def first_half(tmp_path_factory):
+    """``first_half(tracker)``: the first half mapped by ``tracker``, once per module: ``(SlamRun, path of its
+    saved map)`` (saved under pytest's temporary folders, which pytest prunes)."""
+
+    @functools.cache
+    def make(tracker: str):
+        run = _track(_sequence()[0][:HALF], tracker)
+        out = tmp_path_factory.mktemp(f"map-{tracker}")
+        run.save(out)
+        return run, out / "map.npz"
+
+    return make
 
 
 @functools.cache
@@ -92,9 +85,9 @@ def _unaligned_rmse(traj, gt, first: int) -> float:
 
 
 @pytest.mark.parametrize("tracker", ["dense", "hybrid"])
-def test_second_half_continues_in_the_first_runs_frame(tracker):
+def test_second_half_continues_in_the_first_runs_frame(tracker, first_half):
     frames, gt = _sequence()
-    first, map_path = _first_half(tracker)
+    first, map_path = first_half(tracker)
     prior = ss.load_map(map_path)
     assert prior.n_surfels == first.map.n_alive and len(prior.keyframes) >= 2
     run = _track(frames[HALF:], tracker, prior_map=prior)
@@ -117,9 +110,9 @@ def test_second_half_continues_in_the_first_runs_frame(tracker):
     assert len(saved.graph_edges) == len(saved.keyframes) - 1
 
 
-def test_localize_only_tracks_without_changing_the_map(tmp_path):
+def test_localize_only_tracks_without_changing_the_map(tmp_path, first_half):
     frames, gt = _sequence()
-    _, map_path = _first_half("dense")
+    _, map_path = first_half("dense")
     prior = read_map_file(map_path)
     before = {k: v.copy() for k, v in prior.surfels.items()}
     run = _track(frames[HALF:], "dense", prior_map=map_path, localize_only=True)
@@ -133,10 +126,10 @@ def test_localize_only_tracks_without_changing_the_map(tmp_path):
     assert np.array_equal(again.keyframes.T_world_kf, prior.keyframes.T_world_kf)
 
 
-def test_a_map_of_another_scene_is_refused_and_a_new_map_frame_started():
+def test_a_map_of_another_scene_is_refused_and_a_new_map_frame_started(first_half):
     scene = make_scene("office", seed=5)
     frames = list(iter_frames(scene, make_trajectory("slow", 5, scene, seed=5), INTR, noise_config("kinect"), seed=5))
-    _, map_path = _first_half("dense")
+    _, map_path = first_half("dense")
     slam = ss.Slam(INTR, config={**CFG, "map_reuse": {"localise_max_frames": 3}}, prior_map=map_path)
     results = [slam.track(f) for f in frames]
     assert [r.posed for r in results] == [False, False, False, True, True]
@@ -149,8 +142,8 @@ def test_a_map_of_another_scene_is_refused_and_a_new_map_frame_started():
     assert len(run.result.saved_map.keyframes.session) and set(run.result.saved_map.keyframes.session) == {0}
 
 
-def test_corrupt_truncated_and_other_version_maps_are_one_line_errors(tmp_path):
-    _, map_path = _first_half("dense")
+def test_corrupt_truncated_and_other_version_maps_are_one_line_errors(tmp_path, first_half):
+    _, map_path = first_half("dense")
     data = map_path.read_bytes()
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(data[: len(data) // 2])
@@ -180,8 +173,8 @@ def test_corrupt_truncated_and_other_version_maps_are_one_line_errors(tmp_path):
     assert zipfile.is_zipfile(map_path)  # the real one is an ordinary (uncompressed) npz
 
 
-def test_map_options_that_cannot_apply_are_refused(tmp_path):
-    _, map_path = _first_half("dense")
+def test_map_options_that_cannot_apply_are_refused(tmp_path, first_half):
+    _, map_path = first_half("dense")
     with pytest.raises(ConfigError, match="not supported with --tracker orb"):
         ss.Slam(INTR, tracker="orb", prior_map=map_path, warmup=False)
     with pytest.raises(ConfigError, match="--localize-only needs a map"):
@@ -190,8 +183,8 @@ def test_map_options_that_cannot_apply_are_refused(tmp_path):
     assert res.exit_code == 2 and "--poses" in res.output
 
 
-def test_the_map_file_is_written_atomically_and_reads_back_whole(tmp_path):
-    first, map_path = _first_half("hybrid")
+def test_the_map_file_is_written_atomically_and_reads_back_whole(tmp_path, first_half):
+    first, map_path = first_half("hybrid")
     saved = read_map_file(map_path)
     assert saved.tracker == "hybrid" and "[map_reuse]" in saved.config_toml
     for name, arr in saved.surfels.items():

@@ -145,8 +145,8 @@ def _hybrid_loop_icp() -> DenseEdgeConfig:
 
 
 def _frame_to_model_icp() -> ICPConfig:
-    """The trackers' frame-to-model ICP: a level stops at a 1e-3 update (the class default 2e-4 suits one-off and
-    keyframe-edge registrations). Frame to model, the next frame corrects what a level leaves, so the last sub-mm
+    """The trackers' frame-to-model ICP: a level stops at a 1e-3 update (the tighter class default suits one-off
+    and keyframe-edge registrations). Frame to model, the next frame corrects what a level leaves, so the last sub-mm
     updates cost iterations without making the trajectory better."""
     return ICPConfig(min_update_norm=1e-3)
 
