@@ -95,13 +95,17 @@ def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionRe
 
 def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarray, tvec0: np.ndarray,
                 use_guess: bool, cfg: FeatureConfig):
-    """OpenCV PnP-RANSAC: ``(inlier mask (N,), rvec (3, 1), tvec (3, 1), None)`` or ``(None, _, _, reason)``."""
+    """OpenCV PnP-RANSAC: ``(inlier mask (N,), rvec (3, 1), tvec (3, 1), None)`` or ``(None, _, _, reason)``.
+    Without a guess and with ``cfg.ransac_method == "usac"``: OpenCV's USAC (see :class:`FeatureConfig`)."""
     try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, K, None, rvec0, tvec0, use_guess,
-            cfg.ransac_iterations, cfg.reprojection_error_px, cfg.ransac_confidence,
-            flags=cv2.SOLVEPNP_ITERATIVE if use_guess else cv2.SOLVEPNP_EPNP,
-        )
+        if not use_guess and cfg.ransac_method == "usac":
+            ok, _, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K.copy(), None, params=_usac_params(cfg))
+        else:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                obj, img, K, None, rvec0, tvec0, use_guess,
+                cfg.ransac_iterations, cfg.reprojection_error_px, cfg.ransac_confidence,
+                flags=cv2.SOLVEPNP_ITERATIVE if use_guess else cv2.SOLVEPNP_EPNP,
+            )
     except cv2.error:
         return None, None, None, "pnp_failed"
     if not ok or inl is None:
@@ -109,6 +113,19 @@ def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarr
     mask = np.zeros(len(obj), bool)
     mask[inl.reshape(-1)] = True
     return mask, rvec, tvec, None
+
+
+def _usac_params(cfg: FeatureConfig) -> cv2.UsacParams:
+    """USAC settings for PnP: the config's threshold, iterations and confidence; MSAC score, uniform sampling, no
+    local optimisation (the pose is refined on the inliers afterwards); OpenCV's fixed seed keeps it deterministic."""
+    p = cv2.UsacParams()
+    p.threshold = cfg.reprojection_error_px
+    p.maxIterations = cfg.ransac_iterations
+    p.confidence = cfg.ransac_confidence
+    p.sampler = cv2.SAMPLING_UNIFORM
+    p.score = cv2.SCORE_METHOD_MSAC
+    p.loMethod = cv2.LOCAL_OPTIM_NULL
+    return p
 
 
 def _reprojection_inliers(obj: np.ndarray, uv: np.ndarray, intr: Intrinsics, rvec: np.ndarray, tvec: np.ndarray,
