@@ -11,7 +11,7 @@ import pytest
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.se3 import so3_exp, so3_log
 from surfelslam.tracking.features.config import FeatureConfig
-from surfelslam.tracking.features.motion import _pnp_ransac
+from surfelslam.tracking.features.motion import pnp_ransac
 
 K = np.array([[262.5, 0.0, 159.5], [0.0, 262.5, 119.5], [0.0, 0.0, 1.0]])
 R_TRUE = so3_exp(np.array([0.05, -0.12, 0.03]))
@@ -38,11 +38,11 @@ def _pose_error(rvec, tvec) -> tuple[float, float]:
     return dt_m, float(np.degrees(np.linalg.norm(so3_log(dR))))
 
 
-@pytest.mark.parametrize("method", ["opencv", "usac"])
+@pytest.mark.parametrize("method", ["ransac", "usac"])
 def test_both_estimators_recover_the_pose_through_half_outliers(method):
     obj, img, is_inlier = _correspondences(300, 0.5, seed=3)
     cfg = replace(FeatureConfig(), ransac_method=method)
-    mask, rvec, tvec, reason = _pnp_ransac(obj, img, K, None, None, False, cfg)
+    mask, rvec, tvec, reason = pnp_ransac(obj, img, K, None, None, False, cfg)
     assert reason is None
     dt, dr = _pose_error(rvec, tvec)
     assert dt < 0.01 and dr < 0.3
@@ -53,8 +53,8 @@ def test_both_estimators_recover_the_pose_through_half_outliers(method):
 def test_usac_finds_the_pose_among_many_outliers_and_is_deterministic():
     obj, img, is_inlier = _correspondences(200, 0.75, seed=5)
     cfg = replace(FeatureConfig(), ransac_method="usac")
-    first = _pnp_ransac(obj, img, K, None, None, False, cfg)
-    second = _pnp_ransac(obj, img, K, None, None, False, cfg)
+    first = pnp_ransac(obj, img, K, None, None, False, cfg)
+    second = pnp_ransac(obj, img, K, None, None, False, cfg)
     dt, dr = _pose_error(first[1], first[2])
     assert dt < 0.02 and dr < 0.5
     assert (first[0] & is_inlier).sum() >= 0.9 * is_inlier.sum()
@@ -66,8 +66,8 @@ def test_a_guessed_call_ignores_the_method():
     obj, img, _ = _correspondences(150, 0.3, seed=7)
     rvec0 = so3_log(R_TRUE).reshape(3, 1) + 0.01
     tvec0 = T_TRUE.reshape(3, 1) + 0.02
-    out = [_pnp_ransac(obj, img, K, rvec0.copy(), tvec0.copy(), True, replace(FeatureConfig(), ransac_method=m))
-           for m in ("opencv", "usac")]
+    out = [pnp_ransac(obj, img, K, rvec0.copy(), tvec0.copy(), True, replace(FeatureConfig(), ransac_method=m))
+           for m in ("ransac", "usac")]
     for a, b in zip(out[0][:3], out[1][:3], strict=True):
         assert np.array_equal(a, b)
 

@@ -62,10 +62,10 @@ class FeatureConfig(Config):
     reprojection_error_px: float = setting(2.0, unit="px", gt=0, le=1000, doc="RANSAC inlier threshold")
     ransac_confidence: float = setting(0.99, gt=0, le=1, doc="RANSAC success probability (early stop)")
     ransac_method: str = setting(
-        "opencv", choices=("opencv", "usac"),
-        doc="PnP-RANSAC without a pose guess (loop checks, relocalisation): opencv = cv2.solvePnPRansac on EPnP "
-            "hypotheses; usac = OpenCV's USAC (MSAC score, uniform sampling, fixed seed), which stops early on "
-            "noisy low-inlier matches where the EPnP hypotheses rarely do; guessed calls keep the opencv path")
+        "ransac", choices=("ransac", "usac"),
+        doc="OpenCV PnP estimator of calls without a pose guess (loop checks, relocalisation): ransac = classic, "
+            "EPnP hypotheses; usac = USAC (MSAC, fixed seed), which stops early on noisy low-inlier matches; "
+            "guessed calls stay classic")
     refine: bool = setting(True, doc="refine the RANSAC pose on its inliers (Levenberg-Marquardt)")
     min_good_matches: int = setting(10, unit="matches", ge=0, le=1_000_000,
                                     doc="fewer good matches with reference depth: too_few_matches")

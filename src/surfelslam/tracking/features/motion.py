@@ -93,7 +93,7 @@ def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionRe
     )
 
 
-def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarray, tvec0: np.ndarray,
+def pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarray, tvec0: np.ndarray,
                 use_guess: bool, cfg: FeatureConfig):
     """OpenCV PnP-RANSAC: ``(inlier mask (N,), rvec (3, 1), tvec (3, 1), None)`` or ``(None, _, _, reason)``.
     Without a guess and with ``cfg.ransac_method == "usac"``: OpenCV's USAC (see :class:`FeatureConfig`)."""
@@ -260,7 +260,7 @@ def _motion_from_matches(m: MatchResult, ref: Features, cur: Features, intr: Int
     uv_cur = track_subpixel(ref, cur, pairs, cfg)
     img = _image_points_cv(uv_cur, intr, sign)
     rvec0, tvec0 = _initial_vectors(T_init_cur_ref)
-    mask, rvec, tvec, reason = _pnp_ransac(obj, img, K, rvec0, tvec0, T_init_cur_ref is not None, cfg)
+    mask, rvec, tvec, reason = pnp_ransac(obj, img, K, rvec0, tvec0, T_init_cur_ref is not None, cfg)
     if cfg.consensus_fallback and (mask is None or mask.sum() < cfg.consensus_below_fraction * n_good):
         alt = _consensus_hypothesis(obj, cur.points_cam[pairs[:, 1]], uv_cur, img, K, intr, cfg)
         if alt is not None and alt[0].sum() > (0 if mask is None else mask.sum()):
