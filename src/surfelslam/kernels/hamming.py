@@ -32,32 +32,50 @@ def _popcount64(x):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _distances(query, i, train, d):
+    """``d[j]`` = Hamming distance of ``query[i]`` to every ``train[j]``: a branch-free loop of its own, which LLVM
+    vectorises (unrolled for the 4 words of an ORB descriptor)."""
+    m = train.shape[0]
+    if query.shape[1] == 4:
+        q0, q1, q2, q3 = query[i, 0], query[i, 1], query[i, 2], query[i, 3]
+        for j in range(m):
+            d[j] = (int(_popcount64(q0 ^ train[j, 0])) + int(_popcount64(q1 ^ train[j, 1]))
+                    + int(_popcount64(q2 ^ train[j, 2])) + int(_popcount64(q3 ^ train[j, 3])))
+        return
+    for j in range(m):
+        s = 0
+        for w in range(query.shape[1]):
+            s += int(_popcount64(query[i, w] ^ train[j, w]))
+        d[j] = s
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _search(query, train, best_d, second_d, best_idx, col_idx, columns):
     """The brute-force pass of :func:`nearest_two` and :func:`nearest_two_mutual` (``columns``: also fill
-    ``col_idx``; a literal at each call site). One loop for both, so the two cannot drift apart."""
-    n_words = query.shape[1]
+    ``col_idx``; a literal at each call site). One loop for both, so the two cannot drift apart. Each query row's
+    distances are computed first, then scanned: about twice as fast as one loop doing both."""
     m = train.shape[0]
     col_d = np.full(m if columns else 0, NO_MATCH, np.int64)
+    d = np.empty(m, np.int64)
     if columns:
         for j in range(m):
             col_idx[j] = -1
     for i in range(query.shape[0]):
+        _distances(query, i, train, d)
         b1 = NO_MATCH
         b2 = NO_MATCH
         bi = -1
         for j in range(m):
-            d = 0
-            for w in range(n_words):
-                d += int(_popcount64(query[i, w] ^ train[j, w]))
-            if d < b2:  # rarely true: one well-predicted branch for most rows
-                if d < b1:
+            dj = d[j]
+            if dj < b2:  # rarely true: one well-predicted branch for most rows
+                if dj < b1:
                     b2 = b1
-                    b1 = d
+                    b1 = dj
                     bi = j
                 else:
-                    b2 = d
-            if columns and d < col_d[j]:
-                col_d[j] = d
+                    b2 = dj
+            if columns and dj < col_d[j]:
+                col_d[j] = dj
                 col_idx[j] = i
         best_d[i] = b1
         second_d[i] = b2
