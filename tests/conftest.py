@@ -20,6 +20,21 @@ def sevenscenes_path() -> Path:
     return shared_sequence("7scenes_redkitchen_0000_0499")
 
 
+@pytest.fixture(autouse=True)
+def _no_throwaway_warmup_run(request, monkeypatch):
+    """The hybrid and orb trackers' ``warmup()`` ends with a throwaway run on synthetic frames
+    (:func:`surfelslam.slam.warmup_run.warm_up_run`), so that a run's timed loop starts with every kernel compiled.
+    In a test it only costs time (about 0.6 s per run, some hundred runs); the kernels compile on first use instead.
+    Skipped unless the test is marked ``warmup_run``; that results do not depend on it is tested
+    (``tests/slam/test_warmup_run.py``)."""
+    if request.node.get_closest_marker("warmup_run") is None:
+        import surfelslam.slam.hybrid
+        import surfelslam.slam.orb
+
+        for module in (surfelslam.slam.hybrid, surfelslam.slam.orb):
+            monkeypatch.setattr(module, "warm_up_run", lambda cfg, tracker: None)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Long work first, so the parallel workers start on the long tests and finish on the short ones instead of one
     worker running a 30 s test at the end while the other is idle: the groups that share a module fixture or a

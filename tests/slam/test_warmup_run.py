@@ -1,0 +1,35 @@
+"""The trackers' throwaway warm-up run leaves no trace in a run's results (which lets tests/conftest.py skip it)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import surfelslam.slam.hybrid
+import surfelslam.slam.orb
+import surfelslam.slam.warmup_run
+from surfelslam.slam import SlamConfig, build_slam
+from tracker_helpers import INTR, room_frames
+
+pytestmark = pytest.mark.warmup_run
+
+
+@pytest.mark.parametrize("tracker", ["hybrid", "orb"])
+def test_the_warmup_run_changes_no_result(tracker, monkeypatch):
+    """The same frames give bit-identical poses whether ``warmup()`` ran its throwaway run first or not, and it did
+    run: a tracker's state never leaks from that run into the next."""
+    frames, _ = room_frames("fast", 24)
+    calls = []
+    real = surfelslam.slam.warmup_run.warm_up_run
+    module = surfelslam.slam.hybrid if tracker == "hybrid" else surfelslam.slam.orb
+    poses = []
+    for warm in (True, False):
+        monkeypatch.setattr(module, "warm_up_run", (lambda cfg, t: calls.append(t) or real(cfg, t)) if warm
+                            else (lambda cfg, t: None))
+        slam = build_slam(INTR, SlamConfig(), tracker)
+        slam.warmup()
+        live = np.stack([slam.process(f).T_world_cam for f in frames])
+        res = slam.finish()
+        poses.append(live if res.trajectory_override is None else res.trajectory_override.T_world_cam)
+    assert calls == [tracker]
+    assert np.array_equal(poses[0], poses[1])
