@@ -162,14 +162,19 @@ def _gap_run(tracker: str, cfg: SlamConfig | None = None, grey: bool = False):
 
 def test_dense_relocalises_from_the_depth_after_a_two_second_gap():
     """After 3 failed frames the frame is registered to the map rendered at the last tracked pose from the
-    shape-feature (FPFH) guess; without it dense never recovers."""
-    err_off, res_off = _gap_run("dense", SlamConfig(tracking=TrackingConfig(relocalise_after_failures=0)))
-    assert err_off[35:].min() > 0.3 and res_off.metrics["tracking_failures"] == 35
-    assert res_off.metrics["relocalisations_tried"] == 0
+    shape-feature (FPFH) guess (without it dense never recovers: the next test)."""
     err, res = _gap_run("dense")
     assert res.metrics["relocalisations"] == 1 and res.metrics["tracking_failures"] == 3
     assert err[35 + 3:].max() < 0.01, err[35:]
     assert res.metrics["frames_fused"] == 70 - 3
+
+
+@pytest.mark.heavy  # make test-all: the contrast to the test above
+def test_dense_never_recovers_from_the_gap_without_relocalisation():
+    """The same gap with ``tracking.relocalise_after_failures = 0``: every frame after it fails, metres off."""
+    err_off, res_off = _gap_run("dense", SlamConfig(tracking=TrackingConfig(relocalise_after_failures=0)))
+    assert err_off[35:].min() > 0.3 and res_off.metrics["tracking_failures"] == 35
+    assert res_off.metrics["relocalisations_tried"] == 0
 
 
 def test_orb_relocalises_and_tracks_on_after_a_two_second_gap():
@@ -380,6 +385,7 @@ def test_a_discarded_prepared_frame_returns_its_pyramid_to_the_pool():
 
 
 @pytest.mark.shared
+@pytest.mark.heavy  # make test-all; in make test the synthetic gap below covers the same relocalisation
 def test_dense_relocalises_on_real_data_after_a_gap():
     """7-Scenes redkitchen 150-299 at 320x240 with frames 200-259 dropped (44 cm and 10 deg across the gap): the
     shape-feature relocalisation brings dense back onto the trajectory it follows without the gap (measured: 1.5-3.5

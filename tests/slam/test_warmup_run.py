@@ -13,12 +13,18 @@ from tracker_helpers import INTR, room_frames
 
 pytestmark = pytest.mark.warmup_run
 
+N_FRAMES = 10  # fast motion: three or four keyframes, loop checks run
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return room_frames("fast", N_FRAMES)[0]
+
 
 @pytest.mark.parametrize("tracker", ["hybrid", "orb"])
-def test_the_warmup_run_changes_no_result(tracker, monkeypatch):
+def test_the_warmup_run_changes_no_result(tracker, frames, monkeypatch):
     """The same frames give bit-identical poses whether ``warmup()`` ran its throwaway run first or not, and it did
     run: a tracker's state never leaks from that run into the next."""
-    frames, _ = room_frames("fast", 24)
     calls = []
     real = surfelslam.slam.warmup_run.warm_up_run
     module = surfelslam.slam.hybrid if tracker == "hybrid" else surfelslam.slam.orb
@@ -32,4 +38,5 @@ def test_the_warmup_run_changes_no_result(tracker, monkeypatch):
         res = slam.finish()
         poses.append(live if res.trajectory_override is None else res.trajectory_override.T_world_cam)
     assert calls == [tracker]
+    assert slam.sparse.n_keyframes >= 3
     assert np.array_equal(poses[0], poses[1])
