@@ -24,7 +24,7 @@ def sevenscenes_path() -> Path:
 def _no_throwaway_warmup_run(request, monkeypatch):
     """The hybrid and orb trackers' ``warmup()`` ends with a throwaway run on synthetic frames
     (:func:`surfelslam.slam.warmup_run.warm_up_run`), so that a run's timed loop starts with every kernel compiled.
-    In a test it only costs time (about 0.6 s per run, some hundred runs); the kernels compile on first use instead.
+    In a test it only costs time (about 0.6 s per run; 46 runs in make test); the kernels compile on first use instead.
     Skipped unless the test is marked ``warmup_run``; that results do not depend on it is tested
     (``tests/slam/test_warmup_run.py``)."""
     if request.node.get_closest_marker("warmup_run") is None:
