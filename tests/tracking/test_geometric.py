@@ -122,6 +122,7 @@ def _wide_pair(a: int, b: int):
     return intr, (frames[a], frames[b]), se3.invert(T[b]) @ T[a]
 
 
+@pytest.mark.heavy  # make test-all; make test keeps the shape guess's use by register (the next test)
 def test_geometric_guess_recovers_wide_baseline_pairs():
     """The shape guess (FPFH on the depth alone) is a coarse start for relocalisation: it recovers most wide pairs
     (measured over 12 pairs 2 s apart: 10 with the default 2-pixel normals, 7 with 1-pixel ones, 12 with 3-pixel)."""
