@@ -414,6 +414,21 @@ def test_hamming_kernel_matches_reference_and_opencv():
         hamming.as_words(q[:, :5])
 
 
+@pytest.mark.parametrize("n_bytes", [8, 16, 64])
+def test_hamming_kernel_matches_reference_at_other_descriptor_widths(n_bytes):
+    """Widths other than ORB's 32 bytes take the kernel's generic distance loop: the same results as the reference,
+    forward and reverse."""
+    from surfelslam.kernels import hamming
+
+    rng = np.random.default_rng(n_bytes)
+    q = rng.integers(0, 256, (120, n_bytes), dtype=np.uint8)
+    t = rng.integers(0, 256, (97, n_bytes), dtype=np.uint8)
+    got = hamming.nearest_two_mutual_words(hamming.as_words(q), hamming.as_words(t))
+    for g, want in zip(got[:3], hamming.nearest_two_ref(q, t), strict=True):
+        np.testing.assert_array_equal(g, want)
+    np.testing.assert_array_equal(got[3], hamming.nearest_two_ref(t, q)[2])
+
+
 def test_match_crosscheck_equals_opencv_crosscheck():
     """``match`` (numba brute force) keeps the same mutual nearest neighbours as OpenCV's cross-checking matcher."""
     import cv2
