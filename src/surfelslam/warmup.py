@@ -39,7 +39,33 @@ def _dense() -> None:
     mapper = build_slam(intr, cfg, "given")
     mapper.process(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), depth), T_world_cam=np.eye(4))
     mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
+    _dense_extras(intr, depth, mapper.map)
     mapper.finish()  # compaction of the map
+
+
+def _dense_extras(intr, depth_m: np.ndarray, smap) -> None:
+    """Kernels a short dense run does not reach but loop checks, relocalisation and map reuse do: brute-force and
+    gridded Hamming matching, ICP with the joint feature term and the plain Cholesky step, the geometry-only
+    render and the map's compaction. Run here, beside the sparse part, so that test workers and batch jobs
+    do not each compile them."""
+    from surfelslam.kernels import hamming
+    from surfelslam.mapping.render import render
+    from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp
+    from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+
+    words = hamming.as_words(np.random.default_rng(0).integers(0, 256, (16, 32)).astype(np.uint8))
+    uv = np.column_stack([np.arange(16.0) * 3.0, np.arange(16.0) * 2.0])
+    hamming.nearest_two_words(words, words[::-1].copy())
+    hamming.nearest_mutual_within_words(words, uv, words, uv, 8.0, intr.width, intr.height)
+    pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
+    pyr = pre.process(depth_m, out=pre.new_pyramid())
+    z = depth_m[uv[:, 1].astype(int), uv[:, 0].astype(int)].astype(np.float64)
+    pts = np.column_stack([(uv[:, 0] - intr.cx) / intr.fx * z, (uv[:, 1] - intr.cy) / intr.fy * z, z])
+    term = ReprojectionTerm(pts, uv, intr, 1.0, 2.0, 1e-6)
+    icp(pyr, pyr, cfg=ICPConfig(levels=1, iterations=(3,), weak_direction_ratio=0.0), reprojection=term)
+    render(smap, np.eye(4), intr, attributes=False)
+    smap.mark_dead(np.arange(min(4, smap.size)))
+    smap.compact()
 
 
 def _parallel() -> None:

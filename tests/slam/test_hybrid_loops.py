@@ -151,6 +151,7 @@ def test_loop_correction_moves_map_and_trajectory():
 
 
 @pytest.mark.shared
+@pytest.mark.heavy  # make test-all (three 90-frame runs); make test keeps the gate on real data (frames 200-239, below)
 def test_refined_edges_are_not_trusted_on_real_kinect_depth():
     """7-Scenes redkitchen 0-89 at 320x240: the dense-refined keyframe edges are biased (raw Kinect depth) and
     leave rotation residuals at their graph's optimum past ``max_trusted_residual_rad`` (synthetic Kinect-like

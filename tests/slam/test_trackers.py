@@ -177,6 +177,7 @@ def test_dense_never_recovers_from_the_gap_without_relocalisation():
     assert res_off.metrics["relocalisations_tried"] == 0
 
 
+@pytest.mark.heavy  # make test-all; make test keeps the same gap for the default (hybrid) and dense, above
 def test_orb_relocalises_and_tracks_on_after_a_two_second_gap():
     """The relocalised frame is 78 cm / 36 deg from the last keyframe, beyond the odometry's motion bound (0.3):
     it becomes a keyframe, so the frames after it are tracked against it. Before, each was rejected as too large a
@@ -438,31 +439,44 @@ def test_trackers_at_640x480_use_unbiased_block_means():
     assert ate_hybrid < 0.7 * ate_dense, (ate_hybrid, ate_dense)
 
 
-def test_a_refused_relocalisation_is_no_bridge():
-    """Half a walking lap, three frames without depth, then the lap's start again: PnP against the keyframes
-    relocalises those frames 1.3-1.6 m from the last tracked pose within 0.3 s, faster than a camera moves, and the
-    relocalisation is refused. Such a frame stays lost at the prediction (held after the failures); its refused pose
-    used to be written as a bridge."""
+def _walk_back_to_the_start():
+    """Half a walking lap, three frames without depth, then the lap's start again (6 frames): ``(frames, n)``, the
+    blank frames at ``n``..``n + 2``."""
     frames, _ = _frames("loop", N_LOOP)
     n = N_LOOP // 2
     blank = [RGBDFrame(n + i, (n + i) / 30.0, f.rgb, np.zeros_like(f.depth_m)) for i, f in enumerate(frames[n:n + 3])]
     start = [RGBDFrame(n + 3 + i, (n + 3 + i) / 30.0, f.rgb, f.depth_m) for i, f in enumerate(frames[1:7])]
+    return frames[:n] + blank + start, n
 
-    def run(run_frames):
-        slam = build_slam(INTR, SlamConfig(), "hybrid")
-        return [slam.process(f) for f in run_frames], slam.failure_reasons
 
-    results, reasons = run(frames[:n] + blank + start)
-    assert reasons.get("relocalisation_implausible") == len(start), reasons
+def _hybrid_run(run_frames):
+    slam = build_slam(INTR, SlamConfig(), "hybrid")
+    return [slam.process(f) for f in run_frames], slam.failure_reasons
+
+
+def test_a_refused_relocalisation_is_no_bridge():
+    """:func:`_walk_back_to_the_start`: PnP against the keyframes relocalises the frames back at the start 1.3-1.6 m
+    from the last tracked pose within 0.3 s, faster than a camera moves, and the relocalisation is refused. Such a
+    frame stays lost at the prediction (held after the failures); its refused pose used to be written as a
+    bridge."""
+    walk, n = _walk_back_to_the_start()
+    results, reasons = _hybrid_run(walk)
+    assert reasons.get("relocalisation_implausible") == len(walk) - n - 3, reasons
     held = results[n + 2].T_world_cam  # the last blank frame's prediction
     for r in results[n + 3:]:
         assert r.status == FrameStatus.LOST and np.array_equal(r.T_world_cam, held), (r.index, r.status)
-    # stamped by frame number (ICL-NUIM): the bound holds in seconds all the same; taken as seconds, those stamps
-    # would allow 30 times the motion, and the wrong relocalisations would be followed
-    numbered = [replace(f, timestamp=float(f.index), seconds_per_stamp=1 / 30) for f in frames[:n] + blank + start]
-    assert run(numbered)[1].get("relocalisation_implausible") == len(start)
+
+
+@pytest.mark.heavy  # make test-all (two more runs); make test keeps the bound with stamps in seconds, above
+def test_the_relocalisation_bound_holds_for_stamps_in_frame_numbers():
+    """The walk of the test above stamped by frame number (ICL-NUIM): the bound holds in seconds all the same;
+    taken as seconds, those stamps would allow 30 times the motion, and the wrong relocalisations would be
+    followed."""
+    walk, n = _walk_back_to_the_start()
+    numbered = [replace(f, timestamp=float(f.index), seconds_per_stamp=1 / 30) for f in walk]
+    assert _hybrid_run(numbered)[1].get("relocalisation_implausible") == len(walk) - n - 3
     as_seconds = [replace(f, seconds_per_stamp=1.0) for f in numbered]
-    assert "relocalisation_implausible" not in run(as_seconds)[1]
+    assert "relocalisation_implausible" not in _hybrid_run(as_seconds)[1]
 
 
 def test_joint_term_weight_follows_the_measured_depth_noise():

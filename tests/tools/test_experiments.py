@@ -179,6 +179,7 @@ def test_trajectories_without_ground_truth_say_so(tmp_path):
     assert not any(tmp_path.iterdir())  # nothing was run
 
 
+@pytest.mark.heavy  # make test-all (a second experiments run); make test covers the report with ground truth
 def test_sequence_without_ground_truth(tmp_path):
     """A short selection without ground truth: pairs are scaled down, GT sections say so, nothing fails."""
     from surfelslam.synth.writer import generate_sequence
