@@ -2,7 +2,8 @@
 the workers, a killed worker retried, failures kept with their reason, resume without dispatching, Ctrl-C.
 
 One small local Ray (2 CPUs) for one test that checks everything needing a cluster (its start-up is most of the
-time); the 3 tiny synthetic sequences of conftest.py x dense, orb. Faults are injected by the task function (a
+time); the 3 tiny synthetic sequences of conftest.py x the default tracker (hybrid: the dense and the feature
+kernels). Faults are injected by the task function (a
 wrapper of ``run_job``, pickled by value into the workers) through marker files, never by timing: a worker SIGKILLs
 itself on its first attempt, the next attempt finds the marker. The cluster's test is ``slow`` (left out by
 ``make test-fast``).
@@ -34,7 +35,7 @@ from surfelslam.batch.jobs import config_sha256, is_complete, run_job
 pytestmark = pytest.mark.skipif(not ray_available(), reason="Ray is not installed (the [batch] extra)")
 
 RAY_CPUS = 2  # the local test cluster: one 2-CPU job at a time, as on a 2-core machine
-TRACKERS = ("dense", "orb")
+TRACKERS = ("hybrid",)
 
 
 # ------------------------------------------------------------------------------------------------ task functions
@@ -95,7 +96,7 @@ def ray_cluster():
 def test_batch_on_ray(ray_cluster, tiny_seqs, tmp_path):
     """Everything that needs the cluster, in one test: with pytest-xdist (``make test``) separate tests could land
     on both workers, and each would start its own Ray. Each part is one of issue 38's "done when" items."""
-    spec_file = tmp_path / "spec.toml"  # 3 sequences x dense, orb
+    spec_file = tmp_path / "spec.toml"  # 3 sequences x hybrid
     spec_file.write_text(f"sequences = {json.dumps([str(s) for s in tiny_seqs])}\n"
                          f"trackers = {json.dumps(TRACKERS)}\n")
     separate = _separate_runs(tiny_seqs, tmp_path / "separate")
@@ -130,7 +131,7 @@ def _separate_runs(seqs, root: Path) -> dict[tuple[str, str], dict]:
 def _check_the_ates_of_separate_runs(jobs, rows, separate) -> None:
     assert [(Path(j.sequence).name, j.tracker) for j in jobs] == [
         (room, t) for room in ("roomA", "roomB", "roomC") for t in TRACKERS]
-    assert [r["status"] for r in rows] == ["done"] * 6
+    assert [r["status"] for r in rows] == ["done"] * len(jobs)
     for job, row in zip(jobs, rows, strict=True):
         ref = separate[Path(job.sequence).name, job.tracker]
         assert ref["config_sha256"] == job.config_hash  # the same recipe as `surfelslam run SEQ --tracker T`
@@ -157,16 +158,16 @@ def _check_rerun_skips_every_finished_job(spec_file: Path, out: Path, first_rows
 
     res = CliRunner().invoke(app, ["batch", str(spec_file), "--out", str(out), "--executor", "ray", "--no-warmup"])
     assert res.exit_code == 0, res.output
-    assert "executor: ray" in res.stdout and "6 skipped ->" in res.stdout and "done" not in res.stdout
+    assert "executor: ray" in res.stdout and f"{len(first_rows)} skipped ->" in res.stdout and "done" not in res.stdout
     again = json.loads((out / "batch.json").read_text())["jobs"]
-    assert [r["status"] for r in again] == ["skipped"] * 6
+    assert [r["status"] for r in again] == ["skipped"] * len(first_rows)
     assert [r["ate_rmse_m"] for r in again] == [r["ate_rmse_m"] for r in first_rows]
 
 
 def _check_killed_worker_is_retried_and_a_failing_job_keeps_its_reason(seqs, separate, root: Path) -> None:
     out, markers = root / "out", root / "markers"
     markers.mkdir(parents=True)
-    jobs = expand_jobs(inline_spec(seqs[:2], "dense"), out)
+    jobs = expand_jobs(inline_spec(seqs[:2], TRACKERS[0]), out)
     plan = {jobs[0].name: "kill-once", jobs[1].name: "raise"}
 
     def task(job):  # a local function: pickled by value with its closure
@@ -177,7 +178,7 @@ def _check_killed_worker_is_retried_and_a_failing_job_keeps_its_reason(seqs, sep
     assert [len(attempts[j.name]) for j in jobs] == [2, 2]
     assert attempts[jobs[0].name][0] != attempts[jobs[0].name][1]  # the killed worker's retry ran in a new one
     assert rows[0]["status"] == "done" and is_complete(jobs[0])
-    assert rows[0]["ate_rmse_m"] == separate["roomA", "dense"]["metrics"]["eval"]["ate_rmse_m"]
+    assert rows[0]["ate_rmse_m"] == separate["roomA", TRACKERS[0]]["metrics"]["eval"]["ate_rmse_m"]
     assert rows[1]["status"] == "failed" and not is_complete(jobs[1])
     assert rows[1]["error"] == "RuntimeError: disk on fire (after 2 attempts)"
     table = (out / "results.md").read_text()

@@ -75,6 +75,7 @@ def test_dense_refined_loop_edges_cut_the_error_on_synthetic_data():
     assert ate_m(est, gt) < 0.5 * ate_m(est_pnp, gt), (ate_m(est, gt), ate_m(est_pnp, gt))
 
 
+@pytest.mark.heavy  # make test-all (one more run); make test keeps the backend's check (test_sparse_slam.py)
 @pytest.mark.xdist_group("hybrid_loop_run")  # shares a cached run or render: one worker
 def test_background_loop_checks_keep_poses_rigid_and_close_to_inline():
     """Loop checks in the background thread are applied keyframes later: keyframe poses stay rigid (no

@@ -69,6 +69,7 @@ def test_orb_via_run_sequence_within_2x_of_dense(tmp_path):
     assert len(n_lines) == N_SLOW
 
 
+@pytest.mark.heavy  # make test-all; the orb tracker only (the default hybrid's edges: test_hybrid_loops.py)
 def test_orb_keeps_nearby_pnp_edges_out_where_colour_and_depth_are_unregistered():
     """Unregistered colour and depth (7-Scenes): keypoint depths come from another camera's view, and PnP edges
     between nearby keyframes are biased by more than the odometry drifts (7-Scenes kitchen 0-249, orb: 2.57 cm
