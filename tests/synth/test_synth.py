@@ -267,6 +267,21 @@ def test_plain_texture_style_leaves_walls_texture_less(scenes):
     assert empty[0] < 0.1 and empty[1] > 0.2, empty  # rich: corners everywhere; plain: a quarter of the view bare
 
 
+def test_chosen_frames_are_those_of_the_whole_sequence():
+    """``iter_frames(..., indices=...)`` renders only those frames, each bit for bit as in the whole sequence (noise
+    seeded by the frame's index), in the order asked."""
+    scene = make_scene("room", 0)
+    traj = make_trajectory("handheld", 8, scene, seed=0)
+    intr = default_intrinsics(80, 60)
+    whole = list(iter_frames(scene, traj, intr, noise_config("kinect"), 3))
+    chosen = list(iter_frames(scene, traj, intr, noise_config("kinect"), 3, indices=[6, 1]))
+    assert [f.index for f in chosen] == [6, 1]
+    for f in chosen:
+        ref = whole[f.index]
+        assert f.timestamp == ref.timestamp
+        assert np.array_equal(f.rgb, ref.rgb) and np.array_equal(f.depth_m, ref.depth_m, equal_nan=True)
+
+
 def test_generate_sequence_is_deterministic_and_readable(tmp_path):
     a = generate_sequence(tmp_path / "a", "room", "handheld", 3, "kinect", seed=5, width=160, height=120)
     b = generate_sequence(tmp_path / "b", "room", "handheld", 3, "kinect", seed=5, width=160, height=120)

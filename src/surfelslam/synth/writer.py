@@ -21,7 +21,7 @@ stamps: the ground truth is the depth camera's.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -101,17 +101,18 @@ def make_frame(
 
 def iter_frames(
     scene: Scene, trajectory: Trajectory, intr: Intrinsics, noise_cfg: KinectNoiseConfig | None = None,
-    seed: int = 0, T_world_colour: np.ndarray | None = None,
+    seed: int = 0, T_world_colour: np.ndarray | None = None, indices: Iterable[int] | None = None,
 ) -> Iterator[RGBDFrame]:
     """Render every pose of ``trajectory`` -> :class:`RGBDFrame` (index, timestamp, rgb, depth_m).
-    ``T_world_colour``: ``(N, 4, 4)`` the colour camera's pose per frame when colour is taken at another time."""
+    ``T_world_colour``: ``(N, 4, 4)`` the colour camera's pose per frame when colour is taken at another time.
+    ``indices``: only these frames, each the same as in the whole sequence (its noise is seeded by its index)."""
     buf: RenderOutput | None = None
     cbuf: RenderOutput | None = None
-    for i, (t, T) in enumerate(zip(trajectory.timestamps, trajectory.T_world_cam, strict=True)):
-        buf = render(scene, T, intr, out=buf)
+    for i in range(len(trajectory.timestamps)) if indices is None else indices:
+        buf = render(scene, trajectory.T_world_cam[i], intr, out=buf)
         if T_world_colour is not None:
             cbuf = render(scene, T_world_colour[i], intr, out=cbuf)
-        yield make_frame(i, float(t), buf, intr, noise_cfg, seed, colour=cbuf)
+        yield make_frame(i, float(trajectory.timestamps[i]), buf, intr, noise_cfg, seed, colour=cbuf)
 
 
 def colour_stamps(depth_stamps: np.ndarray, offset_s: float, jitter_s: float, seed: int) -> np.ndarray:
