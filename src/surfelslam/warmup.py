@@ -7,8 +7,9 @@ process per part running at the same time, compiles each kernel once::
     python -m surfelslam.warmup dense & python -m surfelslam.warmup sparse & wait
 
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
-working resolution and reduced from a larger input. ``sparse``: the synthetic renderer and the feature side (ORB
-matching, PnP and its consensus fallback, the keyframe cloud's voxel filter, the shape-feature guess).
+working resolution and reduced from a larger input, and the map's geometry-only render and compaction. ``sparse``:
+the synthetic renderer and the feature side (ORB matching, PnP and its consensus fallback, the keyframe cloud's
+voxel filter, the shape-feature guess, the loop checks' brute-force matching and joint-term ICP).
 ``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes. ``parallel``: the
 ``parallel=True`` twins of the dense kernels.
 """
@@ -39,17 +40,25 @@ def _dense() -> None:
     mapper = build_slam(intr, cfg, "given")
     mapper.process(RGBDFrame(0, 0.0, np.zeros((48, 64, 3), np.uint8), depth), T_world_cam=np.eye(4))
     mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
-    _dense_extras(intr, depth, mapper.map)
+    _map_extras(intr, mapper.map)
     mapper.finish()  # compaction of the map
 
 
-def _dense_extras(intr, depth_m: np.ndarray, smap) -> None:
-    """Kernels a short dense run does not reach but loop checks, relocalisation and map reuse do: brute-force and
-    gridded Hamming matching, ICP with the joint feature term and the plain Cholesky step, the geometry-only
-    render and the map's compaction. Run here, beside the sparse part, so that test workers and batch jobs
-    do not each compile them."""
-    from surfelslam.kernels import hamming
+def _map_extras(intr, smap) -> None:
+    """Map kernels a short dense run does not reach but map reuse and loop corrections do: the geometry-only render
+    and the map's compaction."""
     from surfelslam.mapping.render import render
+
+    render(smap, np.eye(4), intr, attributes=False)
+    smap.mark_dead(np.arange(min(4, smap.size)))
+    smap.compact()
+
+
+def _feature_extras(intr, depth_m: np.ndarray) -> None:
+    """Kernels a short orb run does not reach but loop checks and relocalisation do: brute-force and gridded
+    Hamming matching, ICP with the joint feature term and the plain Cholesky step (its other kernels are the dense
+    part's, cached by then)."""
+    from surfelslam.kernels import hamming
     from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp
     from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 
@@ -59,13 +68,10 @@ def _dense_extras(intr, depth_m: np.ndarray, smap) -> None:
     hamming.nearest_mutual_within_words(words, uv, words, uv, 8.0, intr.width, intr.height)
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
     pyr = pre.process(depth_m, out=pre.new_pyramid())
-    z = depth_m[uv[:, 1].astype(int), uv[:, 0].astype(int)].astype(np.float64)
+    z = np.full(len(uv), 1.5)
     pts = np.column_stack([(uv[:, 0] - intr.cx) / intr.fx * z, (uv[:, 1] - intr.cy) / intr.fy * z, z])
     term = ReprojectionTerm(pts, uv, intr, 1.0, 2.0, 1e-6)
     icp(pyr, pyr, cfg=ICPConfig(levels=1, iterations=(3,), weak_direction_ratio=0.0), reprojection=term)
-    render(smap, np.eye(4), intr, attributes=False)
-    smap.mark_dead(np.arange(min(4, smap.size)))
-    smap.compact()
 
 
 def _parallel() -> None:
@@ -118,6 +124,7 @@ def _sparse() -> None:
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
     a, b = (pre.process(f.depth_m, out=pre.new_pyramid())[0] for f in (frames[0], frames[-1]))
     geometric_guess(a.vertex, a.normal, b.vertex, b.normal)
+    _feature_extras(intr, frames[0].depth_m)  # last: the dense part has cached the ICP kernels by now
 
 
 PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs, "parallel": _parallel}
