@@ -217,7 +217,8 @@ def test_search_by_projection_uses_most_keypoints_and_halves_the_pose_noise() ->
     pairs = [(i, i + 5) for i in range(0, 54, 6)]
     frames = list(iter_frames(scene, traj, intr, noise_config("kinect"), 2, indices=sorted({*sum(pairs, ())})))
     contours = FeatureConfig(depth_edge_rel=0.0)
-    feats = {cfg: {f.index: extract(f.rgb, f.depth_m, intr, cfg) for f in frames} for cfg in (FeatureConfig(), contours)}
+    feats = {cfg: {f.index: extract(f.rgb, f.depth_m, intr, cfg) for f in frames}
+             for cfg in (FeatureConfig(), contours)}
     errs = {"off": [], "on": [], "contours": []}
     for i, _ in pairs:
         T_gt = invert(traj.T_world_cam[i + 5]) @ traj.T_world_cam[i]
