@@ -57,7 +57,7 @@ def _map_extras(intr, smap) -> None:
 def _feature_extras(intr, depth_m: np.ndarray) -> None:
     """Kernels a short orb run does not reach but loop checks and relocalisation do: brute-force and gridded
     Hamming matching, ICP with the joint feature term and the plain Cholesky step (its other kernels are the dense
-    part's, cached by then)."""
+    part's, cached by then). The inputs are arbitrary: numba compiles for argument types, not values."""
     from surfelslam.kernels import hamming
     from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp
     from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
