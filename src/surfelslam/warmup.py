@@ -54,20 +54,18 @@ def _map_extras(intr, smap) -> None:
     smap.compact()
 
 
-def _feature_extras(intr, depth_m: np.ndarray) -> None:
+def _feature_extras(intr, pyr) -> None:
     """Kernels a short orb run does not reach but loop checks and relocalisation do: brute-force and gridded
     Hamming matching, ICP with the joint feature term and the plain Cholesky step (its other kernels are the dense
-    part's, cached by then). The inputs are arbitrary: numba compiles for argument types, not values."""
+    part's, cached by then) on the one-level pyramid ``pyr``. The inputs are arbitrary: numba compiles for argument
+    types, not values."""
     from surfelslam.kernels import hamming
     from surfelslam.tracking.icp import ICPConfig, ReprojectionTerm, icp
-    from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 
     words = hamming.as_words(np.random.default_rng(0).integers(0, 256, (16, 32)).astype(np.uint8))
     uv = np.column_stack([np.arange(16.0) * 3.0, np.arange(16.0) * 2.0])
     hamming.nearest_two_words(words, words[::-1].copy())
     hamming.nearest_mutual_within_words(words, uv, words, uv, 8.0, intr.width, intr.height)
-    pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
-    pyr = pre.process(depth_m, out=pre.new_pyramid())
     z = np.full(len(uv), 1.5)
     pts = np.column_stack([(uv[:, 0] - intr.cx) / intr.fx * z, (uv[:, 1] - intr.cy) / intr.fy * z, z])
     term = ReprojectionTerm(pts, uv, intr, 1.0, 2.0, 1e-6)
@@ -122,9 +120,9 @@ def _sparse() -> None:
         orb.process(f)
     orb.finish()
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
-    a, b = (pre.process(f.depth_m, out=pre.new_pyramid())[0] for f in (frames[0], frames[-1]))
-    geometric_guess(a.vertex, a.normal, b.vertex, b.normal)
-    _feature_extras(intr, frames[0].depth_m)  # last: the dense part has cached the ICP kernels by now
+    a, b = (pre.process(f.depth_m, out=pre.new_pyramid()) for f in (frames[0], frames[-1]))
+    geometric_guess(a[0].vertex, a[0].normal, b[0].vertex, b[0].normal)
+    _feature_extras(intr, a)  # last: the dense part has cached the ICP kernels by now
 
 
 PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs, "parallel": _parallel}

@@ -3,10 +3,9 @@ the workers, a killed worker retried, failures kept with their reason, resume wi
 
 One small local Ray (2 CPUs) for one test that checks everything needing a cluster (its start-up is most of the
 time); the 3 tiny synthetic sequences of conftest.py x the default tracker (hybrid: the dense and the feature
-kernels). Faults are injected by the task function (a
-wrapper of ``run_job``, pickled by value into the workers) through marker files, never by timing: a worker SIGKILLs
-itself on its first attempt, the next attempt finds the marker. The cluster's test is ``slow`` (left out by
-``make test-fast``).
+kernels). Faults are injected by the task function (a wrapper of ``run_job``, pickled by value into the workers)
+through marker files, never by timing: a worker SIGKILLs itself on its first attempt, the next attempt finds the
+marker. The cluster's test is ``slow`` (left out by ``make test-fast``).
 """
 
 from __future__ import annotations

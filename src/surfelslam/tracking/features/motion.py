@@ -94,7 +94,7 @@ def _failed(n_raw: int, n_good: int, reason: str, pairs: np.ndarray) -> MotionRe
 
 
 def pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, rvec0: np.ndarray, tvec0: np.ndarray,
-                use_guess: bool, cfg: FeatureConfig):
+               use_guess: bool, cfg: FeatureConfig):
     """OpenCV PnP-RANSAC: ``(inlier mask (N,), rvec (3, 1), tvec (3, 1), None)`` or ``(None, _, _, reason)``.
     Without a guess and with ``cfg.ransac_method == "usac"``: OpenCV's USAC (see :class:`FeatureConfig`)."""
     try:
