@@ -49,7 +49,7 @@ PYTEST_DIST := --dist loadgroup
 test: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST) -m "not heavy"
 
-# Everything, with the tests that run several long tracker configurations each (marked `heavy`).
+# Everything, with the tests that run several long tracker configurations each or a local Ray cluster (marked `heavy`).
 test-all: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
