@@ -13,6 +13,8 @@ by their settings and the generator's source):
 * the office looking across the room (``tour-across``: most depth beyond 3 m) with ICL-NUIM's synthetic sensor
   noise (``icl``: jittered, quantised disparity, far depth kept), plain, rendered at twice the width (640x480) and
   read as it is, as the default run reads the ICL-NUIM office;
+* real hand-held motion in a generated scene: the ``office`` scene, textured, along TUM fr3/teddy's motion-capture
+  poses (``surfelslam synth --motion``; 220 frames, 640x480 read as it is), when ``../shared/data`` holds them;
 * real: TUM fr3/teddy (first 200 frames) and the two halves of the 7-Scenes kitchen sequence (frames 0-249 and
   250-499), at 320x240, when ``../shared/data`` holds them (otherwise listed in ``not_run`` with the reason).
 
@@ -85,6 +87,27 @@ SYNTHETIC = (
               "tour-across)", "office", "tour-across", "plain", "icl", render_scale=2),
 )
 SYNTHETIC_KEYS = tuple(s.key for s in SYNTHETIC)
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """A generated sequence along a recorded hand-held motion from the shared data (``motion``: its ground-truth
+    file, relative to the shared folder; ``n_frames`` at 30 fps, at most what the recording lasts)."""
+
+    label: str
+    scene: str
+    texture: str
+    motion: str
+    n_frames: int
+    render_scale: int = 2  # 640x480, read as it is, as a hand-held recording is
+
+
+#: real hand-held motion in a generated scene with exact ground truth: the jerks and rotations of a person's
+#: camera, which the scripted styles lack (a desk-sized walk round a teddy bear, TUM fr3/teddy's motion-capture poses)
+REPLAYED = (
+    Replayed("office, real hand-held motion (TUM fr3/teddy ground truth), textured, 640x480 input", "office",
+             "rich", "rgbd_dataset_freiburg3_teddy_first200/groundtruth.txt", 220),
+)
 #: (label, folder under the shared data, first frame, end frame or None)
 REAL = (
     ("TUM fr3/teddy (first 200)", "rgbd_dataset_freiburg3_teddy_first200", 0, None),
@@ -119,6 +142,26 @@ def synthetic_sequence(spec: Synthetic, n_frames: int, width: int, cache: Path) 
         shutil.rmtree(part, ignore_errors=True)
         generate_sequence(part, scene=spec.scene, style=spec.style, n_frames=n_frames, noise=spec.noise, seed=SEED,
                           width=width, height=height, texture=spec.texture)
+        shutil.rmtree(path, ignore_errors=True)
+        part.rename(path)
+    return path
+
+
+def replayed_sequence(spec: Replayed, motion_file: Path, width: int, cache: Path) -> Path:
+    """The generated sequence of ``spec`` along the motion in ``motion_file`` (cached as
+    :func:`synthetic_sequence`'s, keyed by the motion file's content too)."""
+    width *= spec.render_scale
+    height = width * 3 // 4
+    motion_hash = hashlib.sha256(motion_file.read_bytes()).hexdigest()[:8]
+    key = (f"{spec.scene}_replay-{motion_hash}_{spec.texture}_{spec.n_frames}f_{width}x{height}_{NOISE}_s{SEED}_"
+           f"{_generator_hash()}")
+    path = cache / "robustness" / key
+    if not (path / "groundtruth.txt").is_file():
+        part = path.with_name(f".{key}.partial-{os.getpid()}")
+        shutil.rmtree(part, ignore_errors=True)
+        generate_sequence(part, scene=spec.scene, n_frames=spec.n_frames, noise=NOISE, seed=SEED, width=width,
+                          height=height, texture=spec.texture, motion=Trajectory.read_tum(motion_file),
+                          motion_label=spec.motion)
         shutil.rmtree(path, ignore_errors=True)
         part.rename(path)
     return path
@@ -195,12 +238,18 @@ def run_open3d(label: str, seq) -> dict:
 
 def sequences(n_frames: int, width: int, synthetic: tuple[str, ...], shared: Path | None, cache: Path,
               real_end: int | None = None) -> tuple[list[tuple[str, Path, DatasetOptions]], list[dict]]:
-    """``([(label, folder, reader options)], [not run: label and reason])``: the generated ones, then the real
-    ones."""
+    """``([(label, folder, reader options)], [not run: label and reason])``: the generated ones, those along a
+    recorded motion (when the shared data holds it), then the real ones."""
     out, not_run = [], []
     for spec in (s for s in SYNTHETIC if s.key in synthetic):
         path = synthetic_sequence(spec, n_frames, width, cache)
         out.append((spec.label, path, DatasetOptions()))
+    for spec in REPLAYED:
+        motion = None if shared is None else shared / spec.motion
+        if motion is None or not motion.is_file():
+            not_run.append({"sequence": spec.label, "reason": f"{spec.motion} not in {shared}"})
+            continue
+        out.append((spec.label, replayed_sequence(spec, motion, width, cache), DatasetOptions()))
     for label, folder, start, end in REAL:
         path = None if shared is None else shared / folder
         if path is None or not path.is_dir():
@@ -277,7 +326,9 @@ def section_markdown(res: dict) -> list[str]:
            "default textures; office tour: `office`, style `tour` (the slow orbit with an upward stretch in its middle "
            "third); looking across: style `tour-across`, the same with the orbit looking across the room (most depth "
            "beyond 3 m); 640x480 input: rendered at 640x480 and run as is (the default tracks at 320x240 from 2x2 "
-           "block means). Segments: the weak and lost stretches of the run's `metrics.json`. Worst 1 s drift: "
+           "block means); real hand-held motion: `surfelslam synth --motion` with TUM fr3/teddy's motion-capture poses "
+           "(exact ground truth, a person's jerks and turns). Segments: the weak and lost stretches of the run's "
+           "`metrics.json`. Worst 1 s drift: "
            f"the largest translation error of the relative pose over every pair of poses {res['drift_window_s']:g} "
            "s apart (`eval.metrics.rpe`, `delta_unit=\"seconds\"`), unaligned. FPS: wall clock, JIT warm-up "
            "excluded." + (f" Open3D: `t.pipelines.slam` with its example's settings but depth up to "

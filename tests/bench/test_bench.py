@@ -257,7 +257,7 @@ def test_robustness_section_spliced_into_the_last_results(tmp_path, monkeypatch)
     assert row["ate_rmse_cm"] >= 0 and row["worst_1s_drift_cm"] >= 0 and row["fps"] > 0
     assert 0 < row["worst_1s_drift_end_s"] <= 33 / 30 and row["lost_segments"] >= 0 and row["failures"] >= 0
     assert [s["what"] for s in r["skipped"]] == ["robustness orb on close wall, textured (plane) (33 frames)"]
-    assert len(r["not_run"]) == len(run_all.bench_robustness.REAL)
+    assert len(r["not_run"]) == len(run_all.bench_robustness.REPLAYED) + len(run_all.bench_robustness.REAL)
     assert len(list((tmp_path / "cache" / "robustness").iterdir())) == 1  # generated once, kept
     md = (out / "latest.md").read_text()
     assert md == run_all.to_markdown(json.loads((out / "latest.json").read_text()))
