@@ -426,6 +426,68 @@ def se3_exp_left_update(xi, T, T_out):
     copy_pose(E @ T, T_out)
 
 
+_JACOBI_MAX_SWEEPS = 50  # cyclic Jacobi converges quadratically: a 6x6 needs about 6-10 sweeps
+
+
+@njit(cache=True, nogil=True)
+def jacobi_eigh6(A, lam, V):
+    """Eigen-decomposition of a symmetric ``A (6, 6)`` (destroyed) by cyclic Jacobi rotations: ``lam (6,)``
+    ascending, ``V (6, 6)`` the unit eigenvectors as columns. Hand-written, as :func:`cholesky_solve6`: numba's
+    LAPACK-backed ``np.linalg.eigh`` cost 7 s of compile time; Jacobi also keeps the small eigenvalues of a graded
+    (near-degenerate) matrix to high relative accuracy."""
+    n = 6
+    for i in range(n):
+        for j in range(n):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _ in range(_JACOBI_MAX_SWEEPS):
+        off = 0.0
+        diag = 0.0
+        for i in range(n):
+            diag += A[i, i] * A[i, i]
+            for j in range(i + 1, n):
+                off += A[i, j] * A[i, j]
+        if not off > 1e-30 * diag:  # converged (also stops on a zero or non-finite matrix)
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                if abs(theta) > 1e150:
+                    t = 0.5 / theta
+                else:
+                    t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                    if theta < 0.0:
+                        t = -t
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # A <- A J (columns p, q)
+                    akp = A[k, p]
+                    akq = A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(n):  # A <- J^T A (rows p, q)
+                    apk = A[p, k]
+                    aqk = A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                for k in range(n):
+                    vkp = V[k, p]
+                    vkq = V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    for i in range(n):
+        lam[i] = A[i, i]
+    for i in range(1, n):  # insertion sort, ascending, columns of V alongside
+        j = i
+        while j > 0 and lam[j - 1] > lam[j]:
+            lam[j - 1], lam[j] = lam[j], lam[j - 1]
+            for k in range(n):
+                V[k, j - 1], V[k, j] = V[k, j], V[k, j - 1]
+            j -= 1
+
+
 @njit(cache=True, nogil=True)
 def remapped_gauss_newton_step(stats, mean_depth_m, max_ratio, T, T_out):
     """Solution remapping (numpy reference: :func:`remapped_step_ref`) and the update.
@@ -451,7 +513,9 @@ def remapped_gauss_newton_step(stats, mean_depth_m, max_ratio, T, T_out):
     for i in range(6):
         for j in range(6):
             H[i, j] *= s[i] * s[j]
-    lam, V = np.linalg.eigh(H)
+    lam = np.empty(6)
+    V = np.empty((6, 6))
+    jacobi_eigh6(H, lam, V)
     if not lam[5] > 0.0:
         return 0, 0.0
     n_frozen = 0
