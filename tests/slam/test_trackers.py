@@ -161,6 +161,7 @@ def _gap_run(tracker: str, cfg: SlamConfig | None = None, grey: bool = False):
     return np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est, keep, strict=True)]), res
 
 
+@pytest.mark.heavy  # make test-all; make test keeps the hybrid's gap (above) and its shape relocalisation (below)
 def test_dense_relocalises_from_the_depth_after_a_two_second_gap():
     """After 3 failed frames the frame is registered to the map rendered at the last tracked pose from the
     shape-feature (FPFH) guess (without it dense never recovers: the next test)."""
@@ -178,7 +179,7 @@ def test_dense_never_recovers_from_the_gap_without_relocalisation():
     assert res_off.metrics["relocalisations_tried"] == 0
 
 
-@pytest.mark.heavy  # make test-all; make test keeps the same gap for the default (hybrid) and dense, above
+@pytest.mark.heavy  # make test-all; make test keeps the same gap for the default (hybrid), above
 def test_orb_relocalises_and_tracks_on_after_a_two_second_gap():
     """The relocalised frame is 78 cm / 36 deg from the last keyframe, beyond the odometry's motion bound (0.3):
     it becomes a keyframe, so the frames after it are tracked against it. Before, each was rejected as too large a

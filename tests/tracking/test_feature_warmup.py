@@ -24,7 +24,8 @@ print(json.dumps({"before": before, "after": {k: len(f.signatures) for k, f in k
 """
 
 
-@pytest.mark.parametrize("tracker", ["hybrid", "orb"])
+# orb's warm-up calls the same feature warm-up as the hybrid's: make test-all (heavy) checks it too
+@pytest.mark.parametrize("tracker", ["hybrid", pytest.param("orb", marks=pytest.mark.heavy)])
 def test_warmup_compiles_the_feature_kernels(tracker):
     """In a fresh process (no kernel loaded yet), ``warmup()`` loads or compiles the feature kernels (and, through a
     throwaway run, the keyframe and loop-check ones)."""
