@@ -130,41 +130,40 @@ def _generator_hash() -> str:
     return h.hexdigest()[:12]
 
 
-def synthetic_sequence(spec: Synthetic, n_frames: int, width: int, cache: Path) -> Path:
-    """The generated sequence of ``spec`` (from the cache when it is there; written atomically otherwise)."""
-    width *= spec.render_scale
-    height = width * 3 // 4
-    key = (f"{spec.scene}_{spec.style}_{spec.texture}_{n_frames}f_{width}x{height}_{spec.noise}_s{SEED}_"
-           f"{_generator_hash()}")
+def _cached_sequence(cache: Path, key: str, **generate) -> Path:
+    """``cache/robustness/key``: the sequence :func:`generate_sequence` writes with ``generate``, from the cache when
+    it is there, else written to a partial folder and renamed (a killed run leaves no half sequence behind)."""
     path = cache / "robustness" / key
     if not (path / "groundtruth.txt").is_file():
         part = path.with_name(f".{key}.partial-{os.getpid()}")
         shutil.rmtree(part, ignore_errors=True)
-        generate_sequence(part, scene=spec.scene, style=spec.style, n_frames=n_frames, noise=spec.noise, seed=SEED,
-                          width=width, height=height, texture=spec.texture)
+        generate_sequence(part, seed=SEED, **generate)
         shutil.rmtree(path, ignore_errors=True)
         part.rename(path)
     return path
 
 
+def synthetic_sequence(spec: Synthetic, n_frames: int, width: int, cache: Path) -> Path:
+    """The generated sequence of ``spec``, cached (keyed by its settings and the generator's source)."""
+    width *= spec.render_scale
+    height = width * 3 // 4
+    key = (f"{spec.scene}_{spec.style}_{spec.texture}_{n_frames}f_{width}x{height}_{spec.noise}_s{SEED}_"
+           f"{_generator_hash()}")
+    return _cached_sequence(cache, key, scene=spec.scene, style=spec.style, n_frames=n_frames, noise=spec.noise,
+                            width=width, height=height, texture=spec.texture)
+
+
 def replayed_sequence(spec: Replayed, motion_file: Path, width: int, cache: Path) -> Path:
-    """The generated sequence of ``spec`` along the motion in ``motion_file`` (cached as
-    :func:`synthetic_sequence`'s, keyed by the motion file's content too)."""
+    """The generated sequence of ``spec`` along the motion in ``motion_file``, cached (keyed by the motion file's
+    content too)."""
     width *= spec.render_scale
     height = width * 3 // 4
     motion_hash = hashlib.sha256(motion_file.read_bytes()).hexdigest()[:8]
     key = (f"{spec.scene}_replay-{motion_hash}_{spec.texture}_{spec.n_frames}f_{width}x{height}_{NOISE}_s{SEED}_"
            f"{_generator_hash()}")
-    path = cache / "robustness" / key
-    if not (path / "groundtruth.txt").is_file():
-        part = path.with_name(f".{key}.partial-{os.getpid()}")
-        shutil.rmtree(part, ignore_errors=True)
-        generate_sequence(part, scene=spec.scene, n_frames=spec.n_frames, noise=NOISE, seed=SEED, width=width,
-                          height=height, texture=spec.texture, motion=Trajectory.read_tum(motion_file),
-                          motion_label=spec.motion)
-        shutil.rmtree(path, ignore_errors=True)
-        part.rename(path)
-    return path
+    return _cached_sequence(cache, key, scene=spec.scene, n_frames=spec.n_frames, noise=NOISE, width=width,
+                            height=height, texture=spec.texture, motion=Trajectory.read_tum(motion_file),
+                            motion_label=spec.motion)
 
 
 def worst_drift(est: Trajectory, gt: Trajectory, window_s: float = DRIFT_WINDOW_S) -> tuple[float, float]:

@@ -427,14 +427,17 @@ def se3_exp_left_update(xi, T, T_out):
 
 
 _JACOBI_MAX_SWEEPS = 50  # cyclic Jacobi converges quadratically: a 6x6 needs about 6-10 sweeps
+_JACOBI_OFF_REL = 1e-30  # converged: squared off-diagonal norm below this times the squared diagonal (1e-15 relative)
+_JACOBI_THETA_MAX = 1e150  # beyond it theta^2 overflows; the rotation's tangent is then 1 / (2 theta)
 
 
 @njit(cache=True, nogil=True)
 def jacobi_eigh6(A, lam, V):
     """Eigen-decomposition of a symmetric ``A (6, 6)`` (destroyed) by cyclic Jacobi rotations: ``lam (6,)``
     ascending, ``V (6, 6)`` the unit eigenvectors as columns. Hand-written, as :func:`cholesky_solve6`: numba's
-    LAPACK-backed ``np.linalg.eigh`` cost 7 s of compile time; Jacobi also keeps the small eigenvalues of a graded
-    (near-degenerate) matrix to high relative accuracy."""
+    LAPACK-backed ``np.linalg.eigh`` cost 2 s more of compile time; Jacobi also keeps the small eigenvalues of a
+    graded (near-degenerate) matrix to high relative accuracy, and a non-finite matrix comes back as its diagonal
+    instead of raising."""
     n = 6
     for i in range(n):
         for j in range(n):
@@ -446,7 +449,7 @@ def jacobi_eigh6(A, lam, V):
             diag += A[i, i] * A[i, i]
             for j in range(i + 1, n):
                 off += A[i, j] * A[i, j]
-        if not off > 1e-30 * diag:  # converged (also stops on a zero or non-finite matrix)
+        if not off > _JACOBI_OFF_REL * diag:  # converged (also stops on a zero or non-finite matrix)
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
@@ -454,7 +457,7 @@ def jacobi_eigh6(A, lam, V):
                 if apq == 0.0:
                     continue
                 theta = (A[q, q] - A[p, p]) / (2.0 * apq)
-                if abs(theta) > 1e150:
+                if abs(theta) > _JACOBI_THETA_MAX:
                     t = 0.5 / theta
                 else:
                     t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
