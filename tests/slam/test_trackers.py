@@ -441,13 +441,16 @@ def test_trackers_at_640x480_use_unbiased_block_means():
     assert ate_hybrid < 0.7 * ate_dense, (ate_hybrid, ate_dense)
 
 
+N_BACK = 6  # frames of the lap's start after the blank ones in _walk_back_to_the_start
+
+
 def _walk_back_to_the_start():
-    """Half a walking lap, three frames without depth, then the lap's start again (6 frames): ``(frames, n)``, the
-    blank frames at ``n``..``n + 2``."""
+    """Half a walking lap, three frames without depth, then the lap's start again (``N_BACK`` frames):
+    ``(frames, n)``, the blank frames at ``n``..``n + 2``."""
     frames, _ = _frames("loop", N_LOOP)
     n = N_LOOP // 2
     blank = [RGBDFrame(n + i, (n + i) / 30.0, f.rgb, np.zeros_like(f.depth_m)) for i, f in enumerate(frames[n:n + 3])]
-    start = [RGBDFrame(n + 3 + i, (n + 3 + i) / 30.0, f.rgb, f.depth_m) for i, f in enumerate(frames[1:7])]
+    start = [RGBDFrame(n + 3 + i, (n + 3 + i) / 30.0, f.rgb, f.depth_m) for i, f in enumerate(frames[1:1 + N_BACK])]
     return frames[:n] + blank + start, n
 
 
@@ -464,7 +467,7 @@ def test_a_refused_relocalisation_is_no_bridge():
     bridge."""
     walk, n = _walk_back_to_the_start()
     results, reasons = _hybrid_run(walk)
-    assert reasons.get("relocalisation_implausible") == len(walk) - n - 3, reasons
+    assert reasons.get("relocalisation_implausible") == N_BACK, reasons
     held = results[n + 2].T_world_cam  # the last blank frame's prediction
     for r in results[n + 3:]:
         assert r.status == FrameStatus.LOST and np.array_equal(r.T_world_cam, held), (r.index, r.status)
@@ -477,7 +480,7 @@ def test_the_relocalisation_bound_holds_for_stamps_in_frame_numbers():
     followed."""
     walk, n = _walk_back_to_the_start()
     numbered = [replace(f, timestamp=float(f.index), seconds_per_stamp=1 / 30) for f in walk]
-    assert _hybrid_run(numbered)[1].get("relocalisation_implausible") == len(walk) - n - 3
+    assert _hybrid_run(numbered)[1].get("relocalisation_implausible") == N_BACK
     as_seconds = [replace(f, seconds_per_stamp=1.0) for f in numbered]
     assert "relocalisation_implausible" not in _hybrid_run(as_seconds)[1]
 
