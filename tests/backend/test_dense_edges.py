@@ -13,7 +13,7 @@ from surfelslam.geometry import se3
 from surfelslam.synth import make_scene, render
 from surfelslam.synth.noise import KinectNoiseConfig, noisy_depth
 from surfelslam.synth.trajectories import look_at
-from surfelslam.tracking.preprocess import PreprocessConfig, level_for_width
+from surfelslam.tracking.preprocess import FramePyramid, PreprocessConfig, Preprocessor, level_for_width
 from surfelslam.types import Intrinsics
 
 from helpers import INTR
@@ -126,6 +126,41 @@ def test_keyframe_depth_is_stored_reduced_and_quantised():
     err = np.abs(same.depth_m(0) - np.where(valid, depth, 0))
     assert err.max() <= 0.5 * PreprocessConfig().max_depth_m / 65535 + 1e-6
     assert [level_for_width(640, w) for w in (640, 320, 200, 160, 1)] == [0, 1, 2, 2, 6]
+
+
+def test_a_trackers_pyramid_stands_in_for_the_keyframes_rebuilt_one(room_pair):
+    """The tracker's own pyramid of a keyframe (more levels, same preprocessing) is taken as the one the refiner would
+    build from the stored depth: the same maps, level by level, and the same refined edge; a pyramid of another size
+    (the stored depth is reduced from a larger input) is refused."""
+    d_ref, d_cur, T_true = room_pair
+    ref = _refiner()
+    ref.add_keyframe(0, d_ref)
+    ref.add_keyframe(1, d_cur)
+    stored = ref.depth_m(1)  # the input the refiner rebuilds from: the tracker's pyramid of it must be identical
+    tracker_pyr = Preprocessor(INTR, replace(PreprocessConfig(), pyramid_levels=4)).process(stored)
+    taken = ref.keyframe_pyramid(tracker_pyr)
+    rebuilt = ref.frame_pyramid(stored)
+    assert taken is not None and len(taken) == len(rebuilt) == ref.cfg.icp.levels
+    for a, b in zip(taken.levels, rebuilt.levels, strict=True):
+        assert a.intrinsics == b.intrinsics
+        np.testing.assert_array_equal(a.vertex, b.vertex)
+        np.testing.assert_array_equal(a.normal, b.normal)
+    assert not np.shares_memory(taken[0].vertex, tracker_pyr[0].vertex)  # a copy: the tracker reuses its buffers
+    T_pnp = se3.exp(np.array([0.004, -0.005, 0.003, 0.009, -0.008, 0.008])) @ T_true
+    plain = ref.refine(0, 1, T_pnp)
+    adopted = _refiner()
+    adopted.add_keyframe(0, d_ref)
+    adopted.add_keyframe(1, np.zeros_like(d_cur))  # the stored depth is not used: the adopted pyramid is
+    adopted.adopt(1, taken)
+    edge = adopted.refine(0, 1, T_pnp)
+    assert plain is not None and edge is not None
+    np.testing.assert_array_equal(edge.T_cur_ref, plain.T_cur_ref)
+    big = Intrinsics(2 * INTR.fx, 2 * INTR.fy, 2 * INTR.cx + 0.5, 2 * INTR.cy + 0.5, 640, 480)
+    reduced = DenseEdgeRefiner(big, PreprocessConfig(), DenseEdgeConfig(max_width_px=320))
+    big_pyr = Preprocessor(big, replace(PreprocessConfig(), pyramid_levels=4)).process(
+        np.kron(stored, np.ones((2, 2), np.float32)))
+    assert reduced.keyframe_pyramid(big_pyr) is None
+    assert reduced.keyframe_pyramid(FramePyramid(big_pyr.levels[1:])) is None  # right size, other filter scale
 
 
 def test_edge_sigma_follows_the_spread_of_nearby_edges():

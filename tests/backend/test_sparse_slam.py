@@ -373,3 +373,37 @@ def test_background_checks_find_the_inline_loops_whatever_the_lag(loop_frames, l
     for res in (lag2, other):
         assert res.loops_found == inline.loops_found
         assert np.abs(res.trajectory.T_world_cam[:, :3, 3] - inline.trajectory.T_world_cam[:, :3, 3]).max() < 1e-3
+
+
+@pytest.mark.parametrize("guided_older", [True, False], ids=["guided_older", "brute_force_older"])
+def test_older_candidates_are_matched_near_the_graphs_estimate_when_asked(loop_frames, monkeypatch,
+                                                                          guided_older) -> None:
+    """``loop.guided_older``: retrieved and random candidates get the graph's relative pose as the prior of their
+    matching, as nearby ones always do (off: none, brute force); either way the revisit of the start is verified and
+    closes the loop to the same precision."""
+    from surfelslam.backend.sparse_slam import loop_checks
+
+    candidates, priors = [], []
+    real_candidates, real_verify = loop_checks.loop_candidates, loop_checks.verify_edge
+
+    def candidates_seen(*a, **k):
+        out = real_candidates(*a, **k)
+        candidates.extend(out)
+        return out
+
+    def verify_seen(ref, cur, intr, feat_cfg, cfg, prior=None):
+        priors.append(prior)
+        return real_verify(ref, cur, intr, feat_cfg, cfg, prior)
+
+    monkeypatch.setattr(loop_checks, "loop_candidates", candidates_seen)
+    monkeypatch.setattr(loop_checks, "verify_edge", verify_seen)
+    poses, frames = loop_frames
+    cfg = replace(LOOP_CFG, background_loop_checks=False, loop=replace(LOOP_CFG.loop, guided_older=guided_older))
+    _, _, res = _run(cfg, poses, frames)
+    assert len(candidates) == len(priors) > 0
+    older = [p for c, p in zip(candidates, priors, strict=True) if c.source != "nearby"]
+    assert len(older) >= 10 and all((p is not None) == guided_older for p in older)
+    assert all(p is not None for c, p in zip(candidates, priors, strict=True) if c.source == "nearby")
+    far = [(i, j) for i, j, _ in res.loops_accepted if j - i > N_LOOP // 2]
+    assert len(far) >= 3
+    assert ate_m(res.trajectory.T_world_cam, poses) < 0.05

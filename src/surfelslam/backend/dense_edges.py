@@ -40,6 +40,7 @@ from surfelslam.tracking.preprocess import (
     FramePyramid,
     PreprocessConfig,
     Preprocessor,
+    PyramidLevel,
     level_for_width,
     pyramid_intrinsics,
 )
@@ -258,6 +259,30 @@ class DenseEdgeRefiner:
             stored = self._depth[kf_id]
         return stored.astype(np.float32) * np.float32(self._depth_unit_m)
 
+    def keyframe_pyramid(self, pyramid: FramePyramid) -> FramePyramid | None:
+        """A copy of the levels :meth:`refine` registers, taken from the tracker's own pyramid of a new keyframe
+        (``pyramid``: built with this refiner's preprocessing settings, its finest level computed), or ``None`` when
+        that pyramid is not the one :meth:`refine` would build: the keyframe depth is stored reduced, or the sizes
+        differ. Handed to :meth:`adopt`, it saves rebuilding the new keyframe's pyramid (a bilateral filter and
+        normals: about as much as one refinement) for its first checks; it differs from a rebuild only by the
+        stored depth's rounding (``max_depth_m / 65535``)."""
+        levels = self._icp_cfg.levels
+        if self._level != 0 or pyramid.intrinsics != self._intr_store or len(pyramid) < levels:
+            return None
+        return FramePyramid([PyramidLevel(lv.vertex.copy(), lv.normal.copy(), lv.intrinsics)
+                             for lv in pyramid.levels[:levels]])
+
+    def adopt(self, kf_id: int, pyramid: FramePyramid) -> None:
+        """Use ``pyramid`` (:meth:`keyframe_pyramid`) as keyframe ``kf_id``'s in the calling thread's cache."""
+        self._cache_put(self._thread_state().cache, kf_id, pyramid)
+
+    def _cache_put(self, cache: OrderedDict, kf_id: int, pyramid: FramePyramid) -> None:
+        if self.cfg.cached_pyramids > 0:
+            cache[kf_id] = pyramid
+            cache.move_to_end(kf_id)
+            while len(cache) > self.cfg.cached_pyramids:
+                cache.popitem(last=False)
+
     def _thread_state(self) -> threading.local:
         st = self._local
         if not hasattr(st, "pre"):
@@ -272,10 +297,7 @@ class DenseEdgeRefiner:
             st.cache.move_to_end(kf_id)
             return pyr
         pyr = st.pre.process(self.depth_m(kf_id))
-        if self.cfg.cached_pyramids > 0:
-            st.cache[kf_id] = pyr
-            while len(st.cache) > self.cfg.cached_pyramids:
-                st.cache.popitem(last=False)
+        self._cache_put(st.cache, kf_id, pyr)
         return pyr
 
     def refine(self, ref_id: int, cur_id: int, T_cur_ref: np.ndarray, points_ref: np.ndarray | None = None,

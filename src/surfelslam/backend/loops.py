@@ -42,6 +42,10 @@ class LoopConfig(Config):
         doc="whether the PnP-verified edges to nearby keyframes enter the PnP edges' graph (refined ones enter the "
             "refined graph either way); auto: unless colour and depth are not registered, where keypoint depths "
             "come from another camera's view and bias these short edges by more than the odometry drifts")
+    guided_older: bool = setting(
+        True, doc="older candidates (retrieved, random) are matched near where the graph's current estimate of the "
+                  "pair projects the keypoints, as nearby ones are (brute force when that finds too few): a loop the "
+                  "graph already closed is verified at a fraction of the cost")
     retrieval: RetrievalConfig = setting(default_factory=RetrievalConfig, doc="descriptor-voting parameters")
     consistency: LoopConsistencyConfig = setting(
         default_factory=LoopConsistencyConfig,
@@ -109,9 +113,10 @@ def verify_edge(
     """PnP between two keyframes with the loop bounds; ``ok`` only if the inlier rules pass too.
 
     ``result.T_cur_ref`` maps points of the candidate (ref) keyframe into the new (cur) keyframe.
-    ``T_prior_cur_ref``: ``(4, 4)`` the graph's estimate of that pose, for a nearby pair (the odometry's, good to
-    a few pixels): the matches are then searched near where it projects the keypoints (``guided_radius_px``;
-    brute force when that finds too few, see :func:`estimate_motion`).
+    ``T_prior_cur_ref``: ``(4, 4)`` the graph's estimate of that pose (for a nearby pair the odometry's, good to
+    a few pixels; for an older one good where the graph already closed the loop): the matches are then searched near
+    where it projects the keypoints (``guided_radius_px``; brute force when that finds too few, see
+    :func:`estimate_motion`).
     """
     res = estimate_motion(ref, cur, intr, _loop_features(feat_cfg, cfg), T_init_cur_ref=T_prior_cur_ref,
                           min_consistent=cfg.min_consistent_matches)

@@ -335,8 +335,10 @@ class HybridSlam(DenseSlam):
             # the graph frame may differ from the dense frame by the last keyframe's pending correction:
             # feed the pose in the graph frame, so the odometry edge is exactly the dense relative motion
             T_feed = T_new if K == 0 else self._correction(K - 1) @ T_new
-            sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed),
-                                     feats=self._feats)  # None: extracted there if it becomes a keyframe
+            # feats None: extracted there if it becomes a keyframe; the source pyramid serves its loop checks when
+            # its finest level is computed (the input is not reduced first)
+            sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed), feats=self._feats,
+                                     tracker_pyramid=self.source if self.first_level == 0 else None)
             t.lap("sparse")
             if sr.is_keyframe:
                 self._kf_dense.append(T_new)

@@ -16,6 +16,7 @@ from surfelslam.backend.place_recognition import DescriptorIndex, select_descrip
 from surfelslam.backend.sparse_slam.results import LoopCheck
 from surfelslam.geometry.se3 import invert
 from surfelslam.tracking.features import FeatureConfig, Features
+from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics
 
 
@@ -59,21 +60,27 @@ class LoopChecker:
         holds every keyframe only once the pending checks are collected (:meth:`collect`)."""
         return [k for k, _ in self._index.query(self.query_descriptors(feats), n)]
 
-    def _nearby_poses(self, kf_id: int, poses_world_kf: np.ndarray) -> dict[int, np.ndarray]:
-        """Copies of ``T_world_kf`` of keyframe ``kf_id`` and its nearby loop candidates (:func:`loop_candidates`)."""
-        return {k: poses_world_kf[k].copy() for k in range(max(0, kf_id - 1 - self._loop_cfg.n_nearby), kf_id + 1)}
+    def _candidate_poses(self, kf_id: int, poses_world_kf: np.ndarray) -> dict[int, np.ndarray]:
+        """Copies of ``T_world_kf`` of keyframe ``kf_id`` and its nearby loop candidates (:func:`loop_candidates`),
+        or of every keyframe up to it with ``LoopConfig.guided_older``: the priors of the candidates' matching."""
+        first = 0 if self._loop_cfg.guided_older else max(0, kf_id - 1 - self._loop_cfg.n_nearby)
+        return {k: poses_world_kf[k].copy() for k in range(first, kf_id + 1)}
 
-    def check(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray) -> tuple[int, list[LoopCheck]]:
-        """Verify keyframe ``kf_id``'s loop candidates now; ``poses_world_kf``: the keyframe poses ``(K, 4, 4)``."""
-        return self._check(kf_id, feats, self._nearby_poses(kf_id, poses_world_kf))
+    def check(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray,
+              pyramid: FramePyramid | None = None) -> tuple[int, list[LoopCheck]]:
+        """Verify keyframe ``kf_id``'s loop candidates now; ``poses_world_kf``: the keyframe poses ``(K, 4, 4)``;
+        ``pyramid``: the keyframe's :meth:`DenseEdgeRefiner.keyframe_pyramid`, if any (else built when needed)."""
+        return self._check(kf_id, feats, self._candidate_poses(kf_id, poses_world_kf), pyramid)
 
-    def submit(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray) -> None:
+    def submit(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray,
+               pyramid: FramePyramid | None = None) -> None:
         """:meth:`check` in the background thread, after the checks already submitted (one worker: the keyframes
-        are checked and indexed in order); :meth:`collect` returns the results in that order. The nearby poses are
-        copied here, on the caller's thread."""
+        are checked and indexed in order); :meth:`collect` returns the results in that order. The candidates' poses
+        are copied here, on the caller's thread."""
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
-        self._pending.append(self._pool.submit(self._check, kf_id, feats, self._nearby_poses(kf_id, poses_world_kf)))
+        self._pending.append(self._pool.submit(self._check, kf_id, feats, self._candidate_poses(kf_id, poses_world_kf),
+                                               pyramid))
 
     @property
     def n_pending(self) -> int:
@@ -93,10 +100,12 @@ class LoopChecker:
             self._pool.shutdown()
             self._pool = None
 
-    def _check(self, kf_id: int, feats: Features, poses: dict[int, np.ndarray]) -> tuple[int, list[LoopCheck]]:
+    def _check(self, kf_id: int, feats: Features, poses: dict[int, np.ndarray],
+               pyramid: FramePyramid | None = None) -> tuple[int, list[LoopCheck]]:
         """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
 
-        ``poses``: the :meth:`_nearby_poses` of ``kf_id`` when it was added (the start of depth-only nearby edges).
+        ``poses``: the :meth:`_candidate_poses` of ``kf_id`` when it was added (the priors of the candidates' matching
+        and the start of depth-only nearby edges).
 
         Runs in the loop-check thread (or inline): it reads keyframe features (never changed once added) and is
         the only user of the index and the candidate generator between two :meth:`collect`.
@@ -104,8 +113,10 @@ class LoopChecker:
         """
         q = self.query_descriptors(feats)
         checked = []
+        if pyramid is not None and self._refiner is not None:
+            self._refiner.adopt(kf_id, pyramid)
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self._loop_cfg):
-            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if cand.source == "nearby" else None
+            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if cand.kf_id in poses else None
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg,
                               prior)
             refined = None

@@ -193,7 +193,8 @@ class SparseSlam:
         return None if self._depth_cfg is None else self._store.frame_pyramid(frame.depth_m)
 
     def process(self, frame: RGBDFrame, T_world_cam_dense: np.ndarray | None = None,
-                feats: Features | None = None, depth_pyramid: FramePyramid | None = None) -> SparseFrameResult:
+                feats: Features | None = None, depth_pyramid: FramePyramid | None = None,
+                tracker_pyramid: FramePyramid | None = None) -> SparseFrameResult:
         """Track one frame; may add a keyframe, loop edges and re-optimise the graph.
 
         Args:
@@ -204,9 +205,12 @@ class SparseSlam:
                 extracted only for a new keyframe.
             feats: the frame's :meth:`features`, when already extracted.
             depth_pyramid: the frame's :meth:`depth_pyramid`, when already built.
+            tracker_pyramid: with ``T_world_cam_dense``, the other tracker's pyramid of the frame (its preprocessing
+                settings, finest level computed): if the frame becomes a keyframe, its loop checks start from a copy
+                of it instead of rebuilding it (:meth:`DenseEdgeRefiner.keyframe_pyramid`).
         """
         if T_world_cam_dense is not None and self._kfs:
-            return self._process_posed(frame, np.asarray(T_world_cam_dense, np.float64), feats)
+            return self._process_posed(frame, np.asarray(T_world_cam_dense, np.float64), feats, tracker_pyramid)
         feats = self.features(frame) if feats is None else feats
         if not self._kfs:
             T0 = self._T_world_first if T_world_cam_dense is None else np.asarray(T_world_cam_dense, np.float64)
@@ -266,19 +270,22 @@ class SparseSlam:
         return SparseFrameResult(T_world_cam.copy(), is_kf, ok, None, res.n_inliers, loops_added,
                                  depth_only=depth_only)
 
-    def _process_posed(self, frame: RGBDFrame, T_world_cam: np.ndarray, feats: Features | None) -> SparseFrameResult:
+    def _process_posed(self, frame: RGBDFrame, T_world_cam: np.ndarray, feats: Features | None,
+                       pyramid: FramePyramid | None) -> SparseFrameResult:
         """:meth:`process` of a frame posed by another tracker (after the first keyframe): it becomes a keyframe
         when far enough from the reference one (its features extracted then, unless given), with the dense pose
         as the odometry measurement (isotropic weight)."""
         T_kf_cam = invert(self._kf_poses[self._ref_kf]) @ T_world_cam
-        T_world_cam, is_kf = self._keyframe_or_record(frame, feats, T_world_cam, T_kf_cam)
+        T_world_cam, is_kf = self._keyframe_or_record(frame, feats, T_world_cam, T_kf_cam, pyramid=pyramid)
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, True, None, -1, loops_added)
 
     def _keyframe_or_record(self, frame: RGBDFrame, feats: Features | None, T_world_cam: np.ndarray,
-                            T_kf_cam: np.ndarray, information: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+                            T_kf_cam: np.ndarray, information: np.ndarray | None = None,
+                            pyramid: FramePyramid | None = None) -> tuple[np.ndarray, bool]:
         """A placed frame: a keyframe when far enough from the reference one (features extracted then, unless
-        given; ``information`` of its odometry edge), else recorded against it. Returns ``(T_world_cam, is_kf)``."""
+        given; ``information`` of its odometry edge; ``pyramid``: see :meth:`process`), else recorded against it.
+        Returns ``(T_world_cam, is_kf)``."""
         self._n_failures = 0
         self._lost = []
         self._frames_since_kf += 1
@@ -286,7 +293,7 @@ class SparseSlam:
                  and self._frames_since_kf >= self.cfg.keyframe_min_gap_frames)
         if is_kf:
             feats = self.features(frame) if feats is None else feats
-            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information)
+            self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information, pyramid)
             T_world_cam = self._kf_poses[-1]
             self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), T_world_cam)
         else:
@@ -344,13 +351,14 @@ class SparseSlam:
 
     def _add_keyframe(self, frame: RGBDFrame, feats: Features, T_world_cam: np.ndarray,
                       prev_kf: int | None, T_prev_new: np.ndarray | None,
-                      information: np.ndarray | None = None) -> None:
+                      information: np.ndarray | None = None, pyramid: FramePyramid | None = None) -> None:
         """Add a keyframe and its odometry edge, and start its loop checks (the checks of the keyframe
         ``loop_check_lag_keyframes`` back are applied first: they may move ``prev_kf``, and the new keyframe is placed
         by its odometry from there).
 
         ``information``: ``(6, 6)`` of the odometry measurement (the PnP's, see ``MotionResult.information``), or
-        ``None`` (a dense pose: isotropic weight)."""
+        ``None`` (a dense pose: isotropic weight); ``pyramid``: the tracker's pyramid of the frame (see
+        :meth:`process`)."""
         if prev_kf is not None:
             T_prev_before = self._kf_poses[prev_kf].copy()
         self._collect_loop_checks(keep=self.cfg.loop_check_lag_keyframes - 1)
@@ -374,10 +382,11 @@ class SparseSlam:
         if prev_kf is None:
             self._loops.add_to_index(feats)
             return
+        kf_pyramid = None if pyramid is None or self._refiner is None else self._refiner.keyframe_pyramid(pyramid)
         if self.cfg.background_loop_checks:
-            self._loops.submit(kf_id, feats, self._kf_poses)
+            self._loops.submit(kf_id, feats, self._kf_poses, kf_pyramid)
         else:
-            self._apply_loop_checks(*self._loops.check(kf_id, feats, self._kf_poses))
+            self._apply_loop_checks(*self._loops.check(kf_id, feats, self._kf_poses, kf_pyramid))
 
     def _apply_loop_checks(self, kf_id: int, checked: list[LoopCheck]) -> None:
         """Add the verified edges of keyframe ``kf_id`` to the graph (:meth:`KeyframeGraph.apply_loop_checks`)."""
