@@ -375,7 +375,9 @@ def test_background_checks_find_the_inline_loops_whatever_the_lag(loop_frames, l
         assert np.abs(res.trajectory.T_world_cam[:, :3, 3] - inline.trajectory.T_world_cam[:, :3, 3]).max() < 1e-3
 
 
-@pytest.mark.parametrize("guided_older", [True, False], ids=["guided_older", "brute_force_older"])
+# the brute-force variant (the setting off) runs in make test-all
+@pytest.mark.parametrize("guided_older", [True, pytest.param(False, marks=pytest.mark.heavy)],
+                         ids=["guided_older", "brute_force_older"])
 def test_older_candidates_are_matched_near_the_graphs_estimate_when_asked(loop_frames, monkeypatch,
                                                                           guided_older) -> None:
     """``loop.guided_older``: retrieved and random candidates get the graph's relative pose as the prior of their
