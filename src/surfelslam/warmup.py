@@ -7,9 +7,10 @@ process per part running at the same time, compiles each kernel once::
     python -m surfelslam.warmup dense & python -m surfelslam.warmup sparse & wait
 
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
-working resolution and reduced from a larger input, and the map's geometry-only render and compaction. ``sparse``:
-the synthetic renderer and the feature side (ORB matching, PnP and its consensus fallback, the keyframe cloud's
-voxel filter, the shape-feature guess, the loop checks' brute-force matching and joint-term ICP).
+working resolution and reduced from a larger input, the map's geometry-only render and compaction, and the
+shape-feature guess of relocalisation. ``sparse``: the synthetic renderer and the feature side (ORB matching, PnP
+and its consensus fallback, the keyframe cloud's voxel filter, the loop checks' brute-force matching and joint-term
+ICP).
 ``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes. ``parallel``: the
 ``parallel=True`` twins of the dense kernels.
 """
@@ -42,6 +43,7 @@ def _dense() -> None:
     mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
     _map_extras(intr, mapper.map)
     mapper.finish()  # compaction of the map
+    _shape_guess(intr)
 
 
 def _map_extras(intr, smap) -> None:
@@ -52,6 +54,24 @@ def _map_extras(intr, smap) -> None:
     render(smap, np.eye(4), intr, attributes=False)
     smap.mark_dead(np.arange(min(4, smap.size)))
     smap.compact()
+
+
+def _shape_guess(intr) -> None:
+    """The shape relocalisation's guess (FPFH features, their matching and the rigid consensus), registering a
+    surface of random bumps to itself (every match right, so that every stage runs; planes give no distinct
+    features)."""
+    from surfelslam.tracking.geometric import geometric_guess
+    from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+
+    rng = np.random.default_rng(0)
+    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float32)
+    depth = np.full(u.shape, 1.5, np.float32)
+    for _ in range(12):
+        u0, v0, height, width = rng.uniform(0, intr.width), rng.uniform(0, intr.height), rng.uniform(0.05, 0.2), \
+            rng.uniform(20, 80)
+        depth -= (height * np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / width)).astype(np.float32)
+    a = Preprocessor(intr, PreprocessConfig(pyramid_levels=1)).process(depth)
+    geometric_guess(a[0].vertex, a[0].normal, a[0].vertex, a[0].normal)
 
 
 def _feature_extras(intr, pyr) -> None:
@@ -106,7 +126,6 @@ def _sparse() -> None:
     from surfelslam.synth.scenes import make_scene
     from surfelslam.synth.trajectories import make_trajectory
     from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config
-    from surfelslam.tracking.geometric import geometric_guess
     from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 
     intr = default_intrinsics(*_SMALL)
@@ -120,9 +139,7 @@ def _sparse() -> None:
         orb.process(f)
     orb.finish()
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
-    a, b = (pre.process(f.depth_m, out=pre.new_pyramid()) for f in (frames[0], frames[-1]))
-    geometric_guess(a[0].vertex, a[0].normal, b[0].vertex, b[0].normal)
-    _feature_extras(intr, a)  # last: the dense part has cached the ICP kernels by now
+    _feature_extras(intr, pre.process(frames[0].depth_m))  # last: the dense part has cached the ICP kernels by now
 
 
 PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs, "parallel": _parallel}

@@ -58,3 +58,15 @@ def test_refinement_recovers_the_pose_and_stops_where_the_reference_does():
     np.testing.assert_array_equal(T_b, T0)
     np.testing.assert_array_equal(T_rb, T0)
     assert info is None and info_r is None
+
+
+def test_the_kernels_median_is_numpys_to_the_bit():
+    """The hand-written median of the robust spreads equals ``np.median`` exactly: odd and even counts, ties, one
+    element; NaN when empty or when a NaN is among the values (as numpy)."""
+    from surfelslam.kernels.rgbd_refine import median
+
+    rng = np.random.default_rng(3)
+    for n in [*range(1, 40), 256, 1001]:
+        for v in (rng.normal(size=n), rng.integers(0, 4, n).astype(np.float64), np.sort(rng.normal(size=n))[::-1]):
+            assert median(v) == np.median(v), (n, v)
+    assert np.isnan(median(np.zeros(0))) and np.isnan(median(np.array([1.0, np.nan, 3.0])))
