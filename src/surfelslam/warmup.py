@@ -23,6 +23,7 @@ from dataclasses import replace
 import numpy as np
 
 _SMALL = (80, 60)  # px: numba compiles for types, not sizes, so tiny frames compile what a real run uses
+_SHAPE_BUMPS = 12  # the shape guess's synthetic surface: enough bumps for distinct FPFH features everywhere
 
 
 def _dense() -> None:
@@ -66,10 +67,10 @@ def _shape_guess(intr) -> None:
     rng = np.random.default_rng(0)
     v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float32)
     depth = np.full(u.shape, 1.5, np.float32)
-    for _ in range(12):
-        u0, v0, height, width = rng.uniform(0, intr.width), rng.uniform(0, intr.height), rng.uniform(0.05, 0.2), \
-            rng.uniform(20, 80)
-        depth -= (height * np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / width)).astype(np.float32)
+    for _ in range(_SHAPE_BUMPS):  # Gaussian bumps 5-20 cm high, a few pixels wide
+        u0, v0 = rng.uniform(0, intr.width), rng.uniform(0, intr.height)
+        height_m, spread_px2 = rng.uniform(0.05, 0.2), rng.uniform(20.0, 80.0)
+        depth -= (height_m * np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / spread_px2)).astype(np.float32)
     a = Preprocessor(intr, PreprocessConfig(pyramid_levels=1)).process(depth)
     geometric_guess(a[0].vertex, a[0].normal, a[0].vertex, a[0].normal)
 
