@@ -8,6 +8,7 @@ import numpy as np
 
 from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry.camera import backproject
+from surfelslam.geometry.se3 import transform_points
 from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import Features
 from surfelslam.types import Intrinsics, RGBDFrame
@@ -59,3 +60,22 @@ def keyframe_cloud(frame: RGBDFrame, intr: Intrinsics, cfg: MapConfig,
     keep = (z > cfg.min_depth_m) & (z <= cfg.max_depth_m)
     xyz, col, _ = voxel_filter(vtx[keep], rgb[keep], cfg.voxel_size_m)
     return xyz, col
+
+
+def joined_clouds(kfs: list[Keyframe], poses_world_kf: np.ndarray,
+                  voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The keyframes' clouds in the world frame (``poses_world_kf (K, 4, 4)``), joined and voxel-filtered:
+    ``(xyz (M, 3) f32, rgb (M, 3) u8)``."""
+    if not kfs:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    n = sum(len(k.cloud_xyz_cam) for k in kfs)
+    xyz = np.empty((n, 3), np.float32)
+    rgb = np.empty((n, 3), np.uint8)
+    i = 0
+    for k, T in zip(kfs, poses_world_kf, strict=True):
+        m = len(k.cloud_xyz_cam)
+        xyz[i : i + m] = transform_points(T, k.cloud_xyz_cam.astype(np.float64))
+        rgb[i : i + m] = k.cloud_rgb
+        i += m
+    out_xyz, out_rgb, _ = voxel_filter(xyz, rgb, voxel_size_m)
+    return out_xyz, out_rgb

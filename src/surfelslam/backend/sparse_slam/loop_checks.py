@@ -60,11 +60,11 @@ class LoopChecker:
         holds every keyframe only once the pending checks are collected (:meth:`collect`)."""
         return [k for k, _ in self._index.query(self.query_descriptors(feats), n)]
 
-    def _candidate_poses(self, kf_id: int, poses_world_kf: np.ndarray) -> dict[int, np.ndarray]:
-        """Copies of ``T_world_kf`` of keyframe ``kf_id`` and its nearby loop candidates (:func:`loop_candidates`),
-        or of every keyframe up to it with ``LoopConfig.guided_older``: the priors of the candidates' matching."""
-        first = 0 if self._loop_cfg.guided_older else max(0, kf_id - 1 - self._loop_cfg.n_nearby)
-        return {k: poses_world_kf[k].copy() for k in range(first, kf_id + 1)}
+    @staticmethod
+    def _candidate_poses(kf_id: int, poses_world_kf: np.ndarray) -> np.ndarray:
+        """A copy of ``T_world_kf`` ``(kf_id + 1, 4, 4)`` of keyframe ``kf_id`` and those before it, its candidates:
+        the priors of their matching."""
+        return poses_world_kf[: kf_id + 1].copy()
 
     def check(self, kf_id: int, feats: Features, poses_world_kf: np.ndarray,
               pyramid: FramePyramid | None = None) -> tuple[int, list[LoopCheck]]:
@@ -100,7 +100,7 @@ class LoopChecker:
             self._pool.shutdown()
             self._pool = None
 
-    def _check(self, kf_id: int, feats: Features, poses: dict[int, np.ndarray],
+    def _check(self, kf_id: int, feats: Features, poses: np.ndarray,
                pyramid: FramePyramid | None = None) -> tuple[int, list[LoopCheck]]:
         """Verify keyframe ``kf_id``'s loop candidates, then add it to the retrieval index.
 
@@ -116,7 +116,8 @@ class LoopChecker:
         if pyramid is not None and self._refiner is not None:
             self._refiner.adopt(kf_id, pyramid)
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self._loop_cfg):
-            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if cand.kf_id in poses else None
+            guided = cand.source == "nearby" or self._loop_cfg.guided_older
+            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if guided else None
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg,
                               prior)
             refined = None

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 
 from surfelslam.backend.dense_edges import DenseEdgeRefiner
-from surfelslam.backend.keyframes import Keyframe, keyframe_cloud
+from surfelslam.backend.keyframes import Keyframe, joined_clouds, keyframe_cloud
 from surfelslam.backend.loops import verify_edge
 from surfelslam.backend.pose_graph import PoseEdge
 from surfelslam.backend.sparse_slam.config import DepthOdometryConfig, SparseSlamConfig, features_for_width
@@ -19,7 +19,6 @@ from surfelslam.backend.sparse_slam.graph import KeyframeGraph
 from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
 from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, SparseFrameResult, SparseSlamResult
 from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
-from surfelslam.kernels.voxel import voxel_filter
 from surfelslam.tracking.features import Features, MotionResult, estimate_motion, extract
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.tracking.preprocess import FramePyramid
@@ -475,19 +474,9 @@ class SparseSlam:
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframe clouds in the world frame, joined and voxel-filtered: ``(xyz (M, 3) f32, rgb (M, 3) u8)``."""
-        if not self._kfs or not self._keyframe_clouds:
+        if not self._keyframe_clouds:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-        n = sum(len(k.cloud_xyz_cam) for k in self._kfs)
-        xyz = np.empty((n, 3), np.float32)
-        rgb = np.empty((n, 3), np.uint8)
-        i = 0
-        for k, T in zip(self._kfs, self._kf_poses, strict=True):
-            m = len(k.cloud_xyz_cam)
-            xyz[i : i + m] = transform_points(T, k.cloud_xyz_cam.astype(np.float64))
-            rgb[i : i + m] = k.cloud_rgb
-            i += m
-        out_xyz, out_rgb, _ = voxel_filter(xyz, rgb, self.cfg.map.voxel_size_m)
-        return out_xyz, out_rgb
+        return joined_clouds(self._kfs, self._kf_poses, self.cfg.map.voxel_size_m)
 
     def finish(self) -> SparseSlamResult:
         """Optimise the graph once more and return trajectory, keyframes, loops and the map."""
