@@ -54,7 +54,7 @@ test-all: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
 warmup: $(STAMP)
-	@$(PY) -m surfelslam.warmup dense outputs & dense=$$!; $(PY) -m surfelslam.warmup sparse; sparse=$$?; \
+	@$(PY) -m surfelslam.warmup dense outputs & dense=$$!; $(PY) -m surfelslam.warmup sparse shape; sparse=$$?; \
 	wait $$dense; exit $$(( $$? || sparse ))
 
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).

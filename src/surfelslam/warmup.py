@@ -4,11 +4,12 @@ numba compiles a kernel on its first call and caches it beside the source. A fre
 processes that start together (test workers, batch jobs) would each compile the same kernels. Warming up first, one
 process per part running at the same time, compiles each kernel once::
 
-    python -m surfelslam.warmup dense & python -m surfelslam.warmup sparse & wait
+    python -m surfelslam.warmup dense & python -m surfelslam.warmup sparse shape & wait
 
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
-working resolution and reduced from a larger input, the map's geometry-only render and compaction, and the
-shape-feature guess of relocalisation. ``sparse``: the synthetic renderer and the feature side (ORB matching, PnP
+working resolution and reduced from a larger input, the map's geometry-only render and compaction. ``shape``: the
+shape-feature guess of relocalisation (dense and hybrid), apart so that it can even out the two processes.
+``sparse``: the synthetic renderer and the feature side (ORB matching, PnP
 and its consensus fallback, the keyframe cloud's voxel filter, the loop checks' brute-force matching and joint-term
 ICP).
 ``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes. ``parallel``: the
@@ -27,10 +28,13 @@ _SHAPE_BUMPS = 12  # the shape guess's synthetic surface: enough bumps for disti
 
 
 def _dense() -> None:
+    from surfelslam.kernels.icp import se3_exp_left_update
     from surfelslam.slam import SlamConfig, build_slam
     from surfelslam.slam.dense import warm_up
     from surfelslam.types import Intrinsics, RGBDFrame
 
+    # first: the pose update both parts call (3 s to compile), cached before the sparse part reaches it
+    se3_exp_left_update(np.zeros(6), np.eye(4), np.empty((4, 4)))
     cfg = SlamConfig()
     warm_up(cfg)  # tracking and fusion at the input's resolution
     # tracking and fusion at a block-averaged level of the input (640x480 input worked on at 320x240)
@@ -44,7 +48,6 @@ def _dense() -> None:
     mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
     _map_extras(intr, mapper.map)
     mapper.finish()  # compaction of the map
-    _shape_guess(intr)
 
 
 def _map_extras(intr, smap) -> None:
@@ -57,13 +60,15 @@ def _map_extras(intr, smap) -> None:
     smap.compact()
 
 
-def _shape_guess(intr) -> None:
+def _shape() -> None:
     """The shape relocalisation's guess (FPFH features, their matching and the rigid consensus), registering a
     surface of random bumps to itself (every match right, so that every stage runs; planes give no distinct
     features)."""
     from surfelslam.tracking.geometric import geometric_guess
     from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
+    from surfelslam.types import Intrinsics
 
+    intr = Intrinsics(60.0, 60.0, 31.5, 23.5, *_SMALL)
     rng = np.random.default_rng(0)
     v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float32)
     depth = np.full(u.shape, 1.5, np.float32)
@@ -143,7 +148,7 @@ def _sparse() -> None:
     _feature_extras(intr, pre.process(frames[0].depth_m))  # last: the dense part has cached the ICP kernels by now
 
 
-PARTS = {"dense": _dense, "sparse": _sparse, "outputs": _outputs, "parallel": _parallel}
+PARTS = {"dense": _dense, "shape": _shape, "sparse": _sparse, "outputs": _outputs, "parallel": _parallel}
 
 
 def warm(*parts: str) -> None:

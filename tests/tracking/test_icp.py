@@ -557,9 +557,10 @@ def test_register_init_auto_keeps_the_pose_the_depth_prefers(tmp_path):
     out = {}
     for init in ("identity", "auto"):
         res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "0", "--target", "1",
-                                                  "--init", init, "--out", str(tmp_path / init)])
+                                                  "--init", init, "--out", str(tmp_path / init), "--no-figures"])
         assert res.exit_code == 0, res.output
         out[init] = json.loads((tmp_path / init / "registration.json").read_text())
+    assert not list((tmp_path / "auto").glob("*.png"))  # --no-figures
     assert out["identity"]["gt_error"]["trans_m"] > 0.2 and out["identity"]["init_used"] == "identity"
     assert out["auto"]["init_used"] == "features"
     assert out["auto"]["gt_error"]["trans_m"] < 0.01 and out["auto"]["gt_error"]["rot_deg"] < 0.5
@@ -578,7 +579,8 @@ def test_register_photometric_auto_follows_colour_registration(tmp_path):
     def reg(name, *extra):
         out = tmp_path / f"{name}{'_'.join(extra)}"
         res = CliRunner().invoke(register_app(), ["register", str(shared_sequence(name)), "--source", "0",
-                                                  "--target", "4", "--out", str(out), "--init", "identity", *extra])
+                                                  "--target", "4", "--out", str(out), "--init", "identity", "--no-figures",
+                                                  *extra])
         assert res.exit_code == 0, res.output
         return json.loads((out / "registration.json").read_text())
 
@@ -608,7 +610,7 @@ def test_register_init_features_on_a_real_pair_90_frames_apart(tmp_path):
     out = {}
     for init in ("identity", "features"):
         res = CliRunner().invoke(register_app(), ["register", seq, "--source", "210", "--target", "300",
-                                                  "--init", init, "--out", str(tmp_path / init)])
+                                                  "--init", init, "--out", str(tmp_path / init), "--no-figures"])
         assert res.exit_code == 0, res.output
         out[init] = json.loads((tmp_path / init / "registration.json").read_text())
     assert out["identity"]["gt_error"]["trans_m"] > 0.3
@@ -626,7 +628,7 @@ def test_register_init_features_on_a_real_pair_90_frames_apart(tmp_path):
     # ORB (the odometry's matching) also rescues this pair
     res = CliRunner().invoke(register_app(), ["register", seq, "--source", "210", "--target", "300",
                                               "--init", "features", "--descriptor", "orb",
-                                              "--out", str(tmp_path / "o")])
+                                              "--out", str(tmp_path / "o"), "--no-figures"])
     orb = json.loads((tmp_path / "o" / "registration.json").read_text())
     assert res.exit_code == 0 and orb["features"]["descriptor"] == "orb" and orb["gt_error"]["trans_m"] < 0.06
 
@@ -642,7 +644,7 @@ def test_register_init_features_falls_back_on_shape_features(tmp_path):
 
     seq = str(shared_sequence("7scenes_redkitchen_0000_0499"))
     res = CliRunner().invoke(register_app(), ["register", seq, "--source", "320", "--target", "410", "--downsample",
-                                              "2", "--init", "features", "--out", str(tmp_path)])
+                                              "2", "--init", "features", "--out", str(tmp_path), "--no-figures"])
     assert res.exit_code == 0, res.output
     out = json.loads((tmp_path / "registration.json").read_text())
     assert out["features"]["ok"] is False and out["features"]["T_target_source"] is None

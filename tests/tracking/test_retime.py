@@ -159,7 +159,8 @@ def test_register_command_retimes_offset_colour(tmp_path):
     out = {}
     for mode in ("auto", "off"):
         res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "5", "--target", "15",
-                                                  "--retime-colour", mode, "--out", str(tmp_path / mode)])
+                                                  "--retime-colour", mode, "--out", str(tmp_path / mode),
+                                                  "--no-figures"])
         assert res.exit_code == 0, res.output
         out[mode] = json.loads((tmp_path / mode / "registration.json").read_text())
     ct = out["auto"]["colour_timing"]
@@ -173,7 +174,7 @@ def test_register_command_retimes_offset_colour(tmp_path):
     # re-timed (one alone would be worse than both as taken), and the run goes on
     (seq / "depth" / sorted((seq / "depth").iterdir())[4].name).write_bytes(b"not a png")
     res = CliRunner().invoke(register_app(), ["register", str(seq), "--source", "5", "--target", "15",
-                                              "--out", str(tmp_path / "broken")])
+                                              "--out", str(tmp_path / "broken"), "--no-figures"])
     assert res.exit_code == 0, res.output
     ct = json.loads((tmp_path / "broken" / "registration.json").read_text())["colour_timing"]
     assert not ct["source"]["retimed"] and not ct["target"]["retimed"] and "neither" in ct["note"]

@@ -24,10 +24,10 @@ class BatchResult:
 
 def warm_parts(jobs: Sequence[Job]) -> tuple[str, ...]:
     """The :mod:`surfelslam.warmup` parts the jobs' trackers use."""
-    parts = {"dense"} if any(j.tracker in ("dense", "hybrid") for j in jobs) else set()
+    parts = {"dense", "shape"} if any(j.tracker in ("dense", "hybrid") for j in jobs) else set()
     if any(j.tracker in ("orb", "hybrid") for j in jobs):
         parts.add("sparse")
-    return tuple(p for p in ("dense", "sparse") if p in parts)
+    return tuple(p for p in ("dense", "shape", "sparse") if p in parts)
 
 
 def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | None = None,

@@ -147,14 +147,16 @@ def _add_depth_agreement_and_gt(result: dict, sq, source: int, target: int, f_sr
     return agree
 
 
-def _write_outputs(out: Path, result: dict, p_src, p_tgt, res, source: int, target: int) -> None:
-    """``registration.json``, ``before.png`` and ``after.png``."""
+def _write_outputs(out: Path, result: dict, p_src, p_tgt, res, source: int, target: int, figures: bool) -> None:
+    """``registration.json``, and ``before.png`` and ``after.png`` when ``figures``."""
     from surfelslam.geometry import se3
     from surfelslam.io.atomic import write_text_atomic
     from surfelslam.viz.registration import plot_registration
 
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "registration.json", json.dumps(result, indent=2) + "\n")
+    if not figures:
+        return
     src_pts = p_src[0].vertex[p_src[0].vertex[..., 2] > 0]
     tgt_pts = p_tgt[0].vertex[p_tgt[0].vertex[..., 2] > 0]
     plot_registration(src_pts, tgt_pts, out / "before.png", f"before: source {source} (red), target "
@@ -255,6 +257,8 @@ def register(app: typer.Typer) -> None:
             "--retime-colour", help="With the photometric term: auto (a frame whose colour and depth stamps differ "
                                     "by 1-50 ms, e.g. TUM, has its colour re-timed to its depth stamp with the "
                                     "camera velocity from its neighbour frames), off.")] = "auto",
+        figures: Annotated[bool, typer.Option("--figures/--no-figures",
+                                              help="Write before.png and after.png.")] = True,
     ) -> None:
         """Register frame SOURCE onto frame TARGET; print and save the pose, inliers, RMSE and GT error."""
         from surfelslam.datasets import open_sequence
@@ -333,6 +337,6 @@ def register(app: typer.Typer) -> None:
                         for k, v in vars(li).items()} for li in res.levels],
         }
         agree = _add_depth_agreement_and_gt(result, sq, source, target, f_src, f_tgt, T, T_init)
-        _write_outputs(out, result, p_src, p_tgt, res, source, target)
+        _write_outputs(out, result, p_src, p_tgt, res, source, target, figures)
         _print_guesses(result, init)
         _print_result(result, res, T, agree, out)
