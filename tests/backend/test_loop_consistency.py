@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
 
 from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
 from surfelslam.backend.loops import Candidate
@@ -132,6 +131,8 @@ def test_the_gate_follows_the_chi_square_law_of_the_drift_model():
     d2 = np.array(d2)
     assert np.mean(d2) == pytest.approx(6.0, rel=0.12)
     assert np.mean(d2 > chain.threshold) == pytest.approx(0.1, abs=0.04)
+    from scipy.stats import chi2  # here, not at the top: importing scipy.stats costs every test worker a second
+
     for q in (0.5, 0.9, 0.99, 0.9999):  # the threshold is the chi-square quantile itself, to the last bit
         assert OdometryChain(LoopConsistencyConfig(quantile=q)).threshold == chi2.ppf(q, 6)
     # without the adjoints (drift added in place), the far end's rotation-induced drift is missed

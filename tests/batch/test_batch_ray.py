@@ -12,6 +12,7 @@ host); the one-line reasons of worker deaths are checked in ``make test``.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import os
@@ -28,12 +29,13 @@ from surfelslam.batch.executors import (
     CPUS_PER_JOB,
     RayExecutor,
     memory_estimate,
-    ray_available,
     ray_failure_reason,
 )
 from surfelslam.batch.jobs import config_sha256, is_complete, run_job
 
-pytestmark = pytest.mark.skipif(not ray_available(), reason="Ray is not installed (the [batch] extra)")
+# find_spec, not an import: collecting this file must not cost every test worker Ray's import (about a second)
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
+                                reason="Ray is not installed (the [batch] extra)")
 
 RAY_CPUS = 2  # the local test cluster: one 2-CPU job at a time, as on a 2-core machine
 TRACKERS = ("hybrid",)

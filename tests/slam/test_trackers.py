@@ -36,6 +36,8 @@ pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
 
 @cache
 def _slow_runs():
+    """The dense and the default hybrid runs of the slow room sequence (shared by the tests of the ``slow_runs``
+    group)."""
     frames, gt = _frames("slow", N_SLOW)
     return {t: _run(t, frames) for t in ("dense", "hybrid")}, gt
 
@@ -84,6 +86,7 @@ def test_orb_keeps_nearby_pnp_edges_out_where_colour_and_depth_are_unregistered(
     assert res_on.metrics["nearby_pnp_left_out"] == 0 and res_on.metrics["nearby_edges"] > 0
 
 
+@pytest.mark.xdist_group("slow_runs")  # shares a cached run or render: one worker
 def test_hybrid_no_worse_than_dense_on_slow_sequence():
     runs, gt = _slow_runs()
     ate_dense = ate_m(runs["dense"][0], gt)
@@ -501,6 +504,7 @@ def test_joint_term_weight_follows_the_measured_depth_noise():
         HybridConfig(joint_weight_unit="metres")
 
 
+@pytest.mark.xdist_group("slow_runs")  # shares a cached run or render: one worker
 def test_negative_fy_sequence_gives_the_same_trajectory():
     """ICL-NUIM's convention: images upside down and fy < 0 (cy mirrored). The camera-frame points, hence the poses,
     are unchanged, so the default hybrid (ICP, photometric and joint feature terms, ORB + PnP keyframes and loops)
@@ -508,7 +512,7 @@ def test_negative_fy_sequence_gives_the_same_trajectory():
     frames, gt = _frames("slow", N_SLOW)
     flipped_intr = Intrinsics(INTR.fx, -INTR.fy, INTR.cx, INTR.height - 1 - INTR.cy, INTR.width, INTR.height)
     flipped = [replace(f, rgb=f.rgb[::-1].copy(), depth_m=f.depth_m[::-1].copy()) for f in frames]
-    est = _run("hybrid", frames)[0]
+    est = _slow_runs()[0]["hybrid"][0]
     est_flip, res_flip, slam_flip = _run("hybrid", flipped, intr=flipped_intr)
     assert slam_flip.joint and res_flip.metrics["keyframes"] >= 2 and res_flip.metrics["tracking_failures"] == 0
     assert 0.5e-3 < res_flip.metrics["depth_noise_m"] < 3e-3  # Kinect-like noise: the generator's 1-2 mm
