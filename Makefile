@@ -38,8 +38,9 @@ $(VIZ_STAMP): $(PY) pyproject.toml
 	$(call INSTALL,dev))
 	touch $(VIZ_STAMP) $(STAMP)
 
-# The suite runs on every core (pytest-xdist). The numba kernels are compiled first, once, by two warm-up processes
-# side by side (surfelslam.warmup: dense and sparse parts), so the workers load them from numba's on-disk cache
+# The suite runs on every core (pytest-xdist). The numba kernels are compiled first, once, by three warm-up processes
+# side by side (surfelslam.warmup parts; three on two cores, so that the OS evens out their unequal lengths), so the
+# workers load them from numba's on-disk cache
 # instead of each compiling the same kernels; a kernel a worker still compiles is written to a temporary name and
 # renamed by numba, so workers never read a torn cache file. Tests are handed out one at a time to whichever worker is
 # free (--dist loadgroup): first the groups that share a module fixture or a cached run (marked xdist_group, so the
@@ -54,8 +55,9 @@ test-all: $(VIZ_STAMP) warmup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST)
 
 warmup: $(STAMP)
-	@$(PY) -m surfelslam.warmup dense outputs & dense=$$!; $(PY) -m surfelslam.warmup sparse shape; sparse=$$?; \
-	wait $$dense; exit $$(( $$? || sparse ))
+	@$(PY) -m surfelslam.warmup dense & dense=$$!; $(PY) -m surfelslam.warmup outputs & outputs=$$!; \
+	$(PY) -m surfelslam.warmup sparse shape; sparse=$$?; wait $$dense; d=$$?; wait $$outputs; o=$$?; \
+	exit $$(( d || o || sparse ))
 
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).
 test-fast: $(STAMP)

@@ -4,7 +4,8 @@ numba compiles a kernel on its first call and caches it beside the source. A fre
 processes that start together (test workers, batch jobs) would each compile the same kernels. Warming up first, one
 process per part running at the same time, compiles each kernel once::
 
-    python -m surfelslam.warmup dense & python -m surfelslam.warmup sparse shape & wait
+    python -m surfelslam.warmup dense & python -m surfelslam.warmup outputs & python -m surfelslam.warmup sparse shape
+    wait
 
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
 working resolution and reduced from a larger input, the map's geometry-only render and compaction. ``shape``: the
