@@ -120,7 +120,7 @@ def _outputs() -> None:
     intr = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
     v, u = np.mgrid[0:48, 0:64].astype(np.float32)
     depth = (1.0 + 0.004 * u + 0.002 * v).astype(np.float32)
-    vol = TsdfVolume(0.02, 0.08)
+    vol = TsdfVolume(0.02, 0.08, initial_blocks=1)  # room for one block: the volume grows, so rehash compiles too
     vol.integrate(depth, np.zeros((48, 64, 3), np.uint8), intr, np.eye(4))
     mesh = vol.extract_mesh()
     cam = ViewCamera(np.eye(3), np.zeros(3), 64, 48, 31.5, 23.5, f_px=60.0)

@@ -57,7 +57,7 @@ def test_warped_lk_kernel_matches_numpy_reference() -> None:
 
 
 def test_untextured_window_is_not_tracked() -> None:
-    flat = np.full((60, 80), 100.0, np.float32)
+    flat = np.full((60, 80), 100, np.uint8)  # the trackers' grey images (compiled by the warm-up)
     out, ok = np.empty((1, 2)), np.empty(1, np.bool_)
     track_warped(flat, flat, np.eye(3)[None], np.array([[40.0, 30.0]]), np.zeros((1, 2)), 5, 10, 0.01, out, ok)
     assert not ok[0]

@@ -183,6 +183,8 @@ def fuse(
     vertex = np.ascontiguousarray(frame_vertex_cam, np.float32)
     normal = np.ascontiguousarray(frame_normal_cam, np.float32)
     rgb = np.ascontiguousarray(frame_rgb)
+    if not rgb.flags.writeable:  # e.g. a camera's or a bag's buffer: numba would compile a read-only twin mid-run
+        rgb = rgb.copy()
     T = np.asarray(T_world_cam, np.float64)
     R = np.ascontiguousarray(T[:3, :3])
     t = np.ascontiguousarray(T[:3, 3])
