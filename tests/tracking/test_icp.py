@@ -579,8 +579,8 @@ def test_register_photometric_auto_follows_colour_registration(tmp_path):
     def reg(name, *extra):
         out = tmp_path / f"{name}{'_'.join(extra)}"
         res = CliRunner().invoke(register_app(), ["register", str(shared_sequence(name)), "--source", "0",
-                                                  "--target", "4", "--out", str(out), "--init", "identity", "--no-figures",
-                                                  *extra])
+                                                  "--target", "4", "--out", str(out), "--init", "identity",
+                                                  "--no-figures", *extra])
         assert res.exit_code == 0, res.output
         return json.loads((out / "registration.json").read_text())
 
