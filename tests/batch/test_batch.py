@@ -229,3 +229,17 @@ def test_workers_get_the_numba_cache_folder_this_process_uses(monkeypatch, tmp_p
     monkeypatch.setattr("surfelslam.cli.numba_cache_fallback", lambda: None)  # the in-tree cache works
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     assert numba_cache_env() == {}
+
+
+@pytest.mark.parametrize(("trackers", "parts"), [(("dense",), ("dense", "shape")), (("orb",), ("sparse",)),
+                                                 (("orb", "hybrid"), ("dense", "shape", "sparse"))])
+def test_the_driver_warms_the_parts_its_trackers_use(trackers, parts):
+    """Both dense trackers relocalise by shape, so the ``shape`` part goes with ``dense``; every part named is one
+    that :mod:`surfelslam.warmup` has."""
+    from types import SimpleNamespace
+
+    from surfelslam.batch.driver import warm_parts
+    from surfelslam.warmup import PARTS
+
+    assert warm_parts([SimpleNamespace(tracker=t) for t in trackers]) == parts
+    assert set(parts) <= set(PARTS)
