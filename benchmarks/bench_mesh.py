@@ -30,7 +30,6 @@ import numpy as np
 
 from surfelslam.datasets import open_sequence
 from surfelslam.eval import mesh_quality as mq
-from surfelslam.kernels.threads import parallel_enabled, set_parallel
 from surfelslam.mapping.mesh import MeshConfig, TsdfVolume
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
@@ -142,7 +141,6 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
     scene = mq.scene_of_sequence(seq_dir)
     truth = mq.visible_surface_points(scene, gt[::2], intr, cfg.min_depth_m, cfg.max_depth_m)
 
-    set_parallel(True)
     _ours(frames_mem[:2], gt[:2], intr, cfg)  # compile
     o3d = _open3d() if open3d else None
     rows = []
@@ -181,13 +179,8 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
 def section(frames: int, width: int, work: Path, open3d: bool = True, repeats: int = 1,
             voxel_m: float = DEFAULT_VOXEL_M) -> dict:
     """``make bench``'s ``mesh`` section: :func:`run` on the Kinect-noise room, times that do not apply as ``None``
-    (JSON has no NaN), the caller's serial/parallel kernel choice restored, issue 37's targets checked on our
-    mesh from the ground-truth poses."""
-    was_parallel = parallel_enabled()
-    try:
-        res = run(frames, voxel_m, work, open3d, "kinect", repeats, width)
-    finally:
-        set_parallel(was_parallel)
+    (JSON has no NaN), issue 37's targets checked on our mesh from the ground-truth poses."""
+    res = run(frames, voxel_m, work, open3d, "kinect", repeats, width)
     for r in res["rows"]:
         r.update({k: None for k, v in r.items() if isinstance(v, float) and math.isnan(v)})
     ours = next(r for r in res["rows"] if r["method"] == OURS and r["poses"] == GT)

@@ -87,7 +87,7 @@ def _pairwise_sum(a, n):
     """Sum of ``a[:n]`` in numpy's pairwise order (halves, cut at multiples of 8, down to blocks of 128), so that
     the kernel's sums equal numpy's ``sum`` bit for bit. Iterative: numba's cache cannot reload recursion."""
     if n <= _PAIRWISE_BLOCK:
-        return _block_sum(a, 0, n)
+        return _block_sum(a, np.int64(0), n)  # not the literal 0, which would compile a second signature
     todo_start = np.empty(_MAX_SPLITS * 3, np.int64)
     todo_n = np.empty(_MAX_SPLITS * 3, np.int64)
     todo_join = np.empty(_MAX_SPLITS * 3, np.bool_)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 PRIM_QUAD = 0
 PRIM_BOX = 1
@@ -200,7 +200,7 @@ def _sample_texture(textures, tex, u_m, v_m, texel_m):
     return r, g, bl
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def render_kernel(
     R_world_cam, t_world_cam, fx, fy, cx, cy,
     prim_type, prim_R, prim_M, prim_o, prim_size, prim_bbox, prim_tex, prim_uv_offset_m,
@@ -217,14 +217,15 @@ def render_kernel(
         t_min_m: near clipping depth (m).
         rgb_out ``(H, W, 3)`` uint8, depth_out ``(H, W)`` float32 (0 = no hit), normal_out ``(H, W, 3)``
         float32 (facing the camera), id_out ``(H, W)`` int32 (-1 = no hit).
-    Each pixel is independent, so the output does not depend on the thread count.
+    Serial: rendering costs less than writing the frames' PNGs, which the writer does on other threads, and a
+    ``parallel=True`` kernel takes twice as long to compile.
     """
     H, W = depth_out.shape
     P = prim_type.shape[0]
-    for v in prange(H):
+    cand = np.empty(P, np.int64)
+    for v in range(H):
         y = (v - cy) / fy
         # primitives whose pixel bounds cover this row (checked once per row, not per pixel)
-        cand = np.empty(P, np.int64)
         n_cand = 0
         for p in range(P):
             if prim_bbox[p, 2] <= v <= prim_bbox[p, 3] and prim_bbox[p, 1] >= 0 and prim_bbox[p, 0] <= W - 1:

@@ -20,14 +20,16 @@ whose 8 corners have ``weight >= min_weight``. Vertices are shared: the vertex o
 axis ``a`` is owned by ``v`` (``vid[b, k, a]``), so the mesh is welded. Normals: the TSDF gradient (central
 differences) interpolated along the edge; colours interpolated likewise. Two passes each (count, prefix sum,
 fill) so that the parallel kernels write disjoint slices and the output order is fixed.
+
+Meshing is an offline job with no frame-reading thread to leave a core to, so the block loops always run in
+parallel (``prange``): they have no serial twins (:mod:`surfelslam.kernels.threads`), and the results do not depend
+on the thread count.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
-
-from surfelslam.kernels.threads import dual_njit
 
 BLOCK = 8  # voxels per block edge
 BLOCK_VOXELS = BLOCK**3
@@ -262,7 +264,7 @@ def _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_dep
                     colour_weight[b, k] = np.uint16(min(cw + 1.0, cw_max))
 
 
-@dual_njit()
+@njit(cache=True, nogil=True, parallel=True)
 def integrate(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible, coords,
               tsdf, weight, colour, colour_weight, max_weight):
     """Projective TSDF update of every voxel of the blocks ``visible`` with one frame.
@@ -345,7 +347,7 @@ def _count_vertices_block(nbr, tsdf, weight, min_weight, counts, b):
     counts[b] = c
 
 
-@dual_njit()
+@njit(cache=True, nogil=True, parallel=True)
 def count_vertices(nbr, tsdf, weight, min_weight, counts):
     """``counts[b]``: the surface crossings on the edges owned by block ``b``'s voxels (both ends observed)."""
     for b in prange(counts.shape[0]):
@@ -406,7 +408,7 @@ def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_w
             n += 1
 
 
-@dual_njit()
+@njit(cache=True, nogil=True, parallel=True)
 def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts, normals,
                   rgb):
     """Write the vertices counted by :func:`count_vertices` from ``start[b]`` on: position (linear interpolation of
@@ -444,7 +446,7 @@ def _count_triangles_block(nbr, tsdf, weight, min_weight, tri_count, counts, b):
     counts[b] = c
 
 
-@dual_njit()
+@njit(cache=True, nogil=True, parallel=True)
 def count_triangles(nbr, tsdf, weight, min_weight, tri_count, counts):
     """``counts[b]``: triangles of the cubes whose lowest corner is a voxel of block ``b``."""
     for b in prange(counts.shape[0]):
@@ -473,7 +475,7 @@ def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, e
             n += 1
 
 
-@dual_njit()
+@njit(cache=True, nogil=True, parallel=True)
 def fill_triangles(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start, faces):
     """Write the triangles counted by :func:`count_triangles` (vertex indices from ``vid``) from ``start[b]`` on."""
     for b in prange(start.shape[0]):

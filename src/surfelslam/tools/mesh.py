@@ -97,7 +97,6 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
                run_depth_range: bool) -> tuple[Mesh, MeshResult]:
     from tqdm import tqdm
 
-    from surfelslam.kernels.threads import parallel_enabled, set_parallel
     from surfelslam.mapping.mesh import TsdfVolume
     from surfelslam.slam.mapper import frame_colour_at_depth
 
@@ -113,23 +112,18 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
         raise InputError(run_dir / "trajectory.txt",
                          f"no pose has the timestamp of a frame of {seq.root}: is it the run's sequence?")
     colour_cam = getattr(seq, "colour_camera", None)
-    was_parallel = parallel_enabled()
-    set_parallel(True)  # a batch job: no reader thread to leave a core to (same results either way)
-    try:
-        vol = TsdfVolume.from_config(cfg)
-        skipped = 0
-        t0 = time.perf_counter()
-        for i in tqdm(positions, unit="frame", disable=not progress, leave=False, desc="tsdf"):
-            try:
-                frame = seq[int(i)]
-            except FrameError:
-                skipped += 1
-                continue
-            rgb = frame_colour_at_depth(frame, seq.intrinsics, colour_cam, run_cfg.colour_registration)
-            vol.integrate(frame.depth_m, rgb, seq.intrinsics, T[i])
-        mesh = vol.extract_mesh(cfg.min_weight)
-    finally:
-        set_parallel(was_parallel)
+    vol = TsdfVolume.from_config(cfg)
+    skipped = 0
+    t0 = time.perf_counter()
+    for i in tqdm(positions, unit="frame", disable=not progress, leave=False, desc="tsdf"):
+        try:
+            frame = seq[int(i)]
+        except FrameError:
+            skipped += 1
+            continue
+        rgb = frame_colour_at_depth(frame, seq.intrinsics, colour_cam, run_cfg.colour_registration)
+        vol.integrate(frame.depth_m, rgb, seq.intrinsics, T[i])
+    mesh = vol.extract_mesh(cfg.min_weight)
     result = MeshResult(Path(), "tsdf", mesh.n_vertices, mesh.n_faces, vol.frames, skipped,
                         vol.memory_mb(vol.n_blocks), time.perf_counter() - t0)
     if skipped:

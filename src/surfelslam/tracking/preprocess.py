@@ -195,7 +195,7 @@ class Preprocessor:
         for lvl in range(first_level + 1, len(pyr)):
             scale = 2.0 ** (lvl - 1)
             kp.downsample_vertex(pyr[lvl - 1].vertex, c.pyramid_max_depth_diff_m * scale, pyr[lvl].vertex)
-            kp.vertex_normals(pyr[lvl].vertex, c.normal_max_depth_jump_m * 2.0 * scale, pyr[lvl].normal)
+            kp.vertex_normals(pyr[lvl].vertex, c.normal_max_depth_jump_m * 2.0 * scale, pyr[lvl].normal, 1)
         return pyr
 
 
