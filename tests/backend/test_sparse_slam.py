@@ -91,6 +91,7 @@ def test_loop_closure_found_and_reduces_ate(loop_frames, loop_run) -> None:
     assert np.all(np.abs(res.map_xyz) < np.array([2.2, 1.4, 2.7]))
 
 
+@pytest.mark.heavy  # make test-all (one more run); make test keeps the hybrid's, which runs this back end
 def test_deterministic(loop_frames, loop_run) -> None:
     poses, frames = loop_frames
     _, _, a = loop_run
@@ -375,8 +376,8 @@ def test_background_checks_find_the_inline_loops_whatever_the_lag(loop_frames, l
         assert np.abs(res.trajectory.T_world_cam[:, :3, 3] - inline.trajectory.T_world_cam[:, :3, 3]).max() < 1e-3
 
 
-# the brute-force variant (the setting off) runs in make test-all
-@pytest.mark.parametrize("guided_older", [True, pytest.param(False, marks=pytest.mark.heavy)],
+@pytest.mark.heavy  # make test-all (a run each); make test's loop runs match with the default (guided) priors
+@pytest.mark.parametrize("guided_older", [True, False],
                          ids=["guided_older", "brute_force_older"])
 def test_older_candidates_are_matched_near_the_graphs_estimate_when_asked(loop_frames, monkeypatch,
                                                                           guided_older) -> None:

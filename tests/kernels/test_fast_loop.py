@@ -1,6 +1,7 @@
 """Speed-related kernels: duplicate removal vs its reference, serial vs parallel twins, in-place render target."""
 
 import numpy as np
+import pytest
 
 from surfelslam.kernels import fusion as kf
 from surfelslam.kernels import icp as kicp
@@ -49,6 +50,7 @@ def _plane_pyramid(z0, tilt):
     return Preprocessor(CAM64).process(depth)
 
 
+@pytest.mark.heavy  # make test-all: compiles the parallel twins, which only compute.parallel_kernels uses
 def test_serial_and_parallel_twins_agree_bitwise():
     src, tgt = _plane_pyramid(1.5, 0.004), _plane_pyramid(1.52, 0.0041)
     T = np.eye(4)

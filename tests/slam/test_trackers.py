@@ -46,6 +46,7 @@ def test_trackers_listed():
     assert TRACKERS == ("dense", "orb", "hybrid")
 
 
+@pytest.mark.heavy  # make test-all; make test keeps the orb back end's accuracy (tests/backend/test_sparse_slam.py)
 def test_orb_via_run_sequence_within_2x_of_dense(tmp_path):
     root = generate_sequence(tmp_path / "seq", "room", "slow", N_SLOW, "kinect", 0, 320, 240)
     seq = open_sequence(root)

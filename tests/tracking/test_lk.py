@@ -30,9 +30,10 @@ def _warp(img: np.ndarray, H: np.ndarray) -> np.ndarray:
 
 
 def test_warped_lk_kernel_matches_numpy_reference() -> None:
-    template = _texture()
+    texture = _texture()
     H = np.array([[1.02, 0.03, 1.3], [-0.02, 0.99, -0.7], [1e-5, -2e-5, 1.0]])
-    search = _warp(template, H)
+    # the trackers' uint8 grey images (the kernel the warm-up compiles)
+    template, search = (np.clip(np.rint(im), 0, 255).astype(np.uint8) for im in (texture, _warp(texture, H)))
     rng = np.random.default_rng(1)
     p_tpl = rng.uniform(15, [145, 105], size=(60, 2))
     ph = np.column_stack([p_tpl, np.ones(60)]) @ H.T

@@ -68,6 +68,7 @@ def test_photometric_kernel_matches_numerical_reference(fy):
         assert aux[1] / aux[0] == pytest.approx(float(np.sum(h * (e * 0.02 + 0.01)) / h.sum()), rel=1e-6)
 
 
+@pytest.mark.heavy  # make test-all: compiles the parallel twin, which only compute.parallel_kernels uses
 def test_photometric_kernel_parallel_twin_is_bit_identical():
     X, img, (fx, fy, cx, cy) = _slanted_textured_plane()
     igg = kph.pack_target(img)
