@@ -5,6 +5,7 @@ Plain helpers (the standard camera, ATE, ``shared_sequence``) live in ``tests/he
 
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
 
@@ -18,6 +19,18 @@ from helpers import shared_sequence  # noqa: E402
 @pytest.fixture
 def sevenscenes_path() -> Path:
     return shared_sequence("7scenes_redkitchen_0000_0499")
+
+
+def _keep_every_texture_bank() -> None:
+    """A synthetic scene's textures take about a second to make. The library keeps the last 4 banks; a test worker
+    builds scenes with a dozen seeds and texture styles in turn, so it keeps them all (about 27 MB each)."""
+    import surfelslam.synth.scenes as scenes
+    from surfelslam.synth.textures import make_texture_bank
+
+    scenes.make_texture_bank = functools.lru_cache(maxsize=32)(make_texture_bank.__wrapped__)
+
+
+_keep_every_texture_bank()
 
 
 @pytest.fixture(autouse=True)

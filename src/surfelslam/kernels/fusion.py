@@ -25,7 +25,7 @@ ASSOC_COVERED = -2
 ASSOC_NEW = -3
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _match(i, qx, qy, qz, mx, my, mz, pos, nrm, dist2, cos_angle):
     """Squared distance of surfel ``i`` to the measurement if it passes both tests, else -1."""
     dx = pos[i, 0] - qx
@@ -278,7 +278,7 @@ def flag_duplicates_ref(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle
     return np.sort(rows[ok])
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _pixel_radius(x, y, z, n0, n1, n2, radius_per_depth, min_cos, max_radius):
     """Surfel radius (metres) for a measurement: ``radius_per_depth * z / max(|cos|, min_cos)``, clamped."""
     norm = math.sqrt(x * x + y * y + z * z)

@@ -24,7 +24,7 @@ _H01 = np.uint64(0x0101010101010101)
 _ORB_WORDS = 4  # 64-bit words of an ORB descriptor (256 bits): the unrolled case of _distances
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _popcount64(x):
     x = x - ((x >> np.uint64(1)) & _M1)
     x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
@@ -32,7 +32,7 @@ def _popcount64(x):
     return (x * _H01) >> np.uint64(56)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _distances(query, i, train, d):
     """``d[j]`` = Hamming distance of ``query[i]`` to every ``train[j]``: a branch-free loop of its own, which LLVM
     vectorises (unrolled for the words of an ORB descriptor: 2.2 ms for 1000 x 1000, against 3.0 ms generic)."""
@@ -50,7 +50,7 @@ def _distances(query, i, train, d):
         d[j] = s
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _search(query, train, best_d, second_d, best_idx, col_idx, columns):
     """The brute-force pass of :func:`nearest_two` and :func:`nearest_two_mutual` (``columns``: also fill
     ``col_idx``; a literal at each call site). One loop for both, so the two cannot drift apart. Each query row's

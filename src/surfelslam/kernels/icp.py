@@ -48,7 +48,7 @@ ROBUST_TUKEY = 2
 ROBUST_KINDS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "tukey": ROBUST_TUKEY}
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _robust_weight(r, kind, scale):
     if kind == ROBUST_HUBER:
         a = abs(r)

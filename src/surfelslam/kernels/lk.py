@@ -29,7 +29,7 @@ from numba import njit
 MIN_DET_PER_PIXEL = 1e-6
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _bilinear(img, x, y):
     """Bilinear sample of ``img (H, W)`` at ``(x, y)`` (inside ``[0, W - 1] x [0, H - 1]``)."""
     x0 = int(math.floor(x))

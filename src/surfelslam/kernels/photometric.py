@@ -38,7 +38,7 @@ N_AUX = 3
 _N_SYSTEM = 28  # the accumulator entries this term adds to: AtA (21), Atb (6), cost (1)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _bilinear(img, x0, y0, ax, ay, ch):
     return ((1.0 - ay) * ((1.0 - ax) * img[y0, x0, ch] + ax * img[y0, x0 + 1, ch])
             + ay * ((1.0 - ax) * img[y0 + 1, x0, ch] + ax * img[y0 + 1, x0 + 1, ch]))
@@ -323,7 +323,7 @@ def pack_target(img):
     return out
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _gradients_into(img, gx, gy):
     """Fill ``gx``, ``gy`` (``(H, W)`` float32, possibly strided views) with the gradients of :func:`gradients`."""
     H, W = img.shape

@@ -62,7 +62,7 @@ def _robust_sigma(v):
     return _MAD_TO_SIGMA * median(np.abs(v - median(v)))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _to_cam(T, P, i):
     """Point ``P[i]`` in the camera frame of ``T``: ``(x, y, z)``."""
     x = T[0, 0] * P[i, 0] + T[0, 1] * P[i, 1] + T[0, 2] * P[i, 2] + T[0, 3]

@@ -111,12 +111,12 @@ EDGE_AXIS = np.array([a for _, a in _cube_edges()], np.int64)
 
 
 # ---------------------------------------------------------------------------------------------- block hash
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def block_key(bx: int, by: int, bz: int) -> int:
     return ((bx + _OFF) << 42) | ((by + _OFF) << 21) | (bz + _OFF)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _slot(key: int, mask: int) -> int:
     h = np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
     return np.int64((h >> np.uint64(32)) & np.uint64(mask))
@@ -292,7 +292,7 @@ def neighbour_table(coords, n_blocks, keys, vals):
     return out
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _voxel(nbr, b, i, j, k):
     """``(block, index in block)`` of the voxel ``(i, j, k)`` relative to block ``b`` (each in ``[-8, 16)``);
     block -1 when it is not allocated."""
@@ -300,7 +300,7 @@ def _voxel(nbr, b, i, j, k):
     return nb, (i & 7) + 8 * (j & 7) + 64 * (k & 7)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _observed(nbr, weight, min_weight, b, i, j, k):
     nb, nk = _voxel(nbr, b, i, j, k)
     return nb >= 0 and weight[nb, nk] >= min_weight
@@ -419,7 +419,7 @@ def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, 
                              normals, rgb, np.int64(b))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _cube_case(nbr, tsdf, weight, min_weight, b, i, j, l):
     """The cube's configuration (bit c: corner c inside), or -1 when a corner is unobserved."""
     case = 0
