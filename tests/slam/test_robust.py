@@ -93,6 +93,7 @@ def test_weak_frames_predict_the_last_tracked_velocity_fading_or_holding_still()
     assert np.array_equal(held._velocity_after(slide, FrameStatus.WEAK, 10.1), np.eye(4))
 
 
+@pytest.mark.heavy  # make test-all: the orb tracker's own prediction (the default hybrid's: the tests above)
 def test_orb_does_not_feed_depth_only_steps_back_into_its_prediction():
     """Plain ceiling and wall, no features to match: orb registers every frame by depth alone, and ICP keeps the
     prediction along the direction the two planes leave free. Fed back as the velocity, that step made the pose run

@@ -229,6 +229,7 @@ def _plain_office_frames():
     return list(iter_frames(scene, traj, INTR, noise_config("kinect"), 2)), gt
 
 
+@pytest.mark.heavy  # make test-all, as the hybrid's run of the same office (below)
 @pytest.mark.xdist_group("plain_office")  # shares a cached run or render: one worker
 def test_orb_tracks_a_plain_walled_office_by_its_depth():
     """Plain walls, a few cabinet corners: PnP against the keyframe has 8-20 inliers and is centimetres off or
@@ -338,7 +339,8 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
 
 
 
-@pytest.mark.parametrize("tracker", TRACKERS)
+@pytest.mark.parametrize("tracker", [t if t != "orb" else pytest.param(t, marks=pytest.mark.heavy)  # orb: test-all
+                                     for t in TRACKERS])
 def test_prepared_in_reader_thread_gives_the_same_poses(tracker):
     """``prepare`` run ahead in the reader thread (as ``run`` does) changes nothing: bit-identical poses."""
     from surfelslam.io.prefetch import prefetch_frames

@@ -21,7 +21,7 @@ def frames():
     return room_frames("fast", N_FRAMES)[0]
 
 
-@pytest.mark.parametrize("tracker", ["hybrid", "orb"])
+@pytest.mark.parametrize("tracker", ["hybrid", pytest.param("orb", marks=pytest.mark.heavy)])  # orb: make test-all
 def test_the_warmup_run_changes_no_result(tracker, frames, monkeypatch):
     """The same frames give bit-identical poses whether ``warmup()`` ran its throwaway run first or not, and it did
     run: a tracker's state never leaks from that run into the next."""
