@@ -75,6 +75,20 @@ def test_sections_in_order_and_figures_exist(experiment):
     assert (out / "features_matches.png").is_file() and (out / "trajectories.png").is_file()
     for d in ("gt_poses", "dense"):
         assert (out / "runs" / d / "map_top.png").is_file() and (out / "runs" / d / "map_camera.png").is_file()
+    # the runs write the figures the report links, and no other
+    written = {p.relative_to(out).as_posix() for p in (out / "runs").rglob("*.png")}
+    assert written == {link for link in links if link.startswith("runs/")}, written
+
+
+def test_a_run_refuses_unknown_figure_names_before_writing(experiment, tmp_path):
+    from surfelslam.errors import ConfigError
+    from surfelslam.slam.runner import RUN_FIGURES, run_sequence
+
+    seq_dir, _, _ = experiment
+    with pytest.raises(ConfigError, match="figures: unknown map_side; known: ate_errors, map_camera"):
+        run_sequence(open_sequence(seq_dir, DatasetOptions(end=2)), tmp_path / "r", SlamConfig(), "dense",
+                     progress=False, figures=("map_camera", "map_side"))
+    assert not (tmp_path / "r").exists() and "map_top" in RUN_FIGURES
 
 
 def test_fusion_numbers_match_run_sequence(experiment, tmp_path):

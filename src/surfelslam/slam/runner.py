@@ -20,7 +20,7 @@ import time
 import tomllib
 import types
 import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -46,6 +46,8 @@ from surfelslam.slam.segments import segments_report, tracking_segments
 PRESETS_DIR = Path(__file__).resolve().parents[3] / "configs"
 _PRESET_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 #: Unpaired images listed (with their reasons) in ``metrics.json``; ``frames_unpaired`` counts them all.
+#: the PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views
+RUN_FIGURES = frozenset({"trajectory", "ate_errors", "map_camera", "map_top"})
 UNPAIRED_IN_METRICS = 10
 
 
@@ -173,7 +175,7 @@ def _now() -> str:
 
 # ------------------------------------------------------------------------------------------------ the run
 def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None, poses: str | None = None,
-                 progress: bool = True, figures: bool = True, *, overwrite: bool = True,
+                 progress: bool = True, figures: bool | Collection[str] = True, *, overwrite: bool = True,
                  on_start: Callable[[Path], None] | None = None,
                  before_commit: Callable[[Path], None] | None = None,
                  on_frame: Callable[[Any, Any, Any], None] | None = None,
@@ -194,8 +196,12 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     ``localize_only``: track against it without changing it. With ``map_reuse.save`` (the default) the run saves its
     map as ``map.npz``.
 
+    ``figures``: every PNG of :data:`RUN_FIGURES` (True), none (False), or those named (a caller that links only
+    some of them, as the experiments report does).
+
     Returns the metrics dict (also written as ``metrics.json``).
     """
+    figures = _figures_wanted(figures)
     tracker = cfg.tracker if tracker is None else tracker
     if tracker not in TRACKERS:
         raise ConfigError(f"tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
@@ -234,7 +240,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
 
 
 def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: str | None, progress: bool,
-         figures: bool, on_frame: Callable[[Any, Any, Any], None] | None = None, recipe: str = "") -> dict:
+         figures: frozenset[str], on_frame: Callable[[Any, Any, Any], None] | None = None, recipe: str = "") -> dict:
     """The loop proper, writing into the staging folder ``out_dir``; everything but ``metrics.json``."""
     t_warm = time.perf_counter()
     slam.warmup()
@@ -334,7 +340,7 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
     result.write_map(out_dir / "map.ply")
     _write_saved_map(result, out_dir, recipe, str(seq.root))
     if figures:
-        _write_figures(out_dir, seq, result, metrics)
+        _write_figures(out_dir, seq, result, metrics, figures)
     return metrics
 
 
@@ -355,21 +361,34 @@ def _stats(v: list[float]) -> dict:
     return {"mean": float(a.mean()), "median": float(np.median(a)), "p95": float(np.percentile(a, 95))}
 
 
-def _write_figures(out_dir: Path, seq, result, metrics: dict) -> None:
+def _figures_wanted(figures: bool | Collection[str]) -> frozenset[str]:
+    if isinstance(figures, bool):
+        return RUN_FIGURES if figures else frozenset()
+    wanted = frozenset(figures)
+    if not wanted <= RUN_FIGURES:
+        raise ConfigError(f"figures: unknown {', '.join(sorted(wanted - RUN_FIGURES))}; known: "
+                          f"{', '.join(sorted(RUN_FIGURES))}")
+    return wanted
+
+
+def _write_figures(out_dir: Path, seq, result, metrics: dict, wanted: frozenset[str]) -> None:
     from surfelslam.types import Trajectory
     from surfelslam.viz.map_figures import save_map_figures
 
     est = Trajectory.read_tum(out_dir / "trajectory.txt")
-    if "eval" in metrics:
+    if "eval" in metrics and wanted & {"trajectory", "ate_errors"}:
         from surfelslam.eval.metrics import ate
         from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory
 
         a = ate(est, seq.ground_truth)
-        plot_trajectory(out_dir / "trajectory.png", a.est_aligned, a.gt,
-                        title=f"{metrics['tracker']}: ATE RMSE {a.rmse_m * 100:.2f} cm", loops=result.loop_stamps)
-        plot_errors(out_dir / "ate_errors.png", a)
-    cloud = result.map_arrays()
+        if "trajectory" in wanted:
+            plot_trajectory(out_dir / "trajectory.png", a.est_aligned, a.gt,
+                            title=f"{metrics['tracker']}: ATE RMSE {a.rmse_m * 100:.2f} cm", loops=result.loop_stamps)
+        if "ate_errors" in wanted:
+            plot_errors(out_dir / "ate_errors.png", a)
+    views = tuple(v for v in ("camera", "top") if f"map_{v}" in wanted)
+    cloud = result.map_arrays() if views else None
     if cloud is not None and len(cloud["position"]) and len(est):
         save_map_figures(out_dir, cloud["position"], cloud["normal"], cloud["colour"], cloud["confidence"],
                          cloud["first_seen"], est.T_world_cam[0], title=f"{metrics['tracker']} map",
-                         trajectory_T_world_cam=est.T_world_cam, radius=cloud.get("radius"))
+                         trajectory_T_world_cam=est.T_world_cam, radius=cloud.get("radius"), views=views)

@@ -8,6 +8,7 @@ virtual camera and the room's inside do not hide it (the map's normals face the 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -351,20 +352,23 @@ def map_figure(cam: ViewCamera, position: np.ndarray, normal: np.ndarray, colour
 def save_map_figures(out_dir: str | Path, position: np.ndarray, normal: np.ndarray, colour: np.ndarray,
                      confidence: np.ndarray, first_seen: np.ndarray, T_world_cam0: np.ndarray,
                      prefix: str = "map", title: str = "", trajectory_T_world_cam: np.ndarray | None = None,
-                     radius: np.ndarray | None = None) -> list[Path]:
+                     radius: np.ndarray | None = None, views: Sequence[str] = ("camera", "top")) -> list[Path]:
     """Write ``{prefix}_camera.png`` (framing perspective view) and ``{prefix}_top.png`` (top view with the
-    trajectory), each 2x2 colour modes. Arrays ``(N, 3)`` / ``(N,)``; ``colour`` RGB in [0, 255]; poses
-    ``(M, 4, 4)`` (``T_world_cam0`` alone when no trajectory is given); ``radius`` metres or None."""
+    trajectory), each 2x2 colour modes, or only the ``views`` named. Arrays ``(N, 3)`` / ``(N,)``; ``colour`` RGB
+    in [0, 255]; poses ``(M, 4, 4)`` (``T_world_cam0`` alone when no trajectory is given); ``radius`` metres or
+    None."""
     out_dir = Path(out_dir)
     poses = np.asarray(trajectory_T_world_cam if trajectory_T_world_cam is not None else T_world_cam0[None])
     poses = poses[np.isfinite(poses).all(axis=(1, 2))]
     position = np.asarray(position, np.float32)
     n = f"{len(position):,} {'surfels' if radius is not None else 'points'}"
     head = f"{title}: " if title else ""
-    views = {"camera": (perspective_view(position, poses, normal), f"{head}view from behind and above the map ({n})"),
-             "top": (top_view(position, poses, normal), f"{head}top view, looking down ({n})")}
+    make = {"camera": lambda: (perspective_view(position, poses, normal),
+                               f"{head}view from behind and above the map ({n})"),
+            "top": lambda: (top_view(position, poses, normal), f"{head}top view, looking down ({n})")}
     written = []
-    for name, (cam, fig_title) in views.items():
+    for name in views:
+        cam, fig_title = make[name]()
         fig = map_figure(cam, position, normal, colour, confidence, first_seen, radius, poses, fig_title)
         written.append(save_figure(fig, out_dir / f"{prefix}_{name}.png"))
     return written

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,8 +82,9 @@ def gt_relative(T_wc: np.ndarray, valid: np.ndarray, s: int, t: int) -> np.ndarr
 
 
 def run_tracker(seq_runs, out_dir: Path, cfg, tracker: str, poses: str | None, opts: ExperimentOptions,
-                figures: bool) -> dict:
-    """One ordinary run folder (``surfelslam run``) of ``seq_runs`` into ``out_dir``; returns its metrics."""
+                figures: Collection[str] = ()) -> dict:
+    """One ordinary run folder (``surfelslam run``) of ``seq_runs`` into ``out_dir``, with the ``figures``
+    (:data:`~surfelslam.slam.runner.RUN_FIGURES`) the report links; returns its metrics."""
     from surfelslam.slam.runner import run_sequence
 
     return run_sequence(seq_runs, out_dir, cfg, tracker, poses=poses, progress=opts.progress, figures=figures)

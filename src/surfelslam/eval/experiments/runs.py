@@ -15,6 +15,10 @@ from surfelslam.eval.experiments.common import (
     run_tracker,
 )
 
+# the run figures each section links (the rest would be written for nothing)
+_MAPS = ("map_top", "map_camera")
+_CAMERA_VIEW = ("map_camera",)
+
 
 def section_fusion(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, has_gt: bool):
     lines = [SECTION_TITLES[2], ""]
@@ -26,8 +30,8 @@ def section_fusion(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, has_gt
     runs: dict[str, dict | None] = {}
     if has_gt:
         runs["ground-truth poses"] = run_tracker(seq_runs, out_dir / "runs" / "gt_poses", cfg, "dense", "gt", opts,
-                                                 True)
-    runs["dense tracker poses"] = run_tracker(seq_runs, out_dir / "runs" / "dense", cfg, "dense", None, opts, True)
+                                                 _MAPS)
+    runs["dense tracker poses"] = run_tracker(seq_runs, out_dir / "runs" / "dense", cfg, "dense", None, opts, _MAPS)
     lines += ["| poses | frames fused | map points | compression | ATE RMSE (cm) | maps |", "|---|---|---|---|---|---|"]
     for name, m in runs.items():
         d = "gt_poses" if name.startswith("ground") else "dense"
@@ -55,7 +59,7 @@ def section_dormant(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, dense
                          "dense", dense_metrics))
     cfg_off = replace(cfg, fusion=replace(f, remove_unstable=False))
     variants.append(("off", "dormant_off", run_tracker(seq_runs, out_dir / "runs" / "dormant_off", cfg_off, "dense",
-                                                       None, opts, True)))
+                                                       None, opts, _CAMERA_VIEW)))
     cfg_reference = replace(cfg, fusion=replace(f, remove_unstable=True,
                                                 unstable_max_age_frames=REFERENCE_DORMANT_MAX_AGE_FRAMES,
                                                 stable_min_hits=REFERENCE_DORMANT_MIN_HITS))
@@ -64,7 +68,7 @@ def section_dormant(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, dense
         variants.append((f"on: age > {REFERENCE_DORMANT_MAX_AGE_FRAMES} frames, hits < {REFERENCE_DORMANT_MIN_HITS} "
                          "(the reference assignment's values)", "dormant_reference",
                          run_tracker(seq_runs, out_dir / "runs" / "dormant_reference", cfg_reference, "dense", None,
-                                     opts, True)))
+                                     opts, _CAMERA_VIEW)))
     lines.append(f"Dense tracking over the same {len(seq_runs)} frames with `FusionConfig.remove_unstable` on and "
                  "off. The rule removes a surfel older than `unstable_max_age_frames` that was observed in fewer "
                  "than `stable_min_hits` frames (see `mapping/fusion.py`)."
@@ -107,7 +111,7 @@ def section_trajectories(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, 
     for name in TRACKERS:
         d = out_dir / "runs" / name
         try:
-            m = dense_metrics if name == "dense" else run_tracker(seq_runs, d, cfg, name, None, opts, False)
+            m = dense_metrics if name == "dense" else run_tracker(seq_runs, d, cfg, name, None, opts)
         except Exception as exc:  # noqa: BLE001 - a failing tracker is reported, never dropped
             out[name] = {"status": f"failed: {exc}"}
             lines.append(f"| {name} | failed: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__} "
