@@ -45,9 +45,9 @@ from surfelslam.slam.segments import segments_report, tracking_segments
 #: Preset configurations: ``--config NAME`` reads ``configs/NAME.toml`` of the source tree.
 PRESETS_DIR = Path(__file__).resolve().parents[3] / "configs"
 _PRESET_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
-#: Unpaired images listed (with their reasons) in ``metrics.json``; ``frames_unpaired`` counts them all.
-#: the PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views
+#: The PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views.
 RUN_FIGURES = frozenset({"trajectory", "ate_errors", "map_camera", "map_top"})
+#: Unpaired images listed (with their reasons) in ``metrics.json``; ``frames_unpaired`` counts them all.
 UNPAIRED_IN_METRICS = 10
 
 
