@@ -9,9 +9,10 @@ process per part running at the same time, compiles each kernel once::
 
 ``dense``: the dense trackers' kernels (preprocessing, rendering, ICP with the photometric term, fusion), at the
 working resolution and reduced from a larger input, the map's geometry-only render and compaction. ``shape``: the
-shape-feature guess of relocalisation (dense and hybrid trackers), a part of its own so that it can even out the
-two processes. ``sparse``: the synthetic renderer and the feature side (ORB matching, PnP and its consensus
-fallback, the keyframe cloud's voxel filter, the loop checks' brute-force matching and joint-term ICP).
+shape-feature guess of relocalisation (dense and hybrid trackers), a part of its own so that it can go into any
+process (``make warmup`` runs it after ``sparse``). ``sparse``: the synthetic renderer and the feature side (ORB
+matching, PnP and its consensus fallback, the keyframe cloud's voxel filter, the loop checks' brute-force matching
+and joint-term ICP).
 ``outputs``: the map figures' splat renderer and the mesh's TSDF and marching cubes. ``parallel``: the
 ``parallel=True`` twins of the dense kernels.
 """

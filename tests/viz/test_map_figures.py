@@ -123,3 +123,16 @@ def test_point_cloud_without_normals_or_spread_gets_no_colour_bars():
     assert titles[:3] == ["by normal (none in this map)", "by confidence (all 1)", "by time (all 0)"]
     with pytest.raises(ValueError, match="unknown colour mode"):
         mf.point_colours("height", m["normal"], m["confidence"], m["first_seen"], m["colour"])
+
+
+def test_one_view_is_written_alone_and_an_unknown_view_is_one_line(tmp_path):
+    from surfelslam.errors import ConfigError
+
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-1, 1, (200, 3)).astype(np.float32)
+    args = (pos, np.tile([0.0, 0.0, -1.0], (200, 1)), np.full((200, 3), 128.0), np.ones(200), np.zeros(200), np.eye(4))
+    written = mf.save_map_figures(tmp_path, *args, views=("camera",))
+    assert [p.name for p in written] == ["map_camera.png"] and sorted(tmp_path.iterdir()) == written
+    with pytest.raises(ConfigError, match="map figure views: unknown side; known: camera, top"):
+        mf.save_map_figures(tmp_path / "x", *args, views=("side", "top"))
+    assert not (tmp_path / "x").exists()

@@ -19,6 +19,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
+from surfelslam.errors import ConfigError
 from surfelslam.kernels.splat import splat_discs
 from surfelslam.viz import style
 from surfelslam.viz.save import new_figure, save_figure
@@ -366,6 +367,9 @@ def save_map_figures(out_dir: str | Path, position: np.ndarray, normal: np.ndarr
     make = {"camera": lambda: (perspective_view(position, poses, normal),
                                f"{head}view from behind and above the map ({n})"),
             "top": lambda: (top_view(position, poses, normal), f"{head}top view, looking down ({n})")}
+    unknown = sorted(set(views) - make.keys())
+    if unknown:
+        raise ConfigError(f"map figure views: unknown {', '.join(unknown)}; known: {', '.join(make)}")
     written = []
     for name in views:
         cam, fig_title = make[name]()
