@@ -26,7 +26,9 @@ estimated poses ``(E_i, E_j)`` and ground-truth poses ``(G_i, G_j)`` whose stamp
 ``delta_unit="seconds"``): how far the trajectory slides, unaligned, within the worst second of the run.
 
 The dense tracker (the frame-to-model engine of both surfel trackers) runs on every sequence; the default hybrid,
-``hybrid-full``, orb and the Open3D side by side (its depth range raised to :data:`OPEN3D_DEPTH_MAX_M` so that it
+``hybrid-full``, orb, the odometry-only variants of hybrid and orb (``hybrid-odometry``, ``orb-odometry``:
+:data:`benchmarks.common.VARIANT_TRACKERS`; the page gives each tracker's ATE with loop closure over that without)
+and the Open3D side by side (its depth range raised to :data:`OPEN3D_DEPTH_MAX_M` so that it
 sees the whole room) run while the time budget allows, and ``skipped`` says what was left out.
 """
 
@@ -42,7 +44,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.common import tracker_cost_vs_dense, tracker_rank, tracker_setup
+from benchmarks.common import ODOMETRY_VARIANTS, tracker_cost_vs_dense, tracker_rank, tracker_setup
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
 from surfelslam.slam.runner import run_sequence
@@ -57,6 +59,9 @@ DOWNSAMPLE_REAL = 2  # the real sequences are 640x480: read at 320x240
 REAL_FIRST_S_PER_FRAME = 0.05  # a-priori dense cost (s/frame) until a run measured it
 # a-priori cost per frame relative to dense, until one run measured it
 RUN_OVERHEAD_S = 5.0  # per run: opening, map and metrics writing
+# how each odometry-only variant (benchmarks.common.VARIANT_TRACKERS) is run from the command line
+_ODOMETRY_HOW = {"hybrid-odometry": "`--set hybrid.loop_correction=false`",
+                 "orb-odometry": "`--set sparse.loop.n_random=0 --set sparse.loop.n_retrieved=0`"}
 SEGMENT_LINES = 3  # segments described per row in the JSON (the counts cover them all)
 CACHE_ENV = "SURFELSLAM_BENCH_CACHE"  # where generated sequences are kept between runs (default: the temp folder)
 
@@ -351,15 +356,18 @@ def _seg(r: dict, kind: str) -> str:
 
 
 def _loops_against_odometry(rows: list[dict]) -> list[str]:
-    """One line: per sequence, the default hybrid's ATE with its loop corrections over that without
-    (``hybrid-odometry``); over 1.1 would be loop closure making the trajectory worse by more than 10 %."""
+    """One line per tracker with an odometry-only variant (:data:`ODOMETRY_VARIANTS`): per sequence, its ATE with loop
+    closure over that without; over 1.1 would be loop closure making the trajectory worse by more than 10 %."""
     ate = {(r["sequence"], r["tracker"]): r["ate_rmse_cm"] for r in rows}
-    pairs = [(seq, ate[(seq, "hybrid")], off) for (seq, trk), off in ate.items()
-             if trk == "hybrid-odometry" and off and ate.get((seq, "hybrid")) is not None]
-    if not pairs:
-        return []
-    parts = [f"{seq} {on / off:.2f}" for seq, on, off in pairs]
-    worst = max(on / off for _, on, off in pairs)
-    return ["Loop closure against the odometry alone (default hybrid; ATE with loop corrections / without, "
-            f"`hybrid-odometry` = `--set hybrid.loop_correction=false`): {'; '.join(parts)}. Worst: {worst:.2f}.",
-            ""]
+    lines = []
+    for tracker, variant in ODOMETRY_VARIANTS.items():
+        pairs = [(seq, ate[(seq, tracker)], off) for (seq, trk), off in ate.items()
+                 if trk == variant and off and ate.get((seq, tracker)) is not None]
+        if not pairs:
+            continue
+        parts = [f"{seq} {on / off:.2f}" for seq, on, off in pairs]
+        worst = max(on / off for _, on, off in pairs)
+        lines += [f"Loop closure against the odometry alone ({tracker}; ATE with loop closure / without, "
+                  f"`{variant}`: {_ODOMETRY_HOW[variant]}): {'; '.join(parts)}. Worst: {worst:.2f}.", ""]
+    return lines
+

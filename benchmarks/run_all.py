@@ -119,7 +119,7 @@ class Plan:
     robust_synthetic: tuple[str, ...] = bench_robustness.SYNTHETIC_KEYS
     robust_real_frames: int | None = None  # cap on the real sequences' frames (None: all)
     # beside dense, while the budget allows
-    robust_trackers: tuple[str, ...] = ("hybrid", "hybrid-odometry", "hybrid-full", "orb")
+    robust_trackers: tuple[str, ...] = ("hybrid", "hybrid-odometry", "hybrid-full", "orb", "orb-odometry")
     robust_open3d_frames: int = 1500  # Open3D beside dense on the first generated sequence (0: none)
     robust_budget_s: float = 2700.0  # the section's own budget for the optional runs (0: no limit)
 

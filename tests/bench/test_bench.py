@@ -267,8 +267,9 @@ def test_robustness_section_spliced_into_the_last_results(tmp_path, monkeypatch)
 
 
 def test_odometry_only_variant_and_the_loops_ratio_line() -> None:
-    """``hybrid-odometry`` is the default hybrid with its loop corrections off (nothing else changed), and the
-    robustness page gives, per sequence, the default's ATE over that variant's (item: loops never worse)."""
+    """``hybrid-odometry`` is the default hybrid with its loop corrections off, ``orb-odometry`` orb without loop
+    candidates (nothing else changed), and the robustness page gives, per sequence, each tracker's ATE over its
+    variant's (item: loops never worse)."""
     from dataclasses import replace
 
     from benchmarks.bench_robustness import _loops_against_odometry
@@ -287,3 +288,12 @@ def test_odometry_only_variant_and_the_loops_ratio_line() -> None:
     [line, blank] = _loops_against_odometry(rows)
     assert "tour 0.62; wall 1.03. Worst: 1.03." in line and "corridor" not in line and blank == ""
     assert _loops_against_odometry(rows[-1:]) == []
+    # orb's variant: no loop candidates among the older keyframes, nothing else changed; a line of its own
+    tracker, cfg = tracker_setup("orb-odometry")
+    loop = replace(default.sparse.loop, n_random=0, n_retrieved=0)
+    assert tracker == "orb" and cfg == replace(default, tracker="orb", sparse=replace(default.sparse, loop=loop))
+    orb = [{"sequence": "tour", "tracker": "orb", "ate_rmse_cm": 43.6},
+           {"sequence": "tour", "tracker": "orb-odometry", "ate_rmse_cm": 84.3}]
+    hybrid_line, _, orb_line, _ = _loops_against_odometry(rows + orb)
+    assert hybrid_line == line and orb_line.startswith("Loop closure against the odometry alone (orb;")
+    assert "n_retrieved=0`): tour 0.52. Worst: 0.52." in orb_line
