@@ -44,7 +44,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.common import ODOMETRY_VARIANTS, tracker_cost_vs_dense, tracker_rank, tracker_setup
+from benchmarks.common import (
+    ODOMETRY_VARIANTS,
+    tracker_cost_vs_dense,
+    tracker_rank,
+    tracker_setup,
+    variant_set_options,
+)
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
 from surfelslam.slam.runner import run_sequence
@@ -59,9 +65,6 @@ DOWNSAMPLE_REAL = 2  # the real sequences are 640x480: read at 320x240
 REAL_FIRST_S_PER_FRAME = 0.05  # a-priori dense cost (s/frame) until a run measured it
 # a-priori cost per frame relative to dense, until one run measured it
 RUN_OVERHEAD_S = 5.0  # per run: opening, map and metrics writing
-# how each odometry-only variant (benchmarks.common.VARIANT_TRACKERS) is run from the command line
-_ODOMETRY_HOW = {"hybrid-odometry": "`--set hybrid.loop_correction=false`",
-                 "orb-odometry": "`--set sparse.loop.n_random=0 --set sparse.loop.n_retrieved=0`"}
 SEGMENT_LINES = 3  # segments described per row in the JSON (the counts cover them all)
 CACHE_ENV = "SURFELSLAM_BENCH_CACHE"  # where generated sequences are kept between runs (default: the temp folder)
 
@@ -368,6 +371,5 @@ def _loops_against_odometry(rows: list[dict]) -> list[str]:
         parts = [f"{seq} {on / off:.2f}" for seq, on, off in pairs]
         worst = max(on / off for _, on, off in pairs)
         lines += [f"Loop closure against the odometry alone ({tracker}; ATE with loop closure / without, "
-                  f"`{variant}`: {_ODOMETRY_HOW[variant]}): {'; '.join(parts)}. Worst: {worst:.2f}.", ""]
+                  f"`{variant}`: `{variant_set_options(variant)}`): {'; '.join(parts)}. Worst: {worst:.2f}.", ""]
     return lines
-

@@ -46,6 +46,20 @@ def tracker_cost_vs_dense(label: str) -> float:
     return TRACKER_COST_VS_DENSE.get(label, UNKNOWN_TRACKER_COST)
 
 
+def variant_set_options(label: str) -> str:
+    """The ``--set`` options that make a :data:`VARIANT_TRACKERS` row from its tracker's defaults (for the page)."""
+    def flat(d: dict, prefix: str = "") -> list[str]:
+        out = []
+        for key, value in d.items():
+            if isinstance(value, dict):
+                out += flat(value, f"{prefix}{key}.")
+            elif prefix or key != "tracker":
+                out.append(f"--set {prefix}{key}={str(value).lower() if isinstance(value, bool) else value}")
+        return out
+
+    return " ".join(flat(VARIANT_TRACKERS[label]))
+
+
 def tracker_setup(label: str):
     """``(tracker, SlamConfig)`` of a bench row's tracker label: a tracker with the defaults, a preset of
     :data:`PRESET_TRACKERS` or a variant of :data:`VARIANT_TRACKERS` (its config, whose ``tracker`` it names)."""

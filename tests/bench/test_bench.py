@@ -296,4 +296,5 @@ def test_odometry_only_variant_and_the_loops_ratio_line() -> None:
            {"sequence": "tour", "tracker": "orb-odometry", "ate_rmse_cm": 84.3}]
     hybrid_line, _, orb_line, _ = _loops_against_odometry(rows + orb)
     assert hybrid_line == line and orb_line.startswith("Loop closure against the odometry alone (orb;")
-    assert "n_retrieved=0`): tour 0.52. Worst: 0.52." in orb_line
+    assert "`--set sparse.loop.n_random=0 --set sparse.loop.n_retrieved=0`): tour 0.52. Worst: 0.52." in orb_line
+    assert "`--set hybrid.loop_correction=false`): tour 0.62" in line  # the settings as a user types them
