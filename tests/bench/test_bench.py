@@ -298,3 +298,24 @@ def test_odometry_only_variant_and_the_loops_ratio_line() -> None:
     assert hybrid_line == line and orb_line.startswith("Loop closure against the odometry alone (orb;")
     assert "`--set sparse.loop.n_random=0 --set sparse.loop.n_retrieved=0`): tour 0.52. Worst: 0.52." in orb_line
     assert "`--set hybrid.loop_correction=false`): tour 0.62" in line  # the settings as a user types them
+
+
+def test_a_synthetic_rows_seed_reaches_the_generator_and_the_cache_key(tmp_path, monkeypatch) -> None:
+    """Two rows that differ only by their seed are two sequences: each seed is generated and cached on its own."""
+    from dataclasses import replace
+
+    from benchmarks import bench_robustness as br
+
+    calls = []
+
+    def fake_generate(out, **kw):
+        calls.append(kw["seed"])
+        out.mkdir(parents=True)
+        (out / "groundtruth.txt").write_text("")
+
+    monkeypatch.setattr(br, "generate_sequence", fake_generate)
+    spec = next(s for s in br.SYNTHETIC if s.key == "corridor_plain")
+    paths = [br.synthetic_sequence(replace(spec, seed=seed), 10, 80, tmp_path) for seed in (0, 5, 5)]
+    assert calls == [0, 5] and paths[1] == paths[2] != paths[0] and "_s5_" in paths[1].name
+    assert next(s for s in br.SYNTHETIC if s.key == "corridor_plain_seed5") == replace(
+        spec, key="corridor_plain_seed5", label="corridor, plain, seed 5", seed=5)
