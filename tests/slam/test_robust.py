@@ -93,6 +93,40 @@ def test_weak_frames_predict_the_last_tracked_velocity_fading_or_holding_still()
     assert np.array_equal(held._velocity_after(slide, FrameStatus.WEAK, 10.1), np.eye(4))
 
 
+def test_frozen_directions_move_the_velocity_only_by_the_gain():
+    """Where the finest ICP level left a direction at the prediction (solution remapping), the frame's step along it
+    is the prediction plus what the coarse levels did: the velocity moves only ``frozen_velocity_gain`` of the way
+    there; along the measured directions it is the step. (A plain corridor: one wrong photometric pull fed back in
+    full kept the prediction lagging for ten frames, and the keyframes made meanwhile held the lag: 7.3 cm.)"""
+    from surfelslam.slam.config import TrackingConfig
+    from surfelslam.slam.frame import FrameStatus
+    from surfelslam.tracking.icp import ICPResult, LevelInfo, weak_projector
+
+    d = 2.0  # mean depth (m): rotations are compared with the translations that move points as far
+    H = np.diag([1e4 * d**2, 1e4 * d**2, 1e4 * d**2, 1e4, 1e4, 2.0])  # along z, 5000x weaker: frozen
+    P = weak_projector(H, d, 1e3)
+    np.testing.assert_allclose(P, np.diag([0, 0, 0, 0, 0, 1.0]), atol=1e-12)
+    assert weak_projector(H, d, 1e4) is None  # under the ratio nothing is weak
+    res = ICPResult(np.eye(4), 1000, 0.9, 0.001, 10, True, False, 5e3, normal_matrix=H, mean_depth_m=d,
+                    levels=[LevelInfo(0, 5, 1000, 0.9, 0.001, 1e-5, "update", frozen_directions=1)])
+    v_old = se3.make_T(np.eye(3), [0.01, 0.0, 0.02])
+    step = se3.make_T(se3.so3_exp([0.0, 0.002, 0.0]), [0.012, 0.001, 0.036])  # z pulled 16 mm beyond the prediction
+    for gain in (0.5, 0.0, 1.0):
+        slam = DenseSlam(INTR_SMALL, SlamConfig(tracking=TrackingConfig(frozen_velocity_gain=gain)))
+        slam.velocity = v_old
+        got = slam._velocity_after(step, FrameStatus.TRACKED, 1.0, res)
+        # first order in the 16 mm difference; the rotation and x, y are the step's
+        np.testing.assert_allclose(got[:3, :3], step[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(got[:3, 3], [0.012, 0.001, 0.02 + gain * 0.016], atol=5e-5)
+        if gain == 1.0:
+            assert np.array_equal(got, step)
+    no_freeze = ICPResult(np.eye(4), 1000, 0.9, 0.001, 10, True, False, 1.0, normal_matrix=H, mean_depth_m=d,
+                          levels=[LevelInfo(0, 5, 1000, 0.9, 0.001, 1e-5, "update")])
+    slam = DenseSlam(INTR_SMALL, SlamConfig())
+    slam.velocity = v_old
+    assert np.array_equal(slam._velocity_after(step, FrameStatus.TRACKED, 1.0, no_freeze), step)
+
+
 @pytest.mark.heavy  # make test-all: the orb tracker's own prediction (the default hybrid's: the tests above)
 def test_orb_does_not_feed_depth_only_steps_back_into_its_prediction():
     """Plain ceiling and wall, no features to match: orb registers every frame by depth alone, and ICP keeps the

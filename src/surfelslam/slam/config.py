@@ -85,6 +85,11 @@ class TrackingConfig(Config):
         doc="through weak frames the prediction carries the last fully tracked frame's velocity on, fading by "
             "exp(-t / this) (a walk down a corridor); 0 = the camera is predicted to hold still (a sway in front of a "
             "wall)")
+    frozen_velocity_gain: float = setting(
+        0.5, unit="fraction", ge=0, le=1,
+        doc="along the directions the finest ICP level left at the prediction (icp.weak_direction_ratio), the "
+            "velocity moves only this fraction of the way to the frame's step: there the step is the prediction "
+            "plus what the coarser levels did (1 = the whole step)")
     relocalise_max_speed_m_s: float = setting(
         1.0, unit="m/s", gt=0, le=1000, allow_inf=True,
         doc="a relocalised pose farther from the last tracked pose than this speed allows in the time since it "

@@ -38,7 +38,7 @@ from surfelslam.slam.map_localiser import NOT_LOCALISED, MapLocaliser, verify_ic
 from surfelslam.slam.mapper import FusingMapper
 from surfelslam.slam.protocol import register_tracker
 from surfelslam.tracking.geometric import geometric_guess
-from surfelslam.tracking.icp import ICPResult, ICPStatus, icp, icp_failure, photometric_term
+from surfelslam.tracking.icp import ICPResult, ICPStatus, icp, icp_failure, photometric_term, weak_projector
 from surfelslam.tracking.photometric import (
     IntensityPyramid,
     PhotometricTerm,
@@ -184,7 +184,7 @@ class DenseSlam(FusingMapper):
                 status = FrameStatus.RELOCALISED
         if failure is None:
             step, T_new = self._step_and_pose(T_ref, res)
-            self.velocity = self._velocity_after(step, status, frame.time_s)
+            self.velocity = self._velocity_after(step, status, frame.time_s, res)
             self._mark_tracked(T_new, frame.time_s, status)
             self._fuse(frame, T_new)
             t.lap("fuse")
@@ -282,16 +282,32 @@ class DenseSlam(FusingMapper):
                   and res.motion_m <= icfg.max_translation_m and res.motion_deg <= icfg.max_rotation_deg)
         return None if usable else failure
 
-    def _velocity_after(self, step: np.ndarray, status: FrameStatus, t_s: float) -> np.ndarray:
-        """The velocity (``T_prev_cur`` per frame, ``(4, 4)``) after a registered frame at time ``t_s`` whose step
-        was ``step``.
+    def _damp_frozen(self, step: np.ndarray, res: ICPResult | None) -> np.ndarray:
+        """``step`` with its part along the directions the finest ICP level of ``res`` left at the prediction (solution
+        remapping) moved only ``tracking.frozen_velocity_gain`` of the way from the current velocity: there the step
+        is the prediction plus what the coarser levels did, not a measurement of the finest one."""
+        g = self.cfg.tracking.frozen_velocity_gain
+        fine = res.levels[-1] if res is not None and res.levels else None
+        if g >= 1 or fine is None or fine.level != 0 or not fine.frozen_directions or res.normal_matrix is None:
+            return step
+        P = weak_projector(res.normal_matrix, res.mean_depth_m, self.cfg.icp.weak_direction_ratio)
+        if P is None:
+            return step
+        delta = se3.log(self.velocity @ se3.invert(step))  # left difference, as ICP's: velocity = exp(delta) step
+        return se3.orthonormalize(se3.exp((1 - g) * (P @ delta)) @ step)
 
-        A tracked frame: its step. A relocalised frame has no known velocity (identity). A weak frame's step is
-        known only along the directions the view constrains, so it is not used: the velocity of the last fully
-        tracked frame goes on, fading by ``exp(-(t_s - t_tracked) / tracking.weak_velocity_decay_s)`` (a walk down a
-        corridor keeps going; a weak step never feeds the next prediction, so ICP's slide along a free direction
-        cannot build up speed)."""
+    def _velocity_after(self, step: np.ndarray, status: FrameStatus, t_s: float,
+                        res: ICPResult | None = None) -> np.ndarray:
+        """The velocity (``T_prev_cur`` per frame, ``(4, 4)``) after a registered frame at time ``t_s`` whose step
+        was ``step`` (``res``: its ICP result against the map rendered at the previous pose, if it was).
+
+        A tracked frame: its step, damped along frozen directions (:meth:`_damp_frozen`). A relocalised frame has no
+        known velocity (identity). A weak frame's step is known only along the directions the view constrains, so it
+        is not used: the velocity of the last fully tracked frame goes on, fading by
+        ``exp(-(t_s - t_tracked) / tracking.weak_velocity_decay_s)`` (a walk down a corridor keeps going; a weak step
+        never feeds the next prediction, so ICP's slide along a free direction cannot build up speed)."""
         if status is FrameStatus.TRACKED:
+            step = self._damp_frozen(step, res)
             self._v_tracked, self._t_v_tracked = step, t_s
             return step
         tau_s = self.cfg.tracking.weak_velocity_decay_s

@@ -310,7 +310,7 @@ class HybridSlam(DenseSlam):
                 step = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
                         else se3.orthonormalize(se3.invert(T_prev) @ T_new))
                 # a weak step is ICP's slide along the free directions: not fed back (DenseSlam._velocity_after)
-                self.velocity = self._velocity_after(step, status, frame.time_s)
+                self.velocity = self._velocity_after(step, status, frame.time_s, res if loc.from_prev else None)
             self._mark_tracked(T_new, frame.time_s, status)
             if res.levels and res.levels[-1].level == 0:
                 self._depth_noise_per_frame.append(res.levels[-1].geometric_noise_m)

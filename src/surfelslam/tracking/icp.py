@@ -253,6 +253,20 @@ def depth_scaling(mean_depth_m: float) -> np.ndarray:
     return np.array([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
 
 
+def weak_projector(AtA: np.ndarray, mean_depth_m: float, max_ratio: float) -> np.ndarray | None:
+    """``(6, 6)`` projector onto the weak directions of ``AtA`` (twists ``(omega, v)``; eigenvalues of ``S AtA S`` below
+    the largest over ``max_ratio``, the ones the solution remapping freezes), orthogonal in the depth-scaled metric;
+    ``None`` when no direction is weak."""
+    s = depth_scaling(mean_depth_m)
+    lam, V = np.linalg.eigh(AtA * s[:, None] * s[None, :])
+    if not lam[-1] > 0 or max_ratio <= 0:
+        return None
+    Vw = V[:, lam * max_ratio < lam[-1]]
+    if Vw.shape[1] == 0:
+        return None
+    return s[:, None] * (Vw @ Vw.T) / s[None, :]
+
+
 def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
     """Eigenvalue ratio of ``S AtA S`` with ``S = diag(1/d, 1/d, 1/d, 1, 1, 1)``, ``d`` = mean depth.
 
