@@ -107,6 +107,13 @@ def test_frozen_directions_move_the_velocity_only_by_the_gain():
     P = weak_projector(H, d, 1e3)
     np.testing.assert_allclose(P, np.diag([0, 0, 0, 0, 0, 1.0]), atol=1e-12)
     assert weak_projector(H, d, 1e4) is None  # under the ratio nothing is weak
+    # a weak direction mixing rotation and translation: eigenvectors of the depth-scaled matrix, mapped back to twists
+    Q = np.linalg.qr(np.random.default_rng(0).normal(size=(6, 6)))[0]
+    S = np.diag([1 / d] * 3 + [1.0] * 3)
+    Sinv = np.linalg.inv(S)
+    P_mixed = weak_projector(Sinv @ Q @ np.diag([1e-4, 1, 2, 3, 4, 5]) @ Q.T @ Sinv, d, 1e3)
+    np.testing.assert_allclose(P_mixed @ S @ Q[:, 0], S @ Q[:, 0], atol=1e-9)  # the weak twist is kept ...
+    np.testing.assert_allclose(P_mixed @ S @ Q[:, 1:], 0.0, atol=1e-9)  # ... the others are removed
     res = ICPResult(np.eye(4), 1000, 0.9, 0.001, 10, True, False, 5e3, normal_matrix=H, mean_depth_m=d,
                     levels=[LevelInfo(0, 5, 1000, 0.9, 0.001, 1e-5, "update", frozen_directions=1)])
     v_old = se3.make_T(np.eye(3), [0.01, 0.0, 0.02])
