@@ -25,8 +25,8 @@ PRESETS = Path(__file__).resolve().parents[1] / "configs"
 #: with them: a row of it that lost tracking says so in its failures.
 VARIANT_TRACKERS = {"hybrid-odometry": {"tracker": "hybrid", "hybrid": {"loop_correction": False}},
                     "orb-odometry": {"tracker": "orb", "sparse": {"loop": {"n_random": 0, "n_retrieved": 0}}}}
-#: The variants above: tracker label -> its odometry-only label.
-ODOMETRY_VARIANTS = {"hybrid": "hybrid-odometry", "orb": "orb-odometry"}
+#: The odometry-only variants above: tracker label -> the variant's label (derived, so a new one needs no second entry).
+ODOMETRY_VARIANTS = {cfg["tracker"]: label for label, cfg in VARIANT_TRACKERS.items() if label.endswith("-odometry")}
 #: Order of the tracker rows in every table (unknown labels last).
 TRACKER_ORDER = ("dense", "hybrid", "hybrid-odometry", "hybrid-full", "orb", "orb-odometry", "open3d")
 #: Seconds per frame of a tracker row against the dense tracker's on the same sequence: what the budgets assume
