@@ -382,7 +382,8 @@ def standalone_section(res: dict, name: str, plan: Plan, tmp: Path, open3d: bool
     else:
         raise ValueError(f"not a standalone section: {name!r} (one of {', '.join(STANDALONE)})")
     if out is not None:
-        out["measured"] = {"date": res["meta"]["date"], "mode": plan.name, "git": git_state(),
+        # today, not the page's date: a section spliced into an older run's results is measured now
+        out["measured"] = {"date": datetime.date.today().isoformat(), "mode": plan.name, "git": git_state(),
                            "load_average_at_start": machine()["load_average_at_start"]}
     return out
 

@@ -8,6 +8,7 @@ not a sequence. Open3D is left out (its import alone takes seconds; the side-by-
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 from pathlib import Path
@@ -215,6 +216,7 @@ def test_viewer_and_mesh_sections_spliced_into_the_last_results(tmp_path) -> Non
         assert 0.0 <= r["accuracy_mean_m"] <= r["accuracy_p90_m"] < m["voxel_m"] and 0.5 < r["completeness"] <= 1.0
         assert r["fuse_s"] > 0 and r["faces"] > 0
     assert m["targets"]["ok"] in (True, False) and m["measured"]["mode"] == "tiny"
+    assert m["measured"]["date"] == datetime.date.today().isoformat() != base["meta"]["date"]  # measured now
     md = (out / "latest.md").read_text()
     assert md == run_all.to_markdown(res) == run_all.to_markdown(json.loads((out / "latest.json").read_text()))
     assert "### Live viewer cost: 12 synthetic frames at 80x60" in md and "Skipped: hybrid on x" in md
