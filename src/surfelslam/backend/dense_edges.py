@@ -34,7 +34,7 @@ from surfelslam.config import Config, ordered, setting
 from surfelslam.geometry import se3
 from surfelslam.kernels import preprocess as kp
 from surfelslam.tracking.features import reprojection_spread_px
-from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, depth_scaling, icp, icp_failure
+from surfelslam.tracking.icp import ICPConfig, ICPResult, ReprojectionTerm, depth_scaled, icp, icp_failure
 from surfelslam.tracking.preprocess import (
     MIN_LEVEL_WIDTH_PX,
     FramePyramid,
@@ -140,8 +140,8 @@ def weak_direction_shape(normal_matrix: np.ndarray, mean_depth_m: float, T_targe
     :attr:`ICPResult.normal_matrix`) whose eigenvalue is below ``1 / weak_ratio`` of the largest, to
     ``max(floor, ratio * weak_ratio)``. ``None`` when no direction is that weak. Rotations are scaled by the mean
     depth, as in the condition number, so that a rotation and a translation moving points equally compare equal."""
-    S = np.diag(depth_scaling(mean_depth_m))
-    mu, V = np.linalg.eigh(S @ normal_matrix @ S)
+    M, s = depth_scaled(normal_matrix, mean_depth_m)
+    mu, V = np.linalg.eigh(M)
     if not mu[-1] > 0:
         return None
     w = np.clip(mu / mu[-1] * weak_ratio, floor, 1.0)
@@ -149,7 +149,7 @@ def weak_direction_shape(normal_matrix: np.ndarray, mean_depth_m: float, T_targe
     if not weak.any():
         return None
     # weak directions as twists of the right perturbation (xi_r = Ad(T^-1) S y), orthonormalised
-    U, _ = np.linalg.qr(se3.adjoint(se3.invert(T_target_source)) @ S @ V[:, weak])
+    U, _ = np.linalg.qr(se3.adjoint(se3.invert(T_target_source)) @ np.diag(s) @ V[:, weak])
     return np.eye(6) - (U * (1.0 - w[weak])) @ U.T
 
 

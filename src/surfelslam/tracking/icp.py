@@ -253,12 +253,20 @@ def depth_scaling(mean_depth_m: float) -> np.ndarray:
     return np.array([1 / d, 1 / d, 1 / d, 1.0, 1.0, 1.0])
 
 
+def depth_scaled(AtA: np.ndarray, mean_depth_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(S AtA S (6, 6), s (6,))`` with ``S = diag(s)`` the :func:`depth_scaling`: the normal matrix ``(6, 6)`` of
+    twists ``(omega, v)`` in which the condition number, the weak directions and the edges' information shape are
+    judged."""
+    s = depth_scaling(mean_depth_m)
+    return AtA * s[:, None] * s[None, :], s
+
+
 def weak_projector(AtA: np.ndarray, mean_depth_m: float, max_ratio: float) -> np.ndarray | None:
     """``(6, 6)`` projector onto the weak directions of ``AtA`` (twists ``(omega, v)``; eigenvalues of ``S AtA S`` below
     the largest over ``max_ratio``, the ones the solution remapping freezes), orthogonal in the depth-scaled metric;
     ``None`` when no direction is weak."""
-    s = depth_scaling(mean_depth_m)
-    lam, V = np.linalg.eigh(AtA * s[:, None] * s[None, :])
+    M, s = depth_scaled(AtA, mean_depth_m)
+    lam, V = np.linalg.eigh(M)
     if not lam[-1] > 0 or max_ratio <= 0:
         return None
     Vw = V[:, lam * max_ratio < lam[-1]]
@@ -268,13 +276,10 @@ def weak_projector(AtA: np.ndarray, mean_depth_m: float, max_ratio: float) -> np
 
 
 def condition_number(AtA: np.ndarray, mean_depth_m: float) -> float:
-    """Eigenvalue ratio of ``S AtA S`` with ``S = diag(1/d, 1/d, 1/d, 1, 1, 1)``, ``d`` = mean depth.
-
-    Scaling the rotation columns by the mean depth makes rotational and translational constraints
-    comparable (a rotation ``omega`` moves points at depth d by about ``d |omega|``).
-    """
-    s = depth_scaling(mean_depth_m)
-    ev = np.linalg.eigvalsh(AtA * s[:, None] * s[None, :])
+    """Eigenvalue ratio of :func:`depth_scaled` ``AtA``: scaling the rotation columns by the mean depth makes
+    rotational and translational constraints comparable (a rotation ``omega`` moves points at depth d by about
+    ``d |omega|``)."""
+    ev = np.linalg.eigvalsh(depth_scaled(AtA, mean_depth_m)[0])
     if ev[-1] <= 0:
         return float("inf")
     return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
