@@ -17,6 +17,7 @@ from surfelslam.tracking.icp import (
     ICPConfig,
     ReprojectionTerm,
     condition_number,
+    depth_scaled,
     icp,
     pairwise_config,
     register_frames,
@@ -401,6 +402,17 @@ def test_condition_number_scaling():
     A = rng.normal(size=(1000, 6))
     A[:, :3] *= 2.0  # rotation columns ~ depth (2 m) times the translation columns
     assert condition_number(A.T @ A, 2.0) < 2.0 * condition_number(A.T @ A * 1.0, 1e-6) ** 0.5
+
+
+def test_depth_scaled_normal_matrix():
+    """Rotation rows and columns divided by the mean depth, translation ones kept: S AtA S with S = (1/d)*3 + 1*3."""
+    AtA = np.arange(36, dtype=float).reshape(6, 6) + 1.0
+    M, s = depth_scaled(AtA, 2.0)
+    np.testing.assert_array_equal(s, [0.5, 0.5, 0.5, 1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(M[:3, :3], AtA[:3, :3] / 4.0)
+    np.testing.assert_array_equal(M[:3, 3:], AtA[:3, 3:] / 2.0)
+    np.testing.assert_array_equal(M[3:, :3], AtA[3:, :3] / 2.0)
+    np.testing.assert_array_equal(M[3:, 3:], AtA[3:, 3:])
 
 
 def test_config_validation():
