@@ -100,7 +100,7 @@ def test_frozen_directions_move_the_velocity_only_by_the_gain():
     full kept the prediction lagging for ten frames, and the keyframes made meanwhile held the lag: 7.3 cm.)"""
     from surfelslam.slam.config import TrackingConfig
     from surfelslam.slam.frame import FrameStatus
-    from surfelslam.tracking.icp import ICPResult, LevelInfo, weak_projector
+    from surfelslam.tracking.icp import ICPResult, LevelInfo, depth_scaling, weak_projector
 
     d = 2.0  # mean depth (m): rotations are compared with the translations that move points as far
     H = np.diag([1e4 * d**2, 1e4 * d**2, 1e4 * d**2, 1e4, 1e4, 2.0])  # along z, 5000x weaker: frozen
@@ -109,7 +109,7 @@ def test_frozen_directions_move_the_velocity_only_by_the_gain():
     assert weak_projector(H, d, 1e4) is None  # under the ratio nothing is weak
     # a weak direction mixing rotation and translation: eigenvectors of the depth-scaled matrix, mapped back to twists
     Q = np.linalg.qr(np.random.default_rng(0).normal(size=(6, 6)))[0]
-    S = np.diag([1 / d] * 3 + [1.0] * 3)
+    S = np.diag(depth_scaling(d))
     Sinv = np.linalg.inv(S)
     P_mixed = weak_projector(Sinv @ Q @ np.diag([1e-4, 1, 2, 3, 4, 5]) @ Q.T @ Sinv, d, 1e3)
     np.testing.assert_allclose(P_mixed @ S @ Q[:, 0], S @ Q[:, 0], atol=1e-9)  # the weak twist is kept ...
