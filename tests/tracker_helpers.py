@@ -24,13 +24,14 @@ N_LOOP = 60  # frames of the walking loop
 
 
 @cache
-def room_frames(style: str, n: int, seed: int = 0):
+def room_frames(style: str, n: int, seed: int = 0, keep: tuple[int, ...] | None = None):
     """``(frames, gt (n, 4, 4))``: ``n`` frames of the room along the ``style`` trajectory, Kinect-like noise; the
-    ground truth starts at the identity (as every estimate does)."""
+    ground truth starts at the identity (as every estimate does). ``keep``: render only these frames (each the same
+    as in the whole sequence); the ground truth is still the whole sequence's."""
     scene = make_scene("room", seed)
     traj = make_trajectory(style, n, scene, seed=seed)
     gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
-    return list(iter_frames(scene, traj, INTR, noise_config("kinect"), seed)), gt
+    return list(iter_frames(scene, traj, INTR, noise_config("kinect"), seed, indices=keep)), gt
 
 
 def run_tracker(tracker: str, frames, cfg: SlamConfig | None = None, intr=INTR, colour_registered: bool = True):

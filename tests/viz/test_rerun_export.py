@@ -111,21 +111,22 @@ def _rows_per_entity(cli: Path, rrd: Path) -> dict[str, int]:
 
 
 @pytest.fixture(scope="module")
-def orb_run(tmp_path_factory):
-    """An orb run on 40 frames of the synthetic walking loop at 320x240 (one loop edge in metrics.json)."""
+def loop_run(tmp_path_factory):
+    """A run of the default tracker on 40 frames of the synthetic walking loop at 320x240 (one loop edge in
+    metrics.json)."""
     base = tmp_path_factory.mktemp("rr")
     seq = base / "loop"
     generate_sequence(seq, scene="office", style="loop", n_frames=40, noise="kinect", seed=1, width=320, height=240)
     out = base / "run"
-    res = runner.invoke(app, ["run", str(seq), "--out", str(out), "--tracker", "orb", "--no-progress",
+    res = runner.invoke(app, ["run", str(seq), "--out", str(out), "--no-progress",
                               "--no-figures"])  # the export reads the trajectory, map and metrics, not the figures
     assert res.exit_code == 0, res.output
     return seq, out
 
 
-def test_recording_holds_map_trajectories_camera_and_images(orb_run):
+def test_recording_holds_map_trajectories_camera_and_images(loop_run):
     cli = _rerun_cli()
-    seq, out = orb_run
+    seq, out = loop_run
     res = runner.invoke(app, ["rerun", str(out), "--images-every", "8"])
     assert res.exit_code == 0, res.output
     rrd = out / "run.rrd"
@@ -144,9 +145,9 @@ def test_recording_holds_map_trajectories_camera_and_images(orb_run):
     assert not list(out.glob(".run.rrd.*"))  # no temp file left behind
 
 
-def test_recording_without_the_sequence_still_has_map_and_trajectory(orb_run, tmp_path):
+def test_recording_without_the_sequence_still_has_map_and_trajectory(loop_run, tmp_path):
     cli = _rerun_cli()
-    _, out = orb_run
+    _, out = loop_run
     run2 = tmp_path / "moved"
     run2.mkdir()
     for name in ("trajectory.txt", "map.ply"):
@@ -163,9 +164,9 @@ def test_recording_without_the_sequence_still_has_map_and_trajectory(orb_run, tm
 
 
 @pytest.mark.parametrize("case", ["no_folder", "no_trajectory", "bad_metrics", "bad_every", "wrong_downsample"])
-def test_bad_input_is_one_line(orb_run, tmp_path, case):
+def test_bad_input_is_one_line(loop_run, tmp_path, case):
     pytest.importorskip("rerun", reason="rerun-sdk (the `viz` extra) is not installed")
-    seq, out = orb_run
+    seq, out = loop_run
     args = {"no_folder": [str(tmp_path / "nope")],
             "no_trajectory": [str(tmp_path)],
             "bad_every": [str(out), "--images-every", "0"],
@@ -185,11 +186,11 @@ def test_bad_input_is_one_line(orb_run, tmp_path, case):
     assert len(res.output.strip().splitlines()) == 1
 
 
-def test_run_with_rerun_flag_writes_the_recording(orb_run, tmp_path):
+def test_run_with_rerun_flag_writes_the_recording(loop_run, tmp_path):
     """`run --rerun` on a selection (frames 8-31, half resolution) exports it: one camera pose per processed frame,
     images every 10th, and the dataset options kept in metrics.json for a later `surfelslam rerun`."""
     cli = _rerun_cli()
-    seq, _ = orb_run
+    seq, _ = loop_run
     out = tmp_path / "dense"
     res = runner.invoke(app, ["run", str(seq), "--out", str(out), "--start", "8", "--end", "32", "--downsample", "2",
                               "--no-figures", "--no-progress", "--rerun"])
@@ -205,12 +206,12 @@ def test_run_with_rerun_flag_writes_the_recording(orb_run, tmp_path):
     assert "3 image pairs" in " ".join(again.output.split())
 
 
-def test_unreadable_frame_is_skipped_and_reported(orb_run, tmp_path):
+def test_unreadable_frame_is_skipped_and_reported(loop_run, tmp_path):
     """A frame that became unreadable since the run is left out of the images and named; the rest is written."""
     import shutil
 
     cli = _rerun_cli()
-    seq, out = orb_run
+    seq, out = loop_run
     seq2 = tmp_path / "seq"
     shutil.copytree(seq, seq2)
     bad = sorted((seq2 / "depth").iterdir())[8]
