@@ -42,7 +42,9 @@ def _run(frames, intr=INTR_SMALL, tracker=None, **tracking):
 def test_degenerate_frames_are_registered_weakly_and_fused_instead_of_refused():
     frames, gt = _plane_frames()
     weak = _run(frames, tracker="dense")  # the dense tracker's own handling (the hybrid would relocalise)
-    refused = _run(frames, tracker="dense", fuse_weak_frames=False)
+    # relocalisation off: a plain wall gives the shape guess nothing to match (measured: the same poses, and 47
+    # vain attempts that took 5 of the test's 6 s)
+    refused = _run(frames, tracker="dense", fuse_weak_frames=False, relocalise_after_failures=0)
     assert refused.metrics["tracking_failure_reasons"].get("degenerate", 0) > 20
     assert weak.metrics["tracking_failures"] == 0 and weak.metrics["weak_frames"] > 30
     assert weak.metrics["frames_fused"] == len(frames) > refused.metrics["frames_fused"]
