@@ -191,7 +191,7 @@ def test_run_with_rerun_flag_writes_the_recording(loop_run, tmp_path):
     images every 10th, and the dataset options kept in metrics.json for a later `surfelslam rerun`."""
     cli = _rerun_cli()
     seq, _ = loop_run
-    out = tmp_path / "dense"
+    out = tmp_path / "selection"
     res = runner.invoke(app, ["run", str(seq), "--out", str(out), "--start", "8", "--end", "32", "--downsample", "2",
                               "--no-figures", "--no-progress", "--rerun"])
     assert res.exit_code == 0, res.output
