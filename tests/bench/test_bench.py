@@ -159,6 +159,26 @@ def test_markdown_flags_failures() -> None:
     assert "git abc + local changes in src/" in md
 
 
+def test_default_speed_line_names_the_rows_below_the_target() -> None:
+    """The default tracker's 320x240 rows against 30 FPS, dense's FPS beside them; other trackers, other
+    resolutions and the dense rows cut from a longer run (``from``) do not count."""
+    from benchmarks import report
+
+    def row(seq, tracker, fps, resolution="320x240", **kw):
+        return {"sequence": seq, "tracker": tracker, "fps": fps, "resolution": resolution, **kw}
+
+    rows = [row("a", "dense", 40.0), row("a", "hybrid", 31.0), row("b", "dense", 35.0), row("b", "hybrid", 29.5),
+            row("b", "orb", 10.0), row("c", "hybrid", 12.0, "640x480"),
+            row("b", "dense", None, frames=200, **{"from": 1})]
+    (line, _) = report._default_speed(rows)
+    assert "29.5-31.0 FPS over its 2 rows" in line
+    assert "(issue 33): **NO** on b." in line
+    assert "Dense on the same rows: 40.0, 35.0 FPS" in line
+    (line, _) = report._default_speed(rows[:2])
+    assert "(issue 33): yes." in line
+    assert report._default_speed([row("a", "dense", 40.0)]) == []
+
+
 def test_budget() -> None:
     b = run_all.Budget(100.0)
     assert b.fits("a", 10.0)
