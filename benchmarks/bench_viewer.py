@@ -15,6 +15,7 @@ Usage: ``.venv/bin/python -m benchmarks.bench_viewer [--frames N] [--repeats K] 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import shutil
 import statistics
@@ -36,6 +37,11 @@ TARGET_COST_PCT = 10.0
 VERIFY_TIMEOUT_S = 120.0
 WARMUP_FRAMES = 10  # the untimed first run of each variant (JIT, rerun-sdk import)
 DEFAULTS = LiveViewerConfig()  # `surfelslam run --viewer`'s defaults (images and map every N frames)
+
+
+def missing() -> str | None:
+    """Why the section cannot run here (rerun-sdk, the `viz` extra, is not installed), or ``None``."""
+    return None if importlib.util.find_spec("rerun") else "rerun-sdk is not installed (the `viz` extra)"
 
 
 def rerun_cli() -> Path | None:

@@ -248,6 +248,17 @@ def test_viewer_and_mesh_sections_spliced_into_the_last_results(tmp_path) -> Non
             assert len({ln.count("|") for ln in lines}) == 1, block
 
 
+def test_viewer_section_without_rerun_is_skipped_not_an_error(tmp_path, monkeypatch) -> None:
+    """Without rerun-sdk (an optional extra) the viewer section is skipped with the reason, and nothing is an error."""
+    from benchmarks import bench_viewer
+
+    monkeypatch.setattr(bench_viewer.importlib.util, "find_spec", lambda name: None)
+    res = {"skipped": [], "errors": [], "meta": {"section_seconds": {}}}
+    assert run_all.standalone_section(res, "viewer", SPLICE, tmp_path, open3d=False) is None
+    assert res["skipped"] == [{"what": "the viewer section", "reason": "rerun-sdk is not installed (the `viz` extra)"}]
+    assert res["errors"] == []
+
+
 def test_sections_option_refuses_other_names(capsys) -> None:
     with pytest.raises(SystemExit):
         run_all.main(["--sections", "stages"])
