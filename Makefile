@@ -65,8 +65,9 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) || true
-	$(call INSTALL,dev$(COMMA)bench$(COMMA)viz) || (echo "rerun-sdk not installable here: the bench runs without the viewer section" && \
-	$(call INSTALL,dev$(COMMA)bench)) || echo "open3d not installable here: benchmarks run without the side-by-side"
+	$(call INSTALL,dev$(COMMA)bench$(COMMA)viz) || { \
+	$(call INSTALL,dev$(COMMA)bench) || echo "open3d not installable here: benchmarks run without the side-by-side"; \
+	$(call INSTALL,dev$(COMMA)viz) || echo "rerun-sdk not installable here: the bench runs without the viewer section"; }
 	$(PY) -m benchmarks.run_all $(BENCH_ARGS)
 
 # the configuration reference, generated from the settings' metadata (a test checks the committed page is current)
