@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import make_T, so3_exp
 from surfelslam.synth.writer import default_intrinsics
 from surfelslam.types import Intrinsics
@@ -102,6 +103,14 @@ def render_room(T_world_cam: np.ndarray, intr: Intrinsics, supersample: int = 2)
         _, depth = render_room(T_world_cam, intr, supersample=1)
         return rgb, depth
     return rgb, t.astype(np.float32)  # d_cam has z = 1, so the ray parameter is the depth
+
+
+def motion(rot_axis, rot_deg: float, trans_dir, trans_m: float) -> np.ndarray:
+    """``(4, 4)`` rigid motion ``exp([w, v])``: ``rot_deg`` about ``rot_axis`` with ``trans_m`` along ``trans_dir``
+    (the axes need not be unit vectors)."""
+    a = np.asarray(rot_axis, float)
+    t = np.asarray(trans_dir, float)
+    return se3_exp(np.concatenate([a / np.linalg.norm(a) * np.radians(rot_deg), t / np.linalg.norm(t) * trans_m]))
 
 
 def look_pose(position: np.ndarray, yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
