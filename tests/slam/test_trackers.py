@@ -142,34 +142,35 @@ def test_hybrid_deterministic():
     assert res_a.metrics["loops_accepted"] == res_b.metrics["loops_accepted"]
 
 
-def test_hybrid_relocalises_after_a_two_second_gap():
-    keep = tuple(range(0, 35)) + tuple(range(95, 130))  # 60 frames (2 s at 30 Hz) dropped
-    frames, gt = _frames("slow", 130, keep=keep)
-    est, res, slam = _run("hybrid", frames)
-    assert slam.counts["relocalisations_tracked"] == 1 and res.metrics["tracking_failures"] == 3
-    assert res.metrics["relocalisations"] == 1 and res.metrics["shape_relocalisations"] == 0
-    after = np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est[35:], keep[35:], strict=True)])
-    # 3 frames lost (the PnP guess against the last keyframe is too large a motion), then relocalised against all
-    # keyframes (``hybrid.relocalise_after_failures``, as dense's): measured 2 mm from the fourth frame on
-    assert after[3:].max() < 0.01, after
-    assert res.metrics["frames_fused"] == len(keep) - 3
+GAP_KEEP = tuple(range(0, 35)) + tuple(range(95, 130))  # the slow orbit's frames 35-94 (2 s at 30 Hz) dropped
 
 
 def _gap_run(tracker: str, cfg: SlamConfig | None = None, grey: bool = False):
-    """Synthetic slow orbit, frames 35-94 (2 s) dropped: 78 cm and 36 deg between the frames either side."""
-    keep = tuple(range(0, 35)) + tuple(range(95, 130))
-    run, gt = _frames("slow", 130, keep=keep)
+    """Synthetic slow orbit, frames 35-94 (2 s) dropped: 78 cm and 36 deg between the frames either side. Returns
+    ``(translation error (m) per kept frame (70,), result, tracker)``."""
+    run, gt = _frames("slow", 130, keep=GAP_KEEP)
     if grey:  # no texture: no keypoints, so no PnP relocalisation
         run = [RGBDFrame(f.index, f.timestamp, np.full_like(f.rgb, 128), f.depth_m) for f in run]
     est, res, slam = _run(tracker, run, cfg)
-    return np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est, keep, strict=True)]), res
+    return np.array([se3.pose_error(e, gt[i])[0] for e, i in zip(est, GAP_KEEP, strict=True)]), res, slam
+
+
+def test_hybrid_relocalises_after_a_two_second_gap():
+    err, res, slam = _gap_run("hybrid")
+    assert slam.counts["relocalisations_tracked"] == 1 and res.metrics["tracking_failures"] == 3
+    assert res.metrics["relocalisations"] == 1 and res.metrics["shape_relocalisations"] == 0
+    after = err[35:]
+    # 3 frames lost (the PnP guess against the last keyframe is too large a motion), then relocalised against all
+    # keyframes (``hybrid.relocalise_after_failures``, as dense's): measured 2 mm from the fourth frame on
+    assert after[3:].max() < 0.01, after
+    assert res.metrics["frames_fused"] == len(GAP_KEEP) - 3
 
 
 @pytest.mark.heavy  # make test-all; make test keeps the hybrid's gap (above) and its shape relocalisation (below)
 def test_dense_relocalises_from_the_depth_after_a_two_second_gap():
     """After 3 failed frames the frame is registered to the map rendered at the last tracked pose from the
     shape-feature (FPFH) guess (without it dense never recovers: the next test)."""
-    err, res = _gap_run("dense")
+    err, res, _ = _gap_run("dense")
     assert res.metrics["relocalisations"] == 1 and res.metrics["tracking_failures"] == 3
     assert err[35 + 3:].max() < 0.01, err[35:]
     assert res.metrics["frames_fused"] == 70 - 3
@@ -178,7 +179,7 @@ def test_dense_relocalises_from_the_depth_after_a_two_second_gap():
 @pytest.mark.heavy  # make test-all: the contrast to the test above
 def test_dense_never_recovers_from_the_gap_without_relocalisation():
     """The same gap with ``tracking.relocalise_after_failures = 0``: every frame after it fails, metres off."""
-    err_off, res_off = _gap_run("dense", SlamConfig(tracking=TrackingConfig(relocalise_after_failures=0)))
+    err_off, res_off, _ = _gap_run("dense", SlamConfig(tracking=TrackingConfig(relocalise_after_failures=0)))
     assert err_off[35:].min() > 0.3 and res_off.metrics["tracking_failures"] == 35
     assert res_off.metrics["relocalisations_tried"] == 0
 
@@ -188,7 +189,7 @@ def test_orb_relocalises_and_tracks_on_after_a_two_second_gap():
     """The relocalised frame is 78 cm / 36 deg from the last keyframe, beyond the odometry's motion bound (0.3):
     it becomes a keyframe, so the frames after it are tracked against it. Before, each was rejected as too large a
     motion, relocalised again and lost again (35 failures, 11 relocalisations, poses metres off)."""
-    err, res = _gap_run("orb")
+    err, res, _ = _gap_run("orb")
     assert res.metrics["tracking_failures"] == 3 and res.metrics["relocalisations"] == 1
     # measured 6-9 mm (unaligned, after 35 frames of odometry) from the relocalised frame on
     assert err[35 + 2:].max() < 0.02, np.round(err[35:] * 1e3, 1)
@@ -287,7 +288,7 @@ def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
 
 
 def test_hybrid_relocalises_textureless_frames_by_shape():
-    err, res = _gap_run("hybrid", grey=True)
+    err, res, _ = _gap_run("hybrid", grey=True)
     assert res.metrics["relocalisations_tracked"] == 0  # PnP has no keypoints
     assert res.metrics["shape_relocalisations"] == 1 and res.metrics["tracking_failures"] == 3
     assert res.metrics["relocalisations"] == 1  # the key dense and orb report too
