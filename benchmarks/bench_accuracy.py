@@ -135,10 +135,10 @@ def prefix_row(name: str, path: Path, downsample: int, run_dir: Path, n_frames: 
     FPS and timings are not measured for the prefix (``None``).
     """
     from surfelslam.eval.metrics import evaluate
-    from surfelslam.types import Trajectory
+    from surfelslam.io.trajectory import read_tum
 
     seq = open_sequence(path, DatasetOptions(downsample=downsample, end=n_frames))
-    est = Trajectory.read_tum(run_dir / "trajectory.txt").subset(slice(0, n_frames))
+    est = read_tum(run_dir / "trajectory.txt").subset(slice(0, n_frames))
     e = evaluate(est, seq.ground_truth)
     m = json.loads((run_dir / "metrics.json").read_text())
     return {

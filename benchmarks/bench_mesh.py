@@ -129,10 +129,10 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
     if not (run_dir / "metrics.json").is_file():
         run_sequence(seq, run_dir, SlamConfig(), progress=False, figures=False)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    from surfelslam.types import Trajectory
+    from surfelslam.io.trajectory import read_tum
 
     gt, ok_gt = seq.ground_truth.lookup(seq.timestamps, 1e-4)
-    est_raw, ok_est = Trajectory.read_tum(run_dir / "trajectory.txt").lookup(seq.timestamps, 1e-4)
+    est_raw, ok_est = read_tum(run_dir / "trajectory.txt").lookup(seq.timestamps, 1e-4)
     assert ok_gt.all() and ok_est.all()
     est = mq.first_pose_alignment(est_raw[0], gt[0]) @ est_raw
     frames_mem = [seq[i] for i in range(len(seq))]

@@ -54,6 +54,7 @@ from benchmarks.common import (
 )
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
+from surfelslam.io.trajectory import read_tum
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
@@ -174,7 +175,7 @@ def replayed_sequence(spec: Replayed, motion_file: Path, width: int, cache: Path
     key = (f"{spec.scene}_replay-{motion_hash}_{spec.texture}_{spec.n_frames}f_{width}x{height}_{NOISE}_s{SEED}_"
            f"{_generator_hash()}")
     return _cached_sequence(cache, key, scene=spec.scene, n_frames=spec.n_frames, noise=NOISE, width=width,
-                            height=height, texture=spec.texture, motion=Trajectory.read_tum(motion_file),
+                            height=height, texture=spec.texture, motion=read_tum(motion_file),
                             motion_label=spec.motion, seed=SEED)
 
 
@@ -208,7 +209,7 @@ def run_tracker(label: str, seq, tracker: str, out_dir: Path) -> dict:
     m = json.loads((out_dir / "metrics.json").read_text())
     e = m.get("eval") or {}
     segs = m.get("tracking_segments", [])
-    est = Trajectory.read_tum(out_dir / "trajectory.txt")
+    est = read_tum(out_dir / "trajectory.txt")
     row = {
         "sequence": label, "tracker": tracker, "frames": m["frames_processed"],
         "resolution": "x".join(str(v) for v in m["resolution"]),

@@ -29,6 +29,7 @@ from surfelslam.datasets.registry import open_sequence as _open_sequence
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
 from surfelslam.eval.metrics import evaluate as _evaluate
+from surfelslam.io.trajectory import read_tum, write_tum
 from surfelslam.slam import TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
 from surfelslam.slam.colour_check import colour_is_registered
 from surfelslam.slam.saved_map import SavedMap, check_map_options
@@ -101,7 +102,7 @@ class SlamRun:
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        self.trajectory.write_tum(out / "trajectory.txt")
+        write_tum(self.trajectory, out / "trajectory.txt")
         self.result.write_map(out / "map.ply")
         recipe = dumps_toml(self.config)
         write_text_atomic(out / "config.toml", recipe)
@@ -251,6 +252,6 @@ def evaluate(estimate: Trajectory | str | Path, ground_truth: Trajectory | str |
     Returns plain numbers: ``ate_rmse_m``, ``ate_mean_m``, ``ate_max_m``, ``rpe_trans_rmse_m_per_frame``, ...
     (:func:`surfelslam.eval.metrics.evaluate`). ``max_diff_s``: the timestamp association bound.
     """
-    est = estimate if isinstance(estimate, Trajectory) else Trajectory.read_tum(estimate)
-    gt = ground_truth if isinstance(ground_truth, Trajectory) else Trajectory.read_tum(ground_truth)
+    est = estimate if isinstance(estimate, Trajectory) else read_tum(estimate)
+    gt = ground_truth if isinstance(ground_truth, Trajectory) else read_tum(ground_truth)
     return _evaluate(est, gt, max_diff_s)

@@ -186,19 +186,6 @@ class Trajectory:
         T = make_T(quat_xyzw_to_rotation(rows[:, 4:8]), rows[:, 1:4])
         return cls(rows[:, 0], T)
 
-    @classmethod
-    def read_tum(cls, path) -> Trajectory:
-        """Read a TUM trajectory file (see :mod:`surfelslam.io.trajectory`)."""
-        from surfelslam.io.trajectory import read_tum
-
-        return read_tum(path)
-
-    def write_tum(self, path) -> None:
-        """Write a TUM trajectory file atomically (see :mod:`surfelslam.io.trajectory`)."""
-        from surfelslam.io.trajectory import write_tum
-
-        write_tum(self, path)
-
     def lookup(self, stamps: np.ndarray, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose with the nearest timestamp for each query stamp.
 

@@ -7,6 +7,7 @@ import pytest
 
 import surfelslam as ss
 from surfelslam.errors import ConfigError, FrameError
+from surfelslam.io.trajectory import read_tum
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
@@ -28,9 +29,9 @@ def test_slam_track_finish_equals_the_run_loop(seq_path, tmp_path, tracker):
     run = slam.finish()
     assert len(results) == len(seq) == len(run.trajectory)
     run_sequence(seq, tmp_path / "run", ss.SlamConfig(), tracker, progress=False, figures=False)
-    written = ss.Trajectory.read_tum(tmp_path / "run" / "trajectory.txt")
+    written = read_tum(tmp_path / "run" / "trajectory.txt")
     out = run.save(tmp_path / "api")
-    saved = ss.Trajectory.read_tum(out / "trajectory.txt")
+    saved = read_tum(out / "trajectory.txt")
     np.testing.assert_array_equal(saved.T_world_cam, written.T_world_cam)
     np.testing.assert_array_equal(saved.timestamps, written.timestamps)
     assert (out / "map.ply").stat().st_size > 1000 and (out / "metrics.json").is_file()

@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 from surfelslam.errors import GroundTruthError
 from surfelslam.eval import metrics
 from surfelslam.geometry.se3 import make_T, so3_exp
+from surfelslam.io.trajectory import read_tum, write_tum
 from surfelslam.tools import eval as eval_tool
 from surfelslam.types import Trajectory
 
@@ -53,9 +54,9 @@ def traj_files(tmp_path_factory) -> tuple[Path, Path, Trajectory, Trajectory]:
     """GT and estimate written as TUM files and read back (both evo and we see the same numbers)."""
     d = tmp_path_factory.mktemp("traj")
     gt_path, est_path = d / "gt.txt", d / "est.txt"
-    smooth_gt().write_tum(gt_path)
-    perturbed_estimate(smooth_gt()).write_tum(est_path)
-    return gt_path, est_path, Trajectory.read_tum(gt_path), Trajectory.read_tum(est_path)
+    write_tum(smooth_gt(), gt_path)
+    write_tum(perturbed_estimate(smooth_gt()), est_path)
+    return gt_path, est_path, read_tum(gt_path), read_tum(est_path)
 
 
 def evo_cli_stats(tmp_path: Path, tool: str, gt_path: Path, est_path: Path, *args: str) -> dict:
@@ -245,7 +246,7 @@ def test_cli_bad_input_exit_2_one_line(cli, traj_files, tmp_path):
     bad = tmp_path / "bad.txt"
     bad.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 oops 0 0 0 1\n")
     far = tmp_path / "far.txt"
-    Trajectory(gt.timestamps + 500.0, gt.T_world_cam).write_tum(far)
+    write_tum(Trajectory(gt.timestamps + 500.0, gt.T_world_cam), far)
     cases = [
         ([str(tmp_path / "missing.txt"), str(gt_path)], "missing.txt"),
         ([str(bad), str(gt_path)], "bad.txt: line 2"),
@@ -265,9 +266,9 @@ def test_cli_bad_input_exit_2_one_line(cli, traj_files, tmp_path):
 
 def test_cli_gt_from_sequence_folder(cli, tmp_path):
     seq = shared_sequence("7scenes_redkitchen_0000_0499")
-    gt = Trajectory.read_tum(seq / "groundtruth.txt")
+    gt = read_tum(seq / "groundtruth.txt")
     est_path = tmp_path / "est.txt"
-    Trajectory(gt.timestamps, rigid([0.1, 0.2, 0.3], [1, 2, 3]) @ gt.T_world_cam).write_tum(est_path)
+    write_tum(Trajectory(gt.timestamps, rigid([0.1, 0.2, 0.3], [1, 2, 3]) @ gt.T_world_cam), est_path)
     r = CliRunner().invoke(cli, ["eval", str(est_path), str(seq), "--no-plots"])
     assert r.exit_code == 0, r.output
     saved = json.loads((tmp_path / "eval.json").read_text())

@@ -13,18 +13,19 @@ from faultkit import assert_one_line, cli, no_temp_files
 
 from surfelslam.errors import EvaluationError, SurfelSlamError
 from surfelslam.eval import metrics
+from surfelslam.io.trajectory import read_tum, write_tum
 from surfelslam.tools.eval import EVAL_FILES, within_span
 from surfelslam.types import Trajectory
 
 
 @pytest.fixture
 def gt(synth_seq):
-    return Trajectory.read_tum(synth_seq / "groundtruth.txt")
+    return read_tum(synth_seq / "groundtruth.txt")
 
 
 def _est(tmp_path, traj: Trajectory, name: str = "est.txt"):
     path = tmp_path / name
-    traj.write_tum(path)
+    write_tum(traj, path)
     return path
 
 
@@ -65,7 +66,7 @@ def test_max_diff_out_of_domain(synth_seq, tmp_path, gt, value):
 def test_eval_never_replaces_a_runs_files(synth_seq, tmp_path, gt):
     run = tmp_path / "run"
     run.mkdir()
-    gt.write_tum(run / "trajectory.txt")
+    write_tum(gt, run / "trajectory.txt")
     own = {name: f"run's {name}".encode() for name in ("trajectory.png", "ate_errors.png", "metrics.json")}
     for name, data in own.items():
         (run / name).write_bytes(data)

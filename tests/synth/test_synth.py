@@ -10,6 +10,7 @@ from surfelslam.errors import ConfigError
 from surfelslam.geometry.camera import backproject
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import make_T, rotation_angle_deg, so3_exp
+from surfelslam.io.trajectory import write_tum
 from surfelslam.kernels.raycast import raycast_ref
 from surfelslam.synth import SCENES, STYLES, make_scene, make_trajectory, render
 from surfelslam.synth.noise import (
@@ -381,7 +382,7 @@ def test_synth_command_replays_a_trajectory_file(tmp_path):
     from surfelslam.datasets import open_sequence
 
     rec = _recorded_motion()
-    rec.write_tum(tmp_path / "gt.txt")
+    write_tum(rec, tmp_path / "gt.txt")
     res = CliRunner().invoke(app, ["synth", str(tmp_path / "seq"), "--motion", str(tmp_path / "gt.txt"),
                                    "--speed", "3", "--frames", "20", "--width", "80", "--height", "60"])
     assert res.exit_code == 0, res.output

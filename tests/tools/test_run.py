@@ -14,11 +14,11 @@ from surfelslam.config import load_toml
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.io.ply import read_ply
 from surfelslam.io.run_folder import staging_path
+from surfelslam.io.trajectory import read_tum, write_tum
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.writer import generate_sequence
-from surfelslam.types import Trajectory
 
 pytestmark = pytest.mark.slow  # whole sequences through trackers or commands
 
@@ -67,7 +67,7 @@ def test_given_trajectory_file_skips_frames_without_a_pose(synth_seq, tmp_path):
     gt = open_sequence(synth_seq).ground_truth
     keep = np.arange(len(gt)) % 2 == 0
     poses = tmp_path / "half.txt"
-    gt.subset(keep).write_tum(poses)
+    write_tum(gt.subset(keep), poses)
     out = tmp_path / "run"
     res = runner.invoke(app, ["run", str(synth_seq), "--out", str(out), "--poses", str(poses), "--no-progress",
                               "--no-figures"])
@@ -75,7 +75,7 @@ def test_given_trajectory_file_skips_frames_without_a_pose(synth_seq, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames_processed"] == keep.sum()
     assert metrics["frames_skipped"] == (~keep).sum()
-    written = Trajectory.read_tum(out / "trajectory.txt")
+    written = read_tum(out / "trajectory.txt")
     assert np.allclose(written.T_world_cam, gt.T_world_cam[keep], atol=1e-6)
 
 
@@ -96,7 +96,7 @@ def test_killed_run_keeps_every_finished_frame_in_its_staging_folder(synth_seq, 
     with pytest.raises(KeyboardInterrupt):
         run_sequence(seq, tmp_path / "run", SlamConfig(), "dense", poses="gt", progress=False, figures=False)
     assert not (tmp_path / "run" / "trajectory.txt").exists()  # nothing handed over
-    traj = Trajectory.read_tum(staging_path(tmp_path / "run") / "trajectory.txt")
+    traj = read_tum(staging_path(tmp_path / "run") / "trajectory.txt")
     assert len(traj) == 7
     assert np.allclose(traj.T_world_cam, seq.ground_truth.T_world_cam[:7], atol=1e-6)
 

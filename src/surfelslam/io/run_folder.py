@@ -284,12 +284,12 @@ def _hand_over(journal: Path, out: Path) -> None:
 def read_run_trajectory(run_dir: Path):
     """A finished run's ``trajectory.txt`` as a :class:`~surfelslam.types.Trajectory`; one line naming the file
     when it is missing (not a run folder) or holds no pose."""
-    from surfelslam.types import Trajectory  # types imports io: imported here, not at module level
+    from surfelslam.io.trajectory import read_tum
 
     path = Path(run_dir) / "trajectory.txt"
     if not path.is_file():
         raise InputError(path, "missing: not the output folder of `surfelslam run`")
-    est = Trajectory.read_tum(path)
+    est = read_tum(path)
     if len(est) == 0:
         raise InputError(path, "has no poses")
     return est

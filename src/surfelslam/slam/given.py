@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from surfelslam.errors import GroundTruthError
+from surfelslam.io.trajectory import read_tum
 from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer
 from surfelslam.slam.mapper import FusingMapper
 from surfelslam.slam.protocol import register_tracker
-from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
+from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
 
 @register_tracker("given")
@@ -52,7 +53,7 @@ def poses_for_mapping(seq, poses: str, cfg: SlamConfig) -> dict[int, np.ndarray]
             raise GroundTruthError(seq.root, "--poses gt: this sequence has no ground truth")
         traj = seq.ground_truth
     else:
-        traj = Trajectory.read_tum(poses)
+        traj = read_tum(poses)
     T, valid = traj.lookup(seq.timestamps, cfg.given_poses.max_dt_s)
     if not valid.any():
         src = "ground truth" if poses == "gt" else poses

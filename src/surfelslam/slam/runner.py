@@ -35,7 +35,7 @@ from surfelslam.io.jsonio import json_default
 from surfelslam.io.map_file import MAP_FILE, write_map_file
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.run_folder import RunFolder
-from surfelslam.io.trajectory import TumAppender
+from surfelslam.io.trajectory import TumAppender, read_tum, write_tum
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
 from surfelslam.slam.colour_check import colour_is_registered
@@ -296,7 +296,7 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
     result = slam.finish()
     if result.trajectory_override is not None:
         # A back end (pose graph) corrected the poses: the written trajectory is the optimised one.
-        result.trajectory_override.write_tum(out_dir / "trajectory.txt")
+        write_tum(result.trajectory_override, out_dir / "trajectory.txt")
 
     metrics = {
         "sequence": str(seq.root),
@@ -330,9 +330,8 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
         metrics["loop_edges"] = [[float(a), float(b)] for a, b in result.loop_stamps]
     if seq.ground_truth is not None and n_done >= 3:
         from surfelslam.eval.metrics import evaluate
-        from surfelslam.types import Trajectory
 
-        est = Trajectory.read_tum(out_dir / "trajectory.txt")
+        est = read_tum(out_dir / "trajectory.txt")
         try:
             metrics["eval"] = evaluate(est, seq.ground_truth)
         except Exception as exc:  # noqa: BLE001 - evaluation problems must not lose the run's outputs
@@ -372,10 +371,9 @@ def _figures_wanted(figures: bool | Collection[str]) -> frozenset[str]:
 
 
 def _write_figures(out_dir: Path, seq, result, metrics: dict, wanted: frozenset[str]) -> None:
-    from surfelslam.types import Trajectory
     from surfelslam.viz.map_figures import save_map_figures
 
-    est = Trajectory.read_tum(out_dir / "trajectory.txt")
+    est = read_tum(out_dir / "trajectory.txt")
     if "eval" in metrics and wanted & {"trajectory", "ate_errors"}:
         from surfelslam.eval.metrics import ate
         from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory

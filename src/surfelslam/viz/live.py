@@ -345,12 +345,13 @@ class LiveViewer:
         import json
 
         from surfelslam.io.ply import read_ply
+        from surfelslam.io.trajectory import read_tum
 
         rr, rec = self.rr, self.rec
         traj_path = run_dir / "trajectory.txt"
         if not traj_path.is_file() or self._t0 is None:
             return
-        est = Trajectory.read_tum(traj_path)
+        est = read_tum(traj_path)
         if len(est) == 0:
             return
         self._set_time(self.stats.frames - 1, float(est.timestamps[-1]))

@@ -93,8 +93,8 @@ def section_dormant(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, dense
 def section_trajectories(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, dense_metrics: dict,
                          has_gt: bool):
     from surfelslam.eval.metrics import ate
+    from surfelslam.io.trajectory import read_tum
     from surfelslam.slam import TRACKERS
-    from surfelslam.types import Trajectory
     from surfelslam.viz.experiment_figures import plot_trajectories
 
     lines = [SECTION_TITLES[5], ""]
@@ -123,7 +123,7 @@ def section_trajectories(seq_runs, out_dir: Path, cfg, opts: ExperimentOptions, 
         lines.append(f"| {name} | ran | {m['frames_processed']} | {m.get('tracking_failures', 0)} | "
                      f"{fmt_value(None if a is None else 100 * a)} | {m['fps']:.1f} |")
         try:
-            ar = ate(Trajectory.read_tum(d / "trajectory.txt"), seq_runs.ground_truth)
+            ar = ate(read_tum(d / "trajectory.txt"), seq_runs.ground_truth)
             estimates[f"{name} (ATE {fmt_value(None if a is None else 100 * a)} cm)"] = ar.est_aligned
             gt_plot = ar.gt if gt_plot is None else gt_plot
         except Exception as exc:  # noqa: BLE001 - a trajectory that cannot be aligned is left out of the plot
