@@ -170,22 +170,6 @@ class Trajectory:
         """``(N, 3)`` camera centres in the world frame."""
         return self.T_world_cam[:, :3, 3]
 
-    def to_tum_rows(self) -> np.ndarray:
-        """``(N, 8)`` rows ``timestamp tx ty tz qx qy qz qw``."""
-        from surfelslam.geometry.se3 import rotation_to_quat_xyzw
-
-        q = rotation_to_quat_xyzw(self.T_world_cam[:, :3, :3])
-        return np.column_stack([self.timestamps, self.positions, q])
-
-    @classmethod
-    def from_tum_rows(cls, rows: np.ndarray) -> Trajectory:
-        """Build from ``(N, 8)`` rows ``timestamp tx ty tz qx qy qz qw``."""
-        from surfelslam.geometry.se3 import make_T, quat_xyzw_to_rotation
-
-        rows = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
-        T = make_T(quat_xyzw_to_rotation(rows[:, 4:8]), rows[:, 1:4])
-        return cls(rows[:, 0], T)
-
     def lookup(self, stamps: np.ndarray, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose with the nearest timestamp for each query stamp.
 
@@ -204,41 +188,6 @@ class Trajectory:
         valid = np.abs(t[best] - stamps) <= max_dt_s
         T[valid] = self.T_world_cam[best[valid]]
         return T, valid
-
-    def interpolate(self, stamps: np.ndarray, max_gap_s: float, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Pose at each query stamp, interpolated between the two poses that bracket it.
-
-        Translation is interpolated linearly and rotation along the geodesic (SLERP) when the bracketing
-        poses are at most ``max_gap_s`` apart; otherwise (a gap in the trajectory, or a stamp outside it) the
-        nearest pose is used if it is within ``max_dt_s`` (:meth:`lookup`).
-
-        Returns:
-            ``(T_world_cam (M, 4, 4), valid (M,) bool)``, invalid rows are the identity.
-        """
-        stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
-        T, valid = self.lookup(stamps, max_dt_s)
-        t = self.timestamps
-        if len(t) < 2:
-            return T, valid
-        hi = np.searchsorted(t, stamps, side="right")
-        for k in np.nonzero((hi > 0) & (hi < len(t)))[0]:
-            a, b = hi[k] - 1, hi[k]
-            gap = t[b] - t[a]
-            if not 0 < gap <= max_gap_s:
-                continue
-            T[k], valid[k] = self.pose_between(a, b, (stamps[k] - t[a]) / gap), True
-        return T, valid
-
-    def pose_between(self, a: int, b: int, s: float) -> np.ndarray:
-        """``(4, 4)`` pose the fraction ``s`` of the way from pose ``a`` to pose ``b``: translation linear,
-        rotation along the geodesic (SLERP); ``s`` outside [0, 1] extrapolates."""
-        from surfelslam.geometry.se3 import so3_exp, so3_log
-
-        Ta, Tb = self.T_world_cam[a], self.T_world_cam[b]
-        Ti = np.eye(4)
-        Ti[:3, :3] = Ta[:3, :3] @ so3_exp(s * so3_log(Ta[:3, :3].T @ Tb[:3, :3]))
-        Ti[:3, 3] = (1 - s) * Ta[:3, 3] + s * Tb[:3, 3]
-        return Ti
 
     def subset(self, mask_or_index) -> Trajectory:
         return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])

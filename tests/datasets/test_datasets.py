@@ -407,6 +407,7 @@ def test_intrinsics_downsample_consistency():
 
 def test_trajectory_interpolate_slerp_and_gaps():
     from surfelslam.geometry import se3
+    from surfelslam.geometry.interpolation import interpolate_poses
     from surfelslam.types import Trajectory
 
     R_b = se3.so3_exp(np.array([0.0, 0.0, np.radians(20.0)]))
@@ -414,7 +415,7 @@ def test_trajectory_interpolate_slerp_and_gaps():
     T[1, :3, :3], T[1, :3, 3] = R_b, [0.1, 0.0, 0.0]
     T[2, :3, 3] = [5.0, 0.0, 0.0]
     traj = Trajectory(np.array([0.0, 0.01, 1.0]), T)
-    Ti, ok = traj.interpolate(np.array([0.0025, 0.5, 0.985, 2.0, 1.01]), max_gap_s=0.05, max_dt_s=0.02)
+    Ti, ok = interpolate_poses(traj, np.array([0.0025, 0.5, 0.985, 2.0, 1.01]), max_gap_s=0.05, max_dt_s=0.02)
     # a quarter of the way: 2.5 cm and 5 degrees about z
     assert ok[0] and np.allclose(Ti[0, :3, 3], [0.025, 0, 0])
     assert np.isclose(se3.rotation_angle_deg(Ti[0, :3, :3]), 5.0) and Ti[0, 1, 0] > 0

@@ -8,6 +8,7 @@ import pytest
 
 from surfelslam.errors import ConfigError
 from surfelslam.geometry.camera import backproject
+from surfelslam.geometry.interpolation import interpolate_poses
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import make_T, rotation_angle_deg, so3_exp
 from surfelslam.io.trajectory import write_tum
@@ -341,7 +342,7 @@ def test_replay_motion_keeps_the_recorded_motion_and_clears_the_scene(scenes, sp
     traj = replay_motion(rec, n, scenes["room"], fps=30.0, speed=speed, clearance_m=0.35)
     assert len(traj.timestamps) == n and np.allclose(traj.timestamps, np.arange(n) / 30.0)
     stamps = rec.timestamps[0] + np.arange(n) * speed / 30.0
-    T_rec, valid = rec.interpolate(stamps, 0.1, 0.02)
+    T_rec, valid = interpolate_poses(rec, stamps, 0.1, 0.02)
     assert valid.all()
     R_got, t_got = _relative(traj.T_world_cam)
     R_want, t_want = _relative(T_rec)
@@ -389,7 +390,7 @@ def test_synth_command_replays_a_trajectory_file(tmp_path):
     seq = open_sequence(tmp_path / "seq")
     assert len(seq) == 20 and "at 3x speed" in (tmp_path / "seq" / "INFO.txt").read_text()
     R_got, _ = _relative(seq.ground_truth.T_world_cam)
-    T_rec, _ = rec.interpolate(rec.timestamps[0] + np.arange(20) * 0.1, 0.1, 0.02)
+    T_rec, _ = interpolate_poses(rec, rec.timestamps[0] + np.arange(20) * 0.1, 0.1, 0.02)
     R_want, _ = _relative(T_rec)
     assert np.allclose(R_got, R_want, atol=1e-6)  # groundtruth.txt keeps 7+ significant digits
     bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--motion", str(tmp_path / "missing.txt")])

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from surfelslam.errors import ConfigError, FrameError
+from surfelslam.geometry.interpolation import interpolate_poses
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 
 #: Largest gap (s) between two ground-truth poses that :meth:`RGBDSequence.gt_poses` interpolates across
@@ -264,7 +265,7 @@ class RGBDSequence:
             n = len(self)
             return np.tile(np.eye(4), (n, 1, 1)), np.zeros(n, dtype=bool)
         if at_depth_time:
-            return self.ground_truth.interpolate(self.depth_timestamps, GT_INTERPOLATION_MAX_GAP_S, max_dt_s)
+            return interpolate_poses(self.ground_truth, self.depth_timestamps, GT_INTERPOLATION_MAX_GAP_S, max_dt_s)
         return self.ground_truth.lookup(self.timestamps, max_dt_s)
 
     def info(self) -> dict:

@@ -10,8 +10,22 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.errors import InputError, OutputError, TrackingError
+from surfelslam.geometry.se3 import make_T, quat_xyzw_to_rotation, rotation_to_quat_xyzw
 from surfelslam.io.atomic import NEW_FILE_MODE, atomic_open, os_error_text
 from surfelslam.types import Trajectory
+
+
+def tum_rows(traj: Trajectory) -> np.ndarray:
+    """``(N, 8)`` rows ``timestamp tx ty tz qx qy qz qw`` of ``traj``."""
+    q = rotation_to_quat_xyzw(traj.T_world_cam[:, :3, :3])
+    return np.column_stack([traj.timestamps, traj.positions, q])
+
+
+def trajectory_from_tum_rows(rows: np.ndarray) -> Trajectory:
+    """The trajectory of ``(N, 8)`` rows ``timestamp tx ty tz qx qy qz qw``."""
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+    T = make_T(quat_xyzw_to_rotation(rows[:, 4:8]), rows[:, 1:4])
+    return Trajectory(rows[:, 0], T)
 
 
 def data_lines(text: str) -> Iterator[tuple[int, str]]:
@@ -63,7 +77,7 @@ def read_tum(path: str | Path) -> Trajectory:
         more = f" ({len(dup)} duplicated stamps in all)" if len(dup) > 1 else ""
         raise InputError(path, f"duplicate timestamp {arr[order[dup[0]], 0]:.6f} (lines {a} and {b}){more}; "
                                "each pose needs its own timestamp")
-    return Trajectory.from_tum_rows(arr[order])
+    return trajectory_from_tum_rows(arr[order])
 
 
 #: Largest deviation from a rotation (max |R R^T - I|) of a pose written to a trajectory file.
@@ -78,13 +92,13 @@ def format_tum_line(timestamp: float, T_world_cam: np.ndarray) -> str:
     if not np.all(np.isfinite(T)) or np.abs(R @ R.T - np.eye(3)).max() > MAX_ROTATION_DEVIATION:
         raise TrackingError(f"frame at t = {timestamp:.6f} s: the tracker produced a pose that is not a finite rigid "
                             "transform; the trajectory up to the previous frame is written")
-    row = Trajectory(np.array([timestamp]), T[None]).to_tum_rows()[0]
+    row = tum_rows(Trajectory(np.array([timestamp]), T[None]))[0]
     return f"{row[0]:.6f} " + " ".join(f"{x:.9f}" for x in row[1:]) + "\n"
 
 
 def write_tum(traj: Trajectory, path: str | Path) -> None:
     """Write atomically (temp file + rename)."""
-    rows = traj.to_tum_rows()
+    rows = tum_rows(traj)
     with atomic_open(path, "w") as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw\n")
         for r in rows:

@@ -30,6 +30,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from surfelslam.config import Config, setting
 from surfelslam.errors import ConfigError
+from surfelslam.geometry.interpolation import interpolate_poses
 from surfelslam.geometry.se3 import exp as se3_exp
 from surfelslam.geometry.se3 import invert as se3_invert
 from surfelslam.synth.scenes import Scene
@@ -310,7 +311,7 @@ def replay_motion(
             f"the recorded motion lasts {t[-1] - t[0]:.2f} s; {n_frames} frames at {fps:g} fps and {speed:g}x speed "
             f"from {start_s:g} s need {stamps[-1] - t[0]:.2f} s"
         )
-    T_rec, valid = recorded.interpolate(stamps, _REPLAY_MAX_GAP_S, _REPLAY_MAX_DT_S)
+    T_rec, valid = interpolate_poses(recorded, stamps, _REPLAY_MAX_GAP_S, _REPLAY_MAX_DT_S)
     if not valid.all():
         k = int(np.argmin(valid))
         raise ConfigError(f"the recorded motion has a gap of more than {_REPLAY_MAX_GAP_S} s at "

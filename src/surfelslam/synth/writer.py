@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from surfelslam.errors import ConfigError
+from surfelslam.geometry.interpolation import pose_between
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.images import write_png_depth, write_png_rgb
 from surfelslam.io.trajectory import write_tum
@@ -123,12 +124,12 @@ def colour_stamps(depth_stamps: np.ndarray, offset_s: float, jitter_s: float, se
 
 
 def poses_at(trajectory: Trajectory, stamps: np.ndarray) -> np.ndarray:
-    """``(M, 4, 4)`` poses of ``trajectory`` at ``stamps``: :meth:`Trajectory.pose_between` the bracketing poses,
-    extrapolated from the first / last interval outside the trajectory (needs 2 poses)."""
+    """``(M, 4, 4)`` poses of ``trajectory`` at ``stamps``: :func:`~surfelslam.geometry.interpolation.pose_between`
+    the bracketing poses, extrapolated from the first / last interval outside the trajectory (needs 2 poses)."""
     t = trajectory.timestamps
     stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
     hi = np.clip(np.searchsorted(t, stamps, side="right"), 1, len(t) - 1)
-    return np.stack([trajectory.pose_between(b - 1, b, (q - t[b - 1]) / (t[b] - t[b - 1]))
+    return np.stack([pose_between(trajectory, b - 1, b, (q - t[b - 1]) / (t[b] - t[b - 1]))
                      for b, q in zip(hi, stamps, strict=True)])
 
 
