@@ -24,14 +24,15 @@ from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult
 from surfelslam.slam.given import GivenPoseMapper, poses_for_mapping
 from surfelslam.slam.hybrid import HybridSlam
 from surfelslam.slam.orb import OrbSlam
-from surfelslam.slam.protocol import Tracker, build_tracker, register_tracker, registered
+from surfelslam.slam.protocol import Tracker
+from surfelslam.slam.registry import build_tracker, register_tracker, registered
 
 # the trackers a user picks with ``--tracker`` (``given`` is chosen by ``--poses``)
 TRACKERS: tuple[str, ...] = tuple(n for n in registered() if n != "given")
 
 
 def build_slam(intr, cfg: SlamConfig, tracker: str, colour_registered: bool = True, colour_camera=None) -> Tracker:
-    """The tracker object for ``tracker`` (see :func:`~surfelslam.slam.protocol.build_tracker`)."""
+    """The tracker object for ``tracker`` (see :func:`~surfelslam.slam.registry.build_tracker`)."""
     return build_tracker(tracker, intr, cfg, colour_registered, colour_camera)
 
 

@@ -16,6 +16,7 @@ from surfelslam.geometry.camera import ColourRegistrationConfig
 from surfelslam.mapping.fusion import FusionConfig
 from surfelslam.mapping.render import RenderConfig
 from surfelslam.mapping.surfel_map import MapConfig
+from surfelslam.slam.registry import registered
 from surfelslam.tracking.geometric import GeometricGuessConfig
 from surfelslam.tracking.icp import ICPConfig
 from surfelslam.tracking.photometric import (
@@ -315,8 +316,6 @@ class SlamConfig(Config):
     @check
     def _tracker_registered(self) -> str | None:
         """tracker is one of the registered trackers (dense, orb, hybrid)."""
-        from surfelslam.slam.protocol import registered  # the registry imports this module
-
         trackers = [name for name in registered() if name != "given"]
         if trackers and self.tracker not in trackers:
             return f"tracker must be one of {', '.join(trackers)}, got {self.tracker!r}"

@@ -36,7 +36,7 @@ from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.map_localiser import NOT_LOCALISED, MapLocaliser, verify_icp
 from surfelslam.slam.mapper import FusingMapper
-from surfelslam.slam.protocol import register_tracker
+from surfelslam.slam.registry import register_tracker
 from surfelslam.tracking.geometric import geometric_guess
 from surfelslam.tracking.icp import ICPResult, ICPStatus, icp, icp_failure, photometric_term, weak_projector
 from surfelslam.tracking.photometric import (

@@ -10,7 +10,7 @@ from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer
 from surfelslam.slam.mapper import FusingMapper
-from surfelslam.slam.protocol import register_tracker
+from surfelslam.slam.registry import register_tracker
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
 

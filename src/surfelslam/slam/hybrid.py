@@ -49,7 +49,7 @@ from surfelslam.slam.config import HybridConfig, SlamConfig
 from surfelslam.slam.dense import DenseSlam
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
-from surfelslam.slam.protocol import register_tracker
+from surfelslam.slam.registry import register_tracker
 from surfelslam.slam.warmup_run import warm_up_run
 from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_inliers, reprojection_spread_px
 from surfelslam.tracking.features.warmup import warm_up_features

@@ -18,7 +18,7 @@ from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.mapper import frame_colour_at_depth
-from surfelslam.slam.protocol import register_tracker
+from surfelslam.slam.registry import register_tracker
 from surfelslam.slam.warmup_run import warm_up_run
 from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame

@@ -1,9 +1,8 @@
-"""The interface every tracker implements, and the registry that builds one by name.
+"""The interface every tracker implements (the registry that builds one by name: :mod:`surfelslam.slam.registry`).
 
 A tracker turns frames into poses and a map: ``prepare`` (frame-only work another thread may do ahead),
 ``process`` (one frame), ``finish`` (the end-of-run result, whose trajectory is final for every tracker) and
-``warmup`` (JIT compilation, excluded from timings). A new tracker is one module whose class is decorated with
-:func:`register_tracker` plus one import line in :mod:`surfelslam.slam`.
+``warmup`` (JIT compilation, excluded from timings).
 """
 
 from __future__ import annotations
@@ -11,10 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
-from surfelslam.errors import ConfigError
-from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult
-from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
+from surfelslam.types import RGBDFrame
 
 
 @runtime_checkable
@@ -35,37 +32,3 @@ class Tracker(Protocol):
 
 
 TrackerFactory = Callable[..., Tracker]
-
-_REGISTRY: dict[str, type] = {}
-
-
-def register_tracker(name: str) -> Callable[[type], type]:
-    """Class decorator: make the tracker class buildable as ``name`` (``build_tracker(name, ...)``)."""
-
-    def deco(cls: type) -> type:
-        if name in _REGISTRY:
-            raise ValueError(f"tracker {name!r} is registered twice")
-        _REGISTRY[name] = cls
-        cls.name = name
-        return cls
-
-    return deco
-
-
-def registered() -> dict[str, type]:
-    """``{name: class}`` of every registered tracker, in registration order."""
-    return dict(_REGISTRY)
-
-
-def build_tracker(name: str, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
-                  colour_camera: ColourCamera | None = None) -> Tracker:
-    """The tracker registered as ``name``.
-
-    ``colour_registered``: the sequence's colour and depth pixels see the same rays (photometric and feature terms
-    are used only then, by default). ``colour_camera``: the sequence's separate colour camera, if known: the maps'
-    colours are sampled through it (``colour_registration``); tracking is unaffected.
-    """
-    cls = _REGISTRY.get(name)
-    if cls is None:
-        raise ConfigError(f"unknown tracker {name!r}; known: {', '.join(_REGISTRY)}")
-    return cls(intr, cfg, colour_registered=colour_registered, colour_camera=colour_camera)

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from surfelslam.slam.registry import build_tracker
 from surfelslam.tracking.features.warmup import block_texture
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -30,9 +31,7 @@ def _frames() -> list[RGBDFrame]:
 
 def warm_up_run(cfg, tracker: str) -> None:
     """Run ``tracker`` with ``cfg`` (map saving off) on :func:`_frames` and finish; nothing is kept."""
-    from surfelslam.slam import build_slam
-
-    slam = build_slam(_INTR, replace(cfg, map_reuse=replace(cfg.map_reuse, save=False)), tracker)
+    slam = build_tracker(tracker, _INTR, replace(cfg, map_reuse=replace(cfg.map_reuse, save=False)))
     for frame in _frames():
         slam.process(frame)
     slam.finish()
