@@ -22,7 +22,7 @@ from surfelslam.datasets.rosbag import (
     seconds_to_stamp,
     stamp_seconds,
 )
-from surfelslam.datasets.rosbag_write import write_bag
+from surfelslam.datasets.rosbag.write import write_bag
 from surfelslam.errors import DatasetError
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import run_sequence
@@ -40,7 +40,7 @@ def folder(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def bags(folder) -> dict[str, Path]:
     base = folder.parent
-    out = {fmt: write_bag(folder, base / name, fmt)
+    out = {fmt: write_bag(open_sequence(folder), base / name, fmt)
            for fmt, name in (("ros1", "rec.bag"), ("ros2", "rec_db3"), ("mcap", "rec_mcap"))}
     out["plain_mcap"] = base / "rec_mcap" / "rec_mcap.mcap"  # the MCAP file alone, without metadata.yaml
     return out
@@ -80,15 +80,15 @@ def test_bag_trajectories_are_the_folders(folder, bags, tmp_path):
 def test_encodings_give_the_same_frames(folder, tmp_path, colour, depth, scale):
     """bgr8 and PNG colour, 16-bit depth in raw units (read with the folder's --depth-scale), and compressedDepth
     PNG behind its 12-byte header."""
-    path = write_bag(folder, tmp_path / "x.bag", "ros1", colour_encoding=colour, depth_encoding=depth,
-                     options=DatasetOptions(end=3))
+    path = write_bag(open_sequence(folder, DatasetOptions(end=3)), tmp_path / "x.bag", "ros1", colour_encoding=colour,
+                     depth_encoding=depth)
     _frames_equal(open_sequence(folder, DatasetOptions(end=3)), open_sequence(path, DatasetOptions(depth_scale=scale)))
 
 
 @pytest.mark.slow
 def test_jpeg_colour_and_millimetre_default(folder, tmp_path):
-    path = write_bag(folder, tmp_path / "j", "mcap", colour_encoding="jpeg", depth_encoding="16UC1",
-                     options=DatasetOptions(end=2))
+    path = write_bag(open_sequence(folder, DatasetOptions(end=2)), tmp_path / "j", "mcap", colour_encoding="jpeg",
+                     depth_encoding="16UC1")
     seq = open_sequence(path)
     ref = open_sequence(folder)
     assert seq.depth_scale == 1000.0  # 16-bit depth without --depth-scale: millimetres
@@ -153,8 +153,8 @@ def test_missing_topic_is_one_line(bags):
 
 @pytest.mark.slow
 def test_no_depth_topic_names_the_option(folder, tmp_path):
-    path = write_bag(folder, tmp_path / "nd.bag", "ros1", depth_topic="/camera/aligned/image_raw",
-                     options=DatasetOptions(end=2))
+    path = write_bag(open_sequence(folder, DatasetOptions(end=2)), tmp_path / "nd.bag", "ros1",
+                     depth_topic="/camera/aligned/image_raw")
     line = _one_line_error(["info", str(path)])
     assert "no depth image topic" in line and "--depth-topic" in line
     seq = open_sequence(path, DatasetOptions(depth_topic="/camera/aligned/image_raw"))

@@ -7,7 +7,7 @@ import pytest
 
 import surfelslam as ss
 from surfelslam.datasets import DatasetOptions, open_sequence
-from surfelslam.datasets.rosbag_write import write_bag
+from surfelslam.datasets.rosbag.write import write_bag
 from surfelslam.datasets.stream import ArraySource, DeviceSource, FrameSource, track_source
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.slam import SlamConfig
@@ -58,7 +58,7 @@ class FakeDevice:
 
 def test_every_source_is_a_frame_source(folder, tmp_path):
     seq = open_sequence(folder)
-    bag = open_sequence(write_bag(folder, tmp_path / "s.bag", "ros1", options=DatasetOptions(end=3)))
+    bag = open_sequence(write_bag(open_sequence(folder, DatasetOptions(end=3)), tmp_path / "s.bag", "ros1"))
     arrays = ArraySource(*_arrays(seq), seq.intrinsics)
     device = DeviceSource(FakeDevice(seq))
     for src in (seq, bag, arrays, device):

@@ -5,7 +5,7 @@ started at the same size and rate, depth is aligned to colour by the SDK (``rs.a
 colour stream's (``fx, fy, ppx, ppy``) and the depth scale the depth sensor's (``1 / get_depth_scale()`` units per
 metre). Frames go through :class:`~surfelslam.datasets.stream.DeviceSequence` (the run loop reads them in order as
 they arrive; ``--start`` drops the first frames while auto-exposure settles, ``--end`` is required), and
-``--record`` writes each frame to a bag (:class:`~surfelslam.datasets.rosbag_write.BagRecorder`), so the run can be
+``--record`` writes each frame to a bag (:class:`~surfelslam.datasets.rosbag.write.BagRecorder`), so the run can be
 repeated offline: ``surfelslam run out.bag`` sees the very same frames.
 
 Not exercised here (no camera): :class:`RealSenseDevice` itself. The sequence, the selection, the recording and the
@@ -108,7 +108,7 @@ def open_realsense(options: DatasetOptions, record: str | Path | None = None, de
         gt = read_ground_truth_file(Path(options.gt))
     recorder = None
     if record is not None:
-        from surfelslam.datasets.rosbag_write import BagRecorder
+        from surfelslam.datasets.rosbag.write import BagRecorder
 
         try:
             recorder = BagRecorder(record, dev.intrinsics)

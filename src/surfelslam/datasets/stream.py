@@ -186,7 +186,7 @@ class DeviceSequence:
     the selection options apply to the device's frames: the first ``start`` are dropped (auto-exposure settling),
     then every ``stride``-th is kept until ``end`` device frames were read (``end`` is required: a live stream has no
     end of its own); ``downsample`` samples the images. ``record(rgb, depth_m, timestamp)`` gets each kept frame at
-    the device's resolution (e.g. a :class:`~surfelslam.datasets.rosbag_write.BagRecorder`); ``on_close`` is called
+    the device's resolution (e.g. a :class:`~surfelslam.datasets.rosbag.write.BagRecorder`); ``on_close`` is called
     once, after the last frame or by :meth:`close`. Random access and going back raise FrameError.
     """
 

@@ -1,9 +1,11 @@
-"""Write an RGB-D sequence folder as a ROS bag or MCAP file, with ``rosbags``' own writers.
+"""Write an opened RGB-D sequence folder as a ROS bag or MCAP file, with ``rosbags``' own writers.
 
-    from surfelslam.datasets.rosbag_write import write_bag
-    write_bag("rgbd_dataset_freiburg1_xyz", "fr1_xyz.bag", "ros1")      # ROS 1 bag
-    write_bag("rgbd_dataset_freiburg1_xyz", "fr1_xyz_db3", "ros2")      # ROS 2 bag folder, SQLite storage
-    write_bag("rgbd_dataset_freiburg1_xyz", "fr1_xyz_mcap", "mcap")     # ROS 2 bag folder, MCAP storage
+    from surfelslam.datasets import open_sequence
+    from surfelslam.datasets.rosbag.write import write_bag
+    seq = open_sequence("rgbd_dataset_freiburg1_xyz")
+    write_bag(seq, "fr1_xyz.bag", "ros1")      # ROS 1 bag
+    write_bag(seq, "fr1_xyz_db3", "ros2")      # ROS 2 bag folder, SQLite storage
+    write_bag(seq, "fr1_xyz_mcap", "mcap")     # ROS 2 bag folder, MCAP storage
 
 Topics (RealSense ROS driver names): colour ``sensor_msgs/Image`` (``rgb8``, or ``bgr8`` / JPEG / PNG), depth
 registered to colour ``sensor_msgs/Image`` (``32FC1`` metres, or ``16UC1`` in the folder's raw depth units), a
@@ -21,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.datasets.base import DatasetOptions
+from surfelslam.datasets.base import DatasetOptions, RGBDSequence
 from surfelslam.datasets.rosbag import (
     CAMERA_INFO,
     COMPRESSED,
@@ -43,12 +45,13 @@ GT_TOPIC = "/ground_truth/pose"
 FRAME_ID = "camera_color_optical_frame"
 
 
-def write_bag(seq_folder: str | Path, out_path: str | Path, format: str = "ros1", *,  # noqa: A002
-              colour_encoding: str = "rgb8", depth_encoding: str = "auto", options: DatasetOptions | None = None,
+def write_bag(seq: RGBDSequence, out_path: str | Path, format: str = "ros1", *,  # noqa: A002
+              colour_encoding: str = "rgb8", depth_encoding: str = "auto",
               rgb_topic: str = RGB_TOPIC, depth_topic: str = DEPTH_TOPIC, info_topic: str | None = INFO_TOPIC,
               gt_topic: str | None = GT_TOPIC) -> Path:
-    """Write the sequence folder ``seq_folder`` (any layout :func:`~surfelslam.datasets.open_sequence` reads, at the
-    files' resolution; ``options`` selects frames) as a bag at ``out_path`` (which must not exist).
+    """Write ``seq``, a sequence folder opened by :func:`~surfelslam.datasets.open_sequence` (any folder layout, at
+    the files' resolution; the options it was opened with select the frames), as a bag at ``out_path`` (which must
+    not exist).
 
     Args:
         format: ``ros1`` (a ``.bag`` file), ``ros2`` (a ROS 2 bag folder with SQLite storage) or ``mcap`` (a ROS 2
@@ -60,12 +63,8 @@ def write_bag(seq_folder: str | Path, out_path: str | Path, format: str = "ros1"
         info_topic / gt_topic: ``None`` leaves the camera info / the ground truth out.
     Returns the written path (the ``.bag`` file or the ROS 2 bag folder).
     """
-    from surfelslam.datasets.registry import open_sequence
-
     out = Path(out_path)
-    opts = DatasetOptions() if options is None else options
-    _check_arguments(format, colour_encoding, depth_encoding, out, opts)
-    seq = open_sequence(seq_folder, opts)
+    _check_arguments(format, colour_encoding, depth_encoding, out, seq.options)
     if depth_encoding == "auto":
         depth_encoding = "16UC1" if seq.depth_scale == MM_DEPTH_SCALE else "32FC1"
 
