@@ -194,7 +194,7 @@ def section(frames: int, width: int, work: Path, open3d: bool = True, repeats: i
 def section_markdown(res: dict) -> list[str]:
     """The ``make bench`` section: the quality table, the targets, the marching cubes comparison and what they say
     about the choice of libraries."""
-    from benchmarks.report import fmt, table
+    from benchmarks.common import fmt, table
 
     w, h = res["resolution"]
     t = res["targets"]

@@ -319,7 +319,7 @@ def section(n_frames: int, width: int, work: Path, budget, *, synthetic: tuple[s
 
 def section_markdown(res: dict) -> list[str]:
     """The ``make bench`` section: one table of every (sequence, tracker) row and how to read it."""
-    from benchmarks.report import fmt, table
+    from benchmarks.common import fmt, table
 
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in res["rows"]))}
     rows = sorted(res["rows"], key=lambda r: (seq_order[r["sequence"]], tracker_rank(r["tracker"])))

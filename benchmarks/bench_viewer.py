@@ -139,7 +139,7 @@ def summary(runs: dict[str, list[dict]], verify: dict, frames: int, resolution: 
 
 def section_markdown(s: dict) -> list[str]:
     """The ``make bench`` section: one table row per variant, then how it was measured."""
-    from benchmarks.report import fmt, table
+    from benchmarks.common import fmt, table
 
     md = [f"### Live viewer cost: {s['frames']} synthetic frames at {s['resolution']} (dense `surfelslam run`)", ""]
     md.append(table(["viewer", "FPS (median)", "FPS (best)", "CPU s (median)", "cost vs none (median / best)",

@@ -1,4 +1,5 @@
-"""Helpers shared by the benchmark scripts: where the real sequences are, and one timing rule."""
+"""Helpers shared by the benchmark scripts: where the real sequences are, one timing rule, and the Markdown
+cells and tables of their sections (:func:`fmt`, :func:`table`)."""
 
 from __future__ import annotations
 
@@ -83,3 +84,21 @@ def median_ms(fn: Callable[[], object], reps: int) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return 1000.0 * float(np.median(times))
+
+
+def fmt(v, nd: int = 1) -> str:
+    """One Markdown cell: "–" for None, yes / **NO** for a bool, ``nd`` decimals for a float."""
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "**NO**"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    """A Markdown table of ``header`` and ``rows`` (cells other than strings through :func:`fmt`)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(c) if not isinstance(c, str) else c for c in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"

@@ -63,7 +63,7 @@ from benchmarks import (
     open3d_slam,
 )
 from benchmarks.common import SHARED_DATA, tracker_cost_vs_dense
-from benchmarks.report import DOCS_HEADER, DOCS_PAGE, table, to_markdown, write, write_docs_page  # noqa: F401
+from benchmarks.report import DOCS_HEADER, DOCS_PAGE, to_markdown, write, write_docs_page  # noqa: F401
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.kernels import threads
 from surfelslam.slam import SlamConfig, warm_up
