@@ -98,7 +98,7 @@ class SlamRun:
         ``map.npz``, the map a later session continues from (:func:`load_map`), into ``out_dir``."""
         from surfelslam.io.atomic import write_text_atomic
         from surfelslam.io.jsonio import json_default
-        from surfelslam.io.map_file import MAP_FILE, write_map_file
+        from surfelslam.slam.map_file import MAP_FILE, write_map_file
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -221,7 +221,7 @@ def load_map(path: str | Path) -> SavedMap:
     Raises:
         MapFileError: missing, truncated or corrupt, or of another format version (the message names the file).
     """
-    from surfelslam.io.map_file import read_map_file
+    from surfelslam.slam.map_file import read_map_file
 
     return read_map_file(path)
 

@@ -19,7 +19,7 @@ import surfelslam as ss
 from surfelslam.cli import app
 from surfelslam.errors import ConfigError, MapFileError
 from surfelslam.geometry.se3 import invert
-from surfelslam.io.map_file import read_map_file, write_map_file
+from surfelslam.slam.map_file import read_map_file, write_map_file
 from surfelslam.slam.saved_map import MAP_VERSION, to_arrays
 from surfelslam.synth import make_scene, make_trajectory
 from surfelslam.synth.writer import iter_frames, noise_config

@@ -32,13 +32,13 @@ from surfelslam.config import dumps_toml, from_dict, load_toml
 from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
-from surfelslam.io.map_file import MAP_FILE, write_map_file
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender, read_tum, write_tum
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
 from surfelslam.slam.colour_check import colour_is_registered
+from surfelslam.slam.map_file import MAP_FILE, write_map_file
 from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 
@@ -191,7 +191,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     add files to the run). ``on_frame(frame, result, tracker)`` is called on the tracking thread after each frame
     is tracked (a live viewer: :mod:`surfelslam.viz.live`; it must return quickly).
 
-    ``prior_map`` (``--map``, :func:`surfelslam.io.map_file.read_map_file`): continue from a saved map: the first
+    ``prior_map`` (``--map``, :func:`surfelslam.slam.map_file.read_map_file`): continue from a saved map: the first
     frames are localised in it, then tracking and fusion go on in its frame (``dense`` and ``hybrid``).
     ``localize_only``: track against it without changing it. With ``map_reuse.save`` (the default) the run saves its
     map as ``map.npz``.
@@ -344,7 +344,7 @@ def _run(seq, out_dir: Path, cfg: SlamConfig, slam, tracker: str, given, poses: 
 
 
 def _write_saved_map(result, out_dir: Path, recipe: str, sequence: str) -> None:
-    """``map.npz`` (:mod:`surfelslam.io.map_file`) when the tracker saved a map."""
+    """``map.npz`` (:mod:`surfelslam.slam.map_file`) when the tracker saved a map."""
     saved = result.saved_map
     if saved is None:
         return

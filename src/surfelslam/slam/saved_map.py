@@ -2,7 +2,7 @@
 
 :class:`SavedMap` is what a surfel tracker hands over at the end of a run (``SlamResult.saved_map``) and what
 ``--map`` gives the next run. :func:`to_arrays` / :func:`from_arrays` turn it into named arrays and back (every
-array checked: shape, dtype, count); the file itself is written and read by :mod:`surfelslam.io.map_file`. The
+array checked: shape, dtype, count); the file itself is written and read by :mod:`surfelslam.slam.map_file`. The
 format is documented in ``docs/outputs.md`` (Saved map).
 """
 

@@ -87,7 +87,7 @@ def read_prior_map(map_dir: Path | None, tracker: str, localize_only: bool, pose
     check_map_options(tracker, map_dir, localize_only, poses)
     if map_dir is None:
         return None
-    from surfelslam.io.map_file import read_map_file
+    from surfelslam.slam.map_file import read_map_file
 
     return read_map_file(map_dir)
 
