@@ -10,7 +10,7 @@ from the starts 0, 20, ..., 460 (24 per gap), registered with ``surfelslam regis
 within 1 cm & 1 deg of GT, median errors, and the same for ICP started AT the GT pose ("from GT": where the
 depth data's own optimum lies relative to the GT, i.e. the floor of any depth-only registration judged against
 this GT). The "depth agreement" table takes the pairs ``register --init identity`` misses and compares how well our pose
-and the GT pose explain the two depth images (:func:`surfelslam.eval.depth_agreement.depth_agreement`: median
+and the GT pose explain the two depth images (:func:`surfelslam.tracking.depth_agreement.depth_agreement`: median
 ``|dz|`` where the moved source meets target depth): where ours is lower, the depth data prefer our pose to the
 GT's. ``ICPConfig() (tracker)`` is the frame-to-model tracker's setting (shorter coarse levels);
 ``register --init auto (default)`` the command's default start (identity and ORB + PnP guess, the pose with the
@@ -37,8 +37,8 @@ from dataclasses import replace
 import numpy as np
 
 from benchmarks.common import REDKITCHEN
-from surfelslam.eval.depth_agreement import depth_agreement
 from surfelslam.geometry import se3
+from surfelslam.tracking.depth_agreement import depth_agreement
 from surfelslam.tracking.icp import ICPConfig, icp, pairwise_config
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.tracking.registration import register_pair

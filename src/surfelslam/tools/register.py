@@ -122,8 +122,8 @@ def _add_depth_agreement_and_gt(result: dict, sq, source: int, target: int, f_sr
                                 T_init: np.ndarray | None) -> dict:
     """Add the depth agreement of the estimate (and of the ground truth) and the errors against the ground truth
     to ``result``; returns the agreements by pose name."""
-    from surfelslam.eval.depth_agreement import depth_agreement
     from surfelslam.geometry import se3
+    from surfelslam.tracking.depth_agreement import depth_agreement
 
     def agreement(T_pose: np.ndarray) -> dict:
         a = vars(depth_agreement(f_src.depth_m, f_tgt.depth_m, sq.intrinsics, T_pose)).copy()

@@ -8,7 +8,7 @@ Starts (``INIT_MODES``):
   :mod:`surfelslam.tracking.geometric`); from the identity when both are rejected;
 * ``geometry``: ICP from the shape-feature guess only (identity when it is rejected);
 * ``auto``: ICP from the identity and from the ``features`` guess, keeping the pose the two depth images agree with
-  better (:func:`surfelslam.eval.depth_agreement.depth_agreement`: lower median ``|dz|``; no ground truth involved).
+  better (:func:`surfelslam.tracking.depth_agreement.depth_agreement`: lower median ``|dz|``; no ground truth involved).
 
 With ``photometric=True`` every ICP run also minimises the intensity differences
 (:mod:`surfelslam.tracking.photometric`); for colour registered to depth only.
@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from surfelslam.errors import ConfigError
-from surfelslam.eval.depth_agreement import depth_agreement
+from surfelslam.tracking.depth_agreement import depth_agreement
 from surfelslam.tracking.features import FeatureConfig, MotionResult, feature_guess, with_max_motion_norm
 from surfelslam.tracking.geometric import GeometricGuess, GeometricGuessConfig, geometric_guess
 from surfelslam.tracking.icp import ICPConfig, ICPResult, icp, photometric_term
