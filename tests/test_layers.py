@@ -31,7 +31,8 @@ ROOTS = {REPO / "src" / "surfelslam": "surfelslam", REPO / "benchmarks": "benchm
 #: no cycle forms. ``surfelslam`` itself (the lazy public names of ``__init__.py``) sits on top with the API.
 LAYERS: tuple[tuple[str, ...], ...] = (
     # bottom: errors, plain types, the settings machinery, geometry, numba kernels
-    ("surfelslam.errors", "surfelslam.types", "surfelslam.config", "surfelslam.geometry", "surfelslam.kernels"),
+    ("surfelslam.errors", "surfelslam.types", "surfelslam.config", "surfelslam.config_reference", "surfelslam.geometry",
+     "surfelslam.kernels", "surfelslam.numba_cache"),
     # sources and files: dataset readers, the synthetic generator (a source too), atomic files, PLY, TUM, run folders
     ("surfelslam.io", "surfelslam.datasets", "surfelslam.synth"),
     # frame-to-frame and frame-to-model registration: preprocessing, ICP, features, initial guesses
@@ -45,7 +46,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # what users call: the API, the commands, batches, experiments (which drive runs), the kernel warm-up, the
     # generated settings reference
     ("surfelslam", "surfelslam.api", "surfelslam.cli", "surfelslam.__main__", "surfelslam.tools", "surfelslam.batch",
-     "surfelslam.eval.experiments", "surfelslam.warmup", "surfelslam.config_reference"),
+     "surfelslam.eval.experiments", "surfelslam.warmup"),
     # the benchmark scripts drive anything in the library
     ("benchmarks",),
 )

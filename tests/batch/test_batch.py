@@ -224,9 +224,9 @@ def test_workers_get_the_numba_cache_folder_this_process_uses(monkeypatch, tmp_p
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     assert numba_cache_env() == {"NUMBA_CACHE_DIR": str(tmp_path)}
     monkeypatch.delenv("NUMBA_CACHE_DIR")
-    monkeypatch.setattr("surfelslam.cli.numba_cache_fallback", lambda: str(tmp_path / "fallback"))
+    monkeypatch.setattr("surfelslam.numba_cache.numba_cache_fallback", lambda: str(tmp_path / "fallback"))
     assert numba_cache_env() == {"NUMBA_CACHE_DIR": str(tmp_path / "fallback")}
-    monkeypatch.setattr("surfelslam.cli.numba_cache_fallback", lambda: None)  # the in-tree cache works
+    monkeypatch.setattr("surfelslam.numba_cache.numba_cache_fallback", lambda: None)  # the in-tree cache works
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     assert numba_cache_env() == {}
 

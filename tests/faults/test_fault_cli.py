@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 
 import surfelslam
 from surfelslam import cli as cli_module
+from surfelslam import numba_cache
 from surfelslam.tools.common import handle_errors
 
 HEAVY = ("numba", "cv2", "matplotlib", "evo", "surfelslam.datasets", "surfelslam.tools.run", "surfelslam.kernels")
@@ -162,22 +163,22 @@ def test_numba_cache_kept_when_set_by_the_user(tmp_path):
     blocked = tmp_path / "file"
     blocked.write_text("")
     env = {"NUMBA_CACHE_DIR": str(tmp_path / "mine"), "HOME": str(blocked / "home")}
-    assert cli_module.numba_cache_fallback(env, in_tree=blocked / "__pycache__") is None
+    assert numba_cache.numba_cache_fallback(env, in_tree=blocked / "__pycache__") is None
 
 
 def test_numba_cache_default_when_writable(tmp_path):
-    assert cli_module.numba_cache_fallback({"HOME": str(tmp_path)}, in_tree=tmp_path / "__pycache__") is None
+    assert numba_cache.numba_cache_fallback({"HOME": str(tmp_path)}, in_tree=tmp_path / "__pycache__") is None
 
 
 def test_numba_cache_falls_back_to_a_temp_folder(tmp_path):
     blocked = tmp_path / "file"  # a regular file: nothing can be created below it, not even by root
     blocked.write_text("")
     env = {"HOME": str(blocked / "home")}
-    got = cli_module.numba_cache_fallback(env, in_tree=blocked / "__pycache__", temp_root=tmp_path / "tmp")
+    got = numba_cache.numba_cache_fallback(env, in_tree=blocked / "__pycache__", temp_root=tmp_path / "tmp")
     assert got == str(tmp_path / "tmp" / f"surfelslam-numba-{os.getuid()}") and Path(got).is_dir()
     env_xdg = {"HOME": str(tmp_path), "XDG_CACHE_HOME": str(blocked / "cache")}
-    assert cli_module.numba_cache_fallback(env_xdg, in_tree=blocked / "__pycache__",
-                                           temp_root=tmp_path / "tmp") is not None
+    assert numba_cache.numba_cache_fallback(env_xdg, in_tree=blocked / "__pycache__",
+                                            temp_root=tmp_path / "tmp") is not None
 
 
 def test_cached_kernel_compiles_on_a_read_only_install(tmp_path):
@@ -192,9 +193,9 @@ def test_cached_kernel_compiles_on_a_read_only_install(tmp_path):
         import os, sys
         from pathlib import Path
         sys.path.insert(0, {str(pkg)!r})
-        import surfelslam.cli as cli
-        cli.KERNEL_CACHE_DIR = Path({str(pkg / "__pycache__")!r})
-        cli.configure_numba_cache()
+        import surfelslam.numba_cache as cache
+        cache.KERNEL_CACHE_DIR = Path({str(pkg / "__pycache__")!r})
+        cache.configure_numba_cache()
         import kern
         print(kern.inc(1), os.environ["NUMBA_CACHE_DIR"])
     """, env={"HOME": str(tmp_path / "homefile" / "home"), "XDG_CACHE_HOME": str(tmp_path / "homefile" / "c")})

@@ -235,10 +235,10 @@ def numba_cache_env() -> dict[str, str]:
     sources, which every worker of this install reads) is used.
 
     The folder is the one this process uses: the user's ``NUMBA_CACHE_DIR``, else the CLI's fallback when the
-    in-tree cache is not writable (:func:`surfelslam.cli.numba_cache_fallback`, one folder for every worker). It
-    is set here too, so that this process's warm-up fills the cache the workers then load.
+    in-tree cache is not writable (:func:`surfelslam.numba_cache.numba_cache_fallback`, one folder for every
+    worker). It is set here too, so that this process's warm-up fills the cache the workers then load.
     """
-    from surfelslam.cli import NUMBA_CACHE_ENV, numba_cache_fallback
+    from surfelslam.numba_cache import NUMBA_CACHE_ENV, numba_cache_fallback
 
     chosen = os.environ.get(NUMBA_CACHE_ENV) or numba_cache_fallback()
     if not chosen:
