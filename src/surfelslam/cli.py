@@ -22,11 +22,17 @@ import atexit
 import contextlib
 import importlib
 import os
-import signal
 import sys
 from typing import Any
 
 from surfelslam.numba_cache import configure_numba_cache
+from surfelslam.tools.exits import (
+    EXIT_INTERNAL_ERROR,
+    EXIT_INTERRUPTED,
+    debug_enabled,
+    force_exit_on_interrupt,
+    internal_error_message,
+)
 
 #: command name -> (module in surfelslam.tools, its docstring's first paragraph: the listing's help text)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -53,9 +59,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
 COMMAND_MODULES = [module for module, _ in COMMANDS.values()]
 
 APP_HELP = "Dense RGB-D SLAM: projective ICP + point-based fusion, with a sparse ORB back end."
-EXIT_INTERNAL_ERROR = 1
-EXIT_INTERRUPTED = 130
-DEBUG_ENV = "SURFELSLAM_DEBUG"
 
 
 # ------------------------------------------------------------------------------------------------ messages
@@ -67,35 +70,10 @@ def _stderr_line(text: str) -> None:
         pass
 
 
-def _exit_now(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
-    os.write(2, b"interrupted\n")
-    os._exit(EXIT_INTERRUPTED)
-
-
-def force_exit_on_interrupt() -> None:
-    """From now on Ctrl-C exits at once with 130 (used after the first Ctrl-C was reported, and while the
-    interpreter shuts down, where a KeyboardInterrupt would print a traceback from the clean-up code)."""
-    try:
-        signal.signal(signal.SIGINT, _exit_now)
-    except (ValueError, OSError):  # not the main thread
-        pass
-
-
 def report_interrupt() -> None:
     """``interrupted`` on stderr; a second Ctrl-C exits at once."""
     force_exit_on_interrupt()
     _stderr_line("interrupted")
-
-
-def debug_enabled() -> bool:
-    """``SURFELSLAM_DEBUG`` set (and not 0): unexpected exceptions keep their traceback."""
-    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
-
-
-def internal_error_message(exc: BaseException) -> str:
-    """``internal error: <type>: <message> (please report ...)`` on one line."""
-    msg = " ".join(str(exc).split()) or "(no message)"
-    return f"internal error: {type(exc).__name__}: {msg} (please report; {DEBUG_ENV}=1 shows the traceback)"
 
 
 # ------------------------------------------------------------------------------------------------ the app

@@ -1,5 +1,4 @@
-"""Reading and writing a saved map (``map.npz``): one uncompressed NumPy archive, written atomically. It sits in
-slam/ beside :mod:`surfelslam.slam.saved_map`, whose data class holds the trackers' keyframes and features.
+"""Reading and writing a saved map (``map.npz``): one uncompressed NumPy archive, written atomically.
 
 The arrays and the manifest are :func:`surfelslam.slam.saved_map.to_arrays`'s; ``docs/outputs.md`` (Saved map)
 documents them. Reading never unpickles (``allow_pickle=False``) and checks every array; a missing, truncated or

@@ -16,15 +16,15 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from surfelslam.cli import (
+from surfelslam.datasets.base import DatasetOptions
+from surfelslam.errors import ConfigError, SurfelSlamError
+from surfelslam.tools.exits import (
     EXIT_INTERNAL_ERROR,
     EXIT_INTERRUPTED,
     debug_enabled,
     force_exit_on_interrupt,
     internal_error_message,
 )
-from surfelslam.datasets.base import DatasetOptions
-from surfelslam.errors import ConfigError, SurfelSlamError
 
 try:  # typer >= 0.20 vendors click
     from typer._click.exceptions import ClickException

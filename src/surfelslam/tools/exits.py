@@ -1,0 +1,40 @@
+"""How a command ends: its exit codes, Ctrl-C, and the one line of an unexpected exception.
+
+Shared by the command line's entry point (:mod:`surfelslam.cli`) and the commands' error handling
+(:func:`surfelslam.tools.common.handle_errors`); it imports nothing but the standard library, so that the command
+line's start-up stays fast.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+
+EXIT_INTERNAL_ERROR = 1
+EXIT_INTERRUPTED = 130
+DEBUG_ENV = "SURFELSLAM_DEBUG"
+
+
+def _exit_now(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    os.write(2, b"interrupted\n")
+    os._exit(EXIT_INTERRUPTED)
+
+
+def force_exit_on_interrupt() -> None:
+    """From now on Ctrl-C exits at once with 130 (used after the first Ctrl-C was reported, and while the
+    interpreter shuts down, where a KeyboardInterrupt would print a traceback from the clean-up code)."""
+    try:
+        signal.signal(signal.SIGINT, _exit_now)
+    except (ValueError, OSError):  # not the main thread
+        pass
+
+
+def debug_enabled() -> bool:
+    """``SURFELSLAM_DEBUG`` set (and not 0): unexpected exceptions keep their traceback."""
+    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
+
+
+def internal_error_message(exc: BaseException) -> str:
+    """``internal error: <type>: <message> (please report ...)`` on one line."""
+    msg = " ".join(str(exc).split()) or "(no message)"
+    return f"internal error: {type(exc).__name__}: {msg} (please report; {DEBUG_ENV}=1 shows the traceback)"
