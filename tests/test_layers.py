@@ -46,7 +46,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # what users call: the API, the commands, batches, experiments (which drive runs), the kernel warm-up, the
     # generated settings reference
     ("surfelslam", "surfelslam.api", "surfelslam.cli", "surfelslam.__main__", "surfelslam.tools", "surfelslam.batch",
-     "surfelslam.eval.experiments", "surfelslam.warmup"),
+     "surfelslam.experiments", "surfelslam.warmup"),
     # the benchmark scripts drive anything in the library
     ("benchmarks",),
 )

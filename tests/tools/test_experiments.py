@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from surfelslam.cli import app
 from surfelslam.datasets import open_sequence
 from surfelslam.datasets.base import DatasetOptions
-from surfelslam.eval.experiments import (
+from surfelslam.experiments import (
     FEATURES_SETTING,
     SECTION_TITLES,
     ExperimentOptions,
@@ -219,7 +219,7 @@ def test_sequence_without_ground_truth(tmp_path):
 
 def test_solver_section_reports_singular_systems():
     """A single plane leaves rotation about its normal and in-plane translation unconstrained: solvers fail."""
-    from surfelslam.eval.experiments import section_solvers
+    from surfelslam.experiments import section_solvers
     from surfelslam.tracking.preprocess import FramePyramid, PyramidLevel
     from surfelslam.types import Intrinsics
 

@@ -1,5 +1,5 @@
 """``surfelslam experiments SEQ --out DIR``: the reference assignment's experiments on one sequence, as
-``DIR/report.md`` + PNGs + ``results.json``. The sections live in :mod:`surfelslam.eval.experiments`."""
+``DIR/report.md`` + PNGs + ``results.json``. The sections live in :mod:`surfelslam.experiments`."""
 
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def register(app: typer.Typer) -> None:
         """The reference assignment's experiments (ICP pairs, solvers, fusion, dormant rule, features, trackers) ->
         report.md."""
         from surfelslam.datasets import open_sequence
-        from surfelslam.eval.experiments import ExperimentOptions, run_experiments
+        from surfelslam.experiments import ExperimentOptions, run_experiments
         from surfelslam.slam.runner import load_config
 
         opts = ExperimentOptions(frames=frames, pair_start=pair_start, pair_gaps=parse_gaps(pair_gaps),

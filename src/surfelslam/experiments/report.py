@@ -6,9 +6,9 @@ import json
 import time
 from pathlib import Path
 
-from surfelslam.eval.experiments.common import ExperimentOptions, ate_of, choose_pairs
-from surfelslam.eval.experiments.pairs import section_features, section_icp_pairs, section_solvers
-from surfelslam.eval.experiments.runs import section_dormant, section_fusion, section_trajectories
+from surfelslam.experiments.common import ExperimentOptions, ate_of, choose_pairs
+from surfelslam.experiments.pairs import section_features, section_icp_pairs, section_solvers
+from surfelslam.experiments.runs import section_dormant, section_fusion, section_trajectories
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-from surfelslam.eval.experiments.common import (
+from surfelslam.experiments.common import (
     REFERENCE_DORMANT_MAX_AGE_FRAMES,
     REFERENCE_DORMANT_MIN_HITS,
     SECTION_TITLES,

@@ -13,14 +13,14 @@ Sections (every number comes from this run; ``DIR/results.json`` holds the same 
 6. every tracker of ``surfelslam.slam.TRACKERS`` against the ground truth.
 """
 
-from surfelslam.eval.experiments.common import (
+from surfelslam.experiments.common import (
     REFERENCE_DORMANT_MAX_AGE_FRAMES,
     REFERENCE_DORMANT_MIN_HITS,
     SECTION_TITLES,
     ExperimentOptions,
     choose_pairs,
 )
-from surfelslam.eval.experiments.pairs import (
+from surfelslam.experiments.pairs import (
     FEATURES_SETTING,
     after_figures,
     feature_pair,
@@ -30,8 +30,8 @@ from surfelslam.eval.experiments.pairs import (
     section_solvers,
     solver_comparison,
 )
-from surfelslam.eval.experiments.report import run_experiments
-from surfelslam.eval.experiments.runs import section_dormant, section_fusion, section_trajectories
+from surfelslam.experiments.report import run_experiments
+from surfelslam.experiments.runs import section_dormant, section_fusion, section_trajectories
 
 __all__ = ["FEATURES_SETTING", "REFERENCE_DORMANT_MAX_AGE_FRAMES", "REFERENCE_DORMANT_MIN_HITS", "SECTION_TITLES",
            "ExperimentOptions", "after_figures", "choose_pairs", "feature_pair", "icp_settings", "run_experiments",

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
-from surfelslam.eval.experiments.common import (
+from surfelslam.experiments.common import (
     SECTION_TITLES,
     SOLVER_PAIR_GATE_M,
     SOLVER_TIMEIT_NUMBER,
