@@ -32,10 +32,10 @@ ROOTS = {REPO / "src" / "surfelslam": "surfelslam", REPO / "benchmarks": "benchm
 #: from its own layer and the layers below, never from above. Within a layer, parts import each other freely as long as
 #: no cycle forms. ``surfelslam`` itself (the lazy public names of ``__init__.py``) sits on top with the API.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    # bottom: errors, plain types, the settings machinery (and its reference page), geometry, numba kernels and
-    # where numba caches them
+    # bottom: errors, plain types, the settings machinery (config.py or settings/, and the reference page), geometry,
+    # numba kernels and where numba caches them
     ("surfelslam.errors", "surfelslam.types", "surfelslam.config", "surfelslam.config_reference", "surfelslam.geometry",
-     "surfelslam.kernels", "surfelslam.numba_cache"),
+     "surfelslam.kernels", "surfelslam.numba_cache", "surfelslam.settings"),
     # sources and files: dataset readers, the synthetic generator (a source too), atomic files, PLY, TUM, run folders
     ("surfelslam.io", "surfelslam.datasets", "surfelslam.synth"),
     # frame-to-frame and frame-to-model registration: preprocessing, ICP, features, initial guesses
