@@ -118,3 +118,17 @@ def test_the_hybrids_back_end_profile():
     assert sp_off.graph.odometry_information == cfg.sparse.graph.odometry_information
     assert sp_off.graph.robust_scale_sigma == cfg.sparse.graph.robust_scale_sigma
     assert sp_off.features.guided_radius_px == sp.features.guided_radius_px
+
+
+def test_the_presets_are_declared_package_data():
+    """pyproject.toml ships every preset in the wheel (``make wheel-check`` installs one and runs ``--config fast``)."""
+    from pathlib import Path
+
+    from surfelslam.settings import presets_dir
+
+    root = Path(__file__).resolve().parents[1]
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    package_dir = root / "src" / "surfelslam" / "settings"
+    shipped = {p.name for pattern in data["surfelslam.settings"] for p in package_dir.glob(pattern)}
+    assert shipped == {f"{name}.toml" for name in preset_names()} == {"accurate.toml", "fast.toml", "hybrid-full.toml"}
+    assert Path(str(presets_dir())) == package_dir / "presets"
