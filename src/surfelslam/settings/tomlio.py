@@ -107,8 +107,9 @@ def _build(cls: type[C], data: dict[str, Any], where: str, base: C | None) -> C:
     if unknown:
         prefix = f"[{where}] " if where else ""
         removed = getattr(cls, REMOVED_KEYS_ATTR, {})
-        for key in sorted(unknown & set(removed)):
-            raise ConfigError(f"config: {prefix}{key} was removed: {removed[key]}")
+        gone = sorted(unknown & set(removed))
+        if gone:  # a key of an older version: say what replaced it
+            raise ConfigError(f"config: {prefix}{gone[0]} was removed: {removed[gone[0]]}")
         raise ConfigError(f"config: {prefix}unknown key(s) {sorted(unknown)}; known: {sorted(names)}")
     if base is None:
         try:
