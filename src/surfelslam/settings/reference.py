@@ -13,7 +13,7 @@ import typing
 from typing import Any
 
 from surfelslam.settings.fields import check_rules, field_bounds, field_types, is_user_setting, iter_tables, join_path
-from surfelslam.settings.tomlio import toml_value
+from surfelslam.settings.tomlio import REMOVED_KEYS_ATTR, toml_value
 
 
 def _md(text: str) -> str:
@@ -111,6 +111,9 @@ def _table_section(path: str, cfg: Any) -> list[str]:
     rules = [(r.__doc__ or r.__name__).strip() for r in check_rules(klass)]
     if rules:
         out += ["Rules:", "", *[f"- {_md(r)}" for r in rules], ""]
+    removed = getattr(klass, REMOVED_KEYS_ATTR, {})
+    if removed:  # what an older config file may still set: loading it says what replaced the key
+        out += ["Removed keys:", "", *[f"- `{key}`: {_md(why)}" for key, why in removed.items()], ""]
     if subs:
         out += ["Tables: " + ", ".join(subs) + ".", ""]
     return out
