@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-all test-fast warmup bench lint docs clean
+.PHONY: demo test test-all test-fast warmup bench lint docs clean wheel-check
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -79,3 +79,8 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) out build *.egg-info src/*.egg-info
+
+# The package as a user installs it: a wheel in a fresh venv, away from the source tree, runs `surfelslam run ...
+# --config fast` (presets are package data) and `surfelslam mesh` on a tiny synthetic sequence (.ci/wheel_check).
+wheel-check: $(STAMP)
+	PYTHON=$(PYTHON) UV=$(VENV)/bin/uv .ci/wheel_check

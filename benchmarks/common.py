@@ -15,9 +15,9 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REDKITCHEN = SHARED_DATA / "7scenes_redkitchen_0000_0499"
 
 
-#: Tracker rows that are a preset (``configs/NAME.toml``) rather than a tracker with the defaults.
+#: Tracker rows that are a preset (the package's ``settings/presets/NAME.toml``) rather than a tracker with the
+#: defaults.
 PRESET_TRACKERS = ("hybrid-full",)
-PRESETS = Path(__file__).resolve().parents[1] / "configs"
 #: Bench-only rows: the defaults with some settings changed (label -> those settings, as in a TOML file).
 #: ``hybrid-odometry``: the default hybrid without its loop corrections, the reference of "loop closure never makes
 #: the trajectory worse than the odometry alone". ``orb-odometry``: the same reference for orb, which has no such
@@ -64,13 +64,13 @@ def variant_set_options(label: str) -> str:
 def tracker_setup(label: str):
     """``(tracker, SlamConfig)`` of a bench row's tracker label: a tracker with the defaults, a preset of
     :data:`PRESET_TRACKERS` or a variant of :data:`VARIANT_TRACKERS` (its config, whose ``tracker`` it names)."""
-    from surfelslam.config import from_dict, load_toml
+    from surfelslam.settings import from_dict, load_config
     from surfelslam.slam import SlamConfig
 
     if label in VARIANT_TRACKERS:
         cfg = from_dict(SlamConfig, VARIANT_TRACKERS[label], base=SlamConfig())
     elif label in PRESET_TRACKERS:
-        cfg = load_toml(SlamConfig, PRESETS / f"{label}.toml")
+        cfg = load_config(SlamConfig, label)
     else:
         return label, SlamConfig()
     return cfg.tracker, cfg

@@ -59,13 +59,13 @@ def test_a_partial_nested_table_keeps_its_parents_defaults():
     assert got == Inner(0.3, (8, 4))
     from surfelslam.slam import SlamConfig
 
-    cfg = from_dict(SlamConfig, {"orb": {"loop_icp": {"enabled": False}}, "hybrid": {"loop_icp": {"icp": {
-        "robust_scale_m": 0.03}}}})
+    cfg = from_dict(SlamConfig, {"orb": {"loop_icp": {"enabled": False}}, "hybrid": {"loop_icp": {
+        "sigma_m": 0.004}}})
     assert not cfg.orb.loop_icp.enabled
     assert cfg.orb.loop_icp == type(cfg.orb.loop_icp)(**{**SlamConfig().orb.loop_icp.__dict__, "enabled": False})
     assert cfg.orb.loop_icp.feature_weight == SlamConfig().orb.loop_icp.feature_weight != Inner.dist_thresh_m
-    icp = cfg.hybrid.loop_icp.icp
-    assert icp.robust_scale_m == 0.03 and (icp.levels, icp.weak_direction_ratio) == (3, 0.0)  # the edge ICP's own
+    edge = cfg.hybrid.loop_icp
+    assert edge.sigma_m == 0.004 and (edge.pnp_refinement, edge.weak_direction_ratio) == (False, 100.0)  # the hybrid's
 
 
 def test_bad_toml_names_file(tmp_path):
@@ -83,7 +83,7 @@ BAD_VALUES = [  # (TOML text, the full path and setting the one-line error must 
     ("[io]\nprefetch_frames = -1\n", "[io] prefetch_frames must be"),
     ("[hybrid.loop_icp]\nsigma_m = -1\n", "[hybrid.loop_icp] sigma_m must be > 0, got -1"),
     ("[orb.loop_icp]\nsigma_m = -1\n", "[orb.loop_icp] sigma_m must be > 0, got -1"),
-    ("[hybrid.loop_icp.icp]\niterations = [10, 0, 10]\n", "[hybrid.loop_icp.icp] iterations[1] must be"),
+    ("[icp]\niterations = [10, 0, 10, 4]\n", "[icp] iterations[1] must be"),
     ("[icp]\ndist_thresh_m = [0.1, 0.2]\n", "[icp] dist_thresh_m needs one value per level"),
     ("[fusion]\ndist_diff_m = nan\n", "[fusion] dist_diff_m must be finite"),
     ("[fusion]\nweight_mode = \"linear\"\n", "[fusion] weight_mode must be one of keller, constant"),
@@ -95,7 +95,7 @@ BAD_VALUES = [  # (TOML text, the full path and setting the one-line error must 
     ("[tracking]\nphotometric = \"yes\"\n", "[tracking] photometric must be one of auto, on, off, got 'yes'"),
     ("[hybrid]\njoint_weight = -inf\n", "[hybrid] joint_weight must be finite"),
     ("[icp]\nphotometric_weight = \"x\"\n", "[icp] photometric_weight must be a number, got 'x'"),
-    ("[hybrid.loop_icp.icp]\niterations = [1, 2.5]\n", "[hybrid.loop_icp.icp] iterations must be an integer"),
+    ("[icp]\niterations = [1, 2.5]\n", "[icp] iterations must be an integer"),
 ]
 
 
@@ -145,7 +145,7 @@ def test_every_config_is_frozen_and_round_trips_through_toml(tmp_path):
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.icp.levels = 3  # type: ignore[misc]
     with pytest.raises(dataclasses.FrozenInstanceError):
-        cfg.hybrid.loop_icp.icp.levels = 3  # type: ignore[misc]
+        cfg.hybrid.loop_icp.sigma_m = 3  # type: ignore[misc]
     path = tmp_path / "config.toml"
     path.write_text(dumps_toml(cfg))
     assert load_toml(SlamConfig, path) == cfg
@@ -180,30 +180,42 @@ def test_config_docstrings_are_short():
 
 
 def test_reference_page_covers_every_setting_and_is_current():
+    """The user settings first (``[table] key`` rows), then a section per table with its expert constants."""
+    from surfelslam.settings import is_user_setting
     from surfelslam.slam import SlamConfig
     from surfelslam.tools.gen_docs import reference_text
 
     text = reference_markdown(SlamConfig)
+    user_part, _, expert_part = text.partition("\n## Expert constants")
+    assert "\n## User settings\n" in user_part and expert_part
     sections = {}
-    for block in text.split("\n## ")[1:]:
+    for block in expert_part.split("\n### ")[1:]:
         head, _, body = block.partition("\n")
         sections[head] = body
+    n_user = 0
     for path, sub in iter_tables(SlamConfig()):
         head = f"`[{path}]`" if path else "SlamConfig (the file's top level)"
         assert head in sections, head
         for f in dataclasses.fields(sub):
-            if not dataclasses.is_dataclass(getattr(sub, f.name)):
+            if dataclasses.is_dataclass(getattr(sub, f.name)):
+                continue
+            if is_user_setting(f):
+                n_user += 1
+                assert (f"| `[{path}] {f.name}` |" if path else f"| `{f.name}` |") in user_part, f"{head} {f.name}"
+            else:
                 assert f"| `{f.name}` |" in sections[head], f"{head} {f.name}"
+    assert 30 <= n_user <= 80
     committed = Path(__file__).resolve().parents[1] / "docs" / "config_reference.md"
     assert committed.read_text() == reference_text(), "docs/config_reference.md is stale: run `make docs`"
 
 
 @pytest.mark.parametrize("name", ["fast", "accurate", "hybrid-full"])
 def test_presets_load(name):
+    from surfelslam.settings import presets_dir
     from surfelslam.slam import SlamConfig
 
-    path = Path(__file__).resolve().parents[1] / "configs" / f"{name}.toml"
-    lines = path.read_text().splitlines()
+    path = presets_dir() / f"{name}.toml"
+    lines = path.read_text(encoding="utf-8").splitlines()
     assert lines[0].startswith("#") and lines[1].startswith("#")
     cfg = load_toml(SlamConfig, path)
     assert cfg != SlamConfig()

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from surfelslam.backend.dense_edges import DenseEdgeConfig, DenseEdgeRefiner, weak_direction_shape
+from surfelslam.backend.dense_edges import EDGE_ICP, DenseEdgeConfig, DenseEdgeRefiner, weak_direction_shape
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
 from surfelslam.synth import make_scene, render
@@ -140,7 +140,7 @@ def test_a_trackers_pyramid_stands_in_for_the_keyframes_rebuilt_one(room_pair):
     tracker_pyr = Preprocessor(INTR, replace(PreprocessConfig(), pyramid_levels=4)).process(stored)
     taken = ref.keyframe_pyramid(tracker_pyr)
     rebuilt = ref.frame_pyramid(stored)
-    assert taken is not None and len(taken) == len(rebuilt) == ref.cfg.icp.levels
+    assert taken is not None and len(taken) == len(rebuilt) == EDGE_ICP.levels
     for a, b in zip(taken.levels, rebuilt.levels, strict=True):
         assert a.intrinsics == b.intrinsics
         np.testing.assert_array_equal(a.vertex, b.vertex)
@@ -223,13 +223,17 @@ def test_loop_icp_settings_round_trip_through_config_toml(tmp_path):
 
     cfg = SlamConfig()
     cfg = replace(cfg, hybrid=replace(cfg.hybrid, loop_icp=replace(cfg.hybrid.loop_icp, enabled=True, sigma_m=0.004,
-                                                                      icp=replace(cfg.hybrid.loop_icp.icp, levels=2))))
+                                                                      feature_weight=0.2)))
     path = tmp_path / "config.toml"
     path.write_text(dumps_toml(cfg))
     back = load_toml(SlamConfig, path)
-    assert back.hybrid.loop_icp == cfg.hybrid.loop_icp and back.hybrid.loop_icp.icp.levels == 2
+    assert back.hybrid.loop_icp == cfg.hybrid.loop_icp and back.hybrid.loop_icp.feature_weight == 0.2
     path.write_text("[hybrid.loop_icp]\nmax_shift_m = -1.0\n")
     with pytest.raises(ConfigError, match="max_shift_m"):
+        load_toml(SlamConfig, path)
+    # the edge ICP's settings are a constant now: an old file that sets them says so in one line
+    path.write_text("[hybrid.loop_icp.icp]\nlevels = 2\n")
+    with pytest.raises(ConfigError, match=r"^\S+config.toml: config: \[hybrid.loop_icp\] icp was removed: .*EDGE_ICP"):
         load_toml(SlamConfig, path)
 
 

@@ -155,8 +155,7 @@ def test_coarse_match_keeps_the_rgbd_refinement_when_asked(loop_frames) -> None:
 
 def test_rejected_frames_counted_and_predicted(loop_frames) -> None:
     poses, frames = loop_frames
-    cfg = replace(NO_LOOP_CFG, relocalise_after_failures=100)
-    slam = SparseSlam(ROOM_INTR, cfg, T_world_first=poses[0])
+    slam = SparseSlam(ROOM_INTR, NO_LOOP_CFG, T_world_first=poses[0], relocalise_after_failures=100)
     for f in frames[:3]:
         assert slam.process(f).ok
     flat = RGBDFrame(3, 0.1, np.full_like(frames[0].rgb, 90), frames[3].depth_m)
@@ -243,8 +242,8 @@ def test_a_long_texture_loss_holds_the_last_pose(loop_frames) -> None:
     ``velocity_reset_after_failures`` extrapolate the last motion, the rest keep the last pose, and every pose stays
     a finite rigid transform (unbounded extrapolation once drifted metres and overflowed)."""
     _, frames = loop_frames
-    cfg = replace(SparseSlamConfig(features=FeatureConfig(n_features=600)), relocalise_after_failures=1000)
-    slam = SparseSlam(ROOM_INTR, cfg)
+    cfg = SparseSlamConfig(features=FeatureConfig(n_features=600))
+    slam = SparseSlam(ROOM_INTR, cfg, relocalise_after_failures=0)
     poses = [slam.process(f).T_world_cam for f in frames[:8]]
     blank = [RGBDFrame(f.index, f.timestamp, np.full_like(f.rgb, 128), f.depth_m) for f in frames[8:]]
     blank = (blank * 3)[:40]

@@ -161,7 +161,7 @@ def test_hybrid_relocalises_after_a_two_second_gap():
     assert res.metrics["relocalisations"] == 1 and res.metrics["shape_relocalisations"] == 0
     after = err[35:]
     # 3 frames lost (the PnP guess against the last keyframe is too large a motion), then relocalised against all
-    # keyframes (``hybrid.relocalise_after_failures``, as dense's): measured 2 mm from the fourth frame on
+    # keyframes (``tracking.relocalise_after_failures``, as dense): measured 2 mm from the fourth frame on
     assert after[3:].max() < 0.01, after
     assert res.metrics["frames_fused"] == len(GAP_KEEP) - 3
 

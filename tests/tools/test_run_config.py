@@ -15,9 +15,10 @@ from surfelslam.cli import app, get_app
 from surfelslam.config import load_toml
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError
+from surfelslam.settings import package_version, resolve_config_path
+from surfelslam.settings import presets as preset_module
 from surfelslam.slam import SlamConfig
-from surfelslam.slam import runner as run_loop
-from surfelslam.slam.runner import apply_sets, load_config, parse_set, resolve_config_path
+from surfelslam.slam.runner import apply_sets, load_config, parse_set
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.tools.common import DatasetOptionsArgs
 from surfelslam.tools.run import resolve_run_config
@@ -50,7 +51,12 @@ def test_config_toml_alone_repeats_the_run_byte_for_byte(seq, tmp_path, tracker)
     recipe = load_toml(SlamConfig, first / "config.toml")
     assert recipe.tracker == tracker and recipe.icp.min_inliers == 300
     assert recipe.dataset == DatasetOptions(start=1, end=11, stride=2)
-    assert "intrinsics" not in (first / "config.toml").read_text()  # None: left out
+    text = (first / "config.toml").read_text()
+    assert "intrinsics" not in text  # None: left out
+    # the user settings, the package version and the one expert constant changed: a short recipe
+    keys = [ln for ln in text.splitlines() if "=" in ln]
+    assert len(keys) <= 80 and keys[0] == f'version = "{package_version()}"' and "min_inliers = 300" in keys
+    assert "max_condition_number" not in text  # an expert constant at its default is left out
 
     res = cli.invoke(app, ["run", str(seq), "-o", str(again), "--config", str(first / "config.toml"), *QUIET])
     assert res.exit_code == 0, res.output
@@ -151,7 +157,7 @@ def test_config_presets_by_name(tmp_path, monkeypatch):
     presets = tmp_path / "configs"
     presets.mkdir()
     (presets / "fast.toml").write_text("[icp]\nmin_inliers = 111\n")
-    monkeypatch.setattr(run_loop, "PRESETS_DIR", presets)
+    monkeypatch.setattr(preset_module, "presets_dir", lambda: presets)
     assert resolve_config_path("fast") == presets / "fast.toml"
     assert load_config("fast", ["fusion.dist_diff_m=0.02"]).icp.min_inliers == 111
     with pytest.raises(ConfigError, match=r"^--config slow: no such file, and not a preset \(presets: fast\)$"):
@@ -159,18 +165,22 @@ def test_config_presets_by_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "fast").write_text("[icp]\nmin_inliers = 222\n")  # a file of that name comes first
     assert load_config("fast").icp.min_inliers == 222
-    monkeypatch.setattr(run_loop, "PRESETS_DIR", tmp_path / "none")
-    with pytest.raises(ConfigError, match=r"not a preset \(no presets in .*none\)"):
+    monkeypatch.setattr(preset_module, "presets_dir", lambda: tmp_path / "none")
+    with pytest.raises(ConfigError, match=r"not a preset \(no presets installed\)"):
         load_config("accurate")
     with pytest.raises(ConfigError, match="missing.toml: config file not found"):
         load_config("missing.toml")
 
 
-def test_presets_dir_is_the_repositorys_configs_folder():
-    assert run_loop.PRESETS_DIR == run_loop.Path(run_loop.__file__).resolve().parents[3] / "configs"
-    assert (run_loop.PRESETS_DIR.parent / "src" / "surfelslam").is_dir()
-    for name in run_loop.preset_names():  # whatever presets exist load cleanly
+def test_presets_are_package_data():
+    """The presets are found with importlib.resources inside the package (so a wheel has them), not in the
+    repository's tree."""
+    folder = preset_module.presets_dir()
+    assert folder.is_dir() and folder.name == "presets"
+    assert preset_module.preset_names() == ["accurate", "fast", "hybrid-full"]
+    for name in preset_module.preset_names():  # whatever presets exist load cleanly
         assert isinstance(load_config(name), SlamConfig)
+    assert load_config("fast").tracker == "dense" and load_config("accurate").tracking.max_width_px == 0
 
 
 # ------------------------------------------------------------------------------------------------ flags

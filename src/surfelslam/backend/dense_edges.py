@@ -27,6 +27,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict, deque
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
@@ -49,12 +50,12 @@ from surfelslam.types import Intrinsics
 _MAD_TO_SIGMA = 0.6745  # median |x| of a zero-mean Gaussian, in sigmas
 
 
-def _edge_icp_config() -> ICPConfig:
-    """The tracker's ICP settings with 3 levels (from a PnP start) and no solution remapping: remapping would leave
-    the weakly constrained directions (e.g. along the intersection of two planes) at the PnP estimate, while the
-    feature terms constrain them. The finest level keeps the tracker's every second pixel: every pixel gives the
-    same edges at twice the cost."""
-    return ICPConfig(levels=3, weak_direction_ratio=0.0)
+#: ICP of a keyframe-to-keyframe registration: the ICP defaults with 3 levels (from a PnP start; at most the halvings
+#: left at ``max_width_px``) and no solution remapping: remapping would leave the weakly constrained directions (e.g.
+#: along the intersection of two planes) at the PnP estimate, while the feature terms constrain them. The finest
+#: level keeps every second pixel: every pixel gives the same edges at twice the cost. (Formerly the
+#: ``[hybrid.loop_icp.icp]`` and ``[orb.loop_icp.icp]`` tables, the same values in both.)
+EDGE_ICP = ICPConfig(levels=3, weak_direction_ratio=0.0)
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,7 @@ class DenseEdgeConfig(Config):
     (:mod:`surfelslam.backend.dense_edges`)."""
 
     enabled: bool = setting(True, doc="refine every PnP keyframe edge by ICP between the two keyframes' depth; "
-                            "edges that fail the check are dropped")
+                            "edges that fail the check are dropped", user=True)
     max_width_px: int = setting(320, unit="px", ge=8, le=65536,
                                 doc="keyframe depth is kept and registered at the finest pyramid level at most this "
                                     "wide")
@@ -100,9 +101,6 @@ class DenseEdgeConfig(Config):
     feature_sigma_px: float = setting(1.0, unit="px", gt=0, le=100,
                                       doc="floor of those terms' pixel noise (else their robust reprojection spread)")
     feature_huber: float = setting(2.0, unit="sigmas", gt=0, le=100, doc="Huber threshold of those terms")
-    icp: ICPConfig = setting(default_factory=_edge_icp_config,
-                             doc="ICP of the keyframe-to-keyframe registration (levels at most the halvings left at "
-                                 "max_width_px)")
     depth_only_nearby: bool = setting(True, doc="a nearby keyframe pair that PnP cannot verify is registered by ICP "
                                       "from the graph's relative pose, by depth alone (refined graph only)")
     weak_direction_ratio: float = setting(
@@ -116,6 +114,9 @@ class DenseEdgeConfig(Config):
                                               "(texture too poor to verify)")
 
     _spread_window = ordered("min_spread_edges", "spread_window_edges", strict=False)
+
+    REMOVED_KEYS: ClassVar[dict[str, str]] = {
+        "icp": "the keyframe-edge ICP is a constant of surfelslam.backend.dense_edges (EDGE_ICP)"}
 
 
 @dataclass(frozen=True)
@@ -163,18 +164,20 @@ class DenseEdgeRefiner:
 
     Args:
         intr: camera of the depth images given to :meth:`add_keyframe`.
-        pre_cfg: depth range and filter settings (the tracker's); the pyramid depth is ``cfg.icp.levels``.
+        pre_cfg: depth range and filter settings (the tracker's); the pyramid depth is ``icp_cfg.levels``.
         cfg: settings.
+        icp_cfg: the registrations' ICP settings (:data:`EDGE_ICP`; its levels capped by ``cfg.max_width_px``).
     """
 
-    def __init__(self, intr: Intrinsics, pre_cfg: PreprocessConfig, cfg: DenseEdgeConfig):
+    def __init__(self, intr: Intrinsics, pre_cfg: PreprocessConfig, cfg: DenseEdgeConfig,
+                 icp_cfg: ICPConfig = EDGE_ICP):
         self.cfg = cfg
         self._intr = intr
         self._pre_cfg = pre_cfg
         self._level = level_for_width(intr.width, cfg.max_width_px)
         self._intr_store = pyramid_intrinsics(intr, self._level + 1)[-1]
-        levels = min(cfg.icp.levels, level_for_width(self._intr_store.width, MIN_LEVEL_WIDTH_PX) + 1)
-        self._icp_cfg = replace(cfg.icp, levels=levels)
+        levels = min(icp_cfg.levels, level_for_width(self._intr_store.width, MIN_LEVEL_WIDTH_PX) + 1)
+        self._icp_cfg = replace(icp_cfg, levels=levels)
         self._pre_cfg_store = replace(pre_cfg, pyramid_levels=levels)
         self._depth_unit_m = pre_cfg.max_depth_m / np.iinfo(np.uint16).max
         self._depth: dict[int, np.ndarray] = {}  # kf_id -> (h, w) uint16 depth in units of _depth_unit_m

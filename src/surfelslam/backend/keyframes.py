@@ -15,13 +15,13 @@ from surfelslam.types import Intrinsics, RGBDFrame
 
 
 @dataclass(frozen=True)
-class MapConfig(Config):
+class KeyframeMapConfig(Config):
     """Keyframe clouds and the sparse trackers' final voxel-filtered map."""
 
     voxel_size_m: float = setting(0.02, unit="m", ge=0.001, le=10,
-                                  doc="voxel edge of the per-keyframe and the final voxel-grid filter")
+                                  doc="voxel edge of the per-keyframe and the final voxel-grid filter", user=True)
     min_depth_m: float = setting(0.0, unit="m", ge=0, le=100, doc="nearer pixels are not mapped")
-    max_depth_m: float = setting(4.0, unit="m", gt=0, le=100, doc="farther pixels are not mapped")
+    max_depth_m: float = setting(4.0, unit="m", gt=0, le=100, doc="farther pixels are not mapped", user=True)
     pixel_stride: int = setting(2, unit="px", ge=1, le=64,
                                 doc="keyframe depth is sampled every s pixels before filtering")
 
@@ -48,7 +48,7 @@ class Keyframe:
     cloud_rgb: np.ndarray
 
 
-def keyframe_cloud(frame: RGBDFrame, intr: Intrinsics, cfg: MapConfig,
+def keyframe_cloud(frame: RGBDFrame, intr: Intrinsics, cfg: KeyframeMapConfig,
                    rgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame coloured cloud of a frame: ``(xyz (M, 3) float32, rgb (M, 3) uint8)``, voxel-filtered.
 

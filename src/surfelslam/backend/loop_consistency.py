@@ -24,7 +24,7 @@ class LoopConsistencyConfig(Config):
     """Chi-square gate of keyframe edges against the odometry chain (:mod:`surfelslam.backend.loop_consistency`)."""
 
     enabled: bool = setting(True, doc="reject loop edges that disagree with the odometry chain between their "
-                                      "keyframes")
+                                      "keyframes", user=True)
     gate_nearby: bool = setting(False, doc="gate the nearby edges too (off: a nearby edge that disagrees with a few "
                                            "odometry steps more likely corrects a bad step than is wrong)")
     quantile: float = setting(0.99, unit="probability", gt=0, lt=1,

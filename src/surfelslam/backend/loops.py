@@ -20,10 +20,10 @@ class LoopConfig(Config):
 
     n_nearby: int = setting(5, unit="keyframes", ge=0, le=1000,
                             doc="the keyframes just before the previous one that are checked (local edges; the "
-                                "hybrid tracker has its own: [hybrid] loop_nearby)")
+                                "hybrid tracker has its own: [hybrid] loop_nearby)", user=True)
     n_random: int = setting(5, unit="keyframes", ge=0, le=1000,
                             doc="keyframes drawn uniformly (seeded) among the older ones (the hybrid tracker has its "
-                                "own: [hybrid] loop_random)")
+                                "own: [hybrid] loop_random)", user=True)
     seed: int = setting(0, ge=0, le=2**63 - 1, doc="seed of the random draws")
     n_retrieved: int = setting(3, unit="keyframes", ge=0, le=1000,
                                doc="older keyframes proposed by descriptor voting")

@@ -57,7 +57,8 @@ def round_in_image(u: np.ndarray, v: np.ndarray, intr: Intrinsics) -> tuple[np.n
 class ColourRegistrationConfig(Config):
     """Colour of each depth pixel when the sequence's colour camera is separate (:class:`ColourCamera`)."""
 
-    enabled: bool = setting(True, doc="sample each depth pixel's colour through the sequence's colour camera model "
+    enabled: bool = setting(True, user=True,
+                            doc="sample each depth pixel's colour through the sequence's colour camera model "
                             "(when its layout has one, e.g. 7-Scenes); false: the colour pixel at the same (u, v)")
     fallback_depth_m: float = setting(2.0, unit="m", gt=0, le=100,
                                       doc="depth assumed where the depth pixel is invalid (sets the parallax of its "
@@ -65,7 +66,7 @@ class ColourRegistrationConfig(Config):
     check: bool = setting(
         True, doc="when the layout takes colour as registered to depth (TUM, ICL-NUIM, plain folders), fit a separate "
                   "colour camera on a few frames first; if it lines colour edges up with depth edges much better, "
-                  "colour is taken as not registered (colour terms under auto turn off)")
+                  "colour is taken as not registered (colour terms under auto turn off)", user=True)
     check_frames: int = setting(6, unit="frames", ge=1, le=1000, doc="frames of that check, spread over the selection")
     check_min_gain_px: float = setting(
         1.0, unit="px at 640 wide", gt=0, le=1000,

@@ -75,8 +75,8 @@ class FusionConfig(Config):
     cover_radius_px: int = setting(1, unit="px", ge=0, le=20,
                                    doc="a pixel adds no surfel when a neighbour within this radius holds a matching "
                                        "one (0: Keller's strict rule)")
-    min_depth_m: float = setting(0.1, unit="m", gt=0, le=100, doc="nearer pixels are not fused")
-    max_depth_m: float = setting(4.0, unit="m", gt=0, le=100, doc="farther pixels are not fused")
+    min_depth_m: float = setting(0.1, unit="m", gt=0, le=100, doc="nearer pixels are not fused", user=True)
+    max_depth_m: float = setting(4.0, unit="m", gt=0, le=100, doc="farther pixels are not fused", user=True)
     new_radius_px: float = setting(0.75, unit="pixel footprints", gt=0, le=100,
                                    doc="new surfel radius at its depth (>= 0.71 covers a pixel)")
     radius_min_cos: float = setting(0.3, gt=0, le=1,
@@ -86,7 +86,7 @@ class FusionConfig(Config):
                                             doc="a measurement merges only if its radius is at most this times the "
                                                 "surfel's (a farther view must not blur a close one)")
     remove_unstable: bool = setting(True, doc="remove surfels that stay unconfirmed (the dormant-point and "
-                                    "Keller's rules)")
+                                    "Keller's rules)", user=True)
     unstable_max_age_frames: int = setting(30, unit="frames", ge=0, le=1_000_000,
                                            doc="age after which an unconfirmed surfel is removed")
     stable_min_hits: int = setting(5, unit="frames", ge=0, le=1_000_000,
@@ -99,11 +99,11 @@ class FusionConfig(Config):
                                                "the map")
     cull_backfaces: bool = setting(True, doc="skip surfels whose normal faces away from the camera")
     remove_duplicates: bool = setting(True, doc="flag near-copies of a surfel that a measurement merged into (else "
-                                      "revisits keep adding them)")
+                                      "revisits keep adding them)", user=True)
     duplicate_dist_m: float = setting(0.02, unit="m", ge=0, le=10, doc="near-copies are within this distance")
     duplicate_angle_deg: float = setting(30.0, unit="deg", gt=0, le=180, doc="... and this normal angle")
     max_width_px: int = setting(320, unit="px", ge=0, le=65536,
-                                doc="fuse the finest pyramid level at most this wide; 0 = full resolution")
+                                doc="fuse the finest pyramid level at most this wide; 0 = full resolution", user=True)
 
     _depth_range = ordered("min_depth_m", "max_depth_m")
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
 
 from surfelslam.backend.dense_edges import DenseEdgeConfig
 from surfelslam.backend.pose_graph import EDGE_INFORMATION_MODES
@@ -10,12 +13,12 @@ from surfelslam.backend.sparse_slam import (
     DepthOdometryConfig,
     SparseSlamConfig,
 )
-from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.geometry.camera import ColourRegistrationConfig
 from surfelslam.mapping.fusion import FusionConfig
 from surfelslam.mapping.render import RenderConfig
 from surfelslam.mapping.surfel_map import MapConfig
+from surfelslam.settings import Config, check, fmt_value, from_dict, setting
 from surfelslam.slam.registry import registered
 from surfelslam.tracking.geometric import GeometricGuessConfig
 from surfelslam.tracking.icp import ICPConfig
@@ -32,7 +35,7 @@ class IOConfig(Config):
     """Reading frames: a background reader thread decodes (and prepares) frames ahead of the tracker."""
 
     prefetch_frames: int = setting(3, unit="frames", ge=0, le=64,
-                                   doc="frames decoded ahead in a background thread; 0 = synchronous")
+                                   doc="frames decoded ahead in a background thread; 0 = synchronous", user=True)
     prepare_in_reader: bool = setting(True, doc="the reader thread also does the frame-only work (depth pyramid, "
                                       "fusion colour, ORB features); same results; needs prefetch_frames > 0")
 
@@ -43,7 +46,7 @@ class ComputeConfig(Config):
 
     parallel_kernels: bool = setting(False, doc="run the per-pixel kernels' parallel twins (bit-identical results) "
                                      "when numba has at least 2 threads; off: on 2 cores the frame reader needs "
-                                     "the second one")
+                                     "the second one", user=True)
 
 
 def apply_compute(cfg: ComputeConfig) -> None:
@@ -60,27 +63,28 @@ class TrackingConfig(Config):
     """Frame-to-model tracking policy: prediction, working resolution, photometric term, relocalisation."""
 
     constant_velocity: bool = setting(True, doc="predict each pose by repeating the last inter-frame motion (else: "
-                                      "the last pose)")
+                                      "the last pose)", user=True)
     max_failures_in_a_row_before_reset_velocity: int = setting(
         3, unit="frames", ge=0, le=1_000_000,
         doc="after this many failed frames in a row the predicted velocity is reset to zero")
     frame_to_frame_init: bool = setting(False, doc="first register the frame to the previous frame, then refine "
-                                        "against the model (one more ICP; helps under fast motion)")
-    max_width_px: int = setting(320, unit="px", ge=0, le=65536,
+                                        "against the model (one more ICP; helps under fast motion)", user=True)
+    max_width_px: int = setting(320, user=True, unit="px", ge=0, le=65536,
                                 doc="render the model and run ICP at the finest pyramid level of the input at most "
                                     "this wide (640x480 input: its 320x240 block means); 0 = full resolution")
     photometric: str = setting("auto", choices=PHOTOMETRIC_MODES,
                                doc="joint photometric term in ICP (weights in [icp] photometric_*); auto: on unless "
-                                   "colour and depth are not registered (e.g. 7-Scenes)")
+                                   "colour and depth are not registered (e.g. 7-Scenes)", user=True)
     relocalise_after_failures: int = setting(
         3, unit="frames", ge=0, le=1_000_000,
-        doc="once this many frames in a row failed, relocalise each further failed frame from the depth alone "
-            "(shape guess against the map, then ICP); 0 = never")
+        doc="once this many frames in a row failed, relocalise each further failed frame (every tracker: dense and "
+            "hybrid from the depth alone, shape guess against the map then ICP; hybrid and orb first by PnP against "
+            "all keyframes); 0 = never", user=True)
     shape_guess: GeometricGuessConfig = setting(default_factory=GeometricGuessConfig,
                                                 doc="settings of the relocalisation's shape guess")
     fuse_weak_frames: bool = setting(
         True, doc="fuse the frame of a degenerate registration (one plane, a corridor: the pose along the directions "
-                  "the view constrains, the prediction along the others); off: refuse it, not fused")
+                  "the view constrains, the prediction along the others); off: refuse it, not fused", user=True)
     weak_velocity_decay_s: float = setting(
         0.0, unit="s", ge=0, le=1000, allow_inf=True,
         doc="through weak frames the prediction carries the last fully tracked frame's velocity on, fading by "
@@ -106,7 +110,7 @@ class GivenPosesConfig(Config):
     """Mapping with given poses (``--poses``)."""
 
     max_dt_s: float = setting(0.02, unit="s", ge=0, le=10,
-                              doc="a frame takes the pose whose timestamp is nearest, within this")
+                              doc="a frame takes the pose whose timestamp is nearest, within this", user=True)
 
 
 @dataclass(frozen=True)
@@ -114,7 +118,7 @@ class MapReuseConfig(Config):
     """Saving the map for a later run (``map.npz``) and localising a new sequence in a saved map (``--map``)."""
 
     save: bool = setting(True, doc="write map.npz (surfels, keyframes, pose graph, config) so that a later run can "
-                         "continue from it with --map (surfel trackers)")
+                         "continue from it with --map (surfel trackers)", user=True)
     keyframe_motion: float = setting(
         0.15, unit="m + rad", gt=0, le=100,
         doc="a tracked frame this far (motion norm) from the last saved keyframe becomes one: its ORB features and "
@@ -125,7 +129,7 @@ class MapReuseConfig(Config):
     localise_max_frames: int = setting(
         30, unit="frames", ge=1, le=1_000_000,
         doc="with --map, the first frames are localised in the saved map; after this many frames without a "
-            "verified pose the run gives up and starts a new map frame at the next frame")
+            "verified pose the run gives up and starts a new map frame at the next frame", user=True)
     localise_candidates: int = setting(
         5, unit="keyframes", ge=1, le=1000,
         doc="saved keyframes proposed by place recognition (descriptor voting) and verified by PnP per frame")
@@ -170,15 +174,11 @@ class HybridConfig(Config):
     corrections applied to the dense trajectory and map."""
 
     pnp_retry: bool = setting(True, doc="when ICP fails or is degenerate, retry it from the PnP pose against the last "
-                              "keyframe")
+                              "keyframe", user=True)
     pnp_when_velocity_untrusted: bool = setting(True, doc="after a failed frame, start ICP from the PnP pose instead "
                                                 "of the constant-velocity guess")
-    relocalise_after_failures: int = setting(
-        3, unit="frames", ge=1, le=1_000_000,
-        doc="failed frames in a row after which a frame is relocalised against all keyframes and ICP starts from "
-            "that pose")
     pnp_check: bool = setting(False, doc="every frame, compare the ICP pose with the PnP pose; on disagreement retry "
-                              "ICP from PnP, and do not fuse a frame that still disagrees")
+                              "ICP from PnP, and do not fuse a frame that still disagrees", user=True)
     pnp_check_max_m: float = setting(0.05, unit="m", gt=0, le=100, doc="disagreement bound on the translation")
     pnp_check_max_deg: float = setting(5.0, unit="deg", gt=0, le=180, doc="disagreement bound on the rotation")
     pnp_check_min_inlier_fraction: float = setting(
@@ -189,7 +189,8 @@ class HybridConfig(Config):
     pnp_trust_min_inliers: int = setting(
         30, unit="inliers", ge=0, le=1_000_000,
         doc="a PnP pose with fewer inliers neither adds the joint feature term nor overrules ICP in the check")
-    loop_correction: bool = setting(True, doc="apply pose-graph corrections to the dense trajectory and the surfel map")
+    loop_correction: bool = setting(True, user=True,
+                                    doc="apply pose-graph corrections to the dense trajectory and the surfel map")
     dense_odometry_sigma_m: float = setting(
         0.001, unit="m and rad", ge=0, le=10,
         doc="pose-graph sigma of the odometry edges between keyframes (dense poses, far more precise than PnP); "
@@ -211,7 +212,7 @@ class HybridConfig(Config):
     joint_features: str = setting(
         "auto", choices=JOINT_MODES,
         doc="add the PnP inliers against the reference keyframe as reprojection terms to every ICP iteration (ORB "
-            "features and PnP on every frame); auto: on unless colour and depth are not registered")
+            "features and PnP on every frame); auto: on unless colour and depth are not registered", user=True)
     joint_sigma_px: float = setting(1.0, unit="px", gt=0, le=100, doc="pixel noise of those terms (residual unit)")
     joint_huber: float = setting(2.0, unit="sigmas", gt=0, le=100, doc="Huber threshold of their residual norm")
     joint_weight: float = setting(
@@ -221,7 +222,7 @@ class HybridConfig(Config):
     joint_fine_match: bool = setting(
         False, doc="the joint term's PnP match also searches by projection, and refines on RGB-D jointly even with "
                    "pnp_rgbd_refine off (about 1.5x the per-frame time at 320x240); the inliers are sub-pixel tracked "
-                   "either way")
+                   "either way", user=True)
     pnp_rgbd_refine: bool = setting(
         True, doc="refine the per-frame PnP pose on the keypoints' pixels and depths jointly ([sparse.features] "
                   "rgbd_refine_iterations): the joint term's pixel noise, the inliers' spread at that pose, then also "
@@ -251,15 +252,18 @@ class HybridConfig(Config):
     keyframe_threshold: float = setting(
         0.1, unit="m + rad", gt=0, le=100,
         doc="[sparse] keyframe_threshold for the hybrid: motion from the last keyframe that makes a new one (at 0.2 "
-            "the keyframe edges spread more, fail the trust gate and leave the odometry uncorrected)")
+            "the keyframe edges spread more, fail the trust gate and leave the odometry uncorrected)", user=True)
     keyframe_min_gap_frames: int = setting(
         3, unit="frames", ge=1, le=1_000_000,
         doc="[sparse] keyframe_min_gap_frames for the hybrid: under fast motion at most one keyframe every this "
-            "many frames, so that the loop-check thread keeps up")
-    loop_nearby: int = setting(3, unit="keyframes", ge=0, le=1000,
+            "many frames, so that the loop-check thread keeps up", user=True)
+    loop_nearby: int = setting(3, user=True, unit="keyframes", ge=0, le=1000,
                                doc="[sparse.loop] n_nearby for the hybrid: nearby keyframes checked per new keyframe")
-    loop_random: int = setting(1, unit="keyframes", ge=0, le=1000,
+    loop_random: int = setting(1, user=True, unit="keyframes", ge=0, le=1000,
                                doc="[sparse.loop] n_random for the hybrid: random older keyframes checked per new one")
+
+    REMOVED_KEYS: ClassVar[dict[str, str]] = {
+        "relocalise_after_failures": "one setting for every tracker: [tracking] relocalise_after_failures"}
 
     @check
     def _odometry_sigma(self) -> str | None:
@@ -293,7 +297,8 @@ class SlamConfig(Config):
     """Every setting of a run, with its tracker and dataset options (``[dataset]``, the ``--start`` ...
     ``--depth-scale`` options; unset ones are left out): saved as ``config.toml``, the whole recipe of the run."""
 
-    tracker: str = setting(DEFAULT_TRACKER, doc="the tracker: hybrid, dense or orb (the registered ones; --tracker)")
+    tracker: str = setting(DEFAULT_TRACKER, user=True,
+                           doc="the tracker: hybrid, dense or orb (the registered ones; --tracker)")
     dataset: DatasetOptions = setting(default_factory=DatasetOptions,
                                       doc="how the sequence is read (the CLI's dataset options)")
     io: IOConfig = setting(default_factory=IOConfig, doc="frame reading")
@@ -328,3 +333,32 @@ class SlamConfig(Config):
             return (f"[preprocess] pyramid_levels ({self.preprocess.pyramid_levels}) must be >= [icp] levels "
                     f"({self.icp.levels})")
         return None
+
+
+def relocalise_due(tracking: TrackingConfig, failures_in_a_row: int) -> bool:
+    """Whether a frame after ``failures_in_a_row`` failed ones is relocalised (``[tracking] relocalise_after_failures``;
+    0 = never)."""
+    return 0 < tracking.relocalise_after_failures <= failures_in_a_row
+
+
+def hybrid_sparse_config(cfg: SlamConfig, fx_px: float) -> SparseSlamConfig:
+    """The sparse back end's settings in the hybrid tracker: ``[sparse]`` with the hybrid's own values of the keys
+    its ``[hybrid]`` table gives (keyframe spacing, loop candidates, edge weighting, the PnP inlier bound's reference
+    width, contour keypoints, the guided-match radius from ``guided_match_deg`` at focal length ``fx_px``, the
+    odometry edges' sigma and the loop kernel's scale), all set at once."""
+    h, graph = cfg.hybrid, cfg.sparse.graph
+    graph_keys: dict[str, object] = {"edge_information": h.graph_edge_information}
+    if h.dense_odometry_sigma_m > 0:
+        graph_keys["odometry_information"] = h.dense_odometry_sigma_m ** -2
+    if h.loop_robust_scale_m > 0:  # the kernel's scale is in whitened units (loop sigmas)
+        graph_keys["robust_scale_sigma"] = float(h.loop_robust_scale_m * np.sqrt(graph.loop_information))
+    profile = {
+        "keyframe_threshold": h.keyframe_threshold,
+        "keyframe_min_gap_frames": h.keyframe_min_gap_frames,
+        "features_reference_width_px": h.pnp_reference_width_px,
+        "loop": {"n_nearby": h.loop_nearby, "n_random": h.loop_random},
+        "features": {"depth_edge_rel": h.pnp_depth_edge_rel,
+                     "guided_radius_px": abs(fx_px) * float(np.tan(np.radians(h.guided_match_deg)))},
+        "graph": graph_keys,
+    }
+    return from_dict(SparseSlamConfig, profile, where="sparse", base=cfg.sparse)

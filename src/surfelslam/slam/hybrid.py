@@ -8,7 +8,7 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
    with the inliers' reprojection terms (``hybrid.joint_features``; off by default where colour and depth are
    not registered). When ICP fails (:func:`icp_failure`), reports degeneracy, or the velocity is not trusted
    (the last frame failed), the PnP pose becomes the initial guess: the map is rendered at that pose and ICP
-   retried from it. After ``hybrid.relocalise_after_failures`` failed frames in a row,
+   retried from it. After ``tracking.relocalise_after_failures`` failed frames in a row,
    ``SparseSlam.relocalise`` (all keyframes) gives the guess instead, or, when it finds no pose, the shape
    guess of dense SLAM (against the map rendered at the current pose); on success fusing goes on.
    With ``hybrid.pnp_check`` every ICP pose is also compared with the PnP pose; one that disagrees is
@@ -34,7 +34,7 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -45,7 +45,7 @@ from surfelslam.backend.sparse_slam import (
     features_for_width,
 )
 from surfelslam.geometry import se3
-from surfelslam.slam.config import HybridConfig, SlamConfig
+from surfelslam.slam.config import HybridConfig, SlamConfig, hybrid_sparse_config, relocalise_due
 from surfelslam.slam.dense import DenseSlam
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
@@ -93,29 +93,19 @@ class HybridSlam(DenseSlam):
         super().__init__(intr, cfg, colour_registered, colour_camera)
         mode = cfg.hybrid.joint_features
         self.joint = colour_switch(mode, colour_registered)
-        # the sparse back end with the hybrid's own settings (HybridConfig: graph_edge_information, keyframe_threshold,
-        # keyframe_min_gap_frames, loop_nearby, loop_random, pnp_reference_width_px, pnp_depth_edge_rel,
-        # guided_match_deg); the joint term leaves contour keypoints out itself (_pnp_match)
-        h = cfg.hybrid
-        sp = replace(cfg.sparse, graph=replace(cfg.sparse.graph, edge_information=h.graph_edge_information),
-                     keyframe_threshold=h.keyframe_threshold, keyframe_min_gap_frames=h.keyframe_min_gap_frames,
-                     loop=replace(cfg.sparse.loop, n_nearby=h.loop_nearby, n_random=h.loop_random))
-        sp = replace(sp, features_reference_width_px=h.pnp_reference_width_px)
+        # the sparse back end with the hybrid's own settings ([hybrid]: keyframe spacing, loop candidates, edge
+        # weighting...: hybrid_sparse_config); the joint term leaves contour keypoints out itself (_pnp_match)
+        sp = hybrid_sparse_config(cfg, intr.fx)
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
-        guided_px = abs(intr.fx) * float(np.tan(np.radians(h.guided_match_deg)))
-        sp = replace(sp, features=replace(sp.features, depth_edge_rel=h.pnp_depth_edge_rel, guided_radius_px=guided_px))
-        if cfg.hybrid.dense_odometry_sigma_m > 0:
-            sp = replace(sp, graph=replace(sp.graph, odometry_information=cfg.hybrid.dense_odometry_sigma_m ** -2))
         refiner, refined_scale = None, None
         if cfg.hybrid.loop_icp.enabled:  # ICP-refined keyframe edges carry a tight sigma (see dense_edges)
             refiner = DenseEdgeRefiner(intr, cfg.preprocess, cfg.hybrid.loop_icp)
-        if cfg.hybrid.loop_robust_scale_m > 0:  # the kernel's scale is in whitened units (loop sigmas)
-            scale = cfg.hybrid.loop_robust_scale_m * np.sqrt(sp.graph.loop_information)
-            sp = replace(sp, graph=replace(sp.graph, robust_scale_sigma=float(scale)))
+        if cfg.hybrid.loop_robust_scale_m > 0:  # the loop kernel's scale in refined edges' sigmas
             refined_scale = cfg.hybrid.loop_robust_scale_m / cfg.hybrid.loop_icp.sigma_m
         self.sparse = SparseSlam(intr, sp, edge_refiner=refiner, refined_robust_scale=refined_scale,
-                                 colour_registered=colour_registered, coarse_rgbd_refine=h.pnp_rgbd_refine,
-                                 keyframe_clouds=False)  # the map is the surfels
+                                 colour_registered=colour_registered, coarse_rgbd_refine=cfg.hybrid.pnp_rgbd_refine,
+                                 keyframe_clouds=False,  # the map is the surfels
+                                 relocalise_after_failures=cfg.tracking.relocalise_after_failures)
         self._kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
         self._stamps: list[float] = []
         self._anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
@@ -212,7 +202,7 @@ class HybridSlam(DenseSlam):
                                self.map.n_alive, status=status)
         T_prev = self.T_world_cam
         T_pred = self.predict()
-        if self.failures_in_a_row >= self.cfg.hybrid.relocalise_after_failures:
+        if relocalise_due(self.cfg.tracking, self.failures_in_a_row):
             loc = self._relocalise(frame, T_prev, t)
         else:
             loc = self._localise(frame, T_prev, T_pred, t)
@@ -306,7 +296,7 @@ class HybridSlam(DenseSlam):
         if tracked:
             status = (FrameStatus.RELOCALISED if loc.relocalised else
                       FrameStatus.WEAK if res.degenerate else FrameStatus.TRACKED)
-            if self.failures_in_a_row < self.cfg.hybrid.relocalise_after_failures:
+            if not relocalise_due(self.cfg.tracking, self.failures_in_a_row):
                 step = (self._step_and_pose(T_prev, res)[0] if loc.from_prev
                         else se3.orthonormalize(se3.invert(T_prev) @ T_new))
                 # a weak step is ICP's slide along the free directions: not fed back (DenseSlam._velocity_after)

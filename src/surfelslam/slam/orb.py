@@ -73,7 +73,8 @@ class OrbSlam:
             store = DenseEdgeRefiner(intr, cfg.preprocess, oc.loop_icp)
         self.sparse = SparseSlam(intr, cfg.sparse, cloud_rgb=cloud_rgb, edge_refiner=store,
                                  refine_edges=oc.loop_icp.enabled, depth_odometry=oc.depth_odometry,
-                                 colour_registered=colour_registered)
+                                 colour_registered=colour_registered,
+                                 relocalise_after_failures=cfg.tracking.relocalise_after_failures)
         self._stamp_of_frame: dict[int, float] = {}
         self.failures = 0
         self.relocalisations = 0

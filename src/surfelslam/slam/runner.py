@@ -13,13 +13,8 @@ overrides.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import json
-import re
 import time
-import tomllib
-import types
-import typing
 from collections.abc import Callable, Collection, Sequence
 from datetime import datetime
 from pathlib import Path
@@ -28,7 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from surfelslam.config import dumps_toml, from_dict, load_toml
+from surfelslam import settings
 from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
@@ -36,15 +31,13 @@ from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.io.run_folder import RunFolder
 from surfelslam.io.trajectory import TumAppender, read_tum, write_tum
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
+from surfelslam.settings import dumps_toml
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam, poses_for_mapping
 from surfelslam.slam.colour_check import colour_is_registered
 from surfelslam.slam.map_file import MAP_FILE, write_map_file
 from surfelslam.slam.saved_map import SavedMap, check_map_options
 from surfelslam.slam.segments import segments_report, tracking_segments
 
-#: Preset configurations: ``--config NAME`` reads ``configs/NAME.toml`` of the source tree.
-PRESETS_DIR = Path(__file__).resolve().parents[3] / "configs"
-_PRESET_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 #: The PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views.
 RUN_FIGURES = frozenset({"trajectory", "ate_errors", "map_camera", "map_top"})
 #: Unpaired images listed (with their reasons) in ``metrics.json``; ``frames_unpaired`` counts them all.
@@ -52,121 +45,20 @@ UNPAIRED_IN_METRICS = 10
 
 
 # ------------------------------------------------------------------------------------------------ configuration
-def preset_names() -> list[str]:
-    """Names of the preset configurations (``configs/*.toml``), sorted."""
-    return sorted(p.stem for p in PRESETS_DIR.glob("*.toml")) if PRESETS_DIR.is_dir() else []
-
-
-def resolve_config_path(config: str | Path) -> Path:
-    """The file ``--config`` names: an existing file, else the preset ``configs/<config>.toml`` for a bare name.
-
-    Raises:
-        ConfigError: a bare name that is neither a file nor a preset (the message lists the presets).
-    """
-    path = Path(config)
-    if path.exists() or not _PRESET_NAME.match(str(config)):
-        return path  # a file (or a path that load_toml reports as missing)
-    preset = PRESETS_DIR / f"{config}.toml"
-    if preset.is_file():
-        return preset
-    names = preset_names()
-    listed = f"presets: {', '.join(names)}" if names else f"no presets in {PRESETS_DIR}"
-    raise ConfigError(f"--config {config}: no such file, and not a preset ({listed})")
-
-
-def _leaf_paths(cls: type, prefix: str = "") -> list[str]:
-    out = []
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        tp = _unwrap_optional(hints[f.name])
-        path = f"{prefix}{f.name}"
-        out += _leaf_paths(tp, path + ".") if dataclasses.is_dataclass(tp) else [path]
-    return out
-
-
-def _unwrap_optional(tp: Any) -> Any:
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return args[0] if len(args) == 1 else tp
-    return tp
-
-
 def parse_set(item: str, cls: type = SlamConfig) -> dict[str, Any]:
-    """``"icp.min_inliers=300"`` -> ``{"icp": {"min_inliers": 300}}``, the key checked against ``cls``.
-
-    The value is read as a TOML value (``300``, ``0.5``, ``true``, ``"text"``, ``[1, 2]``); anything else is taken
-    as a bare string (``tracking.photometric=off``).
-
-    Raises:
-        ConfigError: not ``KEY=VALUE``, an unknown key (the message names its full path and close matches), or a
-            key that is a table.
-    """
-    key, sep, text = item.partition("=")
-    key = key.strip()
-    parts = key.split(".")
-    if not sep or not all(parts):
-        raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set icp.min_inliers=300")
-    tp: Any = cls
-    for i, name in enumerate(parts):
-        here = ".".join(parts[:i])
-        if not dataclasses.is_dataclass(tp):
-            raise ConfigError(f"--set {item}: unknown setting {key} ({here} is a setting, not a table)")
-        names = [f.name for f in dataclasses.fields(tp)]
-        if name not in names:
-            close = difflib.get_close_matches(key, _leaf_paths(cls), n=3, cutoff=0.6)
-            hint = f"did you mean {_or_list(close)}?" if close else (
-                f"[{here}] has {', '.join(names)}" if here else f"the top level has {', '.join(names)}")
-            raise ConfigError(f"--set {item}: unknown setting {key} ({hint})")
-        tp = _unwrap_optional(typing.get_type_hints(tp)[name])
-    if dataclasses.is_dataclass(tp):
-        first = dataclasses.fields(tp)[0].name
-        raise ConfigError(f"--set {item}: {key} is a table, not a setting (set its keys, e.g. {key}.{first}=...)")
-    try:
-        value = tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = text.strip()
-    nested: dict[str, Any] = {parts[-1]: value}
-    for name in reversed(parts[:-1]):
-        nested = {name: nested}
-    return nested
-
-
-def _or_list(items: list[str]) -> str:
-    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
-
-
-def _merge(into: dict[str, Any], more: dict[str, Any]) -> dict[str, Any]:
-    for k, v in more.items():
-        if isinstance(v, dict) and isinstance(into.get(k), dict):
-            _merge(into[k], v)
-        else:
-            into[k] = v
-    return into
+    """:func:`surfelslam.settings.parse_set` against :class:`SlamConfig` by default."""
+    return settings.parse_set(item, cls)
 
 
 def apply_sets(cfg: SlamConfig, sets: Sequence[str]) -> SlamConfig:
     """``cfg`` with the ``--set KEY=VALUE`` overrides applied (later ones win)."""
-    if not sets:
-        return cfg
-    merged: dict[str, Any] = {}
-    for item in sets:
-        _merge(merged, parse_set(item))
-    try:
-        return from_dict(SlamConfig, merged, base=cfg)
-    except ConfigError as exc:
-        for item in sets:  # name the override at fault when it fails alone
-            try:
-                from_dict(SlamConfig, parse_set(item), base=cfg)
-            except ConfigError as alone:
-                raise ConfigError(f"--set {item}: {alone}") from None
-        raise ConfigError(f"--set {' --set '.join(sets)}: {exc}") from None
+    return settings.apply_sets(cfg, sets)
 
 
 def load_config(path: str | Path | None = None, sets: Sequence[str] = ()) -> SlamConfig:
-    """The defaults, overridden by the TOML file or preset ``path`` (:func:`resolve_config_path`), overridden by
-    the ``--set`` items."""
-    cfg = SlamConfig() if path is None else load_toml(SlamConfig, resolve_config_path(path))
-    return apply_sets(cfg, sets)
+    """The defaults, overridden by the TOML file or preset ``path``
+    (:func:`surfelslam.settings.resolve_config_path`), overridden by the ``--set`` items."""
+    return settings.load_config(SlamConfig, path, sets)
 
 
 def _now() -> str:

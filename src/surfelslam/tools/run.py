@@ -137,7 +137,7 @@ def register(app: typer.Typer) -> None:
             "--overwrite", help="Replace the previous run in --out (only the run's own files are removed).")] = False,
         config: Annotated[str | None, typer.Option(
             "--config", help="TOML configuration file (e.g. a previous run's config.toml: the whole recipe), or a "
-                             "preset name (configs/NAME.toml: fast, accurate, hybrid-full).")] = None,
+                             "preset name (fast, accurate, hybrid-full: the package's presets).")] = None,
         sets: Annotated[list[str] | None, typer.Option(
             "--set", metavar="KEY=VALUE", help="Override one setting, e.g. --set icp.min_inliers=300 --set "
                                                "tracking.photometric=off (repeatable; a TOML value or a bare "

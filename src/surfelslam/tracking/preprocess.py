@@ -31,10 +31,10 @@ from surfelslam.types import Intrinsics
 class PreprocessConfig(Config):
     """Depth preprocessing: valid depth range, bilateral filter, vertex/normal pyramid."""
 
-    min_depth_m: float = setting(0.1, unit="m", ge=0, le=100, doc="nearer depths are invalid")
-    max_depth_m: float = setting(5.0, unit="m", gt=0, le=100, doc="farther depths are invalid")
+    min_depth_m: float = setting(0.1, unit="m", ge=0, le=100, doc="nearer depths are invalid", user=True)
+    max_depth_m: float = setting(5.0, unit="m", gt=0, le=100, doc="farther depths are invalid", user=True)
     bilateral: bool = setting(True, doc="smooth depth with an edge-preserving bilateral filter before "
-                              "back-projection")
+                              "back-projection", user=True)
     bilateral_radius_px: int = setting(1, unit="px", ge=0, le=20,
                                        doc="half-size of the filter window (a 2r+1 square)")
     bilateral_sigma_px: float = setting(1.5, unit="px", gt=0, le=50, doc="spatial standard deviation of the filter")

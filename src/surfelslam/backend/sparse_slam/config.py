@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
-from surfelslam.backend.keyframes import MapConfig
+from surfelslam.backend.keyframes import KeyframeMapConfig
 from surfelslam.backend.loops import LoopConfig
 from surfelslam.backend.pose_graph import PoseGraphConfig
 from surfelslam.config import Config, check, setting
@@ -18,7 +19,7 @@ class DepthOdometryConfig(Config):
     """Depth in the sparse tracker's frame-to-keyframe odometry: ICP of the frame's depth against the reference
     keyframe's settles poses that PnP leaves ambiguous (one textured plane) or gets wrong (few inliers)."""
 
-    enabled: bool = setting(True, doc="register every tracked frame's depth to the reference keyframe's")
+    enabled: bool = setting(True, doc="register every tracked frame's depth to the reference keyframe's", user=True)
     trust_min_inliers: int = setting(
         30, unit="inliers", ge=0, le=1_000_000,
         doc="a PnP pose with at least this many inliers starts ICP and adds its inliers as reprojection terms; with "
@@ -41,7 +42,7 @@ class SparseSlamConfig(Config):
                                       doc="ORB, matching and PnP of the frame-to-keyframe odometry")
     keyframe_threshold: float = setting(0.1, unit="m + rad", gt=0, le=100,
                                         doc="motion norm from the reference keyframe that makes a new keyframe (the "
-                                            "hybrid tracker has its own: [hybrid] keyframe_threshold)")
+                                            "hybrid tracker has its own: [hybrid] keyframe_threshold)", user=True)
     keyframe_min_gap_frames: int = setting(
         1, unit="frames", ge=1, le=1_000_000,
         doc="a frame becomes a keyframe only this many placed frames after the reference keyframe at the earliest "
@@ -52,8 +53,6 @@ class SparseSlamConfig(Config):
         3, unit="frames", ge=1, le=1_000_000,
         doc="after this many rejected frames in a row the constant-velocity prediction stops until a frame is "
             "tracked again")
-    relocalise_after_failures: int = setting(3, unit="frames", ge=0, le=1_000_000,
-                                             doc="consecutive rejected frames before relocalisation is tried")
     relocalise_max_norm: float = setting(10.0, unit="m + rad", gt=0, le=100,
                                          doc="motion-norm bound of a relocalisation PnP")
     reinit_after_failures: int = setting(
@@ -68,19 +67,23 @@ class SparseSlamConfig(Config):
     reinit_sigma_rad: float = setting(1.0, unit="rad", gt=0, le=1000, doc="the same on the rotation")
     loop: LoopConfig = setting(default_factory=LoopConfig, doc="loop-candidate selection and verification")
     graph: PoseGraphConfig = setting(default_factory=PoseGraphConfig, doc="pose-graph weights and solver")
-    map: MapConfig = setting(default_factory=MapConfig, doc="keyframe clouds and the final voxel-filtered map")
+    map: KeyframeMapConfig = setting(default_factory=KeyframeMapConfig,
+                                     doc="keyframe clouds and the final voxel-filtered map")
     features_reference_width_px: int = setting(
         320, unit="px", ge=0, le=65536,
         doc="features.reprojection_error_px and depth_edge_radius_px are given for images this wide and scaled up "
             "for wider ones (the same angle); 0 = as given")
     background_loop_checks: bool = setting(
         True, doc="verify a keyframe's loop candidates in a background thread; results are applied at fixed points of "
-                  "the stream (deterministic), loop_check_lag_keyframes later")
+                  "the stream (deterministic), loop_check_lag_keyframes later", user=True)
     loop_check_lag_keyframes: int = setting(
         2, unit="keyframes", ge=1, le=16,
         doc="with background_loop_checks, a keyframe's checks are applied when this many newer keyframes have been "
             "added (1: at the next one, which then waits for them; 2 lets the tracking run on while the checks of "
             "one keyframe are still running)")
+
+    REMOVED_KEYS: ClassVar[dict[str, str]] = {
+        "relocalise_after_failures": "one setting for every tracker: [tracking] relocalise_after_failures"}
 
     @check
     def _orb_descriptors(self) -> str | None:

@@ -24,6 +24,9 @@ from surfelslam.tracking.photometric import colour_switch
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
 
+#: Rejected frames in a row before relocalisation, when the caller does not say (the trackers' default, frames).
+RELOCALISE_AFTER_FAILURES = 3
+
 
 class SparseSlam:
     """Frame-by-frame sparse SLAM (see the package docstring, :mod:`surfelslam.backend.sparse_slam`).
@@ -48,6 +51,8 @@ class SparseSlam:
             the pose (``features.rgbd_refine_iterations``).
         keyframe_clouds: keep each keyframe's voxel-filtered cloud for :meth:`map_points` (False: the map is made
             elsewhere, e.g. the hybrid's surfels; :meth:`map_points` is then empty).
+        relocalise_after_failures: rejected frames in a row after which relocalisation is tried; 0 = never (the
+            trackers pass ``[tracking] relocalise_after_failures``).
     """
 
     def __init__(self, intr: Intrinsics, cfg: SparseSlamConfig | None = None,
@@ -55,8 +60,10 @@ class SparseSlam:
                  refined_robust_scale: float | None = None,
                  cloud_rgb: Callable[[RGBDFrame], np.ndarray] | None = None, refine_edges: bool = True,
                  depth_odometry: DepthOdometryConfig | None = None, colour_registered: bool = True,
-                 coarse_rgbd_refine: bool = False, keyframe_clouds: bool = True) -> None:
+                 coarse_rgbd_refine: bool = False, keyframe_clouds: bool = True,
+                 relocalise_after_failures: int = RELOCALISE_AFTER_FAILURES) -> None:
         self.intr = intr
+        self._relocalise_after = relocalise_after_failures
         self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
         # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement, without
         # search by projection (and without the RGB-D refinement unless coarse_rgbd_refine)
@@ -238,7 +245,7 @@ class SparseSlam:
             self.rejected[res.reason or "pnp_failed"] += 1
             self._n_failures += 1
             reloc = None
-            if self._n_failures >= self.cfg.relocalise_after_failures:
+            if 0 < self._relocalise_after <= self._n_failures:
                 reloc = self._relocalise_features(feats)
             if reloc is None and self._may_reinitialise(feats):
                 return self._reinitialise(frame, feats, res)

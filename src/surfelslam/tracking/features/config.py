@@ -15,7 +15,7 @@ class FeatureConfig(Config):
     """ORB (or SIFT) extraction, matching, keypoint depth, PnP-RANSAC and pose refinement of the sparse odometry."""
 
     n_features: int = setting(1000, unit="keypoints", ge=1, le=100_000,
-                              doc="keypoints kept per image (after grid bucketing)")
+                              doc="keypoints kept per image (after grid bucketing)", user=True)
     detector: str = setting("orb", choices=DETECTORS,
                             doc="orb (binary descriptors: what the trackers and place recognition use) or sift "
                                 "(more correct matches between views far apart, about 5x the time)")
@@ -57,7 +57,7 @@ class FeatureConfig(Config):
             "occluding contour and gets no 3D point; 0 = off")
     depth_edge_radius_px: int = setting(3, unit="px", ge=1, le=100, doc="patch radius of that test")
     min_depth_m: float = setting(0.1, unit="m", ge=0, le=100, doc="nearer keypoints get no 3D point")
-    max_depth_m: float = setting(6.0, unit="m", gt=0, le=100, doc="farther keypoints get no 3D point")
+    max_depth_m: float = setting(6.0, unit="m", gt=0, le=100, doc="farther keypoints get no 3D point", user=True)
     ransac_iterations: int = setting(300, unit="iterations", ge=1, le=1_000_000, doc="PnP-RANSAC iterations")
     reprojection_error_px: float = setting(2.0, unit="px", gt=0, le=1000, doc="RANSAC inlier threshold")
     ransac_confidence: float = setting(0.99, gt=0, le=1, doc="RANSAC success probability (early stop)")

@@ -1,0 +1,134 @@
+"""The settings' tiers and what a run's config.toml holds: the user settings, the package version and the expert
+constants that differ from their defaults; loading it rebuilds the same config; removed keys say what replaced
+them; one relocalisation setting for every tracker; the hybrid's back-end profile."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from surfelslam.errors import ConfigError
+from surfelslam.settings import (
+    VERSION_KEY,
+    dumps_toml,
+    from_dict,
+    is_user_setting,
+    iter_tables,
+    load_config,
+    package_version,
+    preset_names,
+)
+from surfelslam.slam import SlamConfig
+from surfelslam.slam.config import TrackingConfig, hybrid_sparse_config, relocalise_due
+
+#: The issue's bound on a default run's config.toml.
+MAX_DEFAULT_KEYS = 80
+
+
+def _keys(text: str) -> list[str]:
+    """``table.key`` of every setting in TOML text."""
+    out, table = [], ""
+    for line in text.splitlines():
+        if line.startswith("["):
+            table = line.strip("[]") + "."
+        elif "=" in line:
+            out.append(table + line.split("=")[0].strip())
+    return out
+
+
+def test_a_default_config_toml_holds_the_user_settings_and_the_version_only():
+    text = dumps_toml(SlamConfig())
+    keys = _keys(text)
+    n_user = sum(is_user_setting(f) and not dataclasses.is_dataclass(getattr(sub, f.name))
+                 and getattr(sub, f.name) is not None
+                 for _, sub in iter_tables(SlamConfig()) for f in dataclasses.fields(sub))
+    assert len(keys) == n_user + 1 <= MAX_DEFAULT_KEYS
+    assert keys[0] == VERSION_KEY and tomllib.loads(text)[VERSION_KEY] == package_version() != ""
+    assert {"tracker", "preprocess.max_depth_m", "tracking.max_width_px", "tracking.relocalise_after_failures",
+            "hybrid.loop_correction", "fusion.max_width_px", "map_reuse.save"} <= set(keys)
+    assert "icp.max_condition_number" not in keys  # an expert constant at its default
+    assert from_dict(SlamConfig, tomllib.loads(text)) == SlamConfig()
+
+
+def test_an_expert_override_is_written_and_read_back():
+    cfg = load_config(SlamConfig, None, ["icp.max_condition_number=5000", "orb.loop_icp.sigma_m=0.004",
+                                         "sparse.graph.robust_scale_sigma=2.0"])
+    text = dumps_toml(cfg)
+    keys = _keys(text)
+    assert {"icp.max_condition_number", "orb.loop_icp.sigma_m", "sparse.graph.robust_scale_sigma"} <= set(keys)
+    assert len(keys) == len(_keys(dumps_toml(SlamConfig()))) + 3
+    back = from_dict(SlamConfig, tomllib.loads(text))
+    assert back == cfg and back.icp.max_condition_number == 5000.0 and back.orb.loop_icp.sigma_m == 0.004
+    # a table whose defaults come from its parent (orb's edge refinement) is compared with those, not the class's
+    assert "feature_weight" not in text and back.orb.loop_icp.feature_weight == 0.3
+    full = dumps_toml(cfg, full=True)
+    assert len(_keys(full)) > 250 and from_dict(SlamConfig, tomllib.loads(full)) == cfg
+
+
+@pytest.mark.parametrize("name", ["fast", "accurate", "hybrid-full"])
+def test_presets_round_trip_through_their_config_toml(name):
+    assert name in preset_names()
+    cfg = load_config(SlamConfig, name)
+    assert cfg != SlamConfig() and from_dict(SlamConfig, tomllib.loads(dumps_toml(cfg))) == cfg
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("[hybrid]\nrelocalise_after_failures = 5\n",
+     "[hybrid] relocalise_after_failures was removed: one setting for every tracker: [tracking] "
+     "relocalise_after_failures"),
+    ("[sparse]\nrelocalise_after_failures = 5\n", "[sparse] relocalise_after_failures was removed"),
+    ("[orb.loop_icp.icp]\nlevels = 2\n", "[orb.loop_icp] icp was removed: the keyframe-edge ICP is a constant"),
+    ('version = 3\n', "version must be a string, got 3"),
+])
+def test_a_removed_key_names_what_replaced_it(text, message):
+    with pytest.raises(ConfigError) as info:
+        from_dict(SlamConfig, tomllib.loads(text))
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_any_version_is_accepted():
+    assert from_dict(SlamConfig, {VERSION_KEY: "0.0.1", "tracker": "orb"}) == SlamConfig(tracker="orb")
+
+
+@pytest.mark.parametrize(("n", "failures", "due"), [(3, 2, False), (3, 3, True), (3, 9, True), (0, 0, False),
+                                                    (0, 50, False), (1, 1, True)])
+def test_one_relocalisation_setting_for_every_tracker(n, failures, due):
+    assert relocalise_due(TrackingConfig(relocalise_after_failures=n), failures) is due
+
+
+def test_the_hybrids_back_end_profile():
+    """The hybrid's sparse back end: [sparse] with the hybrid's keys, the values the former replace chain gave."""
+    cfg = SlamConfig()
+    sp = hybrid_sparse_config(cfg, 262.5)
+    h = cfg.hybrid
+    assert (sp.keyframe_threshold, sp.keyframe_min_gap_frames) == (0.1, 3)
+    assert (sp.loop.n_nearby, sp.loop.n_random) == (3, 1) != (cfg.sparse.loop.n_nearby, cfg.sparse.loop.n_random)
+    assert sp.graph.edge_information == "isotropic" and sp.features_reference_width_px == 0
+    assert sp.features.depth_edge_rel == 0.0
+    assert sp.features.guided_radius_px == pytest.approx(262.5 * np.tan(np.radians(2.6)))  # 2.6 deg: 11.9 px
+    assert sp.graph.odometry_information == pytest.approx(1e6)
+    assert sp.graph.robust_scale_sigma == pytest.approx(0.03 * np.sqrt(100.0))
+    assert sp.features.n_features == cfg.sparse.features.n_features  # the rest is [sparse]'s
+    off = replace(cfg, hybrid=replace(h, dense_odometry_sigma_m=0.0, loop_robust_scale_m=0.0))
+    sp_off = hybrid_sparse_config(off, -262.5)  # a negative focal length (flipped y) gives the same radius
+    assert sp_off.graph.odometry_information == cfg.sparse.graph.odometry_information
+    assert sp_off.graph.robust_scale_sigma == cfg.sparse.graph.robust_scale_sigma
+    assert sp_off.features.guided_radius_px == sp.features.guided_radius_px
+
+
+def test_the_presets_are_declared_package_data():
+    """pyproject.toml ships every preset in the wheel (``make wheel-check`` installs one and runs ``--config fast``)."""
+    from pathlib import Path
+
+    from surfelslam.settings import presets_dir
+
+    root = Path(__file__).resolve().parents[1]
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    package_dir = root / "src" / "surfelslam" / "settings"
+    shipped = {p.name for pattern in data["surfelslam.settings"] for p in package_dir.glob(pattern)}
+    assert shipped == {f"{name}.toml" for name in preset_names()} == {"accurate.toml", "fast.toml", "hybrid-full.toml"}
+    assert Path(str(presets_dir())) == package_dir / "presets"
