@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from surfelslam.datasets import DatasetOptions, open_sequence
-from surfelslam.datasets.rosbag import IMAGE, seconds_to_stamp
+from surfelslam.datasets.rosbag import CAMERA_INFO, IMAGE, seconds_to_stamp
+from surfelslam.errors import DatasetError
 from surfelslam.datasets.rosbag.stamps import stamp_faults, usable_mask
 
 N_FRAMES = 30
@@ -19,9 +20,9 @@ SIDE_PX = 4
 OPTIONS = DatasetOptions(intrinsics=(4.0, 4.0, 2.0, 2.0))
 
 
-def _bag(path: Path, header_s) -> Path:
+def _bag(path: Path, header_s, K: list[float] | None = None) -> Path:
     """A ROS 1 bag of ``N_FRAMES`` 4x4 colour + depth pairs recorded at 30 Hz; ``header_s(k)``: the header stamp of
-    pair ``k`` (depth value ``k + 1`` mm tells the frames apart)."""
+    pair ``k`` (depth value ``k + 1`` mm tells the frames apart); ``K``: a camera info message with this matrix."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -44,6 +45,14 @@ def _bag(path: Path, header_s) -> Path:
             w.write(c, log_ns, ts.serialize_ros1(image(t, "mono8", bytes(16), 4), IMAGE))
             depth = np.full(16, k + 1, "<u2").tobytes()
             w.write(d, log_ns, ts.serialize_ros1(image(t, "16UC1", depth, 8), IMAGE))
+        if K is not None:
+            i = w.add_connection("/camera/depth/camera_info", CAMERA_INFO, typestore=ts)
+            roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+            header = image(T0_S, "mono8", bytes(16), 4).header
+            msg = T[CAMERA_INFO](header=header, height=SIDE_PX, width=SIDE_PX, distortion_model="plumb_bob",
+                                 D=np.zeros(5), K=np.asarray(K, np.float64), R=np.eye(3).reshape(-1),
+                                 P=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
+            w.write(i, int(T0_S * 1e9), ts.serialize_ros1(msg, CAMERA_INFO))
     return path
 
 
@@ -90,3 +99,13 @@ def test_stamp_fault_counts():
     assert stamp_faults([0.0, 0.0, 1.0, 1.0, 0.5, 2.0]) == {"zero": 2, "repeated": 2, "backwards": 1}
     assert stamp_faults([0.0, 1.0, 2.0]) == {"zero": 0, "repeated": 0, "backwards": 0}  # a sequence starting at 0
     assert usable_mask([0.0, 1.0, 1.0, 0.5]).tolist() == [True, True, False, True]
+
+
+@pytest.mark.parametrize("K", [[np.nan, 0, 2, 0, 4, 2, 0, 0, 1], [-4, 0, 2, 0, 4, 2, 0, 0, 1],
+                               [4, 0, np.inf, 0, 4, 2, 0, 0, 1]])
+def test_camera_info_must_be_a_finite_camera(tmp_path, K):
+    path = _bag(tmp_path / "info.bag", lambda k: T0_S + k / RATE_HZ, K)
+    with pytest.raises(DatasetError, match="camera info topic /camera/depth/camera_info: K = .* --intrinsics"):
+        open_sequence(path, DatasetOptions(), plausibility="warn")
+    good = _bag(tmp_path / "good.bag", lambda k: T0_S + k / RATE_HZ, [4, 0, 2, 0, 4, 2, 0, 0, 1])
+    assert open_sequence(good, DatasetOptions(), plausibility="warn").intrinsics.fx == 4.0

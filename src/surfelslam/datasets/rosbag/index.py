@@ -244,9 +244,9 @@ def _intrinsics(root: Path, options: DatasetOptions, first: dict[str, object], i
     elif info is not None and info in first:
         msg = first[info]
         K = np.asarray(message_field(msg, "k", "K"), np.float64).reshape(-1)
-        if K.size != 9 or K[0] == 0 or K[4] == 0:
-            raise DatasetError(root, f"camera info topic {info}: K = {K.tolist()} is not a camera matrix; give "
-                                     "--intrinsics")
+        if K.size != 9 or not np.all(np.isfinite(K)) or not (K[0] > 0 and K[4] > 0):
+            raise DatasetError(root, f"camera info topic {info}: K = {K.tolist()} is not a camera matrix (finite, "
+                                     "positive focal lengths); give --intrinsics")
         iw, ih = int(msg.width), int(msg.height)
         if (iw, ih) != (0, 0) and (iw, ih) != (w, h):
             raise DatasetError(root, f"camera info topic {info} describes {iw}x{ih} images but the depth topic "
