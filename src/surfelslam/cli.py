@@ -137,6 +137,18 @@ def report_interrupt() -> None:
     _stderr_line("interrupted")
 
 
+def _drop_unraisable(unraisable) -> None:  # noqa: ARG001 - sys.unraisablehook signature
+    """Ignore an exception raised where Python cannot raise it (a destructor)."""
+
+
+def quiet_after_interrupt() -> None:
+    """After a Ctrl-C, drop destructor errors: objects the interrupt left half-built (llvmlite's ``PassBuilder``
+    interrupted during the JIT warm-up) fail in ``__del__`` as they are freed, which Python reports as an
+    "Exception ignored in" traceback after the "interrupted" line. Only for the process's own command line
+    (:func:`main`): a program embedding :func:`run_cli` keeps its hook."""
+    sys.unraisablehook = _drop_unraisable
+
+
 def debug_enabled() -> bool:
     """``SURFELSLAM_DEBUG`` set (and not 0): unexpected exceptions keep their traceback."""
     return os.environ.get(DEBUG_ENV, "") not in ("", "0")
@@ -276,17 +288,23 @@ def __getattr__(name: str) -> Any:  # ``from surfelslam.cli import app`` builds 
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def run_cli(argv: list[str] | None = None) -> int:
-    """Run the command line and return its exit code (never raises, except with ``SURFELSLAM_DEBUG=1``)."""
+def run_cli(argv: list[str] | None = None, quiet_interrupt: bool = False) -> int:
+    """Run the command line and return its exit code (never raises, except with ``SURFELSLAM_DEBUG=1``);
+    ``quiet_interrupt``: after a Ctrl-C, silence destructor errors (:func:`quiet_after_interrupt`) before the
+    interrupted command's objects are freed."""
     try:
         get_app()(args=argv, prog_name="surfelslam")
         return 0
     except SystemExit as exc:
+        if exc.code == EXIT_INTERRUPTED and quiet_interrupt:
+            quiet_after_interrupt()  # here: the exception chain still holds the interrupted frames
         if exc.code is None or isinstance(exc.code, int):
             return exc.code or 0
         _stderr_line(str(exc.code))
         return EXIT_INTERNAL_ERROR
     except KeyboardInterrupt:
+        if quiet_interrupt:
+            quiet_after_interrupt()
         report_interrupt()
         return EXIT_INTERRUPTED
     except Exception as exc:
@@ -313,7 +331,7 @@ def main(argv: list[str] | None = None) -> None:
     Called without ``argv`` (as the process's entry point) it ends the process itself (:func:`_end_process`);
     with ``argv`` it raises SystemExit like any click program.
     """
-    code = run_cli(argv)
+    code = run_cli(argv, quiet_interrupt=True)
     force_exit_on_interrupt()  # from here on a Ctrl-C ends the process at once, with a word
     if argv is None and hasattr(atexit, "_run_exitfuncs"):
         _end_process(code)

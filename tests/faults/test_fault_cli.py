@@ -147,14 +147,26 @@ SIGINT_SELF = "import os, signal; os.kill(os.getpid(), signal.SIGINT)"
         def opening(*a, **k):
             {SIGINT_SELF}
         ds.open_sequence = opening"""),
+    # as llvmlite's PassBuilder when Ctrl-C lands in its constructor during the JIT warm-up: its destructor fails
+    # when the interrupted frames are freed ("Exception ignored in: ... no attribute '_as_parameter_'")
+    ("constructing an object whose destructor then fails", f"""
+        import surfelslam.datasets as ds
+        class HalfBuilt:
+            def __init__(self):
+                {SIGINT_SELF}
+                self._as_parameter_ = 1
+            def __del__(self):
+                self._as_parameter_
+        def opening(*a, **k):
+            HalfBuilt()
+        ds.open_sequence = opening"""),
 ])
 def test_ctrl_c_at_start_up_and_later(synth_seq, where, patch):
     code = "import sys\nfrom surfelslam import cli\n" + textwrap.dedent(patch).strip() + (
         f"\ncli.main(['info', {str(synth_seq)!r}])\n")
     res = _python(code)
     assert res.returncode == 130, (where, res.stderr)
-    assert res.stderr.strip().splitlines()[-1:] == ["interrupted"], (where, res.stderr)
-    assert "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines() == ["interrupted"], (where, res.stderr)
 
 
 # ---------------------------------------------------------------------------------------- numba cache
