@@ -23,9 +23,12 @@ from surfelslam.tools.common import handle_errors
 HEAVY = ("numba", "cv2", "matplotlib", "evo", "surfelslam.datasets", "surfelslam.tools.run", "surfelslam.kernels")
 
 
-def _python(code: str, env: dict | None = None, timeout: float = 60) -> subprocess.CompletedProcess:
+def _python(code: str, env: dict | None = None, timeout: float = 60, unset: tuple[str, ...] = ()
+            ) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter with the caller's environment, ``env`` added and ``unset`` removed."""
     full = {**os.environ, **(env or {})}
-    full.pop("SURFELSLAM_DEBUG", None)
+    for name in ("SURFELSLAM_DEBUG", *unset):
+        full.pop(name, None)
     return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
                           env=full, timeout=timeout)
 
@@ -209,7 +212,8 @@ def test_cached_kernel_compiles_on_a_read_only_install(tmp_path):
         cli.configure_numba_cache()
         import kern
         print(kern.inc(1), os.environ["NUMBA_CACHE_DIR"])
-    """, env={"HOME": str(tmp_path / "homefile" / "home"), "XDG_CACHE_HOME": str(tmp_path / "homefile" / "c")})
+    """, env={"HOME": str(tmp_path / "homefile" / "home"), "XDG_CACHE_HOME": str(tmp_path / "homefile" / "c")},
+        unset=("NUMBA_CACHE_DIR",))  # the caller's NUMBA_CACHE_DIR would be kept (and no fallback made)
     assert res.returncode == 0, res.stderr
     value, cache = res.stdout.split()
     assert value == "2" and "surfelslam-numba" in cache
