@@ -20,9 +20,10 @@ SIDE_PX = 4
 OPTIONS = DatasetOptions(intrinsics=(4.0, 4.0, 2.0, 2.0))
 
 
-def _bag(path: Path, header_s, K: list[float] | None = None) -> Path:
+def _bag(path: Path, header_s, K: list[float] | None = None, gt_s: list[float] | None = None) -> Path:
     """A ROS 1 bag of ``N_FRAMES`` 4x4 colour + depth pairs recorded at 30 Hz; ``header_s(k)``: the header stamp of
-    pair ``k`` (depth value ``k + 1`` mm tells the frames apart); ``K``: a camera info message with this matrix."""
+    pair ``k`` (depth value ``k + 1`` mm tells the frames apart); ``K``: a camera info message with this matrix;
+    ``gt_s``: identity ground-truth poses at these header stamps."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -53,6 +54,15 @@ def _bag(path: Path, header_s, K: list[float] | None = None) -> Path:
                                  D=np.zeros(5), K=np.asarray(K, np.float64), R=np.eye(3).reshape(-1),
                                  P=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
             w.write(i, int(T0_S * 1e9), ts.serialize_ros1(msg, CAMERA_INFO))
+        if gt_s is not None:
+            pose_type = "geometry_msgs/msg/PoseStamped"
+            g = w.add_connection("/ground_truth/pose", pose_type, typestore=ts)
+            for k, t in enumerate(gt_s):
+                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                                                   orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,
+                                                                                               w=1.0))
+                msg = T[pose_type](header=image(t, "mono8", bytes(16), 4).header, pose=pose)
+                w.write(g, int((T0_S + k / RATE_HZ) * 1e9), ts.serialize_ros1(msg, pose_type))
     return path
 
 
@@ -109,3 +119,12 @@ def test_camera_info_must_be_a_finite_camera(tmp_path, K):
         open_sequence(path, DatasetOptions(), plausibility="warn")
     good = _bag(tmp_path / "good.bag", lambda k: T0_S + k / RATE_HZ, [4, 0, 2, 0, 4, 2, 0, 0, 1])
     assert open_sequence(good, DatasetOptions(), plausibility="warn").intrinsics.fx == 4.0
+
+
+def test_repeated_ground_truth_stamps_are_counted(tmp_path):
+    gt = [T0_S + k / RATE_HZ for k in range(N_FRAMES)]
+    gt[3] = gt[2]
+    seq = open_sequence(_bag(tmp_path / "gt.bag", lambda k: T0_S + k / RATE_HZ, gt_s=gt), OPTIONS,
+                        plausibility="warn")
+    assert len(seq.ground_truth) == N_FRAMES - 1
+    assert [w for w in seq.warnings if "/ground_truth/pose: 1 of 30 poses repeat an earlier header stamp" in w]

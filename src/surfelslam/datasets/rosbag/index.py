@@ -169,6 +169,10 @@ def index_bag(root: Path, reader, options: DatasetOptions) -> BagIndex:
     scale, scale_src = _depth_scale(options, kind, depth)
     entries, unpaired = _pair(root, index[rgb], index[depth])
     gt = _ground_truth(gt_file, gt_topic, gt_stamps, gt_poses)
+    repeated_gt = len(gt_stamps) - len(set(gt_stamps))
+    if gt_file is None and repeated_gt:
+        notes.append(f"{root}: ground-truth topic {gt_topic}: {repeated_gt} of {len(gt_stamps)} poses repeat an "
+                     "earlier header stamp and are left out")
     topics = {t: TopicIndex(t, types[t]) for t in types}
     for t, ti in index.items():
         topics[t] = ti
