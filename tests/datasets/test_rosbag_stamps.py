@@ -20,10 +20,11 @@ SIDE_PX = 4
 OPTIONS = DatasetOptions(intrinsics=(4.0, 4.0, 2.0, 2.0))
 
 
-def _bag(path: Path, header_s, K: list[float] | None = None, gt_s: list[float] | None = None) -> Path:
+def _bag(path: Path, header_s, K: list[float] | None = None, gt_s: list[float] | None = None,
+         gt_x: list[float] | None = None) -> Path:
     """A ROS 1 bag of ``N_FRAMES`` 4x4 colour + depth pairs recorded at 30 Hz; ``header_s(k)``: the header stamp of
     pair ``k`` (depth value ``k + 1`` mm tells the frames apart); ``K``: a camera info message with this matrix;
-    ``gt_s``: identity ground-truth poses at these header stamps."""
+    ``gt_s``: identity ground-truth poses at these header stamps (``gt_x``: their x, default 0)."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -58,7 +59,8 @@ def _bag(path: Path, header_s, K: list[float] | None = None, gt_s: list[float] |
             pose_type = "geometry_msgs/msg/PoseStamped"
             g = w.add_connection("/ground_truth/pose", pose_type, typestore=ts)
             for k, t in enumerate(gt_s):
-                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                x = 0.0 if gt_x is None else gt_x[k]
+                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=x, y=0.0, z=0.0),
                                                    orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,
                                                                                                w=1.0))
                 msg = T[pose_type](header=image(t, "mono8", bytes(16), 4).header, pose=pose)
@@ -128,3 +130,13 @@ def test_repeated_ground_truth_stamps_are_counted(tmp_path):
                         plausibility="warn")
     assert len(seq.ground_truth) == N_FRAMES - 1
     assert [w for w in seq.warnings if "/ground_truth/pose: 1 of 30 poses repeat an earlier header stamp" in w]
+
+
+def test_non_finite_ground_truth_poses_are_left_out_and_counted(tmp_path):
+    gt = [T0_S + k / RATE_HZ for k in range(N_FRAMES)]
+    x = [0.0] * N_FRAMES
+    x[4] = x[9] = float("nan")
+    seq = open_sequence(_bag(tmp_path / "nan.bag", lambda k: T0_S + k / RATE_HZ, gt_s=gt, gt_x=x), OPTIONS,
+                        plausibility="warn")
+    assert len(seq.ground_truth) == N_FRAMES - 2 and np.isfinite(seq.ground_truth.T_world_cam).all()
+    assert [w for w in seq.warnings if "/ground_truth/pose: 2 of 30 poses are not finite" in w]

@@ -168,6 +168,12 @@ def index_bag(root: Path, reader, options: DatasetOptions) -> BagIndex:
     intrinsics, intr_src, kind_src = _intrinsics(root, options, first, info, depth, w, h)
     scale, scale_src = _depth_scale(options, kind, depth)
     entries, unpaired = _pair(root, index[rgb], index[depth])
+    finite = [bool(np.all(np.isfinite(T))) for T in gt_poses]
+    if not all(finite):
+        notes.append(f"{root}: ground-truth topic {gt_topic}: {finite.count(False)} of {len(finite)} poses are not "
+                     "finite (or have a zero quaternion) and are left out")
+        gt_stamps = [t for t, ok in zip(gt_stamps, finite, strict=True) if ok]
+        gt_poses = [T for T, ok in zip(gt_poses, finite, strict=True) if ok]
     gt = _ground_truth(gt_file, gt_topic, gt_stamps, gt_poses)
     repeated_gt = len(gt_stamps) - len(set(gt_stamps))
     if gt_file is None and repeated_gt:
