@@ -10,8 +10,8 @@ import pytest
 
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.datasets.rosbag import CAMERA_INFO, IMAGE, seconds_to_stamp
-from surfelslam.errors import DatasetError
 from surfelslam.datasets.rosbag.stamps import stamp_faults, usable_mask
+from surfelslam.errors import DatasetError
 
 N_FRAMES = 30
 RATE_HZ = 30.0

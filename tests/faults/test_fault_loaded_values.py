@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from faultkit import assert_one_line, cli
+
 from surfelslam.errors import MapFileError
 from surfelslam.io.map_file import read_map_file, write_map_file
 from surfelslam.slam.map_keyframes import MapKeyframes

@@ -4,9 +4,9 @@ unpaired images are counted only within the selection (issue 70.5)."""
 from __future__ import annotations
 
 import pytest
+from faultkit import assert_one_line, cli, index_rows
 
 from conftest import HEIGHT, N_FRAMES, WIDTH
-from faultkit import assert_one_line, cli, index_rows
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.datasets.base import MIN_DOWNSAMPLED_SIDE_PX
 from surfelslam.errors import ConfigError
