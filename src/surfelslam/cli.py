@@ -25,7 +25,7 @@ import os
 import signal
 import sys
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -137,16 +137,41 @@ def report_interrupt() -> None:
     _stderr_line("interrupted")
 
 
-def _drop_unraisable(unraisable) -> None:  # noqa: ARG001 - sys.unraisablehook signature
-    """Ignore an exception raised where Python cannot raise it (a destructor)."""
+_interrupt_requested = False
 
 
-def quiet_after_interrupt() -> None:
-    """After a Ctrl-C, drop destructor errors: objects the interrupt left half-built (llvmlite's ``PassBuilder``
-    interrupted during the JIT warm-up) fail in ``__del__`` as they are freed, which Python reports as an
-    "Exception ignored in" traceback after the "interrupted" line. Only for the process's own command line
-    (:func:`main`): a program embedding :func:`run_cli` keeps its hook."""
-    sys.unraisablehook = _drop_unraisable
+def _raise_interrupt(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    """Python's own Ctrl-C handler (raise KeyboardInterrupt), remembering that the user asked to stop."""
+    global _interrupt_requested
+    _interrupt_requested = True
+    raise KeyboardInterrupt
+
+
+def interrupt_requested() -> bool:
+    """Whether Ctrl-C was pressed in this process's command line (:func:`catch_interrupts`)."""
+    return _interrupt_requested
+
+
+def _quiet_unraisable(previous: Callable[[Any], object]) -> Callable[[Any], None]:
+    def hook(unraisable) -> None:
+        if _interrupt_requested or isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        previous(unraisable)
+
+    return hook
+
+
+def catch_interrupts() -> None:
+    """For the process's own command line (:func:`main`): a Ctrl-C is remembered, and the errors it causes where
+    Python cannot raise them are dropped. During the JIT warm-up a Ctrl-C can land in an llvmlite callback (printed
+    as "Exception ignored", then the compilation fails with a RuntimeError) or in a constructor (its object's
+    ``__del__`` fails when freed, after the "interrupted" line); the user pressed Ctrl-C and sees only
+    "interrupted" (:func:`run_cli` and the commands report any error after a Ctrl-C as the interruption)."""
+    try:
+        signal.signal(signal.SIGINT, _raise_interrupt)
+    except (ValueError, OSError):  # not the main thread
+        return
+    sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
 
 
 def debug_enabled() -> bool:
@@ -288,26 +313,23 @@ def __getattr__(name: str) -> Any:  # ``from surfelslam.cli import app`` builds 
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def run_cli(argv: list[str] | None = None, quiet_interrupt: bool = False) -> int:
-    """Run the command line and return its exit code (never raises, except with ``SURFELSLAM_DEBUG=1``);
-    ``quiet_interrupt``: after a Ctrl-C, silence destructor errors (:func:`quiet_after_interrupt`) before the
-    interrupted command's objects are freed."""
+def run_cli(argv: list[str] | None = None) -> int:
+    """Run the command line and return its exit code (never raises, except with ``SURFELSLAM_DEBUG=1``)."""
     try:
         get_app()(args=argv, prog_name="surfelslam")
         return 0
     except SystemExit as exc:
-        if exc.code == EXIT_INTERRUPTED and quiet_interrupt:
-            quiet_after_interrupt()  # here: the exception chain still holds the interrupted frames
         if exc.code is None or isinstance(exc.code, int):
             return exc.code or 0
         _stderr_line(str(exc.code))
         return EXIT_INTERNAL_ERROR
     except KeyboardInterrupt:
-        if quiet_interrupt:
-            quiet_after_interrupt()
         report_interrupt()
         return EXIT_INTERRUPTED
     except Exception as exc:
+        if interrupt_requested():  # a failure the Ctrl-C caused (e.g. a compilation it broke)
+            report_interrupt()
+            return EXIT_INTERRUPTED
         if debug_enabled():
             raise
         _stderr_line(f"error: {internal_error_message(exc)}")
@@ -331,7 +353,8 @@ def main(argv: list[str] | None = None) -> None:
     Called without ``argv`` (as the process's entry point) it ends the process itself (:func:`_end_process`);
     with ``argv`` it raises SystemExit like any click program.
     """
-    code = run_cli(argv, quiet_interrupt=True)
+    catch_interrupts()
+    code = run_cli(argv)
     force_exit_on_interrupt()  # from here on a Ctrl-C ends the process at once, with a word
     if argv is None and hasattr(atexit, "_run_exitfuncs"):
         _end_process(code)

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -129,6 +130,8 @@ def test_ctrl_c_inside_a_command(restore_sigint):
 
 # ---------------------------------------------------------------------------------------- Ctrl-C, real signals
 SIGINT_SELF = "import os, signal; os.kill(os.getpid(), signal.SIGINT)"
+#: Seconds into a run with an empty kernel cache: past the imports, inside the JIT compilation (about a minute).
+WARM_UP_SIGINT_AFTER_S = 4.0
 
 
 @pytest.mark.parametrize("where, patch", [
@@ -163,6 +166,17 @@ SIGINT_SELF = "import os, signal; os.kill(os.getpid(), signal.SIGINT)"
         def opening(*a, **k):
             HalfBuilt()
         ds.open_sequence = opening"""),
+    # as llvmlite's object-cache callback when Ctrl-C lands in it: the interrupt is only printed ("Exception ignored
+    # on calling ctypes callback function"), then the compilation fails with a RuntimeError
+    ("a callback, and the work then fails", f"""
+        import ctypes
+        import surfelslam.datasets as ds
+        def callback():
+            {SIGINT_SELF}
+        def opening(*a, **k):
+            ctypes.CFUNCTYPE(None)(callback)()
+            raise RuntimeError("no compiled object yet")
+        ds.open_sequence = opening"""),
 ])
 def test_ctrl_c_at_start_up_and_later(synth_seq, where, patch):
     code = "import sys\nfrom surfelslam import cli\n" + textwrap.dedent(patch).strip() + (
@@ -170,6 +184,21 @@ def test_ctrl_c_at_start_up_and_later(synth_seq, where, patch):
     res = _python(code)
     assert res.returncode == 130, (where, res.stderr)
     assert res.stderr.strip().splitlines() == ["interrupted"], (where, res.stderr)
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_the_jit_warm_up_is_one_line(synth_seq, tmp_path):
+    """A real run with an empty numba cache (so it compiles), Ctrl-C after a few seconds: 'interrupted', exit 130,
+    nothing else (no llvmlite destructor or callback traceback)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    env.pop("SURFELSLAM_DEBUG", None)
+    proc = subprocess.Popen([sys.executable, "-m", "surfelslam", "run", str(synth_seq), "-o", str(tmp_path / "out"),
+                             "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    time.sleep(WARM_UP_SIGINT_AFTER_S)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.splitlines() == ["interrupted"], err
 
 
 # ---------------------------------------------------------------------------------------- numba cache
