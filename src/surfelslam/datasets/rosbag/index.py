@@ -168,17 +168,8 @@ def index_bag(root: Path, reader, options: DatasetOptions) -> BagIndex:
     intrinsics, intr_src, kind_src = _intrinsics(root, options, first, info, depth, w, h)
     scale, scale_src = _depth_scale(options, kind, depth)
     entries, unpaired = _pair(root, index[rgb], index[depth])
-    finite = [bool(np.all(np.isfinite(T))) for T in gt_poses]
-    if not all(finite):
-        notes.append(f"{root}: ground-truth topic {gt_topic}: {finite.count(False)} of {len(finite)} poses are not "
-                     "finite (or have a zero quaternion) and are left out")
-        gt_stamps = [t for t, ok in zip(gt_stamps, finite, strict=True) if ok]
-        gt_poses = [T for T, ok in zip(gt_poses, finite, strict=True) if ok]
+    gt_stamps, gt_poses = _usable_poses(root, gt_topic, gt_stamps, gt_poses, notes)
     gt = _ground_truth(gt_file, gt_topic, gt_stamps, gt_poses)
-    repeated_gt = len(gt_stamps) - len(set(gt_stamps))
-    if gt_file is None and repeated_gt:
-        notes.append(f"{root}: ground-truth topic {gt_topic}: {repeated_gt} of {len(gt_stamps)} poses repeat an "
-                     "earlier header stamp and are left out")
     topics = {t: TopicIndex(t, types[t]) for t in types}
     for t, ti in index.items():
         topics[t] = ti
@@ -278,6 +269,23 @@ def _depth_scale(options: DatasetOptions, kind: str, depth: str) -> tuple[float,
     return METRE_DEPTH_SCALE, f"depth topic {depth} (32-bit float: metres)"
 
 
+def _usable_poses(root: Path, gt_topic: str | None, stamps: list[float], poses: list[np.ndarray], notes: list[str]
+                  ) -> tuple[list[float], list[np.ndarray]]:
+    """The ground-truth topic's finite poses; poses not finite (or with a zero quaternion) and repeated stamps are
+    counted in ``notes`` (the repeats are left out by :func:`_ground_truth`)."""
+    finite = [bool(np.all(np.isfinite(T))) for T in poses]
+    if not all(finite):
+        notes.append(f"{root}: ground-truth topic {gt_topic}: {finite.count(False)} of {len(finite)} poses are not "
+                     "finite (or have a zero quaternion) and are left out")
+        stamps = [t for t, ok in zip(stamps, finite, strict=True) if ok]
+        poses = [T for T, ok in zip(poses, finite, strict=True) if ok]
+    repeated = len(stamps) - len(set(stamps))
+    if repeated:
+        notes.append(f"{root}: ground-truth topic {gt_topic}: {repeated} of {len(stamps)} poses repeat an earlier "
+                     "header stamp and are left out")
+    return stamps, poses
+
+
 def _ground_truth(gt_file: Path | None, gt_topic: str | None, gt_stamps: list[float], gt_poses: list[np.ndarray]
                   ) -> Trajectory | None:
     """The ``--gt`` TUM file's trajectory, else the pose topic's (stamp order, a repeated stamp kept once)."""
@@ -303,8 +311,8 @@ def _bag_format(root: Path, ros2: bool) -> str:
 
 
 def _sorted_unique(ti: TopicIndex) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(stamps, log_ns, header stamps)`` of a topic's usable messages in stamp order (a zero stamp left out, a
-    repeated one kept once: :func:`~.stamps.usable_mask`; :func:`~.stamps.check_camera_stamps` reported them)."""
+    """``(stamps, log_ns, header stamps)`` of a topic's messages in stamp order, a repeated stamp kept once (the
+    first received: :func:`~.stamps.usable_mask`; :func:`~.stamps.check_camera_stamps` reported the others)."""
     keep = usable_mask(ti.stamps)
     st = np.asarray(ti.stamps, np.float64)[keep]
     own = np.asarray(ti.header_stamps if ti.header_stamps else ti.stamps, np.float64)[keep]
