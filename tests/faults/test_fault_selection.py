@@ -6,16 +6,17 @@ from __future__ import annotations
 import pytest
 from faultkit import assert_one_line, cli, index_rows
 
-from conftest import HEIGHT, N_FRAMES, WIDTH
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.datasets.base import MIN_DOWNSAMPLED_SIDE_PX
 from surfelslam.errors import ConfigError
 
 
 def test_downsample_too_large_names_the_option(seq):
-    largest = min(WIDTH, HEIGHT) // MIN_DOWNSAMPLED_SIDE_PX
+    intr = open_sequence(seq).full_intrinsics  # 160x120 (the fixture's)
+    largest = min(intr.width, intr.height) // MIN_DOWNSAMPLED_SIDE_PX
+    assert largest == 7
     res = cli("info", seq, "--downsample", 1000)
-    assert_one_line(res, 2, str(seq), "--downsample 1000", f"{WIDTH}x{HEIGHT} images into 1x1",
+    assert_one_line(res, 2, str(seq), "--downsample 1000", "160x120 images into 1x1",
                     f"use --downsample {largest} or less")
     assert open_sequence(seq, DatasetOptions(downsample=largest)).intrinsics.height >= MIN_DOWNSAMPLED_SIDE_PX
     with pytest.raises(ConfigError, match=f"--downsample {largest + 1} "):
@@ -24,14 +25,14 @@ def test_downsample_too_large_names_the_option(seq):
 
 def test_start_past_the_end_names_the_option_and_the_frame_count(seq):
     res = cli("info", seq, "--start", 50)
-    assert_one_line(res, 2, str(seq), "--start 50 keeps no frame", f"{N_FRAMES} frames (positions 0-9)")
+    assert_one_line(res, 2, str(seq), "--start 50 keeps no frame", "10 frames (positions 0-9)")
 
 
 def test_end_past_the_end_is_a_warning(seq):
     s = open_sequence(seq, DatasetOptions(end=100))
-    assert len(s) == N_FRAMES
+    assert len(s) == 10
     assert [w for w in s.warnings if "--end 100 is past the last frame (10 frames)" in w]
-    assert not open_sequence(seq, DatasetOptions(end=N_FRAMES)).warnings
+    assert not open_sequence(seq, DatasetOptions(end=10)).warnings
 
 
 def test_unpaired_images_are_counted_within_the_selection(seq):
