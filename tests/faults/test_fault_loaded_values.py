@@ -90,3 +90,18 @@ def test_cli_refuses_a_map_with_nan_positions_in_one_line(seq, tmp_path):
     res = cli("run", seq, "--map", path, "--out", tmp_path / "out", "--no-progress")
     assert_one_line(res, 2, str(path), "surfel_position")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("row", "fragment"), [("2.0 nan 0 0 0 0 0 1", "line 3: non-finite value"),
+                                               ("2.0 0 0 inf 0 0 0 1", "line 3: non-finite value"),
+                                               ("2.0 0 0 0 0 0 0 0", "line 3: zero quaternion"),
+                                               ("1.0 0 0 0 0 0 0 1", "duplicate timestamp 1.000000 (lines 2 and 3)")])
+def test_trajectory_values_are_checked(tmp_path, row, fragment):
+    from surfelslam.errors import InputError
+    from surfelslam.io.trajectory import read_tum
+
+    path = tmp_path / "traj.txt"
+    path.write_text(f"# t tx ty tz qx qy qz qw\n1.0 0 0 0 0 0 0 1\n{row}\n")
+    with pytest.raises(InputError) as exc:
+        read_tum(path)
+    assert str(exc.value).startswith(str(path)) and fragment in str(exc.value)
