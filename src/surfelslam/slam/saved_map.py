@@ -199,8 +199,9 @@ def from_arrays(arrays: Any) -> SavedMap:
 MAX_MAP_COORDINATE_M = 1.0e4
 #: Largest deviation of a surfel normal's length from 1 (they are saved normalised, in float32).
 MAX_NORMAL_LENGTH_ERROR = 1.0e-3
-#: Largest deviation from a rotation (max |R R^T - I|) of a saved keyframe or graph pose (float64, saved rigid).
-MAX_POSE_ROTATION_ERROR = 1.0e-6
+#: Largest deviation from a rotation (max |R R^T - I|) of a saved keyframe or graph pose: the trajectory files'
+#: tolerance (poses may pass through float32 on the way); a corrupt pose is far beyond it.
+MAX_POSE_ROTATION_ERROR = 1.0e-3
 #: Colours are 8-bit values, as floats.
 COLOUR_RANGE = (0.0, 255.0)
 
