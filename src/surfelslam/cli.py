@@ -29,9 +29,11 @@ from surfelslam.numba_cache import configure_numba_cache
 from surfelslam.tools.exits import (
     EXIT_INTERNAL_ERROR,
     EXIT_INTERRUPTED,
+    catch_interrupts,
     debug_enabled,
     force_exit_on_interrupt,
     internal_error_message,
+    interrupt_requested,
 )
 
 #: command name -> (module in surfelslam.tools, its docstring's first paragraph: the listing's help text)
@@ -218,6 +220,9 @@ def run_cli(argv: list[str] | None = None) -> int:
         report_interrupt()
         return EXIT_INTERRUPTED
     except Exception as exc:
+        if interrupt_requested():  # a failure the Ctrl-C caused (e.g. a compilation it broke)
+            report_interrupt()
+            return EXIT_INTERRUPTED
         if debug_enabled():
             raise
         _stderr_line(f"error: {internal_error_message(exc)}")
@@ -241,6 +246,7 @@ def main(argv: list[str] | None = None) -> None:
     Called without ``argv`` (as the process's entry point) it ends the process itself (:func:`_end_process`);
     with ``argv`` it raises SystemExit like any click program.
     """
+    catch_interrupts()
     code = run_cli(argv)
     force_exit_on_interrupt()  # from here on a Ctrl-C ends the process at once, with a word
     if argv is None and hasattr(atexit, "_run_exitfuncs"):

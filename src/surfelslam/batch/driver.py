@@ -9,6 +9,7 @@ from typing import Any
 
 from surfelslam.batch.executors import Executor, LocalExecutor
 from surfelslam.batch.jobs import Job, is_complete, one_line, skipped_row, summary
+from surfelslam.batch.lock import BatchLock
 from surfelslam.batch.report import write_report
 
 
@@ -41,11 +42,19 @@ def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | No
     (``warmup``), so that the workers load numba's cache instead of each compiling it. ``on_result(job, row)`` is
     called for each job as it is settled (skipped ones first). A KeyboardInterrupt, or the executor failing (a
     cluster that cannot be joined), still writes the table (the jobs not finished: ``interrupted``, with the
-    reason) and then propagates.
+    reason) and then propagates. One batch at a time writes into ``out_root`` (:class:`~.lock.BatchLock`: a second
+    one raises OutputError), so ``results.csv`` agrees with the run folders.
     """
     executor = LocalExecutor() if executor is None else executor
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
+    with BatchLock(out_root):
+        return _run_locked(jobs, out_root, executor, on_result, warmup, plots)
+
+
+def _run_locked(jobs: Sequence[Job], out_root: Path, executor: Executor,
+                on_result: Callable[[Job, dict[str, Any]], None] | None, warmup: bool, plots: bool) -> BatchResult:
+    """:func:`run_batch` once ``out_root``'s batch lock is held."""
     rows: dict[str, dict] = {}
 
     def settle(job: Job, row: dict) -> None:

@@ -79,6 +79,31 @@ class DatasetOptions:
                 raise ConfigError("--intrinsics: focal lengths must be non-zero")
 
 
+#: Smallest image side (px) after ``--downsample``: the default image pyramid (4 levels) halves a side three times;
+#: below 16 px its coarsest level has under 2 pixels a side and cannot be tracked.
+MIN_DOWNSAMPLED_SIDE_PX = 16
+
+
+def check_selection(seq: RGBDSequence) -> None:
+    """Check the options against the opened sequence (its image size and frame count) before anything runs:
+    ConfigError naming the option for a selection that cannot work (``--downsample`` taking the images below
+    :data:`MIN_DOWNSAMPLED_SIDE_PX`, files that small already excepted; ``--start`` past the last frame); an
+    ``--end`` past the last frame is a warning (``seq.warnings``)."""
+    o, full, n = seq.options, seq.full_intrinsics, len(seq.all_entries)
+    w, h = seq.intrinsics.width, seq.intrinsics.height
+    if o.downsample > 1 and min(w, h) < MIN_DOWNSAMPLED_SIDE_PX <= min(full.width, full.height):
+        largest = max(1, min(full.width, full.height) // MIN_DOWNSAMPLED_SIDE_PX)
+        raise ConfigError(f"{seq.root}: --downsample {o.downsample} turns the {full.width}x{full.height} images "
+                          f"into {w}x{h}, below {MIN_DOWNSAMPLED_SIDE_PX} pixels a side; use --downsample "
+                          f"{largest} or less")
+    if o.start >= n:
+        raise ConfigError(f"{seq.root}: --start {o.start} keeps no frame: the sequence has {n} frames "
+                          f"(positions 0-{n - 1})")
+    if o.end is not None and o.end > n:
+        seq.warnings.append(f"{seq.root}: --end {o.end} is past the last frame ({n} frames): the selection ends "
+                            "with the sequence")
+
+
 class UnpairedFrame(NamedTuple):
     """A file an index or image folder lists that did not become a frame (it has no partner).
 
@@ -130,7 +155,8 @@ class RGBDSequence:
         entries: selected frames' files, in time order.
         ground_truth: the whole ground-truth trajectory, or ``None`` when the folder has none.
         unpaired: images the index files or folders list that found no partner (colour without depth or the
-            reverse), as :class:`UnpairedFrame`; they are not frames of the sequence. Filled at open time.
+            reverse), as :class:`UnpairedFrame`, within the selection's stamp range (``all_unpaired``: all of
+            them); they are not frames of the sequence. Filled at open time.
         warnings: doubts found at open time that do not stop a run (e.g. a layout's default intrinsics that do
             not fit the image size), one line each.
 
@@ -174,8 +200,25 @@ class RGBDSequence:
         self.entries = entries[options.start : options.end : options.stride]
         self.ground_truth = ground_truth
         self.depth_invalid_raw = depth_invalid_raw
-        self.unpaired: list[UnpairedFrame] = []
+        #: every listed image without a partner, in or out of the selection (``unpaired``: those within it)
+        self.all_unpaired: list[UnpairedFrame] = []
         self.warnings: list[str] = []
+
+    @property
+    def unpaired(self) -> list[UnpairedFrame]:
+        """The unpaired images within the selection's stamp range (all of them without ``--start`` / ``--end``;
+        images without a stamp always): an image outside the selection would not have been a frame anyway."""
+        o = self.options
+        if (o.start == 0 and o.end is None) or not self.entries:
+            return list(self.all_unpaired)
+        first, last = self.entries[0], self.entries[-1]
+        lo = min(first.timestamp, first.timestamp if first.depth_timestamp is None else first.depth_timestamp)
+        hi = max(last.timestamp, last.timestamp if last.depth_timestamp is None else last.depth_timestamp)
+        return [u for u in self.all_unpaired if u.timestamp is None or lo <= u.timestamp <= hi]
+
+    @unpaired.setter
+    def unpaired(self, value: list[UnpairedFrame]) -> None:
+        self.all_unpaired = list(value)
 
     @property
     def colour_camera(self) -> ColourCamera | None:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from surfelslam.datasets.base import DatasetOptions, RGBDSequence
+from surfelslam.datasets.base import DatasetOptions, RGBDSequence, check_selection
 from surfelslam.datasets.folder import FolderSequence
 from surfelslam.datasets.icl import IclSequence
 from surfelslam.datasets.metadata import read_metadata
@@ -106,6 +106,7 @@ def open_sequence(
     elif not (root.is_dir() or (layout == RosbagSequence.layout and root.is_file())):
         raise DatasetError(root, "sequence folder not found")
     seq = LAYOUTS[layout].open(root, options)  # type: ignore[attr-defined]
+    check_selection(seq)
     if options.gt is not None and layout != RosbagSequence.layout:  # the bag reader takes a file or a topic
         from surfelslam.datasets.tum import read_ground_truth_file
 

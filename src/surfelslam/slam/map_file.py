@@ -1,8 +1,9 @@
 """Reading and writing a saved map (``map.npz``): one uncompressed NumPy archive, written atomically.
 
 The arrays and the manifest are :func:`surfelslam.slam.saved_map.to_arrays`'s; ``docs/outputs.md`` (Saved map)
-documents them. Reading never unpickles (``allow_pickle=False``) and checks every array; a missing, truncated or
-corrupt file, or one of another format version, raises :class:`~surfelslam.errors.MapFileError` naming it.
+documents them. Reading never unpickles (``allow_pickle=False``) and checks every array's structure and values
+(finite, in range: :func:`~surfelslam.slam.saved_map.check_map_values`); a missing, truncated or corrupt file, a bad
+value, or one of another format version, raises :class:`~surfelslam.errors.MapFileError` naming it.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 
 from surfelslam.errors import MapFileError
 from surfelslam.io.atomic import atomic_path
-from surfelslam.slam.saved_map import MapFormatProblem, SavedMap, from_arrays, to_arrays
+from surfelslam.slam.saved_map import MapFormatProblem, SavedMap, check_map_values, from_arrays, to_arrays
 
 #: The saved map's file name in a run folder.
 MAP_FILE = "map.npz"
@@ -50,7 +51,9 @@ def read_map_file(path: str | Path) -> SavedMap:
         raise MapFileError(file, f"{where}{hint}" if Path(path).is_dir() else where)
     try:
         with np.load(file, allow_pickle=False) as arrays:
-            return from_arrays(arrays)
+            saved = from_arrays(arrays)
+        check_map_values(saved)
+        return saved
     except MapFormatProblem as exc:
         raise MapFileError(file, str(exc)) from None
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as exc:

@@ -154,10 +154,14 @@ def from_arrays(arrays: Any) -> SavedMap:
     try:
         n, k, e = int(man["surfels"]), int(man["keyframes"]), int(man["graph_edges"])
         fx, fy, cx, cy, w, h = man["intrinsics"]
-        intr = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+        fx, fy, cx, cy, w, h = float(fx), float(fy), float(cx), float(cy), int(w), int(h)
         step = int(man["keyframe_depth_step"])
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFormatProblem(f"incomplete manifest ({exc})") from None
+    if not (np.all(np.isfinite([fx, fy, cx, cy])) and fx > 0 and fy > 0 and w > 0 and h > 0 and step > 0):
+        raise MapFormatProblem(f"manifest intrinsics {[fx, fy, cx, cy, w, h]} or keyframe_depth_step {step} are not "
+                               "a camera (finite, positive focal lengths and size)")
+    intr = Intrinsics(fx, fy, cx, cy, w, h)
     surfels = {name: _get(arrays, f"surfel_{name}", dtype, (n, *trail))
                for name, (dtype, trail) in SURFEL_FIELDS.items()}
     starts = _get(arrays, "kf_feature_start", "int64", (k + 1,))
@@ -188,6 +192,73 @@ def from_arrays(arrays: Any) -> SavedMap:
         raise MapFormatProblem("array graph_edges names keyframes that are not in the map")
     return SavedMap(surfels, kfs, edges, _get(arrays, "graph_T_i_j", "float64", (e, 4, 4)), intr,
                     str(man.get("tracker", "")), str(man.get("config_toml", "")), str(man.get("sequence", "")))
+
+
+#: Largest surfel coordinate (m) of a loaded map: an indoor RGB-D map spans tens of metres; beyond this a coordinate
+#: is a corrupt value, not a place.
+MAX_MAP_COORDINATE_M = 1.0e4
+#: Largest deviation of a surfel normal's length from 1 (they are saved normalised, in float32).
+MAX_NORMAL_LENGTH_ERROR = 1.0e-3
+#: Largest deviation from a rotation (max |R R^T - I|) of a saved keyframe or graph pose: the trajectory files'
+#: tolerance (poses may pass through float32 on the way); a corrupt pose is far beyond it.
+MAX_POSE_ROTATION_ERROR = 1.0e-3
+#: Colours are 8-bit values, as floats.
+COLOUR_RANGE = (0.0, 255.0)
+
+
+def check_map_values(m: SavedMap) -> None:
+    """Check every value of a map read back, beyond its structure (:func:`from_arrays` checked shapes and dtypes):
+    finite surfels within :data:`MAX_MAP_COORDINATE_M`, unit normals, colours in :data:`COLOUR_RANGE`, positive radii,
+    non-negative confidences and hits, rigid finite keyframe and graph poses, finite stamps, finite non-negative
+    keyframe depth, finite keypoints (and camera points where valid).
+
+    Raises:
+        MapFormatProblem: naming the array and the first bad entry.
+    """
+    s = m.surfels
+    _require(s["position"], "surfel_position",
+             lambda a: np.isfinite(a).all(1) & (np.abs(a) <= MAX_MAP_COORDINATE_M).all(1),
+             f"finite, within {MAX_MAP_COORDINATE_M:g} m")
+    _require(s["normal"], "surfel_normal", lambda a: np.abs(np.linalg.norm(a, axis=1) - 1) <= MAX_NORMAL_LENGTH_ERROR,
+             "a unit vector")
+    _require(s["colour"], "surfel_colour", lambda a: ((a >= COLOUR_RANGE[0]) & (a <= COLOUR_RANGE[1])).all(1),
+             f"in {COLOUR_RANGE[0]:g}-{COLOUR_RANGE[1]:g}")
+    _require(s["radius"], "surfel_radius", lambda a: np.isfinite(a) & (a > 0), "finite and positive")
+    _require(s["confidence"], "surfel_confidence", lambda a: np.isfinite(a) & (a >= 0), "finite, not negative")
+    _require(s["hits"], "surfel_hits", lambda a: a >= 0, "not negative")
+    kf = m.keyframes
+    _require(np.asarray(kf.T_world_kf), "kf_T_world_kf", _rigid, "a finite rigid transform")
+    _require(np.asarray(m.graph_T_i_j), "graph_T_i_j", _rigid, "a finite rigid transform")
+    _require(np.asarray(kf.timestamp), "kf_timestamp", np.isfinite, "finite")
+    for i, (f, d) in enumerate(zip(kf.features, kf.depth_m, strict=True)):
+        _require(d.reshape(-1), f"kf_depth_m (keyframe {i})", lambda a: np.isfinite(a) & (a >= 0), "finite, >= 0")
+        _require(np.asarray(f.keypoints_uv), f"kf_keypoints_uv (keyframe {i})", lambda a: np.isfinite(a).all(1),
+                 "finite")
+        pts, ok = np.asarray(f.points_cam), np.asarray(f.valid, bool)
+        _require(pts, f"kf_points_cam (keyframe {i})", lambda a, ok=ok: ~ok | np.isfinite(a).all(1),
+                 "finite where kf_valid")
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: which of ``(N, 4, 4)`` poses are finite rigid transforms."""
+    if not len(T):
+        return np.ones(0, bool)
+    finite = np.isfinite(T).all((1, 2))
+    Tf = np.where(finite[:, None, None], T, np.eye(4))
+    R = Tf[:, :3, :3]
+    ortho = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max((1, 2)) <= MAX_POSE_ROTATION_ERROR
+    bottom = np.all(Tf[:, 3] == (0.0, 0.0, 0.0, 1.0), axis=1)
+    return finite & ortho & bottom & (np.abs(Tf[:, :3, 3]) <= MAX_MAP_COORDINATE_M).all(1)
+
+
+def _require(a: np.ndarray, name: str, ok, what: str) -> None:
+    """MapFormatProblem naming ``name`` and its first entry where ``ok(a)`` (one bool per entry) is False."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        good = np.asarray(ok(a), bool)
+    if not good.all():
+        bad = int(np.argmin(good))
+        raise MapFormatProblem(f"array {name}: entry {bad} is {np.asarray(a[bad]).tolist()}, not {what} "
+                               f"({int((~good).sum())} of {len(good)} bad)")
 
 
 def check_map_options(tracker: str, prior_map: object | None, localize_only: bool, poses: str | None) -> None:

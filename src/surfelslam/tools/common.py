@@ -24,6 +24,7 @@ from surfelslam.tools.exits import (
     debug_enabled,
     force_exit_on_interrupt,
     internal_error_message,
+    interrupt_requested,
 )
 
 try:  # typer >= 0.20 vendors click
@@ -84,6 +85,11 @@ def handle_errors(fn: F) -> F:
                 err_console.print("[yellow]interrupted[/]")
             raise typer.Exit(EXIT_INTERRUPTED) from None
         except Exception as exc:
+            if interrupt_requested():  # a failure the Ctrl-C caused (e.g. a JIT compilation it broke)
+                force_exit_on_interrupt()
+                with _stderr_lock():
+                    err_console.print("[yellow]interrupted[/]")
+                raise typer.Exit(EXIT_INTERRUPTED) from None
             if debug_enabled():
                 raise
             print_error(internal_error_message(exc))

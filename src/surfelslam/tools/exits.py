@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
+from collections.abc import Callable
+from typing import Any
 
 EXIT_INTERNAL_ERROR = 1
 EXIT_INTERRUPTED = 130
@@ -38,3 +41,40 @@ def internal_error_message(exc: BaseException) -> str:
     """``internal error: <type>: <message> (please report ...)`` on one line."""
     msg = " ".join(str(exc).split()) or "(no message)"
     return f"internal error: {type(exc).__name__}: {msg} (please report; {DEBUG_ENV}=1 shows the traceback)"
+
+
+_interrupt_requested = False
+
+
+def _raise_interrupt(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    """Python's own Ctrl-C handler (raise KeyboardInterrupt), remembering that the user asked to stop."""
+    global _interrupt_requested
+    _interrupt_requested = True
+    raise KeyboardInterrupt
+
+
+def interrupt_requested() -> bool:
+    """Whether Ctrl-C was pressed in this process's command line (:func:`catch_interrupts`)."""
+    return _interrupt_requested
+
+
+def _quiet_unraisable(previous: Callable[[Any], object]) -> Callable[[Any], None]:
+    def hook(unraisable) -> None:
+        if _interrupt_requested or isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        previous(unraisable)
+
+    return hook
+
+
+def catch_interrupts() -> None:
+    """For the process's own command line (:func:`main`): a Ctrl-C is remembered, and the errors it causes where
+    Python cannot raise them are dropped. During the JIT warm-up a Ctrl-C can land in an llvmlite callback (printed
+    as "Exception ignored", then the compilation fails with a RuntimeError) or in a constructor (its object's
+    ``__del__`` fails when freed, after the "interrupted" line); the user pressed Ctrl-C and sees only
+    "interrupted" (:func:`run_cli` and the commands report any error after a Ctrl-C as the interruption)."""
+    try:
+        signal.signal(signal.SIGINT, _raise_interrupt)
+    except (ValueError, OSError):  # not the main thread
+        return
+    sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)

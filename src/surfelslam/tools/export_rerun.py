@@ -122,8 +122,8 @@ def register(app: typer.Typer) -> None:
         run_dir: Annotated[Path, typer.Argument(help="Output folder of `surfelslam run`.")],
         out: Annotated[Path | None, typer.Option("--out", help="Recording to write (default RUN_DIR/run.rrd).")] = None,
         seq: Annotated[Path | None, typer.Option(
-            "--seq", help="The run's sequence (default: the one named in metrics.json), for images and ground "
-                          "truth.")] = None,
+            "--sequence", "--seq", help="The run's sequence (default: the one named in metrics.json), for images "
+                                        "and ground truth.")] = None,
         images_every: Annotated[int, typer.Option("--images-every", help="Log every N-th frame's colour and "
                                                                          "depth images.")] = 10,
         no_images: Annotated[bool, typer.Option("--no-images", help="Poses, map and trajectories only.")] = False,

@@ -50,6 +50,7 @@ def register(app: typer.Typer) -> None:
         ] = 0.0,
         colour_jitter_ms: Annotated[float, typer.Option(
             "--colour-jitter-ms", help="Add a uniform random +-this many ms to each frame's colour offset.")] = 0.0,
+        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
     ) -> None:
         """Render a textured indoor scene along a camera trajectory; write rgb/, depth/, groundtruth.txt."""
         from surfelslam.io.trajectory import read_tum
@@ -58,7 +59,7 @@ def register(app: typer.Typer) -> None:
         recorded = None if motion is None else read_tum(motion)
         path = generate_sequence(
             out, scene=scene, style=trajectory, n_frames=frames, noise=noise, seed=seed,
-            width=width, height=height, fps=fps, progress=True, motion=recorded, speed=speed,
+            width=width, height=height, fps=fps, progress=progress, motion=recorded, speed=speed,
             motion_start_s=motion_start, motion_label=str(motion), texture=texture,
             colour_offset_s=colour_offset_ms / 1000.0, colour_jitter_s=colour_jitter_ms / 1000.0,
         )

@@ -14,6 +14,9 @@ Accepted: a ROS 1 ``.bag``; a ROS 2 bag folder (``metadata.yaml`` with ``.db3`` 
   millimetres, or 32FC1 quantised inverse depth).
 * **Frames.** Colour and depth are paired by their header stamps with the folder readers' rule (nearest within
   0.02 s, each depth image used once: :func:`surfelslam.datasets.tum.associate`); the frame takes the colour stamp.
+  Repeated or backward header stamps are counted in the sequence's warnings (a repeat is left out); stamps a driver
+  did not set (mostly repeated, e.g. all zero) are replaced by the bag's record times, with a warning
+  (:mod:`surfelslam.datasets.rosbag.stamps`).
 * **Streaming.** Opening reads the bag once, keeping each message's topic, receive time and header stamp only;
   ``seq[i]`` re-reads the two messages of frame ``i`` by receive time (the storage's own index: ROS 1 chunk index,
   SQLite timestamp index, MCAP chunk index) and decodes them. Nothing else stays in memory.

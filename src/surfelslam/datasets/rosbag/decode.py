@@ -28,7 +28,8 @@ def pose_matrix(msg, msgtype: str) -> np.ndarray:
     else:  # PoseWithCovarianceStamped, Odometry: pose.pose
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
     qv = np.array([q.x, q.y, q.z, q.w], np.float64)
-    qv /= np.linalg.norm(qv)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a zero quaternion gives NaN: left out by the indexer
+        qv /= np.linalg.norm(qv)
     x, y, z, w = qv
     R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                   [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],

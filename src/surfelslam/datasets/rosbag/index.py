@@ -26,6 +26,7 @@ from surfelslam.datasets.rosbag.decode import (
     message_field,
     pose_matrix,
 )
+from surfelslam.datasets.rosbag.stamps import check_camera_stamps, usable_mask
 from surfelslam.datasets.rosbag.topics import (
     choose_ground_truth,
     choose_topics,
@@ -66,13 +67,15 @@ def open_reader(path: Path):
 
 @dataclass
 class TopicIndex:
-    """What opening learnt of one topic: its messages' receive times (ns) and header stamps (s), in stamp order."""
+    """What opening learnt of one topic: its messages' receive times (ns) and header stamps (s), in receive order."""
 
     name: str
     msgtype: str
     connections: list = field(default_factory=list)
     log_ns: list[int] = field(default_factory=list)
     stamps: list[float] = field(default_factory=list)
+    #: the messages' own header stamps when ``stamps`` were repaired (:mod:`.stamps`); empty: ``stamps`` are them
+    header_stamps: list[float] = field(default_factory=list)
 
     @property
     def count(self) -> int:
@@ -87,11 +90,18 @@ class TopicIndex:
 
 @dataclass(frozen=True)
 class MessageRef:
-    """Where one message is: its topic, receive time (ns) and header stamp (s)."""
+    """Where one message is: its topic, receive time (ns) and frame stamp (s); ``header_stamp``: its header's stamp
+    when the frame stamp is a repaired one (:mod:`.stamps`), else ``None`` (the same)."""
 
     topic: str
     log_ns: int
     stamp: float
+    header_stamp: float | None = None
+
+    @property
+    def own_stamp(self) -> float:
+        """The stamp in the message's header (which finds it again)."""
+        return self.stamp if self.header_stamp is None else self.header_stamp
 
 
 @dataclass(frozen=True)
@@ -153,10 +163,12 @@ def index_bag(root: Path, reader, options: DatasetOptions) -> BagIndex:
     for t in (rgb, depth):
         if index[t].count == 0:
             raise DatasetError(root, f"topic {t} has no messages")
+    notes = [*notes, *check_camera_stamps(root, [index[rgb], index[depth]])]
     (w, h), kind = _image_size_and_depth_kind(root, first, types, rgb, depth)
     intrinsics, intr_src, kind_src = _intrinsics(root, options, first, info, depth, w, h)
     scale, scale_src = _depth_scale(options, kind, depth)
     entries, unpaired = _pair(root, index[rgb], index[depth])
+    gt_stamps, gt_poses = _usable_poses(root, gt_topic, gt_stamps, gt_poses, notes)
     gt = _ground_truth(gt_file, gt_topic, gt_stamps, gt_poses)
     topics = {t: TopicIndex(t, types[t]) for t in types}
     for t, ti in index.items():
@@ -233,9 +245,9 @@ def _intrinsics(root: Path, options: DatasetOptions, first: dict[str, object], i
     elif info is not None and info in first:
         msg = first[info]
         K = np.asarray(message_field(msg, "k", "K"), np.float64).reshape(-1)
-        if K.size != 9 or K[0] == 0 or K[4] == 0:
-            raise DatasetError(root, f"camera info topic {info}: K = {K.tolist()} is not a camera matrix; give "
-                                     "--intrinsics")
+        if K.size != 9 or not np.all(np.isfinite(K)) or not (K[0] > 0 and K[4] > 0):
+            raise DatasetError(root, f"camera info topic {info}: K = {K.tolist()} is not a camera matrix (finite, "
+                                     "positive focal lengths); give --intrinsics")
         iw, ih = int(msg.width), int(msg.height)
         if (iw, ih) != (0, 0) and (iw, ih) != (w, h):
             raise DatasetError(root, f"camera info topic {info} describes {iw}x{ih} images but the depth topic "
@@ -255,6 +267,23 @@ def _depth_scale(options: DatasetOptions, kind: str, depth: str) -> tuple[float,
     if kind == "mm":
         return MM_DEPTH_SCALE, f"depth topic {depth} (16-bit: millimetres)"
     return METRE_DEPTH_SCALE, f"depth topic {depth} (32-bit float: metres)"
+
+
+def _usable_poses(root: Path, gt_topic: str | None, stamps: list[float], poses: list[np.ndarray], notes: list[str]
+                  ) -> tuple[list[float], list[np.ndarray]]:
+    """The ground-truth topic's finite poses; poses not finite (or with a zero quaternion) and repeated stamps are
+    counted in ``notes`` (the repeats are left out by :func:`_ground_truth`)."""
+    finite = [bool(np.all(np.isfinite(T))) for T in poses]
+    if not all(finite):
+        notes.append(f"{root}: ground-truth topic {gt_topic}: {finite.count(False)} of {len(finite)} poses are not "
+                     "finite (or have a zero quaternion) and are left out")
+        stamps = [t for t, ok in zip(stamps, finite, strict=True) if ok]
+        poses = [T for T, ok in zip(poses, finite, strict=True) if ok]
+    repeated = len(stamps) - len(set(stamps))
+    if repeated:
+        notes.append(f"{root}: ground-truth topic {gt_topic}: {repeated} of {len(stamps)} poses repeat an earlier "
+                     "header stamp and are left out")
+    return stamps, poses
 
 
 def _ground_truth(gt_file: Path | None, gt_topic: str | None, gt_stamps: list[float], gt_poses: list[np.ndarray]
@@ -281,19 +310,21 @@ def _bag_format(root: Path, ros2: bool) -> str:
     return f"ROS 2 bag ({storage})"
 
 
-def _sorted_unique(ti: TopicIndex) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """``(stamps, log_ns, dropped positions)`` of a topic in stamp order, a repeated stamp kept once."""
-    st = np.asarray(ti.stamps, np.float64)
+def _sorted_unique(ti: TopicIndex) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(stamps, log_ns, header stamps)`` of a topic's messages in stamp order, a repeated stamp kept once (the
+    first received: :func:`~.stamps.usable_mask`; :func:`~.stamps.check_camera_stamps` reported the others)."""
+    keep = usable_mask(ti.stamps)
+    st = np.asarray(ti.stamps, np.float64)[keep]
+    own = np.asarray(ti.header_stamps if ti.header_stamps else ti.stamps, np.float64)[keep]
     order = np.argsort(st, kind="stable")
-    keep = np.r_[True, np.diff(st[order]) > 0] if len(order) else np.zeros(0, bool)
-    return st[order][keep], np.asarray(ti.log_ns, np.int64)[order][keep], [int(k) for k in order[~keep]]
+    return st[order], np.asarray(ti.log_ns, np.int64)[keep][order], own[order]
 
 
 def _pair(root: Path, rgb: TopicIndex, depth: TopicIndex) -> tuple[list[FrameEntry], list[UnpairedFrame]]:
     """Frames from the colour and depth messages paired by header stamp (:func:`~surfelslam.datasets.tum.associate`,
     the folder readers' rule); DatasetError when nothing or too little pairs."""
-    t_rgb, log_rgb, _ = _sorted_unique(rgb)
-    t_depth, log_depth, _ = _sorted_unique(depth)
+    t_rgb, log_rgb, own_rgb = _sorted_unique(rgb)
+    t_depth, log_depth, own_depth = _sorted_unique(depth)
     ia, ib, gap = associate(t_rgb, t_depth, MAX_RGB_DEPTH_DT_S)
     if len(ia) == 0:
         raise DatasetError(root, f"no colour/depth pair within {MAX_RGB_DEPTH_DT_S} s between {rgb.name} "
@@ -321,6 +352,10 @@ def _pair(root: Path, rgb: TopicIndex, depth: TopicIndex) -> tuple[list[FrameEnt
     for a, b in zip(ia, ib, strict=True):
         ta, tb = float(t_rgb[a]), float(t_depth[b])
         entries.append(BagFrameEntry(ta, message_path(root, rgb.name, ta), message_path(root, depth.name, tb), tb,
-                                     MessageRef(rgb.name, int(log_rgb[a]), ta),
-                                     MessageRef(depth.name, int(log_depth[b]), tb)))
+                                     _ref(rgb.name, int(log_rgb[a]), ta, float(own_rgb[a])),
+                                     _ref(depth.name, int(log_depth[b]), tb, float(own_depth[b]))))
     return entries, unpaired
+
+
+def _ref(topic: str, log_ns: int, stamp: float, own_stamp: float) -> MessageRef:
+    return MessageRef(topic, log_ns, stamp, None if own_stamp == stamp else own_stamp)

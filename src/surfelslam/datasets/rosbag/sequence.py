@@ -90,7 +90,7 @@ class RosbagSequence(RGBDSequence):
             try:
                 for conn, _, raw in self.reader.messages(connections=ti.connections, start=ref.log_ns,
                                                          stop=ref.log_ns + 1):
-                    if stamp_seconds(*header_stamp(raw, self.ros2)) == ref.stamp:
+                    if stamp_seconds(*header_stamp(raw, self.ros2)) == ref.own_stamp:
                         found = self.reader.deserialize(raw, conn.msgtype)
                         break
             except Exception as exc:  # noqa: BLE001 - storage errors of a damaged bag
