@@ -15,7 +15,7 @@ from surfelslam.geometry import se3
 from surfelslam.slam import DEFAULT_TRACKER, TRACKERS, HybridSlam, SlamConfig, build_slam
 from surfelslam.slam.config import HybridConfig, TrackingConfig
 from surfelslam.slam.frame import FrameStatus
-from surfelslam.slam.hybrid import joint_term_weight
+from surfelslam.slam.hybrid_localise import joint_term_weight
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
 from surfelslam.slam.runner import run_sequence
 from surfelslam.slam.segments import tracking_segments
