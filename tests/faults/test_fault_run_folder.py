@@ -66,11 +66,11 @@ def _die_after(monkeypatch, n: int, exc: BaseException) -> None:
     real = given.GivenPoseMapper.process
     calls = {"n": 0}
 
-    def dying(self, frame, T_world_cam, prepared=None):
+    def dying(self, frame, prepared=None, T_world_cam=None):
         if calls["n"] == n:
             raise exc
         calls["n"] += 1
-        return real(self, frame, T_world_cam, prepared)
+        return real(self, frame, prepared=prepared, T_world_cam=T_world_cam)
 
     monkeypatch.setattr(given.GivenPoseMapper, "process", dying)
 

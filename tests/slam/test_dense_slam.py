@@ -66,7 +66,7 @@ def test_working_level_tracks_and_fuses_the_block_averaged_level():
     cfg = replace(base, tracking=replace(base.tracking, max_width_px=160),
                   fusion=replace(base.fusion, max_width_px=160))
     est, err, slam = _track("none", n=30, cfg=cfg)
-    assert (slam.track_level, slam.fuse_level) == (1, 1)
+    assert (slam.front.track_level, slam.front.mapper.fuse_level) == (1, 1)
     assert slam.failures == 0
     assert err.max() < 4e-3
     # the map is made at 160x120: at most one new surfel per working-level pixel and frame, and far fewer

@@ -126,16 +126,16 @@ def test_pnp_check_ignores_an_ambiguous_pnp_pose_but_catches_sliding_icp():
     dt, dr = se3.pose_error(T_ambiguous, T_true)
     assert dt > slam.cfg.hybrid.pnp_check_max_m and dr < slam.cfg.hybrid.pnp_check_max_deg
     match = KeyframeMatch(T_ambiguous, 0, poster, uv)
-    assert not slam._disagrees(T_true, match)
+    assert not slam.localiser.disagrees(T_true, match)
     # the same difference without the rotation: every inlier moves by ~6 px
     T_slid = T_true.copy()
     T_slid[:3, 3] = T_ambiguous[:3, 3]
-    assert slam._disagrees(T_slid, KeyframeMatch(T_true, 0, poster, uv))
+    assert slam.localiser.disagrees(T_slid, KeyframeMatch(T_true, 0, poster, uv))
     # with the inlier test off, the metric bounds alone decide (the previous behaviour)
     plain = HybridSlam(INTR, replace(SlamConfig(), hybrid=replace(SlamConfig().hybrid,
                                                                   pnp_check_min_inlier_fraction=0.0)))
-    assert plain._disagrees(T_true, match)
-    assert not slam._disagrees(T_true, KeyframeMatch(T_true @ se3.exp(np.full(6, 1e-3)), 0, poster, uv))
+    assert plain.localiser.disagrees(T_true, match)
+    assert not slam.localiser.disagrees(T_true, KeyframeMatch(T_true @ se3.exp(np.full(6, 1e-3)), 0, poster, uv))
 
 
 def test_loop_correction_moves_map_and_trajectory():
@@ -147,15 +147,15 @@ def test_loop_correction_moves_map_and_trajectory():
     before = slam.map.position.astype(np.float64).copy()
     traj_before = slam.trajectory().T_world_cam
     D = se3.exp(np.array([0.01, -0.02, 0.015, 0.05, -0.03, 0.02]))
-    kf_new = D[None] @ slam._kf_dense.poses
+    kf_new = D[None] @ slam.anchors.kf_dense.poses
     slam.sparse._kf_poses[:] = kf_new  # as if the graph had moved them
-    slam._correct(kf_new)
+    slam.correct(kf_new)
     moved = before @ D[:3, :3].T + D[:3, 3]
     np.testing.assert_allclose(slam.map.position, moved, atol=2e-5)
     np.testing.assert_allclose(slam.trajectory().T_world_cam, D[None] @ traj_before, atol=1e-9)
-    np.testing.assert_allclose(slam.T_world_cam, D @ traj_before[-1], atol=1e-9)
+    np.testing.assert_allclose(slam.front.state.T_world_cam, D @ traj_before[-1], atol=1e-9)
     # the culling index follows: the map rendered at the moved pose is the map seen before
-    view = slam.render_target(slam.T_world_cam)
+    view = slam.front.render_target(slam.front.state.T_world_cam)
     assert np.count_nonzero(view[0].vertex[..., 2] > 0) > 0.5 * INTR.width * INTR.height
 
 

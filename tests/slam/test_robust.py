@@ -10,7 +10,8 @@ import pytest
 
 import surfelslam as ss
 from surfelslam.geometry import se3
-from surfelslam.slam import DenseSlam, SlamConfig
+from surfelslam.slam import SlamConfig
+from surfelslam.slam.motion import MotionModel, TrackingState
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.textures import TextureConfig
 from surfelslam.synth.trajectories import make_trajectory
@@ -53,17 +54,22 @@ def test_degenerate_frames_are_registered_weakly_and_fused_instead_of_refused():
     assert weak.metrics["weak_segments"] >= 1 and weak.metrics["lost_segments"] == 0
 
 
+def _motion(cfg: SlamConfig) -> MotionModel:
+    """The dense front end's motion model with ``cfg``'s settings, on a fresh state."""
+    return MotionModel(cfg.tracking, cfg.icp, TrackingState())
+
+
 def test_a_relocalisation_faster_than_a_camera_moves_is_refused():
-    slam = DenseSlam(INTR_SMALL, SlamConfig())
-    slam.T_world_last_tracked, slam.t_last_tracked = np.eye(4), 10.0
-    tc = slam.cfg.tracking
+    slam = _motion(SlamConfig())
+    slam.state.T_world_last_tracked, slam.state.t_last_tracked_s = np.eye(4), 10.0
+    tc = slam.cfg
     near = se3.make_T(np.eye(3), [0.5, 0.0, 0.0])  # 0.5 m in 1 s: a walk
     far = se3.make_T(np.eye(3), [2.3, 0.0, 0.0])  # 2.3 m in 1 s: a wrong match
     assert slam.plausible_jump(near, 11.0) and not slam.plausible_jump(far, 11.0)
     assert slam.plausible_jump(far, 10.0 + (2.3 - tc.relocalise_slack_m) / tc.relocalise_max_speed_m_s + 0.1)
     turn = se3.make_T(se3.so3_exp([0.0, np.radians(170.0), 0.0]), [0.0, 0.0, 0.0])
     assert not slam.plausible_jump(turn, 10.5) and slam.plausible_jump(turn, 12.0)
-    assert slam.relocalisations["refused_implausible"] == 2
+    assert slam.state.relocalisations["refused_implausible"] == 2
 
 
 def test_a_run_that_ends_lost_says_so(tmp_path):
@@ -84,15 +90,15 @@ def test_weak_frames_predict_the_last_tracked_velocity_fading_or_holding_still()
 
     v = se3.make_T(se3.so3_exp([0.0, 0.01, 0.0]), [0.02, 0.0, 0.0])  # 2 cm and 0.57 deg per frame
     slide = se3.make_T(np.eye(3), [0.0, 0.5, 0.0])  # a weak step that slid 0.5 m
-    fading = DenseSlam(INTR_SMALL, SlamConfig(tracking=TrackingConfig(weak_velocity_decay_s=2.0)))
-    assert np.array_equal(fading._velocity_after(v, FrameStatus.TRACKED, 10.0), v)
+    fading = _motion(SlamConfig(tracking=TrackingConfig(weak_velocity_decay_s=2.0)))
+    assert np.array_equal(fading.velocity_after(v, FrameStatus.TRACKED, 10.0), v)
     for t, keep in ((10.5, np.exp(-0.25)), (14.0, np.exp(-2.0))):
-        got = fading._velocity_after(slide, FrameStatus.WEAK, t)
+        got = fading.velocity_after(slide, FrameStatus.WEAK, t)
         np.testing.assert_allclose(se3.log(got), keep * se3.log(v), atol=1e-12)
-    assert np.array_equal(fading._velocity_after(v, FrameStatus.RELOCALISED, 15.0), np.eye(4))
-    held = DenseSlam(INTR_SMALL, SlamConfig())  # the default holds still
-    held._velocity_after(v, FrameStatus.TRACKED, 10.0)
-    assert np.array_equal(held._velocity_after(slide, FrameStatus.WEAK, 10.1), np.eye(4))
+    assert np.array_equal(fading.velocity_after(v, FrameStatus.RELOCALISED, 15.0), np.eye(4))
+    held = _motion(SlamConfig())  # the default holds still
+    held.velocity_after(v, FrameStatus.TRACKED, 10.0)
+    assert np.array_equal(held.velocity_after(slide, FrameStatus.WEAK, 10.1), np.eye(4))
 
 
 def test_frozen_directions_move_the_velocity_only_by_the_gain():
@@ -121,9 +127,9 @@ def test_frozen_directions_move_the_velocity_only_by_the_gain():
     v_old = se3.make_T(np.eye(3), [0.01, 0.0, 0.02])
     step = se3.make_T(se3.so3_exp([0.0, 0.002, 0.0]), [0.012, 0.001, 0.036])  # z pulled 16 mm beyond the prediction
     for gain in (0.5, 0.0, 1.0):
-        slam = DenseSlam(INTR_SMALL, SlamConfig(tracking=TrackingConfig(frozen_velocity_gain=gain)))
-        slam.velocity = v_old
-        got = slam._velocity_after(step, FrameStatus.TRACKED, 1.0, res)
+        slam = _motion(SlamConfig(tracking=TrackingConfig(frozen_velocity_gain=gain)))
+        slam.state.velocity = v_old
+        got = slam.velocity_after(step, FrameStatus.TRACKED, 1.0, res)
         # first order in the 16 mm difference; the rotation and x, y are the step's
         np.testing.assert_allclose(got[:3, :3], step[:3, :3], atol=1e-12)
         np.testing.assert_allclose(got[:3, 3], [0.012, 0.001, 0.02 + gain * 0.016], atol=5e-5)
@@ -131,9 +137,9 @@ def test_frozen_directions_move_the_velocity_only_by_the_gain():
             assert np.array_equal(got, step)
     no_freeze = ICPResult(np.eye(4), 1000, 0.9, 0.001, 10, True, False, 1.0, normal_matrix=H, mean_depth_m=d,
                           levels=[LevelInfo(0, 5, 1000, 0.9, 0.001, 1e-5, "update")])
-    slam = DenseSlam(INTR_SMALL, SlamConfig())
-    slam.velocity = v_old
-    assert np.array_equal(slam._velocity_after(step, FrameStatus.TRACKED, 1.0, no_freeze), step)
+    slam = _motion(SlamConfig())
+    slam.state.velocity = v_old
+    assert np.array_equal(slam.velocity_after(step, FrameStatus.TRACKED, 1.0, no_freeze), step)
 
 
 @pytest.mark.heavy  # make test-all: the orb tracker's own prediction (the default hybrid's: the tests above)

@@ -15,7 +15,7 @@ from surfelslam.geometry import se3
 from surfelslam.slam import DEFAULT_TRACKER, TRACKERS, HybridSlam, SlamConfig, build_slam
 from surfelslam.slam.config import HybridConfig, TrackingConfig
 from surfelslam.slam.frame import FrameStatus
-from surfelslam.slam.hybrid import joint_term_weight
+from surfelslam.slam.hybrid_localise import joint_term_weight
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
 from surfelslam.slam.runner import run_sequence
 from surfelslam.slam.segments import tracking_segments
@@ -410,7 +410,7 @@ def _walk_back_to_the_start():
 def _hybrid_run(run_frames):
     """``(frame results, failure reasons)`` of the default hybrid on ``run_frames``."""
     slam = build_slam(INTR, SlamConfig(), "hybrid")
-    return [slam.process(f) for f in run_frames], slam.failure_reasons
+    return [slam.process(f) for f in run_frames], slam.front.state.failure_reasons
 
 
 def test_a_refused_relocalisation_is_no_bridge():

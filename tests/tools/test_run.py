@@ -85,11 +85,11 @@ def test_killed_run_keeps_every_finished_frame_in_its_staging_folder(synth_seq, 
     calls = {"n": 0}
     real = pipeline.GivenPoseMapper.process
 
-    def dying(self, frame, T_world_cam, prepared=None):
+    def dying(self, frame, prepared=None, T_world_cam=None):
         if calls["n"] == 7:
             raise KeyboardInterrupt
         calls["n"] += 1
-        return real(self, frame, T_world_cam, prepared)
+        return real(self, frame, prepared=prepared, T_world_cam=T_world_cam)
 
     monkeypatch.setattr(pipeline.GivenPoseMapper, "process", dying)
     seq = open_sequence(synth_seq)

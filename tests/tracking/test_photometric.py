@@ -172,14 +172,15 @@ def test_photometric_settings_and_switches():
 def test_source_intensity_is_on_the_tracking_levels_grid():
     """640x480 input is tracked at its 320x240 level: the intensity pyramid has the tracking pyramid's shapes, and
     a frame prepared ahead gives the same pyramid as one prepared in ``process``."""
+    from surfelslam.slam.frontend import DenseFrontEnd
     from surfelslam.types import RGBDFrame
 
     big = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
-    slam = DenseSlam(big, SlamConfig())
+    slam = DenseFrontEnd(big, SlamConfig())
     rng = np.random.default_rng(0)
     frame = RGBDFrame(0, 0.0, rng.integers(0, 255, (480, 640, 3), dtype=np.uint8), np.ones((480, 640), np.float32))
     pyr = slam.source_intensity(frame)
-    want = [(k.height, k.width) for k in slam.pre.level_intrinsics[slam.track_level:]][: slam.cfg.icp.levels]
+    want = [(k.height, k.width) for k in slam.mapper.pre.level_intrinsics[slam.track_level:]][: slam.cfg.icp.levels]
     assert slam.track_level == 1 and [p.shape for p in pyr.intensity] == want
     # level 0 is the 2x2 block mean of the full-resolution intensity
     full = intensity_from_rgb(frame.rgb)

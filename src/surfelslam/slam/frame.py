@@ -40,10 +40,10 @@ class FrameStatus(StrEnum):
     LOST = "lost"  # not registered: the pose is the motion prediction; not fused
 
 
-@dataclass
+@dataclass(kw_only=True)
 class FrameResult:
     """What the pipeline did with one frame (``status``: :class:`FrameStatus`; derived from ``tracked`` if not
-    given)."""
+    given). Built with keyword arguments only."""
 
     index: int
     timestamp: float
@@ -60,6 +60,13 @@ class FrameResult:
     def __post_init__(self) -> None:
         if self.status is None:
             self.status = FrameStatus.TRACKED if self.tracked else FrameStatus.LOST
+
+
+def refuse_given_pose(tracker: str, T_world_cam: np.ndarray | None) -> None:
+    """Raise ``ValueError`` when a tracker that computes its own poses is given one (``process(T_world_cam=...)`` is
+    for the ``given`` mapper)."""
+    if T_world_cam is not None:
+        raise ValueError(f"tracker {tracker!r} computes its own poses: a given pose is for the 'given' mapper")
 
 
 @dataclass

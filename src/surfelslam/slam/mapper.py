@@ -1,9 +1,15 @@
-"""Preprocessing into reused buffers and fusion into a surfel map: what the surfel trackers share."""
+"""Preprocessing into reused buffers and fusion into a surfel map: the component every surfel tracker holds.
+
+:class:`FusingMapper` owns the frame pyramids (a pool shared with the preparing thread), the surfel map, fusion and
+the saved map (its keyframe recorder and a loaded map to continue from). The dense front end
+(:mod:`surfelslam.slam.frontend`) and the given-pose mapper (:mod:`surfelslam.slam.given`) each hold one.
+"""
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import cv2
@@ -24,14 +30,25 @@ from surfelslam.tracking.preprocess import (
     Preprocessor,
     level_for_width,
 )
-from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
+from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 
 
 class FusingMapper:
-    """What the dense pipelines share: preprocessing into reused buffers, and fusion into a surfel map."""
+    """Preprocessing into reused buffers, fusion into a surfel map, and the saved map.
+
+    Args:
+        min_levels: pyramid levels the holder needs at least (tracking levels included).
+        track_level: the pyramid level tracking starts from (``None``: no tracking); finer levels are never computed.
+        colour_camera: a separate colour camera (colour not registered to depth): the map's colours are sampled
+            through it.
+        features_of: the ORB features of a frame that becomes a saved keyframe (a holder with features of its own
+            passes its own; default: extracted here).
+        tracker_name: the tracker's name, written into the saved map.
+    """
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, min_levels: int = 1, track_level: int | None = None,
-                 colour_camera: ColourCamera | None = None):
+                 colour_camera: ColourCamera | None = None,
+                 features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = ""):
         apply_compute(cfg.compute)
         self.intr = intr
         self.cfg = cfg
@@ -55,17 +72,40 @@ class FusingMapper:
         self.prior: SavedMap | None = None
         self.frozen = False  # localise only: the map is never changed
         self.prior_report: dict | None = None  # metrics of the loaded map (``prior_map`` in metrics.json)
+        self._features_of = self.map_features if features_of is None else features_of
+        self.tracker_name = tracker_name
         self._recorder = self._new_recorder() if cfg.map_reuse.save else None
 
     def _new_recorder(self, prior: SavedMap | None = None) -> KeyframeRecorder:
         mr = self.cfg.map_reuse
         step = depth_step_for_width(self.intr.width, mr.keyframe_depth_max_width_px)
-        return KeyframeRecorder(mr.keyframe_motion, step, self._map_features,
+        return KeyframeRecorder(mr.keyframe_motion, step, self._features_of,
                                 None if prior is None else prior.keyframes)
 
-    def _map_features(self, frame: RGBDFrame) -> Features:
-        """ORB features of a frame that becomes a saved keyframe (trackers with features of their own reuse them)."""
+    def map_features(self, frame: RGBDFrame) -> Features:
+        """ORB features of a frame, extracted with the saved map's settings."""
         return extract(frame.rgb, frame.depth_m, self.intr, self._map_feature_cfg)
+
+    def keyframe_features(self, frame: RGBDFrame) -> Features:
+        """The features the saved keyframes and the map localisation use (``features_of``, or :meth:`map_features`)."""
+        return self._features_of(frame)
+
+    @property
+    def saves_map(self) -> bool:
+        """Whether a map is saved at the end of the run (``map_reuse.save``)."""
+        return self._recorder is not None
+
+    def start_new_map(self) -> None:
+        """Drop the loaded map (the first frames were not localised in it): an empty map, keyframes from scratch."""
+        self.prior = None
+        self.map = SurfelMap(self.cfg.map)
+        if self._recorder is not None:
+            self._recorder = self._new_recorder()
+
+    def repose_keyframes(self, trajectory: Trajectory) -> None:
+        """Give the saved keyframes their poses in ``trajectory`` (the loop-corrected one); nothing without saving."""
+        if self._recorder is not None:
+            self._recorder.repose(trajectory)
 
     def use_prior_map(self, saved: SavedMap, localize_only: bool = False) -> None:
         """Continue from ``saved`` (before the first frame): its surfels become the map (their frame indices shifted
@@ -86,7 +126,7 @@ class FusingMapper:
         if self._recorder is not None:
             self._recorder = self._new_recorder(saved)
 
-    def _saved_map(self) -> SavedMap | None:
+    def saved_map(self) -> SavedMap | None:
         """The map to save at the end of the run (``None`` with ``map_reuse.save`` off)."""
         if self._recorder is None:
             return None
@@ -97,7 +137,7 @@ class FusingMapper:
         m = self.map
         surfels = {"position": m.position, "normal": m.normal, "colour": m.colour, "confidence": m.confidence,
                    "radius": m.radius, "first_seen": m.first_seen, "last_seen": m.last_seen, "hits": m.hits}
-        return SavedMap(surfels, kfs, edges, rel, self.intr, getattr(self, "name", ""))
+        return SavedMap(surfels, kfs, edges, rel, self.intr, self.tracker_name)
 
     @property
     def pooled_pyramids(self) -> int:
@@ -116,7 +156,7 @@ class FusingMapper:
             with self._pool_lock:
                 self._pool.append(pyr)
 
-    def _check_size(self, frame: RGBDFrame) -> None:
+    def check_size(self, frame: RGBDFrame) -> None:
         if frame.depth_m.shape != self.intr.shape:
             raise ConfigError(
                 f"frame {frame.index}: depth is {frame.depth_m.shape[1]}x{frame.depth_m.shape[0]}, "
@@ -133,7 +173,7 @@ class FusingMapper:
         Raises what :meth:`process` would raise for this frame (e.g. :class:`ConfigError` for a wrong size).
         """
         c0, t0 = time.thread_time(), time.perf_counter()
-        self._check_size(frame)
+        self.check_size(frame)
         if self._pre_ahead is None:
             self._pre_ahead = Preprocessor(self.intr, self.pre.cfg)
         pyr = self._acquire()
@@ -148,26 +188,28 @@ class FusingMapper:
             self._release(prepared.pyramid)
             prepared.pyramid = None
 
-    def _preprocess(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FramePyramid:
+    def preprocess(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FramePyramid:
         """Make the frame's pyramid the current source (the prepared one, or computed here)."""
         prepared = prepared_for(frame, prepared)
         if prepared is not None and prepared.pyramid is not None:
             self.source, prepared.pyramid = prepared.pyramid, None
             self._rgb_fuse = prepared.rgb_fuse
             return self.source
-        self._check_size(frame)
+        self.check_size(frame)
         if self.source is self.previous:
             self.source = self._acquire()
         self._rgb_fuse = None
         return self.pre.process(frame.depth_m, out=self.source, first_level=self.first_level)
 
-    def _retire_source(self) -> None:
+    def retire_source(self) -> None:
         """End of a frame: its pyramid becomes ``previous``; the one before goes back to the pool."""
         if self.previous is not self.source:
             self._release(self.previous)
         self.previous = self.source
 
-    def _fuse(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
+    def fuse(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
+        """Fuse the current source (the frame's pyramid, :meth:`preprocess`) at ``T_world_cam`` ``(4, 4)``, and
+        record a saved keyframe when due; nothing in a localise-only run."""
         if self.frozen:
             return  # localise only: the loaded map stays as it is
         lvl = self.source[self.fuse_level]
@@ -177,13 +219,13 @@ class FusingMapper:
         if self._recorder is not None:
             self._recorder.observe(frame, T_world_cam)
 
-    def _result(self, extra: dict) -> SlamResult:
+    def result(self, extra: dict) -> SlamResult:
+        """End of the run: the compacted map, ``frames_fused`` then ``extra`` (and ``prior_map``) as metrics."""
         self.map.compact()
         if self.prior_report is not None:
             extra = {**extra, "prior_map": dict(self.prior_report)}
         return SlamResult(self.map.n_alive, {"frames_fused": self.n_fused, **extra}, self.map,
-                          saved_map=self._saved_map())
-
+                          saved_map=self.saved_map())
 
 
 def frame_colour_at_depth(frame: RGBDFrame, intr: Intrinsics, cam: ColourCamera | None,

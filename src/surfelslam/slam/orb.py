@@ -10,13 +10,24 @@ from __future__ import annotations
 import time
 from functools import partial
 
+import numpy as np
+
 from surfelslam.backend.dense_edges import DenseEdgeRefiner
 from surfelslam.backend.sparse_slam import (
     SparseSlam,
 )
+from surfelslam.errors import ConfigError
 from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.dense import warm_up
-from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, SlamResult, StageTimer, prepared_for
+from surfelslam.slam.frame import (
+    FrameResult,
+    FrameStatus,
+    PreparedFrame,
+    SlamResult,
+    StageTimer,
+    prepared_for,
+    refuse_given_pose,
+)
 from surfelslam.slam.mapper import frame_colour_at_depth
 from surfelslam.slam.registry import register_tracker
 from surfelslam.slam.warmup_run import warm_up_run
@@ -100,7 +111,17 @@ class OrbSlam:
         return PreparedFrame(frame, pyramid=pyr, features=feats, timings_ms=timings,
                              cpu_ms=(time.thread_time() - c0) * 1e3)
 
-    def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None) -> FrameResult:
+    def discard(self, prepared: PreparedFrame | None) -> None:
+        """A prepared frame that will not be processed: nothing to give back (its buffers are its own)."""
+
+    def use_prior_map(self, saved, localize_only: bool = False) -> None:
+        """Saved maps are surfel maps: refused (:func:`~surfelslam.slam.saved_map.check_map_options` says so first)."""
+        raise ConfigError("--map is not supported with --tracker orb (its map is a keyframe cloud, not surfels)")
+
+    def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None,
+                T_world_cam: np.ndarray | None = None) -> FrameResult:
+        """Match the frame to the reference keyframe (PnP, depth odometry) and feed the keyframe back end."""
+        refuse_given_pose(self.name, T_world_cam)
         t = StageTimer(prepared)
         p = prepared_for(frame, prepared)
         feats = None if p is None else p.features
@@ -112,11 +133,13 @@ class OrbSlam:
         self.relocalisations += int(r.relocalised)
         weak = r.ok and r.depth_only  # along the directions the depth leaves free, the pose is the prediction
         self.weak_frames += int(weak)
-        return FrameResult(frame.index, frame.timestamp, r.T_world_cam.copy(), r.ok or r.relocalised, False,
-                           DEPTH_ONLY_REASON if weak else r.reason, t.ms, self.sparse.n_keyframes,
+        return FrameResult(index=frame.index, timestamp=frame.timestamp, T_world_cam=r.T_world_cam.copy(),
+                           tracked=r.ok or r.relocalised, fused=False, reason=DEPTH_ONLY_REASON if weak else r.reason,
+                           timings_ms=t.ms, map_points=self.sparse.n_keyframes,
                            status=FrameStatus.WEAK if weak else None)
 
     def finish(self) -> SlamResult:
+        """End of the run: the optimised trajectory, the keyframe cloud and the back end's counts."""
         res = self.sparse.finish()
         metrics = {"tracking_failures": self.failures,
                    "tracking_failure_reasons": dict(res.rejected),

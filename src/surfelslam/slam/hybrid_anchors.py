@@ -1,0 +1,88 @@
+"""The hybrid tracker's frames anchored to keyframes, and the loop corrections that move them and the map.
+
+Each frame is anchored to the last keyframe when it was processed: its pose is kept as ``T_kf_cam`` relative to that
+keyframe's pose in the dense frame (``T_kf_dense``, the ICP pose it was created with); each surfel is anchored to the
+anchor of the frame that created it (``first_seen`` -> anchor, a sorted frame-index table). A keyframe's correction
+is ``C_k = T_kf_graph inv(T_kf_dense)`` (see :mod:`surfelslam.slam.hybrid` for when corrections are applied).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surfelslam.backend.sparse_slam import SparseSlam
+from surfelslam.geometry import se3
+from surfelslam.mapping.surfel_map import SurfelMap
+from surfelslam.types import PoseArray, Trajectory
+
+
+class KeyframeAnchors:
+    """Keyframe poses in the dense frame, every frame's anchor and relative pose, the fused frames' anchors.
+
+    ``sparse``: the back end whose pose graph holds the keyframes' graph poses.
+    """
+
+    def __init__(self, sparse: SparseSlam):
+        self.sparse = sparse
+        self.kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
+        self.stamps: list[float] = []
+        self.anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
+        self.T_kf_cam: list[np.ndarray] = []
+        self.fused_frames: list[int] = []  # frame index of each fused frame (increasing)
+        self.fused_anchor: list[int] = []
+        self.map_corrections = 0  # corrections applied to the map and the current pose
+
+    def __len__(self) -> int:
+        """Keyframes known in the dense frame."""
+        return len(self.kf_dense)
+
+    def add_keyframe(self, T_world_kf: np.ndarray) -> None:
+        """A new keyframe at ``T_world_kf`` ``(4, 4)`` in the dense frame."""
+        self.kf_dense.append(T_world_kf)
+
+    def record(self, frame_index: int, timestamp: float, T_world_cam: np.ndarray, fused: bool) -> None:
+        """A processed frame at ``T_world_cam`` (dense frame), anchored to the back end's last keyframe."""
+        anchor = self.sparse.n_keyframes - 1
+        if fused:
+            self.fused_frames.append(frame_index)
+            self.fused_anchor.append(anchor)
+        self.stamps.append(timestamp)
+        self.anchor.append(anchor)
+        self.T_kf_cam.append(se3.invert(self.kf_dense.poses[anchor]) @ T_world_cam)
+
+    def correction(self, k: int) -> np.ndarray:
+        """``C_k = T_kf_graph inv(T_kf_dense)``: maps dense-frame poses near keyframe ``k`` into the graph frame."""
+        return self.sparse.keyframe_poses()[k] @ se3.invert(self.kf_dense.poses[k])
+
+    def corrections(self, kf_new: np.ndarray) -> np.ndarray:
+        """``(K, 4, 4)`` each keyframe's correction ``T_new inv(T_dense)`` for the graph poses ``kf_new``."""
+        return kf_new @ se3.invert(self.kf_dense.poses)
+
+    def correct(self, kf_new: np.ndarray, smap: SurfelMap | None, C: np.ndarray | None = None) -> np.ndarray:
+        """Move the surfels of ``smap`` (``None``: the map stays) by their anchors' corrections ``C``
+        (:meth:`corrections` of ``kf_new`` by default); the keyframes take the poses ``kf_new``. Returns the last
+        frame's corrected pose ``(4, 4)``."""
+        C = self.corrections(kf_new) if C is None else C
+        self.map_corrections += 1
+        if smap is not None and smap.size:
+            frames = np.asarray(self.fused_frames, np.int64)
+            anchors = np.asarray(self.fused_anchor, np.int64)
+            row = np.clip(np.searchsorted(frames, smap.first_seen), 0, len(frames) - 1)
+            a = anchors[row]
+            smap.transform_surfels(C[a, :3, :3].astype(np.float32), C[a, :3, 3].astype(np.float32))
+        T_world_cam = se3.orthonormalize(kf_new[self.anchor[-1]] @ self.T_kf_cam[-1])
+        self.kf_dense.poses[:] = kf_new
+        return T_world_cam
+
+    def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
+        """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""
+        kf = self.sparse.keyframe_poses() if kf_poses is None else kf_poses
+        T = kf[np.asarray(self.anchor)] @ np.asarray(self.T_kf_cam)
+        return Trajectory(np.asarray(self.stamps), T)
+
+    def correction_m(self, kf_new: np.ndarray) -> float:
+        """How far (m) the final graph poses ``kf_new`` move the farthest keyframe from its current pose, the first
+        keyframe's rigid move taken out."""
+        C0 = kf_new[0] @ se3.invert(self.kf_dense.poses[0])
+        rel = se3.invert(C0) @ kf_new
+        return float(np.linalg.norm(rel[:, :3, 3] - self.kf_dense.poses[:, :3, 3], axis=1).max())
