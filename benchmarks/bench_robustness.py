@@ -52,9 +52,9 @@ from benchmarks.common import (
     tracker_setup,
     variant_set_options,
 )
+from surfelslam.api import run_sequence
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
 

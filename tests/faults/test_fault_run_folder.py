@@ -181,9 +181,9 @@ def test_ctrl_c_mid_rerun_keeps_the_old_run_and_a_valid_partial_trajectory(synth
 
 
 def test_kill_of_a_first_run_leaves_only_its_partial_folder(synth_seq, tmp_path, monkeypatch):
+    from surfelslam.api import run_sequence
     from surfelslam.datasets import open_sequence
     from surfelslam.slam import SlamConfig
-    from surfelslam.slam.runner import run_sequence
 
     _die_after(monkeypatch, 3, SystemExit(137))  # not an Exception: as abrupt as the loop can see
     out = tmp_path / "run"

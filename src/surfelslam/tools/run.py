@@ -10,10 +10,11 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from surfelslam.api import run_sequence
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.slam import TRACKERS
-from surfelslam.slam.runner import load_config, run_sequence
+from surfelslam.slam.runner import load_config
 from surfelslam.slam.saved_map import check_map_options
 from surfelslam.slam.segments import Segment
 from surfelslam.tools.common import (
