@@ -77,7 +77,9 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
     if len(shown) > SUMMARY_EXAMPLES:
         console.print(f"[yellow]... and {len(shown) - SUMMARY_EXAMPLES} more segments (metrics.json)[/]")
     print_prior_map(metrics.get("prior_map"))
-    if metrics.get("lost_at_end"):
+    if metrics.get("poses_written") == 0:
+        console.print("[bold red]no frame has a pose:[/] trajectory.txt is empty", highlight=False, soft_wrap=True)
+    elif metrics.get("lost_at_end"):
         last = [s for s in segs if s["kind"] == "lost"][-1]
         console.print(f"[bold red]the run ended lost[/] (from frame {last['first_frame']}): the poses after it are "
                       "predictions, not measurements", highlight=False, soft_wrap=True)
