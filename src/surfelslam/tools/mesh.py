@@ -1,9 +1,10 @@
 """``surfelslam mesh RUN_DIR``: a triangle mesh (``mesh.ply``) of a finished run.
 
-``--method tsdf`` (default) reads the run's sequence again (the folder ``metrics.json`` names, with the run's
-dataset options from ``config.toml``), fuses its depth frames at the poses of ``trajectory.txt`` into a TSDF and
-extracts the surface by marching cubes (:mod:`surfelslam.mapping.mesh`). ``--method poisson`` reconstructs from the
-surfels of ``map.ply`` with Open3D (optional). :func:`mesh_run` is the command without its printing.
+``--method tsdf`` (default) reads the run's sequence again (:func:`surfelslam.slam.run_reader.open_run`: the
+folder ``metrics.json`` names, with the run's dataset options from ``config.toml``), fuses its depth frames at the
+poses of ``trajectory.txt`` into a TSDF and extracts the surface by marching cubes (:mod:`surfelslam.mapping.mesh`).
+``--method poisson`` reconstructs from the surfels of ``map.ply`` with Open3D (optional). :func:`mesh_run` is the
+command without its printing.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ import numpy as np
 import typer
 
 from surfelslam.errors import ConfigError, ConfigValueError, FrameError, InputError
-from surfelslam.io.run_folder import read_run_metrics, read_run_trajectory
 from surfelslam.mapping.mesh import METHODS, Mesh, MeshConfig
+from surfelslam.slam.run_reader import NOT_A_RUN, open_run
 from surfelslam.tools.common import console, handle_errors
 
 MESH_FILE = "mesh.ply"
@@ -58,41 +59,6 @@ def mesh_config(**given) -> MeshConfig:
 
 
 
-def _run_config(run_dir: Path, metrics: dict):
-    """The run's :class:`SlamConfig` (its ``config.toml``; else the defaults with ``metrics.json``'s dataset
-    options)."""
-    from surfelslam.config import load_toml
-    from surfelslam.datasets.base import DatasetOptions
-    from surfelslam.slam.config import SlamConfig
-
-    path = run_dir / "config.toml"
-    if path.is_file():
-        return load_toml(SlamConfig, path)
-    opts = dict(metrics.get("dataset_options") or {})
-    if opts.get("intrinsics") is not None:
-        opts["intrinsics"] = tuple(float(v) for v in opts["intrinsics"])
-    known = {f.name for f in dataclasses.fields(DatasetOptions)}
-    return SlamConfig(dataset=DatasetOptions(**{k: v for k, v in opts.items() if k in known}))
-
-
-def _open_run_sequence(run_dir: Path, metrics: dict, run_cfg, sequence: Path | None):
-    from surfelslam.datasets import open_sequence
-
-    if sequence is None:
-        named = metrics.get("sequence")
-        if not named:
-            raise InputError(run_dir, "metrics.json names no sequence (is it a complete run?): pass --sequence PATH")
-        sequence = Path(named)
-        if not sequence.is_dir():
-            raise InputError(sequence, "the run's sequence (named in metrics.json) is not here: pass --sequence PATH")
-    seq = open_sequence(sequence, run_cfg.dataset)
-    res = metrics.get("resolution")
-    if res is not None and [seq.intrinsics.width, seq.intrinsics.height] != list(res):
-        raise ConfigError(f"{sequence} opens at {seq.intrinsics.width}x{seq.intrinsics.height}, the run was "
-                          f"{res[0]}x{res[1]}: is it the run's sequence?")
-    return seq
-
-
 def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: bool,
                run_depth_range: bool) -> tuple[Mesh, MeshResult]:
     from tqdm import tqdm
@@ -100,12 +66,12 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     from surfelslam.mapping.mesh import TsdfVolume
     from surfelslam.slam.mapper import frame_colour_at_depth
 
-    est = read_run_trajectory(run_dir)
-    metrics = read_run_metrics(run_dir)
-    run_cfg = _run_config(run_dir, metrics)
+    run = open_run(run_dir)
+    est = run.trajectory()
+    run_cfg = run.config
     if run_depth_range:  # the depth range the run fused its map with
         cfg = dataclasses.replace(cfg, min_depth_m=run_cfg.fusion.min_depth_m, max_depth_m=run_cfg.fusion.max_depth_m)
-    seq = _open_run_sequence(run_dir, metrics, run_cfg, sequence)
+    seq = run.open_sequence(sequence)
     T, has_pose = est.lookup(seq.timestamps, FRAME_MATCH_S)
     positions = np.flatnonzero(has_pose)[:: cfg.stride]
     if len(positions) == 0:
@@ -135,14 +101,13 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
 
 
 def _poisson_mesh(run_dir: Path, cfg: MeshConfig) -> tuple[Mesh, MeshResult]:
-    from surfelslam.io.ply import read_ply
     from surfelslam.mapping.mesh import poisson_mesh, require_open3d
 
     require_open3d()  # before reading anything
-    map_path = run_dir / "map.ply"
-    if not map_path.is_file():
+    run = open_run(run_dir)
+    map_path, v = run.map_path, run.map_vertices()
+    if v is None:
         raise InputError(map_path, "missing: not the output folder of `surfelslam run`")
-    v = read_ply(map_path)
     if not {"nx", "ny", "nz"} <= v.keys():
         raise InputError(map_path, "the map has no normals (nx ny nz): poisson needs oriented points")
     t0 = time.perf_counter()
@@ -164,7 +129,7 @@ def mesh_run(run_dir: Path, cfg: MeshConfig, out: Path | None = None, sequence: 
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise InputError(run_dir, "not a folder (expected the --out folder of `surfelslam run`)")
+        raise InputError(run_dir, NOT_A_RUN)
     if cfg.method == "poisson":
         mesh, result = _poisson_mesh(run_dir, cfg)
     else:
