@@ -17,7 +17,7 @@ Everything here is a thin layer over :mod:`surfelslam.slam` (the trackers and th
 from __future__ import annotations
 
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -223,6 +223,56 @@ def run_sequence(seq: RGBDSequence, out_dir: str | Path, cfg: SlamConfig, tracke
     with progress_bar(len(seq), progress) as on_progress:
         return _run_sequence(seq, Path(out_dir), cfg, tracker, poses, report=report, on_progress=on_progress,
                              **kwargs)
+
+
+@dataclass
+class FolderRun:
+    """What :func:`run_folder` made: the run's metrics, and the mesh and Rerun recording when asked for."""
+
+    metrics: dict
+    mesh: Any = None  # surfelslam.slam.run_mesh.MeshResult
+    export: Any = None  # (surfelslam.viz.rerun_export.ExportSummary, notes)
+
+
+def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, poses: str | None = None,
+               map_dir: str | Path | None = None, localize_only: bool = False, record: str | Path | None = None,
+               mesh: bool = False, rerun: bool = False, viewer: Callable[[RGBDSequence], Any] | None = None,
+               **kwargs: Any) -> FolderRun:
+    """``surfelslam run`` without its printing: open ``source`` with ``cfg.dataset`` (``record``: the live camera,
+    its frames also written to this bag), continue from the map of ``map_dir`` if given, run (:func:`run_sequence`;
+    ``kwargs``: its ``overwrite``, ``progress``, ``figures``, ``on_start``), and with ``mesh`` / ``rerun`` also
+    write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into the staging folder before
+    the hand-over, so that an interrupted run leaves neither half written. ``viewer(seq)``: the live viewer's
+    ``on_frame`` callback for the opened sequence (``None``: none). Everything is checked before the run starts."""
+    from surfelslam.datasets.realsense import open_realsense
+    from surfelslam.io.map_file import read_map_file
+    from surfelslam.mapping.mesh import MeshConfig
+    from surfelslam.slam.run_mesh import mesh_run
+    from surfelslam.viz.rerun_export import require_rerun
+    from surfelslam.viz.run_export import export_run
+
+    check_map_options(cfg.tracker, map_dir, localize_only, poses)  # before reading a large map
+    prior = None if map_dir is None else read_map_file(map_dir)
+    if rerun:
+        require_rerun()  # before the run, not after it
+    seq = _open_sequence(source, cfg.dataset) if record is None else open_realsense(cfg.dataset, record, path=source)
+    made = FolderRun({})
+
+    def before_commit(stage: Path) -> None:
+        if mesh:
+            made.mesh = mesh_run(stage, MeshConfig(), sequence=Path(str(seq.root)),
+                                 progress=kwargs.get("progress", True), run_depth_range=True)
+        if rerun:
+            made.export = export_run(stage, seq=seq)
+
+    try:
+        made.metrics = run_sequence(seq, out_dir, cfg, None, poses, prior_map=prior, localize_only=localize_only,
+                                    before_commit=before_commit if mesh or rerun else None,
+                                    on_frame=None if viewer is None else viewer(seq), **kwargs)
+    finally:
+        if hasattr(seq, "close"):  # a bag, a live camera (and its recording)
+            seq.close()
+    return made
 
 
 @contextmanager
