@@ -103,12 +103,14 @@ class SlamRun:
         arrays = self.result.map_arrays()
         return None if arrays is None else arrays["position"]
 
-    def save(self, out_dir: str | Path, *, figures: bool | Collection[str] = False, overwrite: bool = True) -> Path:
+    def save(self, out_dir: str | Path, *, figures: bool | Collection[str] = False, overwrite: bool = True,
+             formats: Collection[str] = ("tum",)) -> Path:
         """Write the run folder as ``surfelslam run`` writes it (the same writer): ``trajectory.txt`` (TUM),
         ``map.ply``, ``config.toml``, ``metrics.json`` (with the evaluation when the sequence has ground truth),
         ``map.npz`` (surfel trackers; the map a later session continues from, :func:`load_map`) and the
-        ``figures`` asked for. ``overwrite``: replace a previous run in ``out_dir`` (else refuse it)."""
-        writer = RunWriter(out_dir, overwrite=overwrite, report=run_report(figures))
+        ``figures`` asked for, ``keyframes.txt`` where the tracker saved keyframes, and ``trajectory_kitti.txt`` when
+        ``formats`` has ``"kitti"``. ``overwrite``: replace a previous run in ``out_dir`` (else refuse it)."""
+        writer = RunWriter(out_dir, overwrite=overwrite, report=run_report(figures), formats=formats)
         writer.check()
         outcome = RunOutcome(self.trajectory, self.result, self.metrics, self.frames)
         with writer:
@@ -217,7 +219,8 @@ def run_sequence(seq: RGBDSequence, out_dir: str | Path, cfg: SlamConfig, tracke
     :data:`~surfelslam.viz.run_report.RUN_FIGURES`, none, or those named).
 
     ``kwargs``: :func:`surfelslam.slam.runner.run_sequence`'s other arguments (``overwrite``, ``on_start``,
-    ``before_commit``, ``on_frame``, ``prior_map``, ``localize_only``). Returns the metrics (``metrics.json``).
+    ``before_commit``, ``on_frame``, ``prior_map``, ``localize_only``, ``formats``). Returns the metrics
+    (``metrics.json``).
     """
     report = run_report(figures)  # checks the names before anything runs
     with progress_bar(len(seq), progress) as on_progress:
@@ -240,10 +243,11 @@ def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, pose
                **kwargs: Any) -> FolderRun:
     """``surfelslam run`` without its printing: open ``source`` with ``cfg.dataset`` (``record``: the live camera,
     its frames also written to this bag), continue from the map of ``map_dir`` if given, run (:func:`run_sequence`;
-    ``kwargs``: its ``overwrite``, ``progress``, ``figures``, ``on_start``), and with ``mesh`` / ``rerun`` also
-    write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into the staging folder before
-    the hand-over, so that an interrupted run leaves neither half written. ``viewer(seq)``: the live viewer's
-    ``on_frame`` callback for the opened sequence (``None``: none). Everything is checked before the run starts."""
+    ``kwargs``: its ``overwrite``, ``progress``, ``figures``, ``on_start``, ``formats``), and with ``mesh`` /
+    ``rerun`` also write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into the staging
+    folder before the hand-over, so that an interrupted run leaves neither half written. ``viewer(seq)``: the live
+    viewer's ``on_frame`` callback for the opened sequence (``None``: none). Everything is checked before the run
+    starts."""
     from surfelslam.datasets.realsense import open_realsense
     from surfelslam.io.map_file import read_map_file
     from surfelslam.mapping.mesh import MeshConfig

@@ -23,7 +23,7 @@ from surfelslam.io.trajectory import read_tum
 
 RUN = ("--poses", "gt", "--no-figures", "--no-progress")
 #: what a run with --no-figures hands over
-RUN_FILES = ["config.toml", "map.npz", "map.ply", "metrics.json", "trajectory.txt"]
+RUN_FILES = ["config.toml", "keyframes.txt", "map.npz", "map.ply", "metrics.json", "trajectory.txt"]
 #: files of an older run or an eval beside it that a --no-figures rerun does not write
 OLDER_FILES = ["eval.json", "eval_trajectory.png", "eval_ate_errors.png", "trajectory.png", "ate_errors.png",
                "map_top.png", "map_camera.png", "run.rrd"]
@@ -79,7 +79,7 @@ def _die_after(monkeypatch, n: int, exc: BaseException) -> None:
 def test_a_finished_folder_is_refused_without_overwrite(synth_seq, done):
     before = snapshot(done)
     res = cli("run", synth_seq, "-o", done, *RUN, "--end", "5")
-    assert_one_line(res, 2, f"{done} holds a previous run (config.toml, map.npz, map.ply, ...)",
+    assert_one_line(res, 2, f"{done} holds a previous run (config.toml, keyframes.txt, map.npz, ...)",
                     "pass --overwrite")
     assert snapshot(done) == before and leftovers(done) == []
 

@@ -5,13 +5,17 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 import surfelslam as ss
 from surfelslam.api import run_sequence
 from surfelslam.cli import app
+from surfelslam.io.kitti import read_kitti
+from surfelslam.io.map_file import read_map_file
 from surfelslam.io.run_folder import STAGING_PREFIX
+from surfelslam.io.trajectory import read_tum
 from surfelslam.synth.writer import generate_sequence
 
 pytestmark = pytest.mark.slow  # short sequences through a tracker and the CLI
@@ -42,8 +46,9 @@ def test_a_run_saved_from_python_is_the_run_of_the_cli(seqs, tmp_path, tracker):
     for frame in seq:
         slam.track(frame)
     api = slam.finish().save(tmp_path / "api")
-    assert _files(api) == _files(cli) == {"trajectory.txt", "map.ply", "map.npz", "config.toml", "metrics.json"}
-    for name in ("trajectory.txt", "config.toml", "map.ply"):
+    assert _files(api) == _files(cli) == {"trajectory.txt", "keyframes.txt", "map.ply", "map.npz", "config.toml",
+                                          "metrics.json"}
+    for name in ("trajectory.txt", "keyframes.txt", "config.toml", "map.ply"):
         assert (api / name).read_bytes() == (cli / name).read_bytes(), name
     m_api, m_cli = (json.loads((d / "metrics.json").read_text()) for d in (api, cli))
     assert list(m_api) == list(m_cli)
@@ -55,6 +60,20 @@ def test_a_run_saved_from_python_is_the_run_of_the_cli(seqs, tmp_path, tracker):
     res = runner.invoke(app, ["mesh", str(api), "--no-progress"])
     assert res.exit_code == 0, res.output
     assert (api / "mesh.ply").stat().st_size > 1000
+    res = runner.invoke(app, ["eval", str(api), str(seqs[0]), "--no-figures"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((api / "eval.json").read_text())["ate_rmse_m"] == pytest.approx(m_api["eval"]["ate_rmse_m"])
+
+
+def test_rerun_works_on_a_run_saved_from_python(seqs, tmp_path):
+    pytest.importorskip("rerun", reason="rerun-sdk (the `viz` extra) is not installed")
+    slam = ss.Slam.from_sequence(ss.open_sequence(seqs[0]), tracker="dense")
+    for frame in slam.sequence:
+        slam.track(frame)
+    api = slam.finish().save(tmp_path / "api")
+    res = runner.invoke(app, ["rerun", str(api), "--images-every", "4"])
+    assert res.exit_code == 0, res.output
+    assert "8 poses" in res.output and "2 image pairs" in res.output and "note:" not in res.output
 
 
 @pytest.mark.parametrize("localize_only", [False, True])
@@ -75,3 +94,22 @@ def test_a_map_in_which_nothing_localises_ends_as_a_normal_run(seqs, tmp_path, l
     assert metrics["prior_map"]["localised"] is False and "eval" not in metrics
     assert (out / "trajectory.txt").read_text() == "# timestamp tx ty tz qx qy qz qw\n"
     assert not [p for p in out.iterdir() if p.name.startswith(STAGING_PREFIX)]
+
+
+def test_keyframes_and_kitti_poses_beside_the_trajectory(seqs, tmp_path):
+    out = tmp_path / "run"
+    res = runner.invoke(app, ["run", str(seqs[0]), "--tracker", "hybrid", "-o", str(out), "--no-figures",
+                              "--no-progress", "--format", "kitti"])
+    assert res.exit_code == 0, res.output
+    lines = (out / "trajectory.txt").read_text().splitlines()
+    keyframes = (out / "keyframes.txt").read_text().splitlines()
+    saved = read_map_file(out / "map.npz").keyframes
+    assert len(keyframes) - 1 == len(saved.timestamp) >= 1  # the header, then one line per keyframe
+    assert set(keyframes) <= set(lines)  # a keyframe's line is its line of trajectory.txt
+    traj = read_tum(out / "trajectory.txt")
+    kitti = read_kitti(out / "trajectory_kitti.txt")
+    assert kitti.shape == traj.T_world_cam.shape == (8, 4, 4)
+    np.testing.assert_allclose(kitti, traj.T_world_cam, atol=2e-8)  # the TUM file's 1e-9 quaternions, rounded
+    res = runner.invoke(app, ["run", str(seqs[0]), "-o", str(out), "--overwrite", "--format", "g2o"])
+    assert res.exit_code == 2 and "--format: unknown g2o; known: tum, kitti" in res.output
+    assert (out / "trajectory_kitti.txt").is_file()  # refused before anything was touched

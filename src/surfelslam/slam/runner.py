@@ -18,7 +18,7 @@ import re
 import tomllib
 import types
 import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -160,7 +160,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
                  before_commit: Callable[[Path], None] | None = None,
                  on_frame: Callable[[Any, Any, Any], None] | None = None,
                  on_progress: ProgressSink | None = None,
-                 prior_map: SavedMap | None = None, localize_only: bool = False) -> dict:
+                 prior_map: SavedMap | None = None, localize_only: bool = False,
+                 formats: Collection[str] = ("tum",)) -> dict:
     """Run the pipeline on an opened sequence and write every output into ``out_dir``: a :class:`Session`
     over :func:`track_sequence`, written by a :class:`RunWriter`.
 
@@ -175,7 +176,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
 
     ``prior_map`` (``--map``): continue from a saved map (``dense``, ``hybrid``); ``localize_only``: track against it
     without changing it. A run in which no frame is localised in it ends normally, with no poses (its metrics'
-    ``prior_map`` says why).
+    ``prior_map`` says why). ``formats``: the pose files besides TUM (``"kitti"``: ``trajectory_kitti.txt``).
 
     Returns the metrics dict (also written as ``metrics.json``).
     """
@@ -187,7 +188,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     cfg = dataclasses.replace(cfg, tracker=tracker, dataset=seq.options)
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
     check_map_options(tracker, prior_map, localize_only, poses)
-    writer = RunWriter(out_dir, overwrite=overwrite, report=report)
+    writer = RunWriter(out_dir, overwrite=overwrite, report=report, formats=formats)
     writer.check()  # nothing written yet; before the colour check, which reads frames
     colour_registered, colour_check = colour_is_registered(seq, cfg.colour_registration)
     session = Session(seq.intrinsics, cfg, tracker, colour_registered=colour_registered,

@@ -1,7 +1,8 @@
 """The run writer: the one writer of a run folder.
 
 A run folder holds ``config.toml`` (the whole recipe), ``trajectory.txt`` (TUM; streamed pose by pose while the run
-goes, so a killed run keeps every finished frame), ``map.ply``, ``map.npz`` (surfel trackers: the map a later run
+goes, so a killed run keeps every finished frame), ``keyframes.txt`` (TUM, where the tracker saved keyframes),
+``trajectory_kitti.txt`` (``--format kitti``), ``map.ply``, ``map.npz`` (surfel trackers: the map a later run
 continues from), ``metrics.json`` (written last: its presence marks a complete run) and what the run's report adds.
 Everything goes through the run folder policy of :mod:`surfelslam.io.run_folder` (lock, staging folder,
 hand-over). ``surfelslam run`` and :meth:`surfelslam.SlamRun.save` both write through :class:`RunWriter`, so the
@@ -16,15 +17,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
+from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.jsonio import json_default
+from surfelslam.io.kitti import write_kitti
 from surfelslam.io.map_file import MAP_FILE, write_map_file
 from surfelslam.io.run_folder import COMPLETE_MARKER, RunFolder
 from surfelslam.io.trajectory import TumAppender, read_tum, write_tum
@@ -34,6 +37,12 @@ from surfelslam.types import Trajectory
 TRAJECTORY_FILE = "trajectory.txt"
 CONFIG_FILE = "config.toml"
 MAP_PLY_FILE = "map.ply"
+#: The keyframes' final poses (TUM; their lines of ``trajectory.txt``), where the tracker saved a map with keyframes.
+KEYFRAMES_FILE = "keyframes.txt"
+#: The poses in KITTI's format (``--format kitti``), in ``trajectory.txt``'s order.
+KITTI_FILE = "trajectory_kitti.txt"
+#: The pose formats a run can write: TUM (always, ``trajectory.txt``) and KITTI (also ``trajectory_kitti.txt``).
+POSE_FORMATS = ("tum", "kitti")
 
 
 @dataclass
@@ -65,7 +74,12 @@ class RunWriter:
     without :meth:`commit` releases the lock and keeps the staging folder (with its partial trajectory).
     """
 
-    def __init__(self, out_dir: str | Path, *, overwrite: bool = True, report: RunReport | None = None):
+    def __init__(self, out_dir: str | Path, *, overwrite: bool = True, report: RunReport | None = None,
+                 formats: Collection[str] = ("tum",)):
+        unknown = sorted(set(formats) - set(POSE_FORMATS))
+        if unknown:
+            raise ConfigError(f"--format: unknown {', '.join(unknown)}; known: {', '.join(POSE_FORMATS)}")
+        self.formats = frozenset(formats)
         self.out = Path(out_dir)
         self.folder = RunFolder(self.out, overwrite=overwrite)
         self.report = report
@@ -103,6 +117,7 @@ class RunWriter:
             with TumAppender(path) as out:
                 for t, T in zip(outcome.trajectory.timestamps, outcome.trajectory.T_world_cam, strict=True):
                     out.append(float(t), T)
+        self._write_pose_files(outcome)
         metrics = dict(outcome.metrics)
         outcome.result.write_map(self.stage / MAP_PLY_FILE)
         self._write_saved_map(outcome, metrics.get("sequence") or "")
@@ -112,6 +127,18 @@ class RunWriter:
         metrics.update(complete=True, started=self.started, finished=now_text())
         write_text_atomic(self.stage / COMPLETE_MARKER, json.dumps(metrics, indent=2, default=json_default) + "\n")
         return metrics
+
+    def _write_pose_files(self, outcome: RunOutcome) -> None:
+        """``keyframes.txt`` (this run's keyframes of its saved map, at their final poses) and the other formats."""
+        traj = outcome.trajectory
+        if "kitti" in self.formats:
+            write_kitti(traj, self.stage / KITTI_FILE)
+        saved = outcome.result.saved_map
+        if saved is None or saved.config_toml or not len(saved.keyframes.timestamp):
+            return  # no map saved, or the loaded one as it was (--localize-only): no keyframes of this run
+        kf = saved.keyframes
+        stamps = kf.timestamp[kf.session == kf.session.max()]
+        write_tum(traj.subset(np.isin(traj.timestamps, stamps)), self.stage / KEYFRAMES_FILE)
 
     def _close_poses(self) -> int:
         poses, self._poses = self._poses, None

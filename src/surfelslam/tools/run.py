@@ -130,6 +130,9 @@ TrackerOpt = Annotated[str | None, typer.Option("--tracker", help=TRACKER_HELP)]
 PosesOpt = Annotated[str | None, typer.Option(
     "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")]
 FiguresOpt = Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")]
+FormatOpt = Annotated[list[str] | None, typer.Option(
+    "--format", help="Pose file formats: tum (always: trajectory.txt) and kitti (also trajectory_kitti.txt, the "
+                     "3x4 poses row by row); repeatable.")]
 ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")]
 RerunOpt = Annotated[bool, typer.Option(
     "--rerun", help="Also write OUT/run.rrd, a Rerun recording (needs rerun-sdk; see `surfelslam rerun`).")]
@@ -180,7 +183,8 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
             tracker: TrackerOpt = None, poses: PosesOpt = None, figures: FiguresOpt = True,
             progress: ProgressOpt = True, rerun: RerunOpt = False, viewer: ViewerOpt = None,
             viewer_images_every: ViewerImagesOpt = 5, viewer_map_every: ViewerMapOpt = 30, map_dir: MapOpt = None,
-            localize_only: LocalizeOnlyOpt = False, mesh: MeshOpt = False, record: RecordOpt = None) -> None:
+            localize_only: LocalizeOnlyOpt = False, mesh: MeshOpt = False, record: RecordOpt = None,
+            formats: FormatOpt = None) -> None:
     """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
 
     Settings come from the command-line flags, then --set, then the --config file, then the defaults.
@@ -204,7 +208,7 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     try:
         made = run_folder(seq_path, out, cfg, poses=poses, map_dir=map_dir, localize_only=localize_only,
                           record=record, mesh=mesh, rerun=rerun, viewer=start_viewer, overwrite=overwrite,
-                          progress=progress, figures=figures, on_start=started)
+                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",))
     except BaseException:
         finish_viewer(live[0] if live else None, None, warn=note, wait_when_serving=False)
         raise
