@@ -265,7 +265,7 @@ def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, pose
     def before_commit(stage: Path) -> None:
         if mesh:
             made.mesh = mesh_run(stage, MeshConfig(), sequence=Path(str(seq.root)),
-                                 progress=kwargs.get("progress", True), run_depth_range=True)
+                                 progress=tsdf_bar if kwargs.get("progress", True) else None, run_depth_range=True)
         if rerun:
             made.export = export_run(stage, seq=seq)
 
@@ -277,6 +277,13 @@ def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, pose
         if hasattr(seq, "close"):  # a bag, a live camera (and its recording)
             seq.close()
     return made
+
+
+def tsdf_bar(positions):
+    """The frame positions fused into a mesh's TSDF, with a progress bar."""
+    from tqdm import tqdm
+
+    return tqdm(positions, unit="frame", leave=False, desc="tsdf")
 
 
 @contextmanager

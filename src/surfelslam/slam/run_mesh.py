@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,9 @@ import numpy as np
 from surfelslam.errors import FrameError, InputError
 from surfelslam.mapping.mesh import Mesh, MeshConfig
 from surfelslam.slam.run_reader import NOT_A_RUN, open_run
+
+#: ``progress(positions)``: iterates over the frame positions to fuse, showing progress (e.g. a tqdm bar).
+ProgressWrap = Callable[[Sequence[int]], Iterable[int]]
 
 MESH_FILE = "mesh.ply"
 #: Largest difference (s) between a trajectory stamp and a frame stamp for the frame to be fused at that pose.
@@ -37,10 +41,8 @@ class MeshResult:
     notes: list[str] = dataclasses.field(default_factory=list)
 
 
-def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: bool,
+def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: ProgressWrap | None,
                run_depth_range: bool) -> tuple[Mesh, MeshResult]:
-    from tqdm import tqdm
-
     from surfelslam.mapping.mesh import TsdfVolume
     from surfelslam.slam.mapper import frame_colour_at_depth
 
@@ -59,7 +61,7 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     vol = TsdfVolume.from_config(cfg)
     skipped = 0
     t0 = time.perf_counter()
-    for i in tqdm(positions, unit="frame", disable=not progress, leave=False, desc="tsdf"):
+    for i in positions if progress is None else progress(positions):
         try:
             frame = seq[int(i)]
         except FrameError:
@@ -97,7 +99,7 @@ def _poisson_mesh(run_dir: Path, cfg: MeshConfig) -> tuple[Mesh, MeshResult]:
 
 
 def mesh_run(run_dir: Path, cfg: MeshConfig, out: Path | None = None, sequence: Path | None = None,
-             progress: bool = False, run_depth_range: bool = False) -> MeshResult:
+             progress: ProgressWrap | None = None, run_depth_range: bool = False) -> MeshResult:
     """Write the mesh of the run in ``run_dir`` to ``out`` (default ``run_dir/mesh.ply``).
 
     ``sequence``: the run's sequence folder when it is not where ``metrics.json`` says. ``run_depth_range``: fuse

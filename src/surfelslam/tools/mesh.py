@@ -12,6 +12,7 @@ from typing import Annotated
 
 import typer
 
+from surfelslam.api import tsdf_bar
 from surfelslam.errors import ConfigError, ConfigValueError
 from surfelslam.mapping.mesh import METHODS, MeshConfig
 from surfelslam.slam.run_mesh import mesh_run
@@ -67,7 +68,7 @@ def register(app: typer.Typer) -> None:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         cfg = mesh_config(method=method, voxel_m=voxel, trunc_m=trunc, max_depth_m=max_depth, stride=stride,
                           min_weight=min_weight)
-        res = mesh_run(run_dir, cfg, out, sequence, progress, run_depth_range=max_depth is None)
+        res = mesh_run(run_dir, cfg, out, sequence, tsdf_bar if progress else None, run_depth_range=max_depth is None)
         for note in res.notes:
             console.print(f"note: {note}", highlight=False, markup=False, soft_wrap=True)
         detail = (f"{res.frames_fused} frames fused, voxel {cfg.voxel_m * 100:g} cm, TSDF {res.tsdf_mb:,.0f} MiB"

@@ -74,7 +74,7 @@ def _print_guesses(result: dict, init: str) -> None:
                       f"colour not re-timed: {ctm['note']}", highlight=False)
 
 
-def _print_result(result: dict, res, T: np.ndarray, agree: dict, out: Path) -> None:
+def _print_result(result: dict, res, T: np.ndarray, agree: dict, written: list[Path]) -> None:
     source, target = result["source"], result["target"]
     console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
                   f"({100 * res.inlier_fraction:.1f}%), RMSE {1000 * res.rmse_m:.2f} mm, "
@@ -102,8 +102,7 @@ def _print_result(result: dict, res, T: np.ndarray, agree: dict, out: Path) -> N
                      for name, a in agree.items())
     console.print(f"depth agreement (median |dz| where the moved source meets target depth): {text}",
                   highlight=False)
-    console.print(f"wrote {out / 'registration.json'}, {out / 'before.png'}, {out / 'after.png'}",
-                  highlight=False, markup=False)
+    console.print(f"wrote {', '.join(str(p) for p in written)}", highlight=False, markup=False)
 
 
 # the options of `surfelslam register`, one declaration each
@@ -184,10 +183,10 @@ def register_cmd(seq: SeqArg, source: SourceOpt, target: TargetOpt, out: OutOpt,
                              RetimeConfig(mode=retime_colour),
                              FEATURE_MAX_NORM if feature_max_norm is None else feature_max_norm,
                              PAIR_FEATURES if features is None else features, descriptor)
-    save_registration(out, report, figures)
+    written = save_registration(out, report, figures)
     _print_guesses(report.result, init)
     _print_result(report.result, report.registration.icp, report.registration.icp.T_target_source,
-                  report.agreement, out)
+                  report.agreement, written)
 
 
 def register(app: typer.Typer) -> None:
