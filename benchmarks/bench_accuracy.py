@@ -19,10 +19,10 @@ import time
 from pathlib import Path
 
 from benchmarks.common import tracker_setup
+from surfelslam.api import run_sequence
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.errors import SurfelSlamError
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
 SYNTH_SCENE = "room"

@@ -29,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
+from surfelslam.api import run_sequence
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.geometry import se3
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.slam import SlamConfig, build_slam
 from surfelslam.slam.config import TrackingConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.render import render
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory

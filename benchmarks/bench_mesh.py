@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+from surfelslam.api import run_sequence
 from surfelslam.datasets import open_sequence
 from surfelslam.eval import mesh_quality as mq
 from surfelslam.mapping.mesh import MeshConfig, TsdfVolume
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
 DEFAULT_VOXEL_M = 0.01  # the voxel of `surfelslam mesh` (m)

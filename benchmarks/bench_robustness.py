@@ -47,15 +47,17 @@ from pathlib import Path
 
 from benchmarks.common import (
     ODOMETRY_VARIANTS,
+    fmt,
+    table,
     tracker_cost_vs_dense,
     tracker_rank,
     tracker_setup,
     variant_set_options,
 )
+from surfelslam.api import run_sequence
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.eval.metrics import ate, rpe
 from surfelslam.io.trajectory import read_tum
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.types import Trajectory
 
@@ -319,8 +321,6 @@ def section(n_frames: int, width: int, work: Path, budget, *, synthetic: tuple[s
 
 def section_markdown(res: dict) -> list[str]:
     """The ``make bench`` section: one table of every (sequence, tracker) row and how to read it."""
-    from benchmarks.common import fmt, table
-
     seq_order = {k: i for i, k in enumerate(dict.fromkeys(r["sequence"] for r in res["rows"]))}
     rows = sorted(res["rows"], key=lambda r: (seq_order[r["sequence"]], tracker_rank(r["tracker"])))
     w, h = res["resolution"]

@@ -25,9 +25,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from surfelslam.api import run_sequence
 from surfelslam.datasets import open_sequence
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 from surfelslam.viz.live import LiveViewerConfig, finish_viewer, viewer_for_run
 

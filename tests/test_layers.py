@@ -59,13 +59,7 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {"surfelslam.cli": ("surfelslam.__mai
 
 #: Imports allowed although they break a rule: (importing module, imported module) -> why. Keep it empty;
 #: :func:`test_exceptions_are_used` fails on an entry no import needs any more.
-_RUN_WRITER = ("the run's evaluation and figures, written by slam/runner.py until the run writer rewrite (driver "
-               "branch: slam/writer.py, the report passed in from above) lands; delete on merge")
-EXCEPTIONS: dict[tuple[str, str], str] = {
-    ("surfelslam.slam.runner", "surfelslam.eval.metrics"): _RUN_WRITER,
-    ("surfelslam.slam.runner", "surfelslam.viz.map_figures"): _RUN_WRITER,
-    ("surfelslam.slam.runner", "surfelslam.viz.trajectory_plots"): _RUN_WRITER,
-}
+EXCEPTIONS: dict[tuple[str, str], str] = {}
 
 
 @dataclass(frozen=True)

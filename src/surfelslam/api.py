@@ -16,7 +16,9 @@ Everything here is a thin layer over :mod:`surfelslam.slam` (the trackers and th
 
 from __future__ import annotations
 
-import json
+import time
+from collections.abc import Callable, Collection
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -29,15 +31,21 @@ from surfelslam.datasets.registry import open_sequence as _open_sequence
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
 from surfelslam.eval.metrics import evaluate as _evaluate
-from surfelslam.io.trajectory import read_tum, write_tum
-from surfelslam.slam import TRACKERS, FrameResult, SlamConfig, SlamResult, Tracker, build_slam
+from surfelslam.io.trajectory import read_tum
+from surfelslam.slam import FrameResult, SlamConfig, SlamResult, Tracker
 from surfelslam.slam.colour_check import colour_is_registered
+from surfelslam.slam.runner import run_sequence as _run_sequence
 from surfelslam.slam.saved_map import SavedMap, check_map_options
-from surfelslam.slam.segments import segments_report, tracking_segments
+from surfelslam.slam.session import RunOutcome, Session
+from surfelslam.slam.writer import RunWriter
 from surfelslam.tracking.icp import ICPConfig
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.tracking.registration import PairRegistration, register_pair
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
+from surfelslam.viz.run_report import run_report
+
+#: The progress bar's FPS and map size are refreshed every this many frames (a redraw costs a little).
+PROGRESS_EVERY = 10
 
 
 def open_sequence(path: str | Path, **dataset_options: Any) -> RGBDSequence:
@@ -73,10 +81,12 @@ class SlamRun:
             pose graph), with the frames' timestamps.
         map: the map: a :class:`~surfelslam.mapping.surfel_map.SurfelMap` (surfel trackers) or ``None`` (``orb``,
             whose map is the keyframe cloud in ``points_xyz`` / ``points_rgb``).
-        metrics: counts and summary numbers of the run (failures, relocalisations, keyframes, loops ...).
+        metrics: counts and summary numbers of the run (failures, relocalisations, keyframes, loops, timings ...):
+            ``metrics.json`` without the evaluation and the start and end times.
         config: the configuration used.
         tracker: the tracker's name.
         frames: the per-frame results in order.
+        sequence: the sequence the frames came from (:meth:`Slam.from_sequence`), else ``None``.
     """
 
     trajectory: Trajectory
@@ -86,6 +96,7 @@ class SlamRun:
     tracker: str
     result: SlamResult = field(repr=False)
     frames: list[FrameResult] = field(default_factory=list, repr=False)
+    sequence: RGBDSequence | None = field(default=None, repr=False)
 
     @property
     def points_xyz(self) -> np.ndarray | None:
@@ -93,25 +104,20 @@ class SlamRun:
         arrays = self.result.map_arrays()
         return None if arrays is None else arrays["position"]
 
-    def save(self, out_dir: str | Path) -> Path:
-        """Write ``trajectory.txt`` (TUM), ``map.ply``, ``config.toml``, ``metrics.json`` and (surfel trackers)
-        ``map.npz``, the map a later session continues from (:func:`load_map`), into ``out_dir``."""
-        from surfelslam.io.atomic import write_text_atomic
-        from surfelslam.io.jsonio import json_default
-        from surfelslam.slam.map_file import MAP_FILE, write_map_file
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        write_tum(self.trajectory, out / "trajectory.txt")
-        self.result.write_map(out / "map.ply")
-        recipe = dumps_toml(self.config)
-        write_text_atomic(out / "config.toml", recipe)
-        saved = self.result.saved_map
-        if saved is not None:
-            write_map_file(out / MAP_FILE, saved if saved.config_toml else replace(saved, config_toml=recipe))
-        metrics = {"tracker": self.tracker, "frames_processed": len(self.trajectory), **self.metrics}
-        write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=2, default=json_default) + "\n")
-        return out
+    def save(self, out_dir: str | Path, *, figures: bool | Collection[str] = False, overwrite: bool = True,
+             formats: Collection[str] = ("tum",)) -> Path:
+        """Write the run folder as ``surfelslam run`` writes it (the same writer): ``trajectory.txt`` (TUM),
+        ``map.ply``, ``config.toml``, ``metrics.json`` (with the evaluation when the sequence has ground truth),
+        ``map.npz`` (surfel trackers; the map a later session continues from, :func:`load_map`) and the
+        ``figures`` asked for, ``keyframes.txt`` where the tracker saved keyframes, and ``trajectory_kitti.txt`` when
+        ``formats`` has ``"kitti"``. ``overwrite``: replace a previous run in ``out_dir`` (else refuse it)."""
+        writer = RunWriter(out_dir, overwrite=overwrite, report=run_report(figures), formats=formats)
+        writer.check()
+        outcome = RunOutcome(self.trajectory, self.result, self.metrics, self.frames)
+        with writer:
+            writer.open(dumps_toml(self.config))
+            writer.finish(outcome, None if self.sequence is None else self.sequence.ground_truth)
+            return writer.commit()
 
 
 class Slam:
@@ -137,36 +143,39 @@ class Slam:
                  prior_map: SavedMap | str | Path | None = None, localize_only: bool = False):
         cfg = _as_config(config)
         tracker = cfg.tracker if tracker is None else tracker
-        if tracker not in TRACKERS:
-            raise ConfigError(f"tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
-        check_map_options(tracker, prior_map, localize_only, None)
+        if prior_map is not None and not isinstance(prior_map, SavedMap):
+            check_map_options(tracker, prior_map, localize_only, None)  # before reading a large file
+            prior_map = load_map(prior_map)
         self.intrinsics = intrinsics
-        self.tracker_name = tracker
-        self.config = replace(cfg, tracker=tracker)
-        self.tracker: Tracker = build_slam(intrinsics, self.config, tracker, colour_registered, colour_camera)
-        if prior_map is not None:
-            self.tracker.use_prior_map(prior_map if isinstance(prior_map, SavedMap) else load_map(prior_map),
-                                       localize_only)
-        if warmup:
-            self.tracker.warmup()
-        self._results: list[FrameResult] = []
-        self._finished = False
-        #: the pre-run colour registration check (:meth:`from_sequence`; ``None``: not run or not applicable)
-        self.colour_check: dict | None = None
+        self.session = Session(intrinsics, cfg, tracker, colour_registered=colour_registered,
+                               colour_camera=colour_camera, prior_map=prior_map, localize_only=localize_only,
+                               warmup=warmup)
+        self.tracker_name = self.session.tracker_name
+        self.config = self.session.config
+        self.tracker: Tracker = self.session.tracker
+        #: the sequence the session was set up for (:meth:`from_sequence`), recorded by :meth:`SlamRun.save`
+        self.sequence: RGBDSequence | None = None
+
+    @property
+    def colour_check(self) -> dict | None:
+        """The pre-run colour registration check (:meth:`from_sequence`; ``None``: not run or not applicable)."""
+        return self.session.colour_check
 
     @classmethod
     def from_sequence(cls, seq: RGBDSequence, tracker: str | None = None,
                       config: SlamConfig | dict | str | Path | None = None, **kwargs: Any) -> Slam:
         """A session set up for ``seq``'s cameras, as ``surfelslam run`` sets it up: its intrinsics, whether its
         colour is registered to depth (the layout's word, checked on a few frames for the layouts that take it as
-        registered: ``colour_registration.check``), and its separate colour camera if the layout knows one.
+        registered: ``colour_registration.check``), and its separate colour camera if the layout knows one. The
+        session remembers ``seq``: its run saves as ``surfelslam run`` would write it.
         ``kwargs``: the other :class:`Slam` arguments (``warmup``, ``prior_map``, ``localize_only``).
         """
         cfg = replace(_as_config(config), dataset=seq.options)
         registered, check = colour_is_registered(seq, cfg.colour_registration)
         slam = cls(seq.intrinsics, tracker, cfg, colour_registered=registered, colour_camera=seq.colour_camera,
                    **kwargs)
-        slam.colour_check = check
+        slam.session.colour_check = check
+        slam.sequence = seq
         return slam
 
     def track(self, frame: RGBDFrame | np.ndarray, depth_m: np.ndarray | None = None,
@@ -176,13 +185,11 @@ class Slam:
         ``rgb``: ``(H, W, 3)`` uint8; ``depth_m``: ``(H, W)`` float32 metres, 0 or NaN = no depth; ``timestamp``: s.
         Returns the frame's result (``T_world_cam``, whether it was tracked, timings).
         """
-        if self._finished:
+        if self.session.finished:
             raise ConfigError("Slam.track: the session is finished; start a new Slam")
         if not isinstance(frame, RGBDFrame):
             frame = self._frame_from_arrays(frame, depth_m, timestamp)
-        res = self.tracker.process(frame)
-        self._results.append(res)
-        return res
+        return self.session.track(frame)
 
     def _frame_from_arrays(self, rgb: np.ndarray, depth_m: np.ndarray | None, timestamp: float | None) -> RGBDFrame:
         if depth_m is None or timestamp is None:
@@ -190,29 +197,117 @@ class Slam:
         rgb = np.asarray(rgb)
         depth = np.asarray(depth_m, dtype=np.float32)
         h, w = self.intrinsics.height, self.intrinsics.width
+        n = len(self.session.frames)
         if rgb.shape != (h, w, 3) or rgb.dtype != np.uint8:
-            raise FrameError(None, f"rgb must be ({h}, {w}, 3) uint8, got {rgb.shape} {rgb.dtype}", len(self._results))
+            raise FrameError(None, f"rgb must be ({h}, {w}, 3) uint8, got {rgb.shape} {rgb.dtype}", n)
         if depth.shape != (h, w):
-            raise FrameError(None, f"depth_m must be ({h}, {w}), got {depth.shape}", len(self._results))
+            raise FrameError(None, f"depth_m must be ({h}, {w}), got {depth.shape}", n)
         depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(0.0)).astype(np.float32)
-        return RGBDFrame(len(self._results), float(timestamp), rgb, depth)
+        return RGBDFrame(n, float(timestamp), rgb, depth)
 
     def finish(self) -> SlamRun:
         """End the session: run the back end (for ``orb`` / ``hybrid``) and return the final trajectory and map."""
-        self._finished = True
-        res = self.tracker.finish()
-        if res.trajectory_override is not None:
-            traj = res.trajectory_override
-        else:
-            posed = [r for r in self._results if r.posed]
-            stamps = np.array([r.timestamp for r in posed], np.float64)
-            poses = np.array([r.T_world_cam for r in posed], np.float64).reshape(-1, 4, 4)
-            traj = Trajectory(stamps, poses)
-        frames = [(r.index, r.timestamp, r.status, r.reason) for r in self._results]
-        metrics = {**res.metrics, **segments_report(tracking_segments(frames))}
-        if self.colour_check is not None:
-            metrics["colour_check"] = self.colour_check
-        return SlamRun(traj, res.surfel_map, metrics, self.config, self.tracker_name, res, self._results)
+        out = self.session.finish(self.sequence)
+        return SlamRun(out.trajectory, out.result.surfel_map, out.metrics, self.config, self.tracker_name,
+                       out.result, out.frames, self.sequence)
+
+
+def run_sequence(seq: RGBDSequence, out_dir: str | Path, cfg: SlamConfig, tracker: str | None = None,
+                 poses: str | None = None, progress: bool = True, figures: bool | Collection[str] = True,
+                 **kwargs: Any) -> dict:
+    """Run the pipeline on an opened sequence into the run folder ``out_dir``, as ``surfelslam run`` does: with a
+    progress bar (``progress``), the evaluation against the ground truth, and the ``figures`` (every PNG of
+    :data:`~surfelslam.viz.run_report.RUN_FIGURES`, none, or those named).
+
+    ``kwargs``: :func:`surfelslam.slam.runner.run_sequence`'s other arguments (``overwrite``, ``on_start``,
+    ``before_commit``, ``on_frame``, ``prior_map``, ``localize_only``, ``formats``). Returns the metrics
+    (``metrics.json``).
+    """
+    report = run_report(figures)  # checks the names before anything runs
+    with progress_bar(len(seq), progress) as on_progress:
+        return _run_sequence(seq, Path(out_dir), cfg, tracker, poses, report=report, on_progress=on_progress,
+                             **kwargs)
+
+
+@dataclass
+class FolderRun:
+    """What :func:`run_folder` made: the run's metrics, and the mesh and Rerun recording when asked for."""
+
+    metrics: dict
+    mesh: Any = None  # surfelslam.slam.run_mesh.MeshResult
+    export: Any = None  # (surfelslam.viz.rerun_export.ExportSummary, notes)
+
+
+def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, poses: str | None = None,
+               map_dir: str | Path | None = None, localize_only: bool = False, record: str | Path | None = None,
+               mesh: bool = False, rerun: bool = False, viewer: Callable[[RGBDSequence], Any] | None = None,
+               **kwargs: Any) -> FolderRun:
+    """``surfelslam run`` without its printing: open ``source`` with ``cfg.dataset`` (``record``: the live camera,
+    its frames also written to this bag), continue from the map of ``map_dir`` if given, run (:func:`run_sequence`;
+    ``kwargs``: its ``overwrite``, ``progress``, ``figures``, ``on_start``, ``formats``), and with ``mesh`` /
+    ``rerun`` also write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into the staging
+    folder before the hand-over, so that an interrupted run leaves neither half written. ``viewer(seq)``: the live
+    viewer's ``on_frame`` callback for the opened sequence (``None``: none). Everything is checked before the run
+    starts."""
+    from surfelslam.datasets.realsense import open_realsense
+    from surfelslam.mapping.mesh import MeshConfig
+    from surfelslam.slam.map_file import read_map_file
+    from surfelslam.slam.run_mesh import mesh_run
+    from surfelslam.viz.rerun_export import require_rerun
+    from surfelslam.viz.run_export import export_run
+
+    check_map_options(cfg.tracker, map_dir, localize_only, poses)  # before reading a large map
+    prior = None if map_dir is None else read_map_file(map_dir)
+    if rerun:
+        require_rerun()  # before the run, not after it
+    seq = _open_sequence(source, cfg.dataset) if record is None else open_realsense(cfg.dataset, record, path=source)
+    made = FolderRun({})
+
+    def before_commit(stage: Path) -> None:
+        if mesh:
+            made.mesh = mesh_run(stage, MeshConfig(), sequence=Path(str(seq.root)),
+                                 progress=tsdf_bar if kwargs.get("progress", True) else None, run_depth_range=True)
+        if rerun:
+            made.export = export_run(stage, seq=seq)
+
+    try:
+        made.metrics = run_sequence(seq, out_dir, cfg, None, poses, prior_map=prior, localize_only=localize_only,
+                                    before_commit=before_commit if mesh or rerun else None,
+                                    on_frame=None if viewer is None else viewer(seq), **kwargs)
+    finally:
+        if hasattr(seq, "close"):  # a bag, a live camera (and its recording)
+            seq.close()
+    return made
+
+
+def tsdf_bar(positions):
+    """The frame positions fused into a mesh's TSDF, with a progress bar."""
+    from tqdm import tqdm
+
+    return tqdm(positions, unit="frame", leave=False, desc="tsdf")
+
+
+@contextmanager
+def progress_bar(total: int, show: bool):
+    """An ``on_progress`` callback drawing a tqdm bar of ``total`` frames (FPS and map size every
+    :data:`PROGRESS_EVERY` frames), or ``None`` when not ``show``."""
+    if not show:
+        yield None
+        return
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="frame", dynamic_ncols=True, leave=False)
+    t_start = time.perf_counter()
+
+    def on_progress(done: int, res: FrameResult | None) -> None:
+        bar.update(1)
+        if res is not None and done % PROGRESS_EVERY == 0:
+            bar.set_postfix(fps=f"{done / max(time.perf_counter() - t_start, 1e-9):.1f}", pts=f"{res.map_points:,}")
+
+    try:
+        yield on_progress
+    finally:
+        bar.close()
 
 
 def load_map(path: str | Path) -> SavedMap:

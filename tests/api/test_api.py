@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import surfelslam as ss
+from surfelslam.api import run_sequence
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.io.trajectory import read_tum
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
 pytestmark = pytest.mark.slow  # whole (short) sequences through the trackers

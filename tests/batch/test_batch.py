@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from surfelslam.api import run_sequence
 from surfelslam.batch import expand_jobs, inline_spec, load_spec, run_batch
 from surfelslam.batch.executors import LocalExecutor, make_executor
 from surfelslam.batch.jobs import config_sha256, is_complete
 from surfelslam.batch.report import rebuild_rows
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
-from surfelslam.slam.runner import run_sequence
 
 
 @pytest.fixture

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from surfelslam.api import run_sequence
 from surfelslam.cli import app
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.datasets.realsense import open_realsense
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
 runner = CliRunner()

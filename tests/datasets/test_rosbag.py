@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from surfelslam.api import run_sequence
 from surfelslam.cli import app
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.datasets.rosbag import (
@@ -25,7 +26,6 @@ from surfelslam.datasets.rosbag import (
 from surfelslam.datasets.rosbag.write import write_bag
 from surfelslam.errors import DatasetError
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
 runner = CliRunner()

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 import surfelslam as ss
+from surfelslam.api import run_sequence
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.datasets.rosbag.write import write_bag
 from surfelslam.datasets.stream import ArraySource, DeviceSource, FrameSource, track_source
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.writer import generate_sequence
 
 # every test here streams frames of a generated sequence (several run it through a tracker)

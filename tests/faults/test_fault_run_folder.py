@@ -23,7 +23,7 @@ from surfelslam.io.trajectory import read_tum
 
 RUN = ("--poses", "gt", "--no-figures", "--no-progress")
 #: what a run with --no-figures hands over
-RUN_FILES = ["config.toml", "map.npz", "map.ply", "metrics.json", "trajectory.txt"]
+RUN_FILES = ["config.toml", "keyframes.txt", "map.npz", "map.ply", "metrics.json", "trajectory.txt"]
 #: files of an older run or an eval beside it that a --no-figures rerun does not write
 OLDER_FILES = ["eval.json", "eval_trajectory.png", "eval_ate_errors.png", "trajectory.png", "ate_errors.png",
                "map_top.png", "map_camera.png", "run.rrd"]
@@ -79,7 +79,7 @@ def _die_after(monkeypatch, n: int, exc: BaseException) -> None:
 def test_a_finished_folder_is_refused_without_overwrite(synth_seq, done):
     before = snapshot(done)
     res = cli("run", synth_seq, "-o", done, *RUN, "--end", "5")
-    assert_one_line(res, 2, f"{done} holds a previous run (config.toml, map.npz, map.ply, ...)",
+    assert_one_line(res, 2, f"{done} holds a previous run (config.toml, keyframes.txt, map.npz, ...)",
                     "pass --overwrite")
     assert snapshot(done) == before and leftovers(done) == []
 
@@ -181,9 +181,9 @@ def test_ctrl_c_mid_rerun_keeps_the_old_run_and_a_valid_partial_trajectory(synth
 
 
 def test_kill_of_a_first_run_leaves_only_its_partial_folder(synth_seq, tmp_path, monkeypatch):
+    from surfelslam.api import run_sequence
     from surfelslam.datasets import open_sequence
     from surfelslam.slam import SlamConfig
-    from surfelslam.slam.runner import run_sequence
 
     _die_after(monkeypatch, 3, SystemExit(137))  # not an Exception: as abrupt as the loop can see
     out = tmp_path / "run"

@@ -222,9 +222,9 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """8 exact frames of the room at 160x120, mapped at the ground-truth poses."""
+    from surfelslam.api import run_sequence
     from surfelslam.datasets import open_sequence
     from surfelslam.slam import SlamConfig
-    from surfelslam.slam.runner import run_sequence
     from surfelslam.synth.writer import generate_sequence
 
     base = tmp_path_factory.mktemp("mesh")

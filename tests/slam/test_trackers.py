@@ -9,6 +9,7 @@ from functools import cache
 import numpy as np
 import pytest
 
+from surfelslam.api import run_sequence
 from surfelslam.datasets import open_sequence
 from surfelslam.errors import ConfigError
 from surfelslam.geometry import se3
@@ -17,7 +18,6 @@ from surfelslam.slam.config import HybridConfig, TrackingConfig
 from surfelslam.slam.frame import FrameStatus
 from surfelslam.slam.hybrid_localise import joint_term_weight
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
-from surfelslam.slam.runner import run_sequence
 from surfelslam.slam.segments import tracking_segments
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.textures import TextureConfig

@@ -81,8 +81,9 @@ def test_sections_in_order_and_figures_exist(experiment):
 
 
 def test_a_run_refuses_unknown_figure_names_before_writing(experiment, tmp_path):
+    from surfelslam.api import run_sequence
     from surfelslam.errors import ConfigError
-    from surfelslam.slam.runner import RUN_FIGURES, run_sequence
+    from surfelslam.viz.run_report import RUN_FIGURES
 
     seq_dir, _, _ = experiment
     with pytest.raises(ConfigError, match="figures: unknown map_side; known: ate_errors, map_camera"):
@@ -92,7 +93,7 @@ def test_a_run_refuses_unknown_figure_names_before_writing(experiment, tmp_path)
 
 
 def test_fusion_numbers_match_run_sequence(experiment, tmp_path):
-    from surfelslam.slam.runner import run_sequence
+    from surfelslam.api import run_sequence
 
     seq_dir, out, report = experiment
     seq_runs = open_sequence(seq_dir, DatasetOptions(end=FRAMES))

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from surfelslam.api import run_sequence
 from surfelslam.cli import app
 from surfelslam.config import load_toml
 from surfelslam.datasets import DatasetOptions, open_sequence
@@ -16,7 +17,6 @@ from surfelslam.io.ply import read_ply
 from surfelslam.io.run_folder import staging_path
 from surfelslam.io.trajectory import read_tum, write_tum
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.runner import run_sequence
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.writer import generate_sequence
 

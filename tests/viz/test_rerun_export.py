@@ -157,7 +157,7 @@ def test_recording_without_the_sequence_still_has_map_and_trajectory(loop_run, t
     (run2 / "metrics.json").write_text(json.dumps(metrics))
     res = runner.invoke(app, ["rerun", str(run2), "--out", str(tmp_path / "x.rrd")])
     assert res.exit_code == 0, res.output
-    assert "is not here (pass --seq)" in " ".join(res.output.split())
+    assert "is not here: pass --seq PATH" in " ".join(res.output.split())
     rows = _rows_per_entity(cli, tmp_path / "x.rrd")
     assert rows["/world/camera"] == 40 and rows["/world/map"] == 1
     assert "/world/ground_truth" not in rows and "/world/camera/image/rgb" not in rows

@@ -141,8 +141,8 @@ def run_job(job: Job) -> dict[str, Any]:
     at once: retrying would fail the same way. Anything else (a crash, an I/O error) propagates, so that the
     executor retries the job.
     """
+    from surfelslam.api import run_sequence
     from surfelslam.datasets import open_sequence
-    from surfelslam.slam.runner import run_sequence
 
     description = job.describe()
     try:

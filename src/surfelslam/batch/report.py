@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from surfelslam.batch.jobs import JOB_FILE, read_metrics, summary
+from surfelslam.errors import ConfigError
 from surfelslam.io.atomic import write_text_atomic
 
 MANIFEST = "batch.json"
@@ -158,3 +159,23 @@ def rebuild_rows(out_dir: str | Path) -> list[dict]:
         if isinstance(desc, dict) and metrics and metrics.get("complete") is True:
             rows.append(summary(desc, metrics, "done"))
     return rows
+
+
+def rebuild_report(out_dir: str | Path) -> tuple[list[dict], dict[str, Path]]:
+    """``surfelslam batch --report DIR``: ``results.csv`` / ``results.md`` rebuilt from the run folders of
+    ``out_dir``, holding its batch lock (never while a batch writes into it). Returns the rows and the files.
+
+    Raises:
+        ConfigError: no such folder, or no batch record and no complete run folder in it.
+        OutputError: another batch holds the folder.
+    """
+    from surfelslam.batch.lock import BatchLock
+
+    folder = Path(out_dir)
+    if not folder.is_dir():
+        raise ConfigError(f"--report {folder}: no such batch folder")
+    with BatchLock(folder):
+        rows = rebuild_rows(folder)
+        if not rows:
+            raise ConfigError(f"{folder}: no batch.json and no complete run folders with job.json")
+        return rows, write_report(folder, rows)

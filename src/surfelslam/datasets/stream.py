@@ -10,7 +10,7 @@ camera) and ``ground_truth`` (a :class:`~surfelslam.types.Trajectory` or ``None`
 * :class:`DeviceSource`: a live camera behind the small :class:`Device` interface (frames as they come, no length).
 
 A source that also has ``__len__`` and ``__getitem__`` (sequences, :class:`ArraySource`) can go through the whole
-run loop (:func:`surfelslam.slam.runner.run_sequence`); any source can be fed to a :class:`~surfelslam.Slam` with
+run loop (:func:`surfelslam.api.run_sequence`); any source can be fed to a :class:`~surfelslam.Slam` with
 :func:`track_source`::
 
     src = ArraySource(rgb_frames, depth_frames_m, stamps, intrinsics)
@@ -52,7 +52,7 @@ class ArraySource:
 
     Indexable and iterable like a sequence (``src[i]`` is an :class:`RGBDFrame` whose ``index`` is ``i``), with the
     attributes the run loop reads (``root``, ``layout``, ``options``, ``unpaired``, ``warnings``), so
-    :func:`~surfelslam.slam.runner.run_sequence` takes it too. Shapes and types are checked up front (ConfigError
+    :func:`~surfelslam.api.run_sequence` takes it too. Shapes and types are checked up front (ConfigError
     naming the frame).
     """
 

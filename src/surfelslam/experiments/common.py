@@ -84,8 +84,8 @@ def gt_relative(T_wc: np.ndarray, valid: np.ndarray, s: int, t: int) -> np.ndarr
 def run_tracker(seq_runs, out_dir: Path, cfg, tracker: str, poses: str | None, opts: ExperimentOptions,
                 figures: Collection[str] = ()) -> dict:
     """One ordinary run folder (``surfelslam run``) of ``seq_runs`` into ``out_dir``, with the ``figures``
-    (:data:`~surfelslam.slam.runner.RUN_FIGURES`) the report links; returns its metrics."""
-    from surfelslam.slam.runner import run_sequence
+    (:data:`~surfelslam.viz.run_report.RUN_FIGURES`) the report links; returns its metrics."""
+    from surfelslam.api import run_sequence
 
     return run_sequence(seq_runs, out_dir, cfg, tracker, poses=poses, progress=opts.progress, figures=figures)
 

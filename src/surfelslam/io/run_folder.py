@@ -38,7 +38,7 @@ from surfelslam.io.atomic import os_error_text
 
 #: The files a run (and ``surfelslam eval`` / ``surfelslam rerun`` beside it) writes into its folder.
 RUN_OUTPUT_NAMES = ("trajectory.txt", "map.ply", "config.toml", "metrics.json", "trajectory.png", "ate_errors.png",
-                    "run.rrd", "mesh.ply", "map.npz")
+                    "run.rrd", "mesh.ply", "map.npz", "keyframes.txt", "trajectory_kitti.txt")
 #: Patterns of the same (map figures; evaluation results and plots of ``surfelslam eval``, older names too).
 RUN_OUTPUT_PATTERNS = ("map_*.png", "eval*.json", "eval*.png")
 #: The file that marks a complete run; handed over last, deleted first.

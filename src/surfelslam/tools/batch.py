@@ -75,15 +75,7 @@ def register(app: typer.Typer) -> None:
         if report is not None:
             if inputs:
                 raise ConfigError("--report DIR takes no spec or sequences")
-            from surfelslam.batch.lock import BatchLock
-
-            if not Path(report).is_dir():
-                raise ConfigError(f"--report {report}: no such batch folder")
-            with BatchLock(report):  # not while a batch writes into it
-                rows = report_mod.rebuild_rows(report)
-                if not rows:
-                    raise ConfigError(f"{report}: no batch.json and no complete run folders with job.json")
-                files = report_mod.write_report(report, rows)
+            rows, files = report_mod.rebuild_report(report)
             console.print(f"{len(rows)} rows -> {escape(str(files['csv']))}, {escape(str(files['md']))}",
                           highlight=False)
             return

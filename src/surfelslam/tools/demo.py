@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     out = Path(argv[0] if argv else "out/demo")
     try:
-        from surfelslam.slam.runner import run_sequence
+        from surfelslam.api import run_sequence
         from surfelslam.synth.writer import generate_sequence
         from surfelslam.tools.run import print_summary
 

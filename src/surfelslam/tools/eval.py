@@ -20,12 +20,11 @@ from surfelslam.errors import ConfigError, EvaluationError, GroundTruthError, In
 from surfelslam.eval import metrics
 from surfelslam.io.atomic import write_text_atomic
 from surfelslam.io.trajectory import read_tum
+from surfelslam.slam.run_reader import open_run
 from surfelslam.tools.common import console, handle_errors
 from surfelslam.types import Trajectory
 
 GT_FILENAME = "groundtruth.txt"
-#: the trajectory file read when EST is a run folder
-RUN_TRAJECTORY = "trajectory.txt"
 #: what ``eval`` writes into its output folder (key -> file name); ``run`` writes none of these names
 EVAL_FILES = {"json": "eval.json", "trajectory_png": "eval_trajectory.png", "ate_errors_png": "eval_ate_errors.png"}
 
@@ -50,9 +49,9 @@ def load_ground_truth(path: Path) -> Trajectory:
 
 
 def load_estimate(path: Path) -> Trajectory:
-    """The estimate: a TUM file, or a run folder's ``trajectory.txt``."""
-    if path.is_dir() and (path / RUN_TRAJECTORY).is_file():
-        path = path / RUN_TRAJECTORY
+    """The estimate: a TUM file, or a run folder's trajectory (:func:`~surfelslam.slam.run_reader.open_run`)."""
+    if path.is_dir():
+        return open_run(path).trajectory()
     return read_tum(path)
 
 

@@ -10,11 +10,10 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from surfelslam.datasets import open_sequence
+from surfelslam.api import run_folder
 from surfelslam.errors import ConfigError
 from surfelslam.slam import TRACKERS
-from surfelslam.slam.runner import load_config, run_sequence
-from surfelslam.slam.saved_map import check_map_options
+from surfelslam.slam.runner import load_config
 from surfelslam.slam.segments import Segment
 from surfelslam.tools.common import (
     DatasetOptionsArgs,
@@ -76,20 +75,12 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
     if len(shown) > SUMMARY_EXAMPLES:
         console.print(f"[yellow]... and {len(shown) - SUMMARY_EXAMPLES} more segments (metrics.json)[/]")
     print_prior_map(metrics.get("prior_map"))
-    if metrics.get("lost_at_end"):
+    if metrics.get("poses_written") == 0:
+        console.print("[bold red]no frame has a pose:[/] trajectory.txt is empty", highlight=False, soft_wrap=True)
+    elif metrics.get("lost_at_end"):
         last = [s for s in segs if s["kind"] == "lost"][-1]
         console.print(f"[bold red]the run ended lost[/] (from frame {last['first_frame']}): the poses after it are "
                       "predictions, not measurements", highlight=False, soft_wrap=True)
-
-
-def read_prior_map(map_dir: Path | None, tracker: str, localize_only: bool, poses: str | None):
-    """The map ``--map`` names (``None`` without it), after checking the options (before reading a large file)."""
-    check_map_options(tracker, map_dir, localize_only, poses)
-    if map_dir is None:
-        return None
-    from surfelslam.slam.map_file import read_map_file
-
-    return read_map_file(map_dir)
 
 
 def prior_map_line(rep: dict | None) -> str | None:
@@ -125,117 +116,106 @@ def resolve_run_config(config: str | None, sets: list[str] | None, tracker: str 
     return replace(cfg, tracker=cfg.tracker if tracker is None else tracker, dataset=dataset.resolve(cfg.dataset))
 
 
+# the options of `surfelslam run`, one declaration each (the command's signature stays one line per option)
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
+OverwriteOpt = Annotated[bool, typer.Option(
+    "--overwrite", help="Replace the previous run in --out (only the run's own files are removed).")]
+ConfigOpt = Annotated[str | None, typer.Option(
+    "--config", help="TOML configuration file (e.g. a previous run's config.toml: the whole recipe), or a "
+                     "preset name (fast, accurate, hybrid-full: the package's presets).")]
+SetOpt = Annotated[list[str] | None, typer.Option(
+    "--set", metavar="KEY=VALUE", help="Override one setting, e.g. --set icp.min_inliers=300 --set "
+                                       "tracking.photometric=off (repeatable; a TOML value or a bare string).")]
+TrackerOpt = Annotated[str | None, typer.Option("--tracker", help=TRACKER_HELP)]
+PosesOpt = Annotated[str | None, typer.Option(
+    "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")]
+FiguresOpt = Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")]
+FormatOpt = Annotated[list[str] | None, typer.Option(
+    "--format", help="Pose file formats: tum (always: trajectory.txt) and kitti (also trajectory_kitti.txt, the "
+                     "3x4 poses row by row); repeatable.")]
+ProgressOpt = Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")]
+RerunOpt = Annotated[bool, typer.Option(
+    "--rerun", help="Also write OUT/run.rrd, a Rerun recording (needs rerun-sdk; see `surfelslam rerun`).")]
+ViewerOpt = Annotated[str | None, typer.Option(
+    "--viewer", metavar="spawn|connect[=ADDR]|serve|save=FILE",
+    help="Show the run live in Rerun (needs rerun-sdk): spawn a viewer, connect to one (HOST:PORT), serve a web "
+         "viewer, or save a recording while running.")]
+ViewerImagesOpt = Annotated[int, typer.Option(
+    "--viewer-images-every", help="Live viewer: log the images every N frames.")]
+ViewerMapOpt = Annotated[int, typer.Option(
+    "--viewer-map-every", help="Live viewer: log the map (subsampled) every N frames.")]
+MapOpt = Annotated[Path | None, typer.Option(
+    "--map", help="Continue from the map a previous run saved (its --out folder, or its map.npz): the first frames "
+                  "are localised in it, then tracking and mapping go on in its frame (dense, hybrid).")]
+LocalizeOnlyOpt = Annotated[bool, typer.Option(
+    "--localize-only", help="With --map: track against the loaded map without changing it.")]
+MeshOpt = Annotated[bool, typer.Option(
+    "--mesh", help="Also write OUT/mesh.ply at the end, as `surfelslam mesh OUT` does (TSDF, default settings).")]
+RecordOpt = Annotated[Path | None, typer.Option(
+    "--record", help="With the live camera (SEQ = realsense): also write the frames to this bag (.bag: ROS 1, else "
+                     "a ROS 2 MCAP bag folder).")]
+
+
+def note(text: str) -> None:
+    """A yellow line on the console (the live viewer's remarks)."""
+    console.print(escape(text), style="yellow", highlight=False, soft_wrap=True)
+
+
+def print_run(made, out: Path) -> None:
+    """The summary of a run, then what ``--mesh`` and ``--rerun`` wrote."""
+    print_summary(made.metrics, out)
+    if made.mesh is not None:
+        res = made.mesh
+        console.print(f"wrote {out / res.path.name} ({res.vertices:,} vertices, {res.faces:,} triangles; "
+                      f"{res.seconds:.1f} s)", highlight=False, markup=False, soft_wrap=True)
+
+
+def print_export_of_run(made, out: Path) -> None:
+    if made.export is not None:
+        from surfelslam.tools.export_rerun import print_export
+
+        summary, notes = made.export
+        print_export(replace(summary, path=out / Path(summary.path).name), notes)
+
+
+def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("out/run"),
+            overwrite: OverwriteOpt = False, config: ConfigOpt = None, sets: SetOpt = None,
+            tracker: TrackerOpt = None, poses: PosesOpt = None, figures: FiguresOpt = True,
+            progress: ProgressOpt = True, rerun: RerunOpt = False, viewer: ViewerOpt = None,
+            viewer_images_every: ViewerImagesOpt = 5, viewer_map_every: ViewerMapOpt = 30, map_dir: MapOpt = None,
+            localize_only: LocalizeOnlyOpt = False, mesh: MeshOpt = False, record: RecordOpt = None,
+            formats: FormatOpt = None) -> None:
+    """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
+
+    Settings come from the command-line flags, then --set, then the --config file, then the defaults.
+    config.toml records all of them (tracker and dataset options too): `surfelslam run SEQ --config
+    OUT/config.toml` repeats the run. A --out folder that holds a previous run needs --overwrite; the run
+    writes into OUT/.partial-PID/ and moves its files into OUT when complete.
+    """
+    from surfelslam.viz.live import finish_viewer, viewer_for_run
+
+    cfg = resolve_run_config(config, sets, tracker, dataset)
+    live = []  # the live viewer, once the sequence is open
+
+    def start_viewer(seq):
+        live.append(viewer_for_run(viewer, seq, viewer_images_every, viewer_map_every, warn=note))
+        return live[0]
+
+    def started(stage: Path) -> None:
+        console.print(f"run -> {escape(str(out))} (writing into {escape(str(stage))} until complete)",
+                      highlight=False)
+
+    try:
+        made = run_folder(seq_path, out, cfg, poses=poses, map_dir=map_dir, localize_only=localize_only,
+                          record=record, mesh=mesh, rerun=rerun, viewer=start_viewer, overwrite=overwrite,
+                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",))
+    except BaseException:
+        finish_viewer(live[0] if live else None, None, warn=note, wait_when_serving=False)
+        raise
+    print_run(made, out)
+    finish_viewer(live[0], out, warn=note)
+    print_export_of_run(made, out)
+
+
 def register(app: typer.Typer) -> None:
-    @app.command("run")
-    @handle_errors
-    @with_dataset_options
-    def run_cmd(
-        seq_path: SeqArg,
-        dataset: DatasetOptionsArgs,
-        out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("out/run"),
-        overwrite: Annotated[bool, typer.Option(
-            "--overwrite", help="Replace the previous run in --out (only the run's own files are removed).")] = False,
-        config: Annotated[str | None, typer.Option(
-            "--config", help="TOML configuration file (e.g. a previous run's config.toml: the whole recipe), or a "
-                             "preset name (fast, accurate, hybrid-full: the package's presets).")] = None,
-        sets: Annotated[list[str] | None, typer.Option(
-            "--set", metavar="KEY=VALUE", help="Override one setting, e.g. --set icp.min_inliers=300 --set "
-                                               "tracking.photometric=off (repeatable; a TOML value or a bare "
-                                               "string).")] = None,
-        tracker: Annotated[str | None, typer.Option("--tracker", help=TRACKER_HELP)] = None,
-        poses: Annotated[str | None, typer.Option(
-            "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")] = None,
-        figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")] = True,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
-        rerun: Annotated[bool, typer.Option(
-            "--rerun", help="Also write OUT/run.rrd, a Rerun recording (needs rerun-sdk; see `surfelslam rerun`)."
-        )] = False,
-        viewer: Annotated[str | None, typer.Option(
-            "--viewer", metavar="spawn|connect[=ADDR]|serve|save=FILE",
-            help="Show the run live in Rerun (needs rerun-sdk): spawn a viewer, connect to one (HOST:PORT), serve "
-                 "a web viewer, or save a recording while running.")] = None,
-        viewer_images_every: Annotated[int, typer.Option(
-            "--viewer-images-every", help="Live viewer: log the images every N frames.")] = 5,
-        viewer_map_every: Annotated[int, typer.Option(
-            "--viewer-map-every", help="Live viewer: log the map (subsampled) every N frames.")] = 30,
-        map_dir: Annotated[Path | None, typer.Option(
-            "--map", help="Continue from the map a previous run saved (its --out folder, or its map.npz): the first "
-                          "frames are localised in it, then tracking and mapping go on in its frame (dense, hybrid)."
-        )] = None,
-        localize_only: Annotated[bool, typer.Option(
-            "--localize-only", help="With --map: track against the loaded map without changing it.")] = False,
-        mesh: Annotated[bool, typer.Option(
-            "--mesh", help="Also write OUT/mesh.ply at the end, as `surfelslam mesh OUT` does (TSDF, default "
-                           "settings).")] = False,
-        record: Annotated[Path | None, typer.Option(
-            "--record", help="With the live camera (SEQ = realsense): also write the frames to this bag (.bag: "
-                             "ROS 1, else a ROS 2 MCAP bag folder).")] = None,
-    ) -> None:
-        """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
-
-        Settings come from the command-line flags, then --set, then the --config file, then the defaults.
-        config.toml records all of them (tracker and dataset options too): `surfelslam run SEQ --config
-        OUT/config.toml` repeats the run. A --out folder that holds a previous run needs --overwrite; the run
-        writes into OUT/.partial-PID/ and moves its files into OUT when complete.
-        """
-        cfg = resolve_run_config(config, sets, tracker, dataset)
-        prior = read_prior_map(map_dir, cfg.tracker, localize_only, poses)
-        if rerun:
-            from surfelslam.viz.rerun_export import require_rerun
-
-            require_rerun()  # before the run, not after it
-        if record is not None:
-            from surfelslam.datasets.realsense import open_realsense
-
-            seq = open_realsense(cfg.dataset, record=record, path=seq_path)
-        else:
-            seq = open_sequence(seq_path, cfg.dataset)
-        exported = []
-        meshed = []
-        from surfelslam.viz.live import finish_viewer, viewer_for_run
-
-        def note(text: str) -> None:
-            console.print(escape(text), style="yellow", highlight=False, soft_wrap=True)
-
-        live = viewer_for_run(viewer, seq, viewer_images_every, viewer_map_every, warn=note)
-
-        def started(stage: Path) -> None:
-            console.print(f"run -> {escape(str(out))} (writing into {escape(str(stage))} until complete)",
-                          highlight=False)
-
-        def export(stage: Path) -> None:
-            from surfelslam.tools.export_rerun import export_run
-
-            exported.append(export_run(stage, seq=seq))
-
-        def before_commit(stage: Path) -> None:
-            if mesh:  # in the staging folder: an interrupted run leaves no half mesh in OUT
-                from surfelslam.tools.mesh import mesh_config, mesh_run
-
-                meshed.append(mesh_run(stage, mesh_config(), sequence=Path(str(seq.root)), progress=progress,
-                                       run_depth_range=True))
-            if rerun:
-                export(stage)
-
-        try:
-            metrics = run_sequence(seq, out, cfg, poses=poses, progress=progress, figures=figures,
-                                   overwrite=overwrite, on_start=started,
-                                   before_commit=before_commit if rerun or mesh else None, on_frame=live,
-                                   prior_map=prior, localize_only=localize_only)
-        except BaseException:
-            finish_viewer(live, None, warn=note, wait_when_serving=False)
-            raise
-        finally:
-            if hasattr(seq, "close"):  # a bag, a live camera (and its recording)
-                seq.close()
-        print_summary(metrics, out)
-        if meshed:
-            res = meshed[0]
-            console.print(f"wrote {out / res.path.name} ({res.vertices:,} vertices, {res.faces:,} triangles; "
-                          f"{res.seconds:.1f} s)", highlight=False, markup=False, soft_wrap=True)
-        finish_viewer(live, out, warn=note)
-        if exported:
-            from surfelslam.tools.export_rerun import print_export
-
-            summary, notes = exported[0]
-            print_export(replace(summary, path=out / Path(summary.path).name), notes)
+    app.command("run")(handle_errors(with_dataset_options(run_cmd)))

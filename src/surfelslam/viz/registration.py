@@ -60,3 +60,29 @@ def plot_registration(source_pts_tgt: np.ndarray, target_pts: np.ndarray, path: 
     ax.set_title(title, fontsize=style.TITLE_FONTSIZE)
     ax.legend(loc="upper right", markerscale=12, fontsize=style.LABEL_FONTSIZE)
     return save_figure(fig, path)
+
+
+def save_registration(out: Path, report, figures: bool = True) -> list[Path]:
+    """Write a registered pair (:class:`~surfelslam.eval.pair_registration.PairReport`) into ``out``:
+    ``registration.json``, and ``before.png`` and ``after.png`` when ``figures``; returns the files written."""
+    import json
+
+    from surfelslam.geometry import se3
+    from surfelslam.io.atomic import write_text_atomic
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "registration.json"]
+    write_text_atomic(written[0], json.dumps(report.result, indent=2) + "\n")
+    if not figures:
+        return written
+    p_src, p_tgt = report.pyramids
+    res, source, target = report.registration.icp, report.result["source"], report.result["target"]
+    src_pts = p_src[0].vertex[p_src[0].vertex[..., 2] > 0]
+    tgt_pts = p_tgt[0].vertex[p_tgt[0].vertex[..., 2] > 0]
+    written.append(plot_registration(src_pts, tgt_pts, out / "before.png", f"before: source {source} (red), target "
+                                     f"{target} (green), identity"))
+    written.append(plot_registration(se3.transform_points(res.T_target_source, src_pts.astype(np.float64)), tgt_pts,
+                                     out / "after.png", f"after ICP: {res.inliers} inliers, RMSE "
+                                                        f"{1000 * res.rmse_m:.1f} mm"))
+    return written

@@ -1,0 +1,62 @@
+"""The standard report of a run: its evaluation and its figures, written beside its other outputs.
+
+:func:`run_report` is what ``surfelslam run`` and :meth:`surfelslam.SlamRun.save` pass to the run writer
+(:class:`~surfelslam.slam.writer.RunWriter`): the writer lives below this layer and calls the report back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+
+from surfelslam.errors import ConfigError
+from surfelslam.eval.metrics import ate
+from surfelslam.eval.run_eval import evaluate_run
+from surfelslam.slam.writer import RunRecord, RunReport
+
+#: The PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views.
+RUN_FIGURES = frozenset({"trajectory", "ate_errors", "map_camera", "map_top"})
+
+
+def figures_wanted(figures: bool | Collection[str]) -> frozenset[str]:
+    """Every figure of :data:`RUN_FIGURES` (True), none (False), or those named (checked)."""
+    if isinstance(figures, bool):
+        return RUN_FIGURES if figures else frozenset()
+    wanted = frozenset(figures)
+    if not wanted <= RUN_FIGURES:
+        raise ConfigError(f"figures: unknown {', '.join(sorted(wanted - RUN_FIGURES))}; known: "
+                          f"{', '.join(sorted(RUN_FIGURES))}")
+    return wanted
+
+
+def run_report(figures: bool | Collection[str] = True) -> RunReport:
+    """The report step: evaluation against the ground truth (when known), then the ``figures`` wanted."""
+    wanted = figures_wanted(figures)
+
+    def report(record: RunRecord) -> None:
+        evaluate_run(record)
+        if wanted and len(record.trajectory):
+            write_run_figures(record, wanted)
+
+    return report
+
+
+def write_run_figures(record: RunRecord, wanted: frozenset[str]) -> None:
+    """The ``wanted`` figures of :data:`RUN_FIGURES` into the run's folder (ATE figures only with an evaluation)."""
+    from surfelslam.viz.map_figures import save_map_figures
+
+    out_dir, metrics, result, est = record.folder, record.metrics, record.outcome.result, record.trajectory
+    if "eval" in metrics and wanted & {"trajectory", "ate_errors"}:
+        from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory
+
+        a = ate(est, record.ground_truth)
+        if "trajectory" in wanted:
+            plot_trajectory(out_dir / "trajectory.png", a.est_aligned, a.gt,
+                            title=f"{metrics['tracker']}: ATE RMSE {a.rmse_m * 100:.2f} cm", loops=result.loop_stamps)
+        if "ate_errors" in wanted:
+            plot_errors(out_dir / "ate_errors.png", a)
+    views = tuple(v for v in ("camera", "top") if f"map_{v}" in wanted)
+    cloud = result.map_arrays() if views else None
+    if cloud is not None and len(cloud["position"]):
+        save_map_figures(out_dir, cloud["position"], cloud["normal"], cloud["colour"], cloud["confidence"],
+                         cloud["first_seen"], est.T_world_cam[0], title=f"{metrics['tracker']} map",
+                         trajectory_T_world_cam=est.T_world_cam, radius=cloud.get("radius"), views=views)
