@@ -46,7 +46,6 @@ from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.geometry import se3
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.slam.config import SlamConfig, hybrid_sparse_config, relocalise_due
-from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import (
     FrameResult,
     FrameStatus,
@@ -62,9 +61,8 @@ from surfelslam.slam.hybrid_localise import HybridLocaliser, Localised
 from surfelslam.slam.motion import step_and_pose
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.registry import register_tracker
-from surfelslam.slam.warmup_run import warm_up_run
+from surfelslam.slam.warmup import warm_up_tracker
 from surfelslam.tracking.features import Features
-from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 
@@ -141,10 +139,9 @@ class HybridSlam:
 
     def warmup(self) -> None:
         """The dense kernels, the feature side's (matching, PnP, keypoint depth, RGB-D refinement), then a throwaway
-        hybrid run on a few synthetic frames (keyframes, loop checks, the joint term); excluded from FPS."""
-        warm_up(self.cfg)
-        warm_up_features(self.sparse.cfg.features)
-        warm_up_run(self.cfg, "hybrid")
+        hybrid run on a few synthetic frames (keyframes, loop checks, the joint term); excluded from FPS
+        (:mod:`surfelslam.slam.warmup`)."""
+        warm_up_tracker(self)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseFrontEnd.prepare`).
