@@ -45,7 +45,7 @@ from surfelslam.backend.dense_edges import DenseEdgeRefiner
 from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.geometry import se3
 from surfelslam.mapping.surfel_map import SurfelMap
-from surfelslam.slam.config import SlamConfig, hybrid_sparse_config, relocalise_due
+from surfelslam.slam.config import SlamConfig, relocalise_due
 from surfelslam.slam.frame import (
     FrameResult,
     FrameStatus,
@@ -58,6 +58,7 @@ from surfelslam.slam.frame import (
 from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.hybrid_anchors import KeyframeAnchors
 from surfelslam.slam.hybrid_localise import HybridLocaliser, Localised
+from surfelslam.slam.hybrid_profile import LOOP_ROBUST_SCALE_M, hybrid_sparse_config
 from surfelslam.slam.motion import step_and_pose
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.registry import register_tracker
@@ -71,11 +72,8 @@ def _sparse_back_end(cfg: SlamConfig, intr: Intrinsics, colour_registered: bool)
     """The hybrid's sparse back end (:func:`hybrid_sparse_config`); ICP-refined keyframe edges with
     ``hybrid.loop_icp`` (they carry a tight sigma, see :mod:`~surfelslam.backend.dense_edges`)."""
     h = cfg.hybrid
-    refiner, refined_scale = None, None
-    if h.loop_icp.enabled:
-        refiner = DenseEdgeRefiner(intr, cfg.preprocess, h.loop_icp)
-    if h.loop_robust_scale_m > 0:
-        refined_scale = h.loop_robust_scale_m / h.loop_icp.sigma_m
+    refiner = DenseEdgeRefiner(intr, cfg.preprocess, h.loop_icp) if h.loop_icp.enabled else None
+    refined_scale = LOOP_ROBUST_SCALE_M / h.loop_icp.sigma_m  # the loop kernel's scale in refined-edge sigmas
     return SparseSlam(intr, hybrid_sparse_config(cfg, intr.fx), edge_refiner=refiner,
                       refined_robust_scale=refined_scale, colour_registered=colour_registered,
                       coarse_rgbd_refine=h.pnp_rgbd_refine, keyframe_clouds=False,  # the map is the surfels
