@@ -46,7 +46,7 @@ from surfelslam.geometry import se3
 from surfelslam.io.prefetch import prefetch_frames
 from surfelslam.kernels import fusion as kf
 from surfelslam.kernels import threads
-from surfelslam.slam import DenseSlam, SlamConfig, warm_up
+from surfelslam.slam import DenseSlam, SlamConfig, warm_up_dense
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import TrajectoryConfig, make_trajectory
 from surfelslam.synth.writer import default_intrinsics, iter_frames, noise_config
@@ -101,7 +101,7 @@ def bench(width: int, n_frames: int, window: int, style: str = "handheld", lap: 
     cfg = replace(cfg, fusion=replace(cfg.fusion, remove_duplicates=remove_duplicates))
     if parallel is not None:
         cfg = replace(cfg, compute=replace(cfg.compute, parallel_kernels=parallel))
-    warm_up(cfg)
+    warm_up_dense(cfg)
     slam = DenseSlam(intr, cfg)
     wall = np.zeros(n_frames)
     cpu = np.zeros(n_frames)

@@ -66,7 +66,7 @@ from benchmarks.common import SHARED_DATA, tracker_cost_vs_dense
 from benchmarks.report import DOCS_HEADER, DOCS_PAGE, to_markdown, write, write_docs_page  # noqa: F401
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.kernels import threads
-from surfelslam.slam import SlamConfig, warm_up
+from surfelslam.slam import SlamConfig, warm_up_dense
 from surfelslam.slam.config import apply_compute
 
 HERE = Path(__file__).resolve().parent
@@ -191,7 +191,7 @@ def jit() -> dict:
     """Compile (or load from numba's cache) every dense kernel, then the synthetic renderer's; timed apart."""
     before = _cache_files()
     c0, t0 = time.process_time(), time.perf_counter()
-    warm_up(SlamConfig())
+    warm_up_dense(SlamConfig())
     dense_s, dense_cpu = time.perf_counter() - t0, time.process_time() - c0
     from surfelslam.synth.scenes import make_scene
     from surfelslam.synth.trajectories import make_trajectory

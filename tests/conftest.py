@@ -36,16 +36,15 @@ _keep_every_texture_bank()
 @pytest.fixture(autouse=True)
 def _no_throwaway_warmup_run(request, monkeypatch):
     """The hybrid and orb trackers' ``warmup()`` ends with a throwaway run on synthetic frames
-    (:func:`surfelslam.slam.warmup_run.warm_up_run`), so that a run's timed loop starts with every kernel compiled.
+    (:func:`surfelslam.slam.warmup.warm_up_run`, the one patch point), so that a run's timed loop starts with every
+    kernel compiled.
     In a test it only costs time (about 0.6 s per run; 46 runs in make test); the kernels compile on first use instead.
     Skipped unless the test is marked ``warmup_run``; that results do not depend on it is tested
     (``tests/slam/test_warmup_run.py``)."""
     if request.node.get_closest_marker("warmup_run") is None:
-        import surfelslam.slam.hybrid
-        import surfelslam.slam.orb
+        import surfelslam.slam.warmup
 
-        for module in (surfelslam.slam.hybrid, surfelslam.slam.orb):
-            monkeypatch.setattr(module, "warm_up_run", lambda cfg, tracker: None)
+        monkeypatch.setattr(surfelslam.slam.warmup, "warm_up_run", lambda cfg, tracker: None)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

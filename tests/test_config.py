@@ -223,8 +223,10 @@ def test_presets_load(name):
         assert cfg.tracking.max_width_px == 0 and cfg.fusion.max_width_px == 0
     elif name == "hybrid-full":
         assert cfg.tracker == "hybrid" and cfg.hybrid.pnp_check and cfg.hybrid.joint_features == "auto"
-        assert cfg.hybrid.loop_icp.pnp_refinement and cfg.hybrid.keyframe_threshold == cfg.sparse.keyframe_threshold
-        assert (cfg.hybrid.loop_nearby, cfg.hybrid.loop_random) == (cfg.sparse.loop.n_nearby, cfg.sparse.loop.n_random)
+        assert cfg.hybrid.loop_icp.pnp_refinement and cfg.sparse.keyframe_threshold == 0.1
+        # the back end's own keyframe spacing and loop candidates, not the hybrid's profile (3-frame gap, 3 + 1)
+        assert cfg.sparse.keyframe_min_gap_frames == 1
+        assert (cfg.sparse.loop.n_nearby, cfg.sparse.loop.n_random) == (5, 5)
     else:
         assert cfg.tracker == "dense" and cfg.tracking.photometric == "off"
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
-from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from surfelslam.backend.sparse_slam import BACK_END_PROFILE, with_profile
 from surfelslam.errors import ConfigError
 from surfelslam.settings import (
     VERSION_KEY,
@@ -23,7 +23,8 @@ from surfelslam.settings import (
     preset_names,
 )
 from surfelslam.slam import SlamConfig
-from surfelslam.slam.config import TrackingConfig, hybrid_sparse_config, relocalise_due
+from surfelslam.slam.config import TrackingConfig, relocalise_due
+from surfelslam.slam.hybrid_profile import HYBRID_PROFILE, hybrid_sparse_config
 
 #: The issue's bound on a default run's config.toml.
 MAX_DEFAULT_KEYS = 80
@@ -82,6 +83,10 @@ def test_presets_round_trip_through_their_config_toml(name):
      "relocalise_after_failures"),
     ("[sparse]\nrelocalise_after_failures = 5\n", "[sparse] relocalise_after_failures was removed"),
     ("[orb.loop_icp.icp]\nlevels = 2\n", "[orb.loop_icp] icp was removed: the keyframe-edge ICP is a constant"),
+    ("[hybrid]\nloop_nearby = 5\n", "[hybrid] loop_nearby was removed: set [sparse.loop] n_nearby (unset: the "
+                                    "running tracker's own, the hybrid's 3)"),
+    ("[hybrid]\nguided_match_deg = 3.0\n", "[hybrid] guided_match_deg was removed: the hybrid's is a constant "
+                                           "(2.6 deg, GUIDED_MATCH_DEG in surfelslam/slam/hybrid_profile.py)"),
     ('version = 3\n', "version must be a string, got 3"),
 ])
 def test_a_removed_key_names_what_replaced_it(text, message):
@@ -101,23 +106,36 @@ def test_one_relocalisation_setting_for_every_tracker(n, failures, due):
 
 
 def test_the_hybrids_back_end_profile():
-    """The hybrid's sparse back end: [sparse] with the hybrid's keys, the values the former replace chain gave."""
+    """The hybrid's sparse back end: [sparse] with the hybrid's profile for its unset keys and the hybrid's constants,
+    the values the former [hybrid] copies gave; the orb's are the back end's own."""
     cfg = SlamConfig()
+    assert cfg.sparse.keyframe_threshold is None and cfg.sparse.loop.n_nearby is None  # unset: per tracker
     sp = hybrid_sparse_config(cfg, 262.5)
-    h = cfg.hybrid
     assert (sp.keyframe_threshold, sp.keyframe_min_gap_frames) == (0.1, 3)
-    assert (sp.loop.n_nearby, sp.loop.n_random) == (3, 1) != (cfg.sparse.loop.n_nearby, cfg.sparse.loop.n_random)
+    assert (sp.loop.n_nearby, sp.loop.n_random) == (3, 1)
+    orb = with_profile(cfg.sparse, BACK_END_PROFILE)
+    assert (orb.keyframe_threshold, orb.keyframe_min_gap_frames, orb.loop.n_nearby, orb.loop.n_random) == (0.1, 1, 5, 5)
     assert sp.graph.edge_information == "isotropic" and sp.features_reference_width_px == 0
     assert sp.features.depth_edge_rel == 0.0
     assert sp.features.guided_radius_px == pytest.approx(262.5 * np.tan(np.radians(2.6)))  # 2.6 deg: 11.9 px
     assert sp.graph.odometry_information == pytest.approx(1e6)
     assert sp.graph.robust_scale_sigma == pytest.approx(0.03 * np.sqrt(100.0))
     assert sp.features.n_features == cfg.sparse.features.n_features  # the rest is [sparse]'s
-    off = replace(cfg, hybrid=replace(h, dense_odometry_sigma_m=0.0, loop_robust_scale_m=0.0))
-    sp_off = hybrid_sparse_config(off, -262.5)  # a negative focal length (flipped y) gives the same radius
-    assert sp_off.graph.odometry_information == cfg.sparse.graph.odometry_information
-    assert sp_off.graph.robust_scale_sigma == cfg.sparse.graph.robust_scale_sigma
-    assert sp_off.features.guided_radius_px == sp.features.guided_radius_px
+    assert hybrid_sparse_config(cfg, -262.5) == sp  # a negative focal length (flipped y) gives the same radius
+
+
+def test_a_set_sparse_key_applies_to_the_running_tracker_and_the_constants_stay():
+    """A [sparse] key of the profile set in a config is the hybrid's too (one key, one meaning); the [sparse] keys the
+    hybrid's constants replace stay the orb's."""
+    cfg = from_dict(SlamConfig, {"sparse": {"keyframe_min_gap_frames": 2, "loop": {"n_random": 0},
+                                            "graph": {"edge_information": "estimated"}}})
+    sp = hybrid_sparse_config(cfg, 262.5)
+    assert (sp.keyframe_min_gap_frames, sp.loop.n_random) == (2, 0)
+    assert (sp.keyframe_threshold, sp.loop.n_nearby) == (HYBRID_PROFILE.keyframe_threshold, HYBRID_PROFILE.loop_nearby)
+    assert sp.graph.edge_information == "isotropic"
+    orb = with_profile(cfg.sparse, BACK_END_PROFILE)
+    assert (orb.keyframe_min_gap_frames, orb.loop.n_random, orb.loop.n_nearby) == (2, 0, 5)
+    assert orb.graph.edge_information == "estimated"
 
 
 def test_the_presets_are_declared_package_data():

@@ -53,4 +53,4 @@ def few_loop_checks() -> SlamConfig:
     """The full hybrid (:func:`full_hybrid`) with fewer loop candidates per keyframe (2 nearby, 1 random): cheaper,
     still closing loops."""
     cfg = full_hybrid()
-    return replace(cfg, hybrid=replace(cfg.hybrid, loop_nearby=2, loop_random=1))
+    return replace(cfg, sparse=replace(cfg.sparse, loop=replace(cfg.sparse.loop, n_nearby=2, n_random=1)))

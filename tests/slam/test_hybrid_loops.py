@@ -53,8 +53,8 @@ def test_loop_closure_reduces_ate():
     frames, gt = _frames("loop", N_LOOP)
     cheap = _few_loop_checks()
     est, _, _ = _loop_run_few_checks()
-    no_loop = replace(cheap, hybrid=replace(cheap.hybrid, loop_nearby=0, loop_random=0),
-                      sparse=replace(cheap.sparse, loop=replace(cheap.sparse.loop, n_retrieved=0)))
+    no_loop = replace(cheap, sparse=replace(cheap.sparse, loop=replace(cheap.sparse.loop, n_nearby=0, n_random=0,
+                                                                       n_retrieved=0)))
     est_no, res_no, _ = _run("hybrid", frames, no_loop)
     assert res_no.metrics["loops_accepted"] == 0
     assert ate_m(est, gt) < ate_m(est_no, gt), (ate_m(est, gt), ate_m(est_no, gt))

@@ -17,6 +17,7 @@ from surfelslam.slam import DEFAULT_TRACKER, TRACKERS, HybridSlam, SlamConfig, b
 from surfelslam.slam.config import HybridConfig, TrackingConfig
 from surfelslam.slam.frame import FrameStatus
 from surfelslam.slam.hybrid_localise import joint_term_weight
+from surfelslam.slam.hybrid_profile import HYBRID_PROFILE
 from surfelslam.slam.orb import DEPTH_ONLY_REASON
 from surfelslam.slam.segments import tracking_segments
 from surfelslam.synth.scenes import make_scene
@@ -112,26 +113,25 @@ def test_hybrid_with_nothing_to_add_is_dense_bit_for_bit():
 
 
 def test_default_is_the_hybrid_with_its_own_keyframe_spacing():
-    """The default tracker is the hybrid, and its keyframes follow ``hybrid.keyframe_threshold`` and
-    ``hybrid.keyframe_min_gap_frames``, not the orb tracker's ``[sparse]`` ones: under fast motion at most one
-    keyframe every 3 frames, so that the loop checks keep up."""
+    """The default tracker is the hybrid, and with ``[sparse]`` keyframe_threshold and keyframe_min_gap_frames unset
+    its keyframes follow its own profile, not the orb tracker's values: under fast motion at most one keyframe every
+    3 frames, so that the loop checks keep up. Set in ``[sparse]``, they apply to the hybrid."""
     frames, _ = _frames("fast", N_SLOW)
     cfg = SlamConfig()
-    assert cfg.tracker == DEFAULT_TRACKER == "hybrid" and cfg.sparse.keyframe_min_gap_frames == 1
+    assert cfg.tracker == DEFAULT_TRACKER == "hybrid" and cfg.sparse.keyframe_min_gap_frames is None
+    gap = HYBRID_PROFILE.keyframe_min_gap_frames
     kf_frames = {}
     for name, c in {"default": cfg,
-                    "sparse changed": replace(cfg, sparse=replace(cfg.sparse, keyframe_threshold=0.05)),
-                    "no gap": replace(cfg, hybrid=replace(cfg.hybrid, keyframe_min_gap_frames=1)),
-                    "hybrid changed": replace(cfg, hybrid=replace(cfg.hybrid, keyframe_threshold=0.05,
-                                                                  keyframe_min_gap_frames=1))}.items():
+                    "no gap": replace(cfg, sparse=replace(cfg.sparse, keyframe_min_gap_frames=1)),
+                    "changed": replace(cfg, sparse=replace(cfg.sparse, keyframe_threshold=0.05,
+                                                           keyframe_min_gap_frames=1))}.items():
         kf_frames[name] = _run(cfg.tracker, frames[:14], c)[2].sparse.keyframe_frame_indices()
     gaps = np.diff(kf_frames["default"])
     # measured on these 14 frames: keyframes every 3 frames by default (5), every 2 without the gap (7), almost every
     # frame at 0.05 (12)
-    assert len(kf_frames["default"]) >= 5 and gaps.min() == cfg.hybrid.keyframe_min_gap_frames, kf_frames
-    np.testing.assert_array_equal(kf_frames["sparse changed"], kf_frames["default"])
-    assert np.diff(kf_frames["no gap"]).min() < cfg.hybrid.keyframe_min_gap_frames, kf_frames
-    assert len(kf_frames["hybrid changed"]) > len(kf_frames["no gap"]) > len(kf_frames["default"]), kf_frames
+    assert len(kf_frames["default"]) >= 5 and gap == 3 and gaps.min() == gap, kf_frames
+    assert np.diff(kf_frames["no gap"]).min() < gap, kf_frames
+    assert len(kf_frames["changed"]) > len(kf_frames["no gap"]) > len(kf_frames["default"]), kf_frames
 
 
 def test_hybrid_deterministic():

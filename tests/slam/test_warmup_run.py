@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import surfelslam.slam.hybrid
-import surfelslam.slam.orb
-import surfelslam.slam.warmup_run
+import surfelslam.slam.warmup
 from surfelslam.slam import SlamConfig, build_slam
 from tracker_helpers import INTR, room_frames
 
@@ -26,12 +24,11 @@ def test_the_warmup_run_changes_no_result(tracker, frames, monkeypatch):
     """The same frames give bit-identical poses whether ``warmup()`` ran its throwaway run first or not, and it did
     run: a tracker's state never leaks from that run into the next."""
     calls = []
-    real = surfelslam.slam.warmup_run.warm_up_run
-    module = surfelslam.slam.hybrid if tracker == "hybrid" else surfelslam.slam.orb
+    real = surfelslam.slam.warmup.warm_up_run
     poses = []
     for warm in (True, False):
-        monkeypatch.setattr(module, "warm_up_run", (lambda cfg, t: calls.append(t) or real(cfg, t)) if warm
-                            else (lambda cfg, t: None))
+        run = (lambda cfg, t: calls.append(t) or real(cfg, t)) if warm else (lambda cfg, t: None)
+        monkeypatch.setattr(surfelslam.slam.warmup, "warm_up_run", run)
         slam = build_slam(INTR, SlamConfig(), tracker)
         slam.warmup()
         live = np.stack([slam.process(f).T_world_cam for f in frames])

@@ -18,12 +18,14 @@ from surfelslam.types import Intrinsics
 class LoopConfig(Config):
     """Loop-closure candidates (nearby, random and retrieved keyframes) and their verification."""
 
-    n_nearby: int = setting(5, unit="keyframes", ge=0, le=1000,
-                            doc="the keyframes just before the previous one that are checked (local edges; the "
-                                "hybrid tracker has its own: [hybrid] loop_nearby)", user=True)
-    n_random: int = setting(5, unit="keyframes", ge=0, le=1000,
-                            doc="keyframes drawn uniformly (seeded) among the older ones (the hybrid tracker has its "
-                                "own: [hybrid] loop_random)", user=True)
+    n_nearby: int | None = setting(
+        None, unit="keyframes", ge=0, le=1000, user=True,
+        doc="the keyframes just before the previous one that are checked (local edges); none: the running tracker's "
+            "own (orb 5, hybrid 3)")
+    n_random: int | None = setting(
+        None, unit="keyframes", ge=0, le=1000, user=True,
+        doc="keyframes drawn uniformly (seeded) among the older ones; none: the running tracker's own (orb 5, "
+            "hybrid 1)")
     seed: int = setting(0, ge=0, le=2**63 - 1, doc="seed of the random draws")
     n_retrieved: int = setting(3, unit="keyframes", ge=0, le=1000,
                                doc="older keyframes proposed by descriptor voting")

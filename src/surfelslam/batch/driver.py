@@ -24,11 +24,10 @@ class BatchResult:
 
 
 def warm_parts(jobs: Sequence[Job]) -> tuple[str, ...]:
-    """The :mod:`surfelslam.warmup` parts the jobs' trackers use."""
-    parts = {"dense", "shape"} if any(j.tracker in ("dense", "hybrid") for j in jobs) else set()
-    if any(j.tracker in ("orb", "hybrid") for j in jobs):
-        parts.add("sparse")
-    return tuple(p for p in ("dense", "shape", "sparse") if p in parts)
+    """The :mod:`surfelslam.warmup` parts the jobs' trackers use (:func:`surfelslam.slam.warmup.parts_for`)."""
+    from surfelslam.slam.warmup import parts_for  # when used, as the warm-up itself: no trackers loaded at import
+
+    return parts_for(j.tracker for j in jobs)
 
 
 def run_batch(jobs: Sequence[Job], out_root: str | Path, executor: Executor | None = None,

@@ -19,13 +19,14 @@ from surfelslam.slam import hybrid  # noqa: F401
 from surfelslam.slam import given  # noqa: F401
 # isort: on
 from surfelslam.slam.config import DEFAULT_TRACKER, SlamConfig
-from surfelslam.slam.dense import DenseSlam, warm_up
+from surfelslam.slam.dense import DenseSlam
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult
 from surfelslam.slam.given import GivenPoseMapper, poses_for_mapping
 from surfelslam.slam.hybrid import HybridSlam
 from surfelslam.slam.orb import OrbSlam
 from surfelslam.slam.protocol import Tracker
 from surfelslam.slam.registry import build_tracker, register_tracker, registered
+from surfelslam.slam.warmup import warm_up_dense, warm_up_tracker
 
 # the trackers a user picks with ``--tracker`` (``given`` is chosen by ``--poses``)
 TRACKERS: tuple[str, ...] = tuple(n for n in registered() if n != "given")
@@ -39,5 +40,5 @@ def build_slam(intr, cfg: SlamConfig, tracker: str, colour_registered: bool = Tr
 __all__ = [
     "DEFAULT_TRACKER", "TRACKERS", "DenseSlam", "FrameResult", "GivenPoseMapper", "HybridSlam", "OrbSlam",
     "PreparedFrame", "SlamConfig", "SlamResult", "Tracker", "build_slam", "build_tracker", "poses_for_mapping",
-    "register_tracker", "warm_up",
+    "register_tracker", "warm_up_dense", "warm_up_tracker",
 ]

@@ -5,10 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numpy as np
-
 from surfelslam.backend.dense_edges import DenseEdgeConfig
-from surfelslam.backend.pose_graph import EDGE_INFORMATION_MODES
 from surfelslam.backend.sparse_slam import (
     DepthOdometryConfig,
     SparseSlamConfig,
@@ -18,7 +15,7 @@ from surfelslam.geometry.camera import ColourRegistrationConfig
 from surfelslam.mapping.fusion import FusionConfig
 from surfelslam.mapping.render import RenderConfig
 from surfelslam.mapping.surfel_map import MapConfig
-from surfelslam.settings import Config, check, fmt_value, from_dict, setting
+from surfelslam.settings import Config, check, setting
 from surfelslam.slam.registry import registered
 from surfelslam.tracking.geometric import GeometricGuessConfig
 from surfelslam.tracking.icp import ICPConfig
@@ -168,6 +165,11 @@ JOINT_MODES = PHOTOMETRIC_MODES  # the same auto | on | off colour switch (track
 JOINT_WEIGHT_UNITS = ("robust_scale", "depth_noise")  # hybrid.joint_weight_unit
 
 
+#: what an older run's config.toml also needs: it holds the orb tracker's [sparse] keyframe and loop values
+_OLD_RUN_CONFIG = ("in an older run's config.toml delete its [sparse] keyframe_threshold, [sparse.loop] n_nearby, "
+                   "n_random too")
+
+
 @dataclass(frozen=True)
 class HybridConfig(Config):
     """The hybrid tracker: dense ICP checked and helped by PnP against keyframes, with the sparse back end's loop
@@ -191,10 +193,6 @@ class HybridConfig(Config):
         doc="a PnP pose with fewer inliers neither adds the joint feature term nor overrules ICP in the check")
     loop_correction: bool = setting(True, user=True,
                                     doc="apply pose-graph corrections to the dense trajectory and the surfel map")
-    dense_odometry_sigma_m: float = setting(
-        0.001, unit="m and rad", ge=0, le=10,
-        doc="pose-graph sigma of the odometry edges between keyframes (dense poses, far more precise than PnP); "
-            "0 keeps [sparse.graph] odometry_information")
     live_correction_min_m: float = setting(
         0.03, unit="m", ge=0, le=100,
         doc="during the run the map and pose follow a graph optimisation only when a keyframe moved more than this; "
@@ -203,10 +201,6 @@ class HybridConfig(Config):
         0.001, unit="m", ge=0, le=100,
         doc="at the end, when the refined edges are not trusted, the PnP graph's correction is applied only if some "
             "keyframe moves more than this; 0 applies every correction")
-    loop_robust_scale_m: float = setting(
-        0.03, unit="m", ge=0, le=10,
-        doc="scale of the Cauchy kernel on the loop edges (PnP loop edges centimetres off are mostly wrong); 0 keeps "
-            "[sparse.graph] robust_scale_sigma")
     loop_icp: DenseEdgeConfig = setting(default_factory=_hybrid_loop_icp,
                                         doc="dense (ICP) refinement of the PnP keyframe edges, behind a trust gate")
     joint_features: str = setting(
@@ -231,46 +225,31 @@ class HybridConfig(Config):
         "depth_noise", choices=JOINT_WEIGHT_UNITS,
         doc="robust_scale: [icp] finest_robust_scale_m; depth_noise: the depth's own point-to-plane noise, measured "
             "in the last tracked frame's ICP (noisier depth, as from a real sensor, gives the features more say)")
-    graph_edge_information: str = setting(
-        "isotropic", choices=EDGE_INFORMATION_MODES,
-        doc="the hybrid's pose-graph edge weighting, in place of [sparse.graph] edge_information: isotropic, since "
-            "its dense odometry edges carry no estimated information and PnP Hessians must not outweigh them")
-    pnp_reference_width_px: int = setting(
-        0, unit="px", ge=0, le=65536,
-        doc="[sparse] features_reference_width_px for the hybrid: 0 keeps the PnP inlier bound as given at every "
-            "width (its PnP poses only guess or check ICP's)")
-    pnp_depth_edge_rel: float = setting(
-        0.0, unit="fraction", ge=0, le=100,
-        doc="[sparse.features] depth_edge_rel for the hybrid's sparse side: 0 keeps keypoints on occluding "
-            "contours for the keyframe edges (the joint term leaves them out itself)")
-    guided_match_deg: float = setting(
-        2.6, unit="deg", ge=0, le=45,
-        doc="[sparse.features] guided_radius_px for the hybrid, as an angle (pixels = focal length x tan): the "
-            "per-frame PnP match seeks each keyframe keypoint within this angle of where the motion prediction puts "
-            "it (brute force when that finds too few); 0 = always brute force")
-
-    keyframe_threshold: float = setting(
-        0.1, unit="m + rad", gt=0, le=100,
-        doc="[sparse] keyframe_threshold for the hybrid: motion from the last keyframe that makes a new one (at 0.2 "
-            "the keyframe edges spread more, fail the trust gate and leave the odometry uncorrected)", user=True)
-    keyframe_min_gap_frames: int = setting(
-        3, unit="frames", ge=1, le=1_000_000,
-        doc="[sparse] keyframe_min_gap_frames for the hybrid: under fast motion at most one keyframe every this "
-            "many frames, so that the loop-check thread keeps up", user=True)
-    loop_nearby: int = setting(3, user=True, unit="keyframes", ge=0, le=1000,
-                               doc="[sparse.loop] n_nearby for the hybrid: nearby keyframes checked per new keyframe")
-    loop_random: int = setting(1, user=True, unit="keyframes", ge=0, le=1000,
-                               doc="[sparse.loop] n_random for the hybrid: random older keyframes checked per new one")
-
+    # the former copies of [sparse] keys (issue 67): the hybrid's values are its profile (slam/hybrid_profile.py)
     REMOVED_KEYS: ClassVar[dict[str, str]] = {
-        "relocalise_after_failures": "one setting for every tracker: [tracking] relocalise_after_failures"}
-
-    @check
-    def _odometry_sigma(self) -> str | None:
-        """dense_odometry_sigma_m is 0 or at least 1e-6 (1 micrometre)."""
-        if 0 < self.dense_odometry_sigma_m < 1e-6:
-            return f"dense_odometry_sigma_m must be 0 or >= 1e-06, got {fmt_value(self.dense_odometry_sigma_m)}"
-        return None
+        "relocalise_after_failures": "one setting for every tracker: [tracking] relocalise_after_failures",
+        "keyframe_threshold": "set [sparse] keyframe_threshold (unset: the running tracker's own, the hybrid's 0.1); "
+                              + _OLD_RUN_CONFIG,
+        "keyframe_min_gap_frames": "set [sparse] keyframe_min_gap_frames (unset: the running tracker's own, the "
+                                   "hybrid's 3); " + _OLD_RUN_CONFIG,
+        "loop_nearby": "set [sparse.loop] n_nearby (unset: the running tracker's own, the hybrid's 3); "
+                       + _OLD_RUN_CONFIG,
+        "loop_random": "set [sparse.loop] n_random (unset: the running tracker's own, the hybrid's 1); "
+                       + _OLD_RUN_CONFIG,
+        "graph_edge_information": "the hybrid's is a constant (isotropic, EDGE_INFORMATION in "
+                                  "surfelslam/slam/hybrid_profile.py); [sparse.graph] edge_information is the orb's",
+        "pnp_reference_width_px": "the hybrid's is a constant (0, FEATURES_REFERENCE_WIDTH_PX in "
+                                  "surfelslam/slam/hybrid_profile.py); [sparse] features_reference_width_px is the "
+                                  "orb's",
+        "pnp_depth_edge_rel": "the hybrid's is a constant (0, DEPTH_EDGE_REL in surfelslam/slam/hybrid_profile.py); "
+                              "[sparse.features] depth_edge_rel is the orb's",
+        "guided_match_deg": "the hybrid's is a constant (2.6 deg, GUIDED_MATCH_DEG in "
+                            "surfelslam/slam/hybrid_profile.py); [sparse.features] guided_radius_px is the orb's",
+        "dense_odometry_sigma_m": "the hybrid's is a constant (0.001 m, DENSE_ODOMETRY_SIGMA_M in "
+                                  "surfelslam/slam/hybrid_profile.py); [sparse.graph] odometry_information is the "
+                                  "orb's",
+        "loop_robust_scale_m": "the hybrid's is a constant (0.03 m, LOOP_ROBUST_SCALE_M in "
+                               "surfelslam/slam/hybrid_profile.py); [sparse.graph] robust_scale_sigma is the orb's"}
 
 
 def _orb_loop_icp() -> DenseEdgeConfig:
@@ -340,25 +319,3 @@ def relocalise_due(tracking: TrackingConfig, failures_in_a_row: int) -> bool:
     0 = never)."""
     return 0 < tracking.relocalise_after_failures <= failures_in_a_row
 
-
-def hybrid_sparse_config(cfg: SlamConfig, fx_px: float) -> SparseSlamConfig:
-    """The sparse back end's settings in the hybrid tracker: ``[sparse]`` with the hybrid's own values of the keys
-    its ``[hybrid]`` table gives (keyframe spacing, loop candidates, edge weighting, the PnP inlier bound's reference
-    width, contour keypoints, the guided-match radius from ``guided_match_deg`` at focal length ``fx_px``, the
-    odometry edges' sigma and the loop kernel's scale), all set at once."""
-    h, graph = cfg.hybrid, cfg.sparse.graph
-    graph_keys: dict[str, object] = {"edge_information": h.graph_edge_information}
-    if h.dense_odometry_sigma_m > 0:
-        graph_keys["odometry_information"] = h.dense_odometry_sigma_m ** -2
-    if h.loop_robust_scale_m > 0:  # the kernel's scale is in whitened units (loop sigmas)
-        graph_keys["robust_scale_sigma"] = float(h.loop_robust_scale_m * np.sqrt(graph.loop_information))
-    profile = {
-        "keyframe_threshold": h.keyframe_threshold,
-        "keyframe_min_gap_frames": h.keyframe_min_gap_frames,
-        "features_reference_width_px": h.pnp_reference_width_px,
-        "loop": {"n_nearby": h.loop_nearby, "n_random": h.loop_random},
-        "features": {"depth_edge_rel": h.pnp_depth_edge_rel,
-                     "guided_radius_px": abs(fx_px) * float(np.tan(np.radians(h.guided_match_deg)))},
-        "graph": graph_keys,
-    }
-    return from_dict(SparseSlamConfig, profile, where="sparse", base=cfg.sparse)

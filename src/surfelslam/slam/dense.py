@@ -23,8 +23,6 @@ density of a 320x240 map (one surfel per 2x2 input pixels; ~7 mm apart at 2 m, a
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from surfelslam.geometry import se3
@@ -41,6 +39,7 @@ from surfelslam.slam.frame import (
 from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.motion import step_and_pose
 from surfelslam.slam.registry import register_tracker
+from surfelslam.slam.warmup import warm_up_tracker
 from surfelslam.tracking.icp import ICPResult, icp_failure
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
@@ -83,7 +82,7 @@ class DenseSlam:
 
     def warmup(self) -> None:
         """Compile (or load from numba's cache) every kernel on a tiny synthetic scene; excluded from FPS."""
-        warm_up(self.cfg)
+        warm_up_tracker(self)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing (and the intensity pyramid when tracking photometrically), for another thread."""
@@ -177,19 +176,3 @@ class DenseSlam:
             "weak_frames": s.weak_frames,
             "photometric": self.photometric})
 
-
-_WARMUP_INTRINSICS = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
-
-
-def warm_up(cfg: SlamConfig) -> None:
-    """Run two frames of a tilted-plane-and-bump scene through a throwaway :class:`DenseSlam`.
-
-    Numba compiles for argument types, not sizes, so a 64x48 frame compiles everything a real run uses.
-    """
-    intr = _WARMUP_INTRINSICS
-    v, u = np.mgrid[0 : intr.height, 0 : intr.width].astype(np.float32)
-    depth = 1.5 + 0.004 * u + 0.002 * v + 0.1 * np.exp(-((u - 32) ** 2 + (v - 24) ** 2) / 60.0)
-    rgb = np.zeros((intr.height, intr.width, 3), np.uint8)
-    slam = DenseSlam(intr, replace(cfg, map_reuse=replace(cfg.map_reuse, save=False)))
-    for i in range(2):
-        slam.process(RGBDFrame(i, i / 30.0, rgb, depth.astype(np.float32)))

@@ -8,10 +8,10 @@ from surfelslam.errors import GroundTruthError
 from surfelslam.io.trajectory import read_tum
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.slam.config import SlamConfig
-from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult, StageTimer
 from surfelslam.slam.mapper import FusingMapper
 from surfelslam.slam.registry import register_tracker
+from surfelslam.slam.warmup import warm_up_tracker
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
 
@@ -39,7 +39,7 @@ class GivenPoseMapper:
 
     def warmup(self) -> None:
         """Compile (or load from numba's cache) the preprocessing and fusion kernels; excluded from FPS."""
-        warm_up(self.cfg)
+        warm_up_tracker(self)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and the fusion colour, for another thread to do ahead."""

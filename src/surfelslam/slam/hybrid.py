@@ -45,8 +45,7 @@ from surfelslam.backend.dense_edges import DenseEdgeRefiner
 from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.geometry import se3
 from surfelslam.mapping.surfel_map import SurfelMap
-from surfelslam.slam.config import SlamConfig, hybrid_sparse_config, relocalise_due
-from surfelslam.slam.dense import warm_up
+from surfelslam.slam.config import SlamConfig, relocalise_due
 from surfelslam.slam.frame import (
     FrameResult,
     FrameStatus,
@@ -59,12 +58,12 @@ from surfelslam.slam.frame import (
 from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.hybrid_anchors import KeyframeAnchors
 from surfelslam.slam.hybrid_localise import HybridLocaliser, Localised
+from surfelslam.slam.hybrid_profile import LOOP_ROBUST_SCALE_M, hybrid_sparse_config
 from surfelslam.slam.motion import step_and_pose
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.registry import register_tracker
-from surfelslam.slam.warmup_run import warm_up_run
+from surfelslam.slam.warmup import warm_up_tracker
 from surfelslam.tracking.features import Features
-from surfelslam.tracking.features.warmup import warm_up_features
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 
@@ -73,11 +72,8 @@ def _sparse_back_end(cfg: SlamConfig, intr: Intrinsics, colour_registered: bool)
     """The hybrid's sparse back end (:func:`hybrid_sparse_config`); ICP-refined keyframe edges with
     ``hybrid.loop_icp`` (they carry a tight sigma, see :mod:`~surfelslam.backend.dense_edges`)."""
     h = cfg.hybrid
-    refiner, refined_scale = None, None
-    if h.loop_icp.enabled:
-        refiner = DenseEdgeRefiner(intr, cfg.preprocess, h.loop_icp)
-    if h.loop_robust_scale_m > 0:
-        refined_scale = h.loop_robust_scale_m / h.loop_icp.sigma_m
+    refiner = DenseEdgeRefiner(intr, cfg.preprocess, h.loop_icp) if h.loop_icp.enabled else None
+    refined_scale = LOOP_ROBUST_SCALE_M / h.loop_icp.sigma_m  # the loop kernel's scale in refined-edge sigmas
     return SparseSlam(intr, hybrid_sparse_config(cfg, intr.fx), edge_refiner=refiner,
                       refined_robust_scale=refined_scale, colour_registered=colour_registered,
                       coarse_rgbd_refine=h.pnp_rgbd_refine, keyframe_clouds=False,  # the map is the surfels
@@ -141,10 +137,9 @@ class HybridSlam:
 
     def warmup(self) -> None:
         """The dense kernels, the feature side's (matching, PnP, keypoint depth, RGB-D refinement), then a throwaway
-        hybrid run on a few synthetic frames (keyframes, loop checks, the joint term); excluded from FPS."""
-        warm_up(self.cfg)
-        warm_up_features(self.sparse.cfg.features)
-        warm_up_run(self.cfg, "hybrid")
+        hybrid run on a few synthetic frames (keyframes, loop checks, the joint term); excluded from FPS
+        (:mod:`surfelslam.slam.warmup`)."""
+        warm_up_tracker(self)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseFrontEnd.prepare`).

@@ -18,7 +18,6 @@ from surfelslam.backend.sparse_slam import (
 )
 from surfelslam.errors import ConfigError
 from surfelslam.slam.config import SlamConfig
-from surfelslam.slam.dense import warm_up
 from surfelslam.slam.frame import (
     FrameResult,
     FrameStatus,
@@ -30,8 +29,7 @@ from surfelslam.slam.frame import (
 )
 from surfelslam.slam.mapper import frame_colour_at_depth
 from surfelslam.slam.registry import register_tracker
-from surfelslam.slam.warmup_run import warm_up_run
-from surfelslam.tracking.features.warmup import warm_up_features
+from surfelslam.slam.warmup import warm_up_tracker
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
 
 #: the reason a frame posed by the depth odometry alone gives (its weak segments name it)
@@ -92,12 +90,9 @@ class OrbSlam:
         self.weak_frames = 0  # frames posed by the depth odometry alone (features too few to verify)
 
     def warmup(self) -> None:
-        """Compile the feature side's kernels, and the preprocessing and ICP kernels when depth is used (OpenCV and
-        gtsam are precompiled)."""
-        warm_up_features(self.sparse.cfg.features)
-        if self.sparse.uses_depth or self.cfg.orb.loop_icp.enabled:
-            warm_up(self.cfg)
-        warm_up_run(self.cfg, "orb")  # keyframes and loop checks
+        """Compile the feature side's kernels, the preprocessing and ICP kernels when depth is used, and run a
+        throwaway run (keyframes, loop checks); excluded from FPS (:mod:`surfelslam.slam.warmup`)."""
+        warm_up_tracker(self)
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """ORB extraction and the depth pyramid, for another thread to do ahead (see :meth:`DenseSlam.prepare`)."""

@@ -34,22 +34,28 @@ Modules: :mod:`.config` (settings), :mod:`.slam` (:class:`SparseSlam`), :mod:`.g
 """
 
 from surfelslam.backend.sparse_slam.config import (
+    BACK_END_PROFILE,
     REJECTED_POSE_MODES,
     DepthOdometryConfig,
+    SparseProfile,
     SparseSlamConfig,
     features_for_width,
+    with_profile,
 )
 from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, SparseFrameResult, SparseSlamResult
 from surfelslam.backend.sparse_slam.slam import SparseSlam
 
 __all__ = [
+    "BACK_END_PROFILE",
     "REJECTED_POSE_MODES",
     "DepthOdometryConfig",
     "KeyframeMatch",
     "LoopCheck",
     "SparseFrameResult",
+    "SparseProfile",
     "SparseSlam",
     "SparseSlamConfig",
     "SparseSlamResult",
     "features_for_width",
+    "with_profile",
 ]

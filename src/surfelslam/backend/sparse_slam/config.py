@@ -35,19 +35,21 @@ class DepthOdometryConfig(Config):
 
 @dataclass(frozen=True)
 class SparseSlamConfig(Config):
-    """Sparse SLAM: keyframes, relocalisation, re-initialisation, loop closure and the pose graph (the orb tracker,
-    and the hybrid's back end)."""
+    """Sparse SLAM (the orb tracker, the hybrid's back end): keyframes, relocalisation, loop closure, pose graph. A key
+    left none takes the running tracker's own value; the hybrid replaces the reference width, depth_edge_rel,
+    guided_radius_px and the graph's weights and kernel scale by constants of its own (slam/hybrid_profile.py)."""
 
     features: FeatureConfig = setting(default_factory=FeatureConfig,
                                       doc="ORB, matching and PnP of the frame-to-keyframe odometry")
-    keyframe_threshold: float = setting(0.1, unit="m + rad", gt=0, le=100,
-                                        doc="motion norm from the reference keyframe that makes a new keyframe (the "
-                                            "hybrid tracker has its own: [hybrid] keyframe_threshold)", user=True)
-    keyframe_min_gap_frames: int = setting(
-        1, unit="frames", ge=1, le=1_000_000,
+    keyframe_threshold: float | None = setting(
+        None, unit="m + rad", gt=0, le=100, user=True,
+        doc="motion norm from the reference keyframe that makes a new keyframe; none: the running tracker's own "
+            "(orb 0.1, hybrid 0.1: its back-end profile)")
+    keyframe_min_gap_frames: int | None = setting(
+        None, unit="frames", ge=1, le=1_000_000,
         doc="a frame becomes a keyframe only this many placed frames after the reference keyframe at the earliest "
-            "(caps the keyframe rate under fast motion; the hybrid tracker has its own: [hybrid] "
-            "keyframe_min_gap_frames)")
+            "(caps the keyframe rate under fast motion); none: the running tracker's own (orb 1, hybrid 3, so that "
+            "its loop checks keep up)")
     rejected_pose: str = setting("constant_velocity", choices=REJECTED_POSE_MODES, doc="pose of a rejected frame")
     velocity_reset_after_failures: int = setting(
         3, unit="frames", ge=1, le=1_000_000,
@@ -91,6 +93,35 @@ class SparseSlamConfig(Config):
         if self.features.detector != "orb":
             return f"the sparse trackers need features.detector = 'orb', got {self.features.detector!r}"
         return None
+
+
+@dataclass(frozen=True)
+class SparseProfile:
+    """A tracker's own values of the ``[sparse]`` keys whose right value depends on the tracker (their default is
+    none): a key a config sets applies to whichever tracker runs, an unset one takes the running tracker's profile
+    (:func:`with_profile`)."""
+
+    keyframe_threshold: float  # m + rad: motion from the reference keyframe that makes a new keyframe
+    keyframe_min_gap_frames: int  # frames: at most one keyframe every this many
+    loop_nearby: int  # keyframes: [sparse.loop] n_nearby
+    loop_random: int  # keyframes: [sparse.loop] n_random
+
+
+#: the back end's own profile (the orb tracker's, and a :class:`SparseSlam` built without one): every keyframe that
+#: moved 0.1 m + rad, 5 nearby + 5 random loop candidates (the loop checks run in the background)
+BACK_END_PROFILE = SparseProfile(keyframe_threshold=0.1, keyframe_min_gap_frames=1, loop_nearby=5, loop_random=5)
+
+
+def with_profile(cfg: SparseSlamConfig, profile: SparseProfile) -> SparseSlamConfig:
+    """``cfg`` with its unset (none) tracker-dependent keys given ``profile``'s values; set keys are kept."""
+    loop = cfg.loop
+    return replace(
+        cfg,
+        keyframe_threshold=profile.keyframe_threshold if cfg.keyframe_threshold is None else cfg.keyframe_threshold,
+        keyframe_min_gap_frames=(profile.keyframe_min_gap_frames if cfg.keyframe_min_gap_frames is None
+                                 else cfg.keyframe_min_gap_frames),
+        loop=replace(loop, n_nearby=profile.loop_nearby if loop.n_nearby is None else loop.n_nearby,
+                     n_random=profile.loop_random if loop.n_random is None else loop.n_random))
 
 
 def features_for_width(cfg: SparseSlamConfig, width_px: int) -> SparseSlamConfig:

@@ -13,7 +13,13 @@ from surfelslam.backend.dense_edges import DenseEdgeRefiner
 from surfelslam.backend.keyframes import Keyframe, joined_clouds, keyframe_cloud
 from surfelslam.backend.loops import verify_edge
 from surfelslam.backend.pose_graph import PoseEdge
-from surfelslam.backend.sparse_slam.config import DepthOdometryConfig, SparseSlamConfig, features_for_width
+from surfelslam.backend.sparse_slam.config import (
+    BACK_END_PROFILE,
+    DepthOdometryConfig,
+    SparseSlamConfig,
+    features_for_width,
+    with_profile,
+)
 from surfelslam.backend.sparse_slam.depth_odometry import register_depth
 from surfelslam.backend.sparse_slam.graph import KeyframeGraph
 from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
@@ -64,7 +70,8 @@ class SparseSlam:
                  relocalise_after_failures: int = RELOCALISE_AFTER_FAILURES) -> None:
         self.intr = intr
         self._relocalise_after = relocalise_after_failures
-        self.cfg = features_for_width(cfg or SparseSlamConfig(), intr.width)
+        # keys a tracker's profile left unset (none) take the back end's own values
+        self.cfg = features_for_width(with_profile(cfg or SparseSlamConfig(), BACK_END_PROFILE), intr.width)
         # the settings of ``match_reference_keyframe(coarse=True)``: PnP-RANSAC and its inlier refinement, without
         # search by projection (and without the RGB-D refinement unless coarse_rgbd_refine)
         rgbd_iterations = self.cfg.features.rgbd_refine_iterations if coarse_rgbd_refine else 0
