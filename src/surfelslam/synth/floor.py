@@ -39,6 +39,7 @@ WALL_M = 0.12  # wall thickness between corridor and rooms and between rooms
 END_ZONE_M = 2.6  # corridor beyond the last rooms at each end: room to turn round
 DOOR_HALF_W_M, DOOR_H_M = 0.5, 2.1  # clear doorway: 1.0 m wide (0.5 m each side of a walker), 2.1 m high
 FRAME_W_M, FRAME_PROUD_M = 0.08, 0.02  # door frame width, and how far it stands out of the wall
+THRESHOLD_M = 0.01  # door threshold height: above both floors, so that it never ties with them
 N_SOUTH = 4  # rooms south of the corridor; the north side gets 3 or 4 (seeded)
 ROOM_W_M, ROOM_D_M = (3.8, 6.0), (4.0, 6.0)  # room width (along the corridor) and depth ranges
 BAND_M = 0.65  # furniture stands within this distance of a wall (or on the island)
@@ -92,7 +93,7 @@ def _wall(b: SceneBuilder, p0, p1, normal, doors_s, tex: int, name: str) -> None
 
 
 def _door_frame(b: SceneBuilder, centre_xy, along_deg: float, name: str) -> None:
-    """Jambs and head of a doorway centred at ``centre_xy`` (the wall's mid-plane), the wall along ``along_deg``."""
+    """Jambs, head and threshold of a doorway centred at ``centre_xy`` (the wall's mid-plane), along ``along_deg``."""
     R = yaw(along_deg)
     half_t = WALL_M / 2 + FRAME_PROUD_M
     for sgn in (-1.0, 1.0):
@@ -101,6 +102,9 @@ def _door_frame(b: SceneBuilder, centre_xy, along_deg: float, name: str) -> None
               T_WOOD, f"{name}_jamb", R)
     b.box((centre_xy[0], centre_xy[1], DOOR_H_M + FRAME_W_M / 2),
           (DOOR_HALF_W_M + FRAME_W_M, half_t, FRAME_W_M / 2), T_WOOD, f"{name}_head", R)
+    # a threshold 1 cm high bridges the floors of the corridor and the room under the doorway
+    b.box((centre_xy[0], centre_xy[1], 0.0), (DOOR_HALF_W_M + FRAME_W_M / 2, half_t, THRESHOLD_M), T_WOOD,
+          f"{name}_threshold", R)
 
 
 def _room_shell(b: SceneBuilder, rf: _RoomFrame, wall_tex: int, name: str) -> None:

@@ -396,7 +396,9 @@ def replay_motion(
         eye[:2] -= 0.5 * (path[:, :2].min(axis=0) + path[:, :2].max(axis=0))
         eye[2] -= path[:, 2].mean()
         positions = path + eye
-        clearance = float(scene.primitive_distances(positions).min())
+        # the signed distance to the nearest surface: in a scene of several rooms a point in one is behind the
+        # walls of the others, so only the nearest primitive's sign says whether it is in free space
+        clearance = float(scene.signed_distance(positions).min())
         if clearance >= clearance_m:
             T_anchor = np.eye(4)
             T_anchor[:3, :3] = R_anchor
