@@ -14,6 +14,10 @@ world z up). Styles:
 * ``tour``: the ``slow`` orbit with an ``upward`` stretch inside it: the camera turns up to the ceiling and
   one wall, stays there for ``tour_upward_fraction`` of the frames, then turns back to the room (a degenerate
   stretch inside normal motion, as in the office benchmarks where a hand-held camera looks up).
+* ``walk``: walking (``walk_speed_m_s``, varying a little) round the scene's closed route (``ViewHint.route``, only
+  ``floor`` has one), corners smoothed, the gaze along the walking direction turned by the route's look offsets
+  (into doorways, out at a room's walls), with a walker's bob and the ``handheld`` jitter; the route repeats, so
+  a long sequence revisits every place once a lap.
 
 For a ``"wall"`` scene (``plane``) the camera keeps facing the wall and sways / circles in front of it.
 
@@ -36,11 +40,16 @@ from surfelslam.geometry.se3 import invert as se3_invert
 from surfelslam.synth.scenes import Scene
 from surfelslam.types import Trajectory
 
-STYLES = ["slow", "fast", "handheld", "loop", "upward", "tour", "tour-across"]
+STYLES = ["slow", "fast", "handheld", "loop", "upward", "tour", "tour-across", "walk"]
 UPWARD_LOOK_M, UPWARD_RISE_M = 1.6, 1.5  # "upward": the look-at point is this far ahead and up (about 43 deg)
 REPLAY_HEADINGS = 8  # headings (evenly spaced) tried for a replayed motion in a "room" scene
 _REPLAY_MAX_GAP_S = 0.1  # a recorded motion may not have a gap longer than this (s) where it is replayed
 _REPLAY_MAX_DT_S = 0.02  # sample times may lie this far (s) past the first / last recorded stamp
+WALK_SAMPLE_M = 0.02  # "walk": the route is resampled this finely (m) before its corners are smoothed
+WALK_STEP_HZ, WALK_BOB_M = 1.9, 0.015  # a walker's steps per second and the eye's vertical bob (m) with them
+WALK_SPEED_PERIOD_S = 7.0  # the walking speed drifts round its mean with this period (s)
+WALK_GAZE_SMOOTH_S = 0.5  # the gaze heading is smoothed over this (s): a turn of the head is not instantaneous
+WALK_TANGENT_M = 0.1  # the walking direction is taken over this distance (m) either side of the eye
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,11 @@ class TrajectoryConfig(Config):
                                           doc="tour: share of the frames spent looking up (ceiling and one wall)")
     tour_turn_s: float = setting(3.0, unit="s", gt=0, le=60,
                                  doc="tour: duration of each turn between the room and the upward view")
+    walk_speed_m_s: float = setting(1.2, unit="m/s", gt=0, le=5, doc="walk: mean walking speed")
+    walk_speed_change: float = setting(0.08, unit="fraction", ge=0, lt=1,
+                                       doc="walk: the speed drifts by up to this fraction of the mean")
+    walk_corner_m: float = setting(0.4, unit="m", gt=0, le=5,
+                                   doc="walk: the route's corners are rounded by a Gaussian of this std along it")
     across_radius_m: float = setting(
         1.5, unit="m", gt=0, le=100,
         doc="tour-across: the orbit's eye this far behind the room's centre, looking across it (far views)")
@@ -223,6 +237,51 @@ def _blend_look(d0: np.ndarray, d1: np.ndarray, w: np.ndarray) -> np.ndarray:
     return r[:, None] * np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
 
 
+def _smooth_route(route, corner_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A closed route ``((x, y, look_offset_rad), ...)`` resampled every ~``WALK_SAMPLE_M`` and its corners rounded
+    (a Gaussian of std ``corner_m`` along it): ``xy (M + 1, 2)`` (the last row is the first), look offsets
+    ``(M + 1,)`` and arc length ``(M + 1,)`` (m) from the start."""
+    r = np.asarray(route, np.float64)
+    seg = np.linalg.norm(np.diff(r[:, :2], axis=0), axis=1)
+    r = r[np.concatenate([[True], seg > 0.0])]  # repeated waypoints would make the arc length non-increasing
+    s = np.concatenate([[0.0], np.cumsum(seg[seg > 0.0])])
+    n = max(int(s[-1] / WALK_SAMPLE_M), 8)
+    ss = np.arange(n) * s[-1] / n
+    dense = np.column_stack([np.interp(ss, s, r[:, i]) for i in range(3)])
+    dense = gaussian_filter1d(dense, corner_m / (s[-1] / n), axis=0, mode="wrap")
+    dense = np.vstack([dense, dense[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense[:, :2], axis=0), axis=1))])
+    return dense[:, :2], dense[:, 2], arc
+
+
+def _walk_rig(scene: Scene, n_frames: int, fps: float, ph: np.ndarray, cfg: TrajectoryConfig):
+    """``(eye, target, roll)`` walking round the scene's route (the ``walk`` style; see the module docstring)."""
+    v = scene.view
+    if not v.route:
+        raise ConfigError(f"trajectory 'walk' needs a scene with a walking route (floor); scene {scene.name!r} has "
+                          f"none")
+    xy, offset, arc = _smooth_route(v.route, cfg.walk_corner_m)
+    t = np.arange(n_frames) / fps
+    w = 2.0 * np.pi / WALK_SPEED_PERIOD_S
+    # distance walked: the integral of speed * (1 + change * sin(w t + ph))
+    dist = cfg.walk_speed_m_s * (t + cfg.walk_speed_change / w * (np.cos(ph[0]) - np.cos(w * t + ph[0])))
+
+    def at(d: np.ndarray, values: np.ndarray) -> np.ndarray:
+        return np.interp(np.mod(d, arc[-1]), arc, values)
+
+    pos = np.column_stack([at(dist, xy[:, 0]), at(dist, xy[:, 1])])
+    ahead = np.column_stack([at(dist + WALK_TANGENT_M, xy[:, i]) - at(dist - WALK_TANGENT_M, xy[:, i])
+                             for i in range(2)])
+    heading = np.unwrap(np.arctan2(ahead[:, 1], ahead[:, 0])) + at(dist, offset)
+    heading = gaussian_filter1d(heading, max(WALK_GAZE_SMOOTH_S * fps, 1e-6), mode="nearest")
+    heading += 0.5 * cfg.target_sway_rad * np.sin(1.3 * t + ph[1])
+    eye = np.column_stack([pos, v.eye_height_m + WALK_BOB_M * np.sin(2.0 * np.pi * WALK_STEP_HZ * t + ph[2])])
+    target = eye + v.look_distance_m * np.column_stack([np.cos(heading), np.sin(heading), np.zeros(n_frames)])
+    target[:, 2] = v.look_height_m + 0.5 * cfg.target_bob_m * np.sin(0.9 * t + ph[3])
+    roll = np.radians(cfg.roll_deg) * 0.5 * np.sin(0.7 * t + ph[4])
+    return eye, target, roll
+
+
 def make_trajectory(
     style: str, n_frames: int, scene: Scene, fps: float = 30.0, seed: int = 0,
     cfg: TrajectoryConfig = TrajectoryConfig(),
@@ -246,6 +305,8 @@ def make_trajectory(
         theta = theta0 + 2.0 * np.pi * k / n_frames
         eye, target = _loop_rig(scene, theta, ph, cfg)
         roll = np.radians(cfg.roll_deg) * 0.5 * np.sin(2.0 * theta + roll_phase)
+    elif style == "walk":
+        eye, target, roll = _walk_rig(scene, n_frames, fps, ph, cfg)
     elif style == "upward":
         theta = theta0 + np.radians(cfg.slow_step_deg) * k
         eye, target = _upward_rig(scene, theta, ph, cfg)
@@ -270,7 +331,7 @@ def make_trajectory(
         eye, target = _orbit_rig(scene, theta, ph, cfg)
         roll = np.radians(cfg.roll_deg) * np.sin(1.1 * theta + roll_phase)
     T = look_at(eye, target, roll)
-    if style == "handheld":
+    if style in ("handheld", "walk"):
         xi = _jitter(rng, n_frames, fps, cfg)
         for i in range(n_frames):  # per pose (not per pixel): a 4x4 product each
             T[i] = T[i] @ se3_exp(xi[i])
@@ -335,7 +396,9 @@ def replay_motion(
         eye[:2] -= 0.5 * (path[:, :2].min(axis=0) + path[:, :2].max(axis=0))
         eye[2] -= path[:, 2].mean()
         positions = path + eye
-        clearance = float(scene.primitive_distances(positions).min())
+        # the signed distance to the nearest surface: in a scene of several rooms a point in one is behind the
+        # walls of the others, so only the nearest primitive's sign says whether it is in free space
+        clearance = float(scene.signed_distance(positions).min())
         if clearance >= clearance_m:
             T_anchor = np.eye(4)
             T_anchor[:3, :3] = R_anchor

@@ -15,7 +15,9 @@ def register(app: typer.Typer) -> None:
     @handle_errors
     def synth(
         out: Annotated[Path, typer.Argument(help="Output folder (created; existing frames are overwritten).")],
-        scene: Annotated[str, typer.Option("--scene", help="Scene: room, office, plane or corridor.")] = "room",
+        scene: Annotated[str, typer.Option(
+            "--scene", help="Scene: room, office, plane, corridor or floor (rooms of different sizes along a "
+                            "corridor, joined by doorways).")] = "room",
         texture: Annotated[str, typer.Option(
             "--texture", help="rich (texture everywhere) or plain (flat painted walls, fabric and cabinets; "
                               "texture only on wood, books and posters, as in real rooms).")] = "rich",
@@ -27,8 +29,10 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="Seed of textures, motion jitter and noise.")] = 0,
         trajectory: Annotated[
             str, typer.Option("--trajectory", help="Motion: slow, fast, handheld, loop, upward (ceiling, one "
-                                                   "wall), tour (slow with an upward stretch) or tour-across (the "
-                                                   "tour looking across the room: far views).")
+                                                   "wall), tour (slow with an upward stretch), tour-across (the "
+                                                   "tour looking across the room: far views) or "
+                                                   "walk (floor only: walking at ~1.2 m/s through the corridor "
+                                                   "and into every room, laps repeating).")
         ] = "slow",
         width: Annotated[int, typer.Option("--width", help="Image width (intrinsics scaled from 640).")] = 640,
         height: Annotated[int, typer.Option("--height", help="Image height (intrinsics scaled from 480).")] = 480,
