@@ -27,7 +27,8 @@ MESH_FILE = "mesh.ply"
 FRAME_MATCH_S = 1e-4
 #: MeshConfig fields -> the options that set them (for error messages)
 OPTION_OF = {"method": "--method", "voxel_m": "--voxel", "trunc_m": "--trunc", "max_depth_m": "--max-depth",
-             "min_depth_m": "the run's [fusion] min_depth_m", "stride": "--stride", "min_weight": "--min-weight"}
+             "min_depth_m": "the run's [fusion] min_depth_m", "stride": "--stride", "min_weight": "--min-weight",
+             "min_component": "--min-component"}
 
 
 @dataclasses.dataclass
@@ -103,8 +104,8 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     est = read_run_trajectory(run_dir)
     metrics = read_run_metrics(run_dir)
     run_cfg = _run_config(run_dir, metrics)
-    if run_depth_range:  # the depth range the run fused its map with
-        cfg = dataclasses.replace(cfg, min_depth_m=run_cfg.fusion.min_depth_m, max_depth_m=run_cfg.fusion.max_depth_m)
+    if run_depth_range:  # the near limit the run fused its map with (farther than its far limit: noise-weighted)
+        cfg = dataclasses.replace(cfg, min_depth_m=run_cfg.fusion.min_depth_m)
     seq = _open_run_sequence(run_dir, metrics, run_cfg, sequence)
     T, has_pose = est.lookup(seq.timestamps, FRAME_MATCH_S)
     positions = np.flatnonzero(has_pose)[:: cfg.stride]
@@ -158,7 +159,7 @@ def mesh_run(run_dir: Path, cfg: MeshConfig, out: Path | None = None, sequence: 
     """Write the mesh of the run in ``run_dir`` to ``out`` (default ``run_dir/mesh.ply``).
 
     ``sequence``: the run's sequence folder when it is not where ``metrics.json`` says. ``run_depth_range``: fuse
-    the depth range of the run's ``[fusion]`` settings instead of ``cfg``'s.
+    from the run's ``[fusion] min_depth_m`` on instead of ``cfg``'s (up to ``cfg.max_depth_m``).
     """
     from surfelslam.io.ply import write_mesh_ply
 
@@ -189,10 +190,13 @@ def register(app: typer.Typer) -> None:
         trunc: Annotated[float | None, typer.Option(
             "--trunc", help="TSDF truncation distance [m]. Default 4 voxels.")] = None,
         max_depth: Annotated[float | None, typer.Option(
-            "--max-depth", help="Fuse depths up to this [m]. Default: the run's [fusion] max_depth_m.")] = None,
+            "--max-depth", help="Fuse depths up to this [m]. Default: every valid depth (weighted by its noise).")
+                                        ] = None,
         stride: Annotated[int | None, typer.Option("--stride", help="Fuse every N-th frame. Default 1.")] = None,
         min_weight: Annotated[float | None, typer.Option(
             "--min-weight", help="Mesh only voxels seen in at least this many frames. Default 1.")] = None,
+        min_component: Annotated[int | None, typer.Option(
+            "--min-component", help="Remove floating pieces of fewer triangles (0: keep all). Default 100.")] = None,
         out: Annotated[Path | None, typer.Option("--out", help="Mesh file to write (default RUN_DIR/mesh.ply).")
                        ] = None,
         sequence: Annotated[Path | None, typer.Option(
@@ -207,7 +211,7 @@ def register(app: typer.Typer) -> None:
         if method not in METHODS:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         cfg = mesh_config(method=method, voxel_m=voxel, trunc_m=trunc, max_depth_m=max_depth, stride=stride,
-                          min_weight=min_weight)
+                          min_weight=min_weight, min_component=min_component)
         res = mesh_run(run_dir, cfg, out, sequence, progress, run_depth_range=max_depth is None)
         for note in res.notes:
             console.print(f"note: {note}", highlight=False, markup=False, soft_wrap=True)
