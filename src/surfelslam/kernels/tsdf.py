@@ -233,19 +233,40 @@ def measurement_weight(d, noise):
 
 
 @njit(cache=True, nogil=True)
-def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, noise, block_m, keys, vals, coords,
+def _touch(bx, by, bz, keys, vals, coords, n_blocks, stamp, stamps, visible, n_vis):
+    """Insert block ``(bx, by, bz)`` if new and list it in ``visible`` once per ``stamp``. Returns ``(n_blocks,
+    n_vis, full)``; ``full``: the block is new and does not fit."""
+    key = block_key(bx, by, bz)
+    b = hash_find(keys, vals, key)
+    if b < 0:
+        if n_blocks >= coords.shape[0] or n_blocks >= keys.shape[0] // 2:
+            return n_blocks, n_vis, True
+        b = n_blocks
+        coords[b, 0] = bx
+        coords[b, 1] = by
+        coords[b, 2] = bz
+        _hash_put(keys, vals, key, b)
+        n_blocks += 1
+    if stamps[b] != stamp:
+        stamps[b] = stamp
+        visible[n_vis] = b
+        n_vis += 1
+    return n_blocks, n_vis, False
+
+
+@njit(cache=True, nogil=True)
+def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, noise, voxel_m, keys, vals, coords,
              n_blocks, stamp, stamps, visible):
-    """Insert the blocks within the truncation (:func:`truncation`) of every valid pixel's surface point (along its
-    ray) and list the blocks this frame touches in ``visible`` (each once: ``stamps[b] == stamp``).
+    """Insert the blocks of the cubes (of 8 voxels) that every valid pixel's ray crosses within the truncation
+    (:func:`truncation`) of its depth, sampled a voxel apart, and list the blocks this frame touches in ``visible``
+    (each once: ``stamps[b] == stamp``). A cube's 8 voxels may lie in up to 8 blocks: all are inserted, so that
+    marching cubes has no seams along block faces where the band grazes them.
 
     Returns ``(n_blocks, n_visible, full)``; ``full``: a new block did not fit (``coords`` full or the hash
     half full); the caller grows the arrays and calls again (with a new ``stamp``).
     """
     H, W = depth.shape
-    capacity = coords.shape[0]
-    max_fill = keys.shape[0] // 2
-    inv_b = 1.0 / block_m
-    step = block_m / 3.0
+    inv_v = 1.0 / voxel_m
     n_vis = 0
     for v in range(H):
         for u in range(W):
@@ -258,7 +279,7 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
             tr = truncation(d, trunc_m, noise)
             z0 = max(d - tr, 1e-3)
             z1 = d + tr
-            n = int(np.ceil((z1 - z0) * ray_len / step)) + 1
+            n = int(np.ceil((z1 - z0) * ray_len * inv_v)) + 1
             lx = ly = lz = -(1 << 40)
             for s in range(n):
                 z = z0 + (z1 - z0) * s / (n - 1)
@@ -266,27 +287,20 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
                 px = T_world_cam[0, 0] * xc + T_world_cam[0, 1] * yc + T_world_cam[0, 2] * z + T_world_cam[0, 3]
                 py = T_world_cam[1, 0] * xc + T_world_cam[1, 1] * yc + T_world_cam[1, 2] * z + T_world_cam[1, 3]
                 pz = T_world_cam[2, 0] * xc + T_world_cam[2, 1] * yc + T_world_cam[2, 2] * z + T_world_cam[2, 3]
-                bx = int(np.floor(px * inv_b))
-                by = int(np.floor(py * inv_b))
-                bz = int(np.floor(pz * inv_b))
-                if bx == lx and by == ly and bz == lz:
+                vx = int(np.floor(px * inv_v))
+                vy = int(np.floor(py * inv_v))
+                vz = int(np.floor(pz * inv_v))
+                if vx == lx and vy == ly and vz == lz:
                     continue
-                lx, ly, lz = bx, by, bz
-                key = block_key(bx, by, bz)
-                b = hash_find(keys, vals, key)
-                if b < 0:
-                    if n_blocks >= capacity or n_blocks >= max_fill:
-                        return n_blocks, n_vis, True
-                    b = n_blocks
-                    coords[b, 0] = bx
-                    coords[b, 1] = by
-                    coords[b, 2] = bz
-                    _hash_put(keys, vals, key, b)
-                    n_blocks += 1
-                if stamps[b] != stamp:
-                    stamps[b] = stamp
-                    visible[n_vis] = b
-                    n_vis += 1
+                lx, ly, lz = vx, vy, vz
+                # the cube's upper voxels are in the next block along an axis where this voxel is the block's last
+                for dx in range(1 + int((vx & 7) == 7)):
+                    for dy in range(1 + int((vy & 7) == 7)):
+                        for dz in range(1 + int((vz & 7) == 7)):
+                            n_blocks, n_vis, full = _touch((vx >> 3) + dx, (vy >> 3) + dy, (vz >> 3) + dz, keys,
+                                                           vals, coords, n_blocks, stamp, stamps, visible, n_vis)
+                            if full:
+                                return n_blocks, n_vis, True
     return n_blocks, n_vis, False
 
 

@@ -34,9 +34,10 @@ BYTES_PER_VOXEL = 4 + 4 + 2 + 6 + 2
 EXTRACT_BYTES_PER_VOXEL = 12
 #: blocks allocated up front (the arrays double when full)
 INITIAL_BLOCKS = 4096
-#: the farthest depth (m) a Kinect-class sensor reports; `surfelslam mesh` fuses every valid depth up to it (the
-#: noise weighting, not a range cut, keeps far depth from degrading the near surface)
-SENSOR_MAX_DEPTH_M = 10.0
+#: the far end (m) of a Kinect-class sensor's valid range: `surfelslam mesh` fuses every depth up to it (the noise
+#: weighting, not a range cut, keeps far depth from degrading the near surface); farther readings (TUM's Kinect
+#: reports up to ~10 m) have a noise sigma over 4 cm and would multiply the TSDF's size for little surface
+SENSOR_MAX_DEPTH_M = 5.0
 #: axial depth noise of a Kinect-like sensor, sigma(z) = base + quad (z - offset)^2 (m; Nguyen, Izadi and Lovell,
 #: 3DIMPVT 2012, the model `surfelslam synth --noise kinect` renders with)
 DEPTH_SIGMA_BASE_M, DEPTH_SIGMA_QUAD_PER_M, DEPTH_SIGMA_OFFSET_M = 0.0012, 0.0019, 0.4
@@ -45,8 +46,8 @@ REFERENCE_DEPTH_M = 1.0
 #: the truncation widens to this many noise sigmas where that exceeds trunc_m (a narrower band clips the noise,
 #: biasing the average) ...
 TRUNC_SIGMAS = 3.0
-#: ... up to this many times trunc_m (a wider band thickens thin objects and allocates more blocks)
-TRUNC_MAX_FACTOR = 4.0
+#: ... up to this many times trunc_m (3 sigma at 5 m; a wider band thickens thin objects and allocates more blocks)
+TRUNC_MAX_FACTOR = 3.0
 #: floating pieces of fewer triangles are removed by default (about 50 cm^2 at a 1 cm voxel: noise, not objects)
 DEFAULT_MIN_COMPONENT = 100
 
@@ -63,8 +64,8 @@ class MeshConfig(Config):
                              doc="truncation distance of the TSDF; 0: 4 voxels")
     min_depth_m: float = setting(0.1, unit="m", gt=0, le=100, doc="nearer depths are not fused")
     max_depth_m: float = setting(SENSOR_MAX_DEPTH_M, unit="m", gt=0, le=100,
-                                 doc="farther depths are not fused (default: every valid depth; each depth is "
-                                     "weighted by its noise, which grows with depth squared)")
+                                 doc="farther depths are not fused (default: a Kinect-class sensor's whole range; "
+                                     "each depth is weighted by its noise, which grows with depth squared)")
     stride: int = setting(1, unit="frames", ge=1, le=100_000, doc="fuse every stride-th frame of the run")
     min_weight: float = setting(1.0, unit="frames", gt=0, le=1e6,
                                 doc="marching cubes uses voxels observed in at least this many frames")
@@ -207,7 +208,7 @@ class TsdfVolume:
             self._stamp += 1
             n_blocks, n_vis, full = kt.allocate(
                 depth, intr.fx, intr.fy, intr.cx, intr.cy, T, self.min_depth_m, self.max_depth_m, self.trunc_m,
-                self.noise, self.block_m, self.keys, self.vals, self.coords, self.n_blocks, self._stamp, self.stamps,
+                self.noise, self.voxel_m, self.keys, self.vals, self.coords, self.n_blocks, self._stamp, self.stamps,
                 self.visible)
             self.n_blocks = n_blocks
             if not full:

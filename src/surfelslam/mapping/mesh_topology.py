@@ -35,10 +35,11 @@ def _edge_groups(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.nda
     """``(order, group (3F,), count (G,))``: half-edges sorted by their undirected edge, the edge index of each
     (in that order), and how many half-edges each edge has."""
     lo, hi = np.minimum(start, end), np.maximum(start, end)
-    order = np.lexsort((hi, lo))
-    key_lo, key_hi = lo[order], hi[order]
+    key = lo * (int(hi.max(initial=0)) + 1) + hi  # one int64 per undirected edge (V^2 fits for V < 3e9)
+    order = np.argsort(key, kind="stable")
+    key = key[order]
     new = np.ones(len(order), bool)
-    new[1:] = (key_lo[1:] != key_lo[:-1]) | (key_hi[1:] != key_hi[:-1])
+    new[1:] = key[1:] != key[:-1]
     group = np.cumsum(new) - 1
     count = np.bincount(group) if len(group) else np.zeros(0, np.int64)
     return order, group, count
@@ -79,10 +80,8 @@ def _fans_per_vertex(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np
     """``(fans (V,), corner vertex (3F,), corner fan label (3F,))``."""
     labels = fan_labels(faces)
     vert = np.asarray(faces, np.int64).reshape(-1)
-    fans = np.zeros(n_vertices, np.int64)
-    if len(vert):
-        pairs = np.unique(np.stack([vert, labels], 1), axis=0)
-        fans = np.bincount(pairs[:, 0], minlength=n_vertices)
+    _, first = np.unique(labels, return_index=True)  # a label belongs to the corners of one vertex
+    fans = np.bincount(vert[first], minlength=n_vertices)
     return fans, vert, labels
 
 
@@ -98,6 +97,15 @@ def triangle_components(faces: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
+def _duplicate_rows(a: np.ndarray) -> int:
+    """Rows of ``a`` ``(N, 3)`` equal to an earlier row."""
+    if len(a) == 0:
+        return 0
+    order = np.lexsort((a[:, 2], a[:, 1], a[:, 0]))
+    s = a[order]
+    return int(np.all(s[1:] == s[:-1], axis=1).sum())
+
+
 def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict:
     """The counts mesh tools check: duplicated vertices (same position) and triangles (same vertex set), degenerate
     triangles (a repeated vertex or zero area), border / non-manifold (3+ triangles) / inconsistently oriented
@@ -105,8 +113,8 @@ def topology_report(vertices: np.ndarray, faces: np.ndarray) -> dict:
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     sorted_f = np.sort(f, axis=1)
-    dup_tri = len(f) - len(np.unique(sorted_f, axis=0)) if len(f) else 0
-    dup_vert = len(v) - len(np.unique(v, axis=0)) if len(v) else 0
+    dup_tri = _duplicate_rows(sorted_f)
+    dup_vert = _duplicate_rows(v)
     repeated = (sorted_f[:, 0] == sorted_f[:, 1]) | (sorted_f[:, 1] == sorted_f[:, 2])
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     zero_area = np.linalg.norm(np.cross(b - a, c - a), axis=1) <= 0

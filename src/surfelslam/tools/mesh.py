@@ -190,7 +190,7 @@ def register(app: typer.Typer) -> None:
         trunc: Annotated[float | None, typer.Option(
             "--trunc", help="TSDF truncation distance [m]. Default 4 voxels.")] = None,
         max_depth: Annotated[float | None, typer.Option(
-            "--max-depth", help="Fuse depths up to this [m]. Default: every valid depth (weighted by its noise).")
+            "--max-depth", help="Fuse depths up to this [m]. Default 5: a Kinect's range, each depth noise-weighted.")
                                         ] = None,
         stride: Annotated[int | None, typer.Option("--stride", help="Fuse every N-th frame. Default 1.")] = None,
         min_weight: Annotated[float | None, typer.Option(
