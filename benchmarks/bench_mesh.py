@@ -103,8 +103,9 @@ def _theirs(o3d, frames, poses, intr, cfg: MeshConfig) -> tuple[np.ndarray, np.n
 
 
 def marching_cubes_comparison(frames, poses, intr, cfg: MeshConfig) -> dict | None:
-    """Our marching cubes vs scikit-image's on the same TSDF (ours on the sparse blocks, theirs on the blocks'
-    bounding box made dense, unobserved voxels masked out); None without scikit-image."""
+    """Our marching cubes (without the topology clean-up) vs scikit-image's on the same TSDF (ours on the sparse
+    blocks, theirs on the blocks' bounding box made dense, unobserved voxels masked out); None without
+    scikit-image."""
     try:
         from skimage.measure import marching_cubes
     except ImportError:
@@ -112,9 +113,9 @@ def marching_cubes_comparison(frames, poses, intr, cfg: MeshConfig) -> dict | No
     vol = TsdfVolume.from_config(cfg)
     for f, T in zip(frames, poses, strict=True):
         vol.integrate(f.depth_m, f.rgb, intr, T)
-    vol.extract_mesh(cfg.min_weight)  # compiled
+    vol.marching_cubes(cfg.min_weight)  # compiled
     t0 = time.perf_counter()
-    ours = vol.extract_mesh(cfg.min_weight)
+    ours = vol.marching_cubes(cfg.min_weight)  # without the clean-up, as scikit-image's
     t_ours = time.perf_counter() - t0
     t0 = time.perf_counter()
     tsdf, weight, _ = vol.dense_grid()
