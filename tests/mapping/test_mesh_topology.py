@@ -68,7 +68,7 @@ def test_triangle_table_has_no_diagonal_in_a_cube_face():
 
 def _random_volume(seed: int, blocks: int = 3) -> TsdfVolume:
     """A volume of ``blocks^3`` blocks, every voxel observed, holding a random field: every cube configuration,
-    ambiguous faces included, many times over."""
+    ambiguous faces included, many times over (values within +-0.6: no jump that marching cubes refuses)."""
     vol = TsdfVolume(0.01, 0.04, initial_blocks=blocks**3)
     coords = np.stack(np.meshgrid(*[np.arange(blocks)] * 3, indexing="ij"), -1).reshape(-1, 3)
     n = len(coords)
@@ -76,7 +76,7 @@ def _random_volume(seed: int, blocks: int = 3) -> TsdfVolume:
     vol.n_blocks = n
     kt.rehash(vol.coords, n, vol.keys, vol.vals)
     rng = np.random.default_rng(seed)
-    vol.tsdf[:n] = rng.uniform(-1, 1, (n, kt.BLOCK_VOXELS)).astype(np.float32)
+    vol.tsdf[:n] = rng.uniform(-0.6, 0.6, (n, kt.BLOCK_VOXELS)).astype(np.float32)
     vol.weight[:n] = 1.0
     vol.count[:n] = 1
     return vol
@@ -106,3 +106,19 @@ def test_compact_keeps_the_used_vertices_in_order():
     small = compact(raw, keep)
     np.testing.assert_array_equal(small.vertices[small.faces], raw.vertices[raw.faces[keep]])
     assert small.n_vertices == len(np.unique(raw.faces[keep]))
+
+
+@pytest.mark.parametrize(("step", "surface"), [(0.2, True), (1.0, False)])
+def test_a_truncation_jump_is_no_surface(step, surface):
+    """A sign change from +step to -step along x: a surface when small, the truncation band's edge (free space
+    next to the back of another surface's band) when it jumps by more than MAX_CROSSING_JUMP."""
+    vol = _random_volume(0, blocks=2)
+    x = np.arange(kt.BLOCK_VOXELS) & 7
+    for b in range(vol.n_blocks):
+        gx = vol.coords[b, 0] * kt.BLOCK + x
+        vol.tsdf[b] = np.where(gx < 8, step, -step)
+    assert 2 * step > kt.MAX_CROSSING_JUMP or surface
+    mesh = vol.marching_cubes()
+    assert (mesh.n_faces > 0) == surface
+    if surface:
+        np.testing.assert_allclose(mesh.vertices[:, 0], 0.075, atol=1e-6)  # halfway between x = 7 and 8 voxels

@@ -47,6 +47,10 @@ _U16_MAX = 65535
 #: a vertex lies at least this fraction of its voxel edge from the edge's ends, so that the vertices of the edges
 #: meeting at a voxel whose TSDF is exactly 0 do not coincide (duplicated positions, zero-area triangles)
 EDGE_T_MIN = 1e-3
+#: a cube whose TSDF values (in units of trunc_m) on either side of 0 differ by more than this is no surface: a
+#: surface changes the signed distance by at most a voxel per voxel (0.25 at trunc_m = 4 voxels, 1.2 seen at 78 deg
+#: by the projective distance), while free space (+1) next to the back of another surface's band jumps by more
+MAX_CROSSING_JUMP = 1.5
 
 
 # ---------------------------------------------------------------------------------------------- triangle table
@@ -518,14 +522,23 @@ def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, 
 
 @njit(cache=True, nogil=True)
 def _cube_case(nbr, tsdf, weight, min_weight, b, i, j, l):
-    """The cube's configuration (bit c: corner c inside), or -1 when a corner is unobserved."""
+    """The cube's configuration (bit c: corner c inside), or -1 when a corner is unobserved or the sign change along
+    one of its edges is a jump no surface makes (:data:`MAX_CROSSING_JUMP`)."""
     case = 0
+    lo = np.inf
+    hi = -np.inf
     for c in range(8):
         nb, nk = _voxel(nbr, b, i + (c & 1), j + ((c >> 1) & 1), l + (c >> 2))
         if nb < 0 or weight[nb, nk] < min_weight:
             return -1
-        if tsdf[nb, nk] < 0:
+        f = tsdf[nb, nk]
+        if f < 0:
             case |= 1 << c
+            lo = min(lo, f)
+        else:
+            hi = max(hi, f)
+    if hi - lo > MAX_CROSSING_JUMP:
+        return -1
     return case
 
 
