@@ -21,7 +21,8 @@ truncation widens to a few sigmas (:func:`truncation`, so that the noise is aver
 Extraction: marching cubes with a triangle table built here (:func:`build_triangle_table`, the classic 256-case
 table's topology with ambiguous faces split so that inside corners are separated: crack-free; no triangle diagonal
 lies in a cube face, so the surface is edge-manifold and consistently oriented), over every cube whose 8 corners
-were observed (``count >= min_weight``: the extraction kernels take the count array as their ``weight``). Vertices
+were observed (``count >= min_weight``: the extraction kernels take the count array as their ``weight``) and whose
+values do not jump across 0 by more than :data:`MAX_CROSSING_JUMP` (the edge of a truncation band). Vertices
 are shared: the vertex on the edge from voxel ``v`` along axis ``a`` is owned by ``v`` (``vid[b, k, a]``), so the
 mesh is welded. Normals: the TSDF gradient (central differences) interpolated along the edge; colours interpolated
 likewise. Two passes each (count, prefix sum, fill) so that the parallel kernels write disjoint slices and the
