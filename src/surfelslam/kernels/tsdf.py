@@ -52,6 +52,9 @@ EDGE_T_MIN = 1e-3
 #: surface changes the signed distance by at most a voxel per voxel (0.25 at trunc_m = 4 voxels, 1.2 seen at 78 deg
 #: by the projective distance), while free space (+1) next to the back of another surface's band jumps by more
 MAX_CROSSING_JUMP = 1.5
+#: allocation samples each ray's truncation band this many voxels apart (a third of a block: every block the band
+#: crosses is met)
+ALLOCATE_STEP_VOXELS = BLOCK / 3.0
 
 
 # ---------------------------------------------------------------------------------------------- triangle table
@@ -262,16 +265,16 @@ def _touch(bx, by, bz, keys, vals, coords, n_blocks, stamp, stamps, visible, n_v
 @njit(cache=True, nogil=True)
 def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, noise, voxel_m, keys, vals, coords,
              n_blocks, stamp, stamps, visible):
-    """Insert the blocks of the cubes (of 8 voxels) that every valid pixel's ray crosses within the truncation
-    (:func:`truncation`) of its depth, sampled a voxel apart, and list the blocks this frame touches in ``visible``
-    (each once: ``stamps[b] == stamp``). A cube's 8 voxels may lie in up to 8 blocks: all are inserted, so that
-    marching cubes has no seams along block faces where the band grazes them.
+    """Insert the blocks that every valid pixel's ray crosses within the truncation (:func:`truncation`) of its
+    depth, sampled :data:`ALLOCATE_STEP_VOXELS` apart, and list the blocks this frame touches in ``visible`` (each
+    once: ``stamps[b] == stamp``).
 
     Returns ``(n_blocks, n_visible, full)``; ``full``: a new block did not fit (``coords`` full or the hash
     half full); the caller grows the arrays and calls again (with a new ``stamp``).
     """
     H, W = depth.shape
     inv_v = 1.0 / voxel_m
+    inv_b = inv_v / BLOCK
     n_vis = 0
     for v in range(H):
         for u in range(W):
@@ -284,7 +287,7 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
             tr = truncation(d, trunc_m, noise)
             z0 = max(d - tr, 1e-3)
             z1 = d + tr
-            n = int(np.ceil((z1 - z0) * ray_len * inv_v)) + 1
+            n = int(np.ceil((z1 - z0) * ray_len * inv_v / ALLOCATE_STEP_VOXELS)) + 1
             lx = ly = lz = -(1 << 40)
             for s in range(n):
                 z = z0 + (z1 - z0) * s / (n - 1)
@@ -292,20 +295,16 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
                 px = T_world_cam[0, 0] * xc + T_world_cam[0, 1] * yc + T_world_cam[0, 2] * z + T_world_cam[0, 3]
                 py = T_world_cam[1, 0] * xc + T_world_cam[1, 1] * yc + T_world_cam[1, 2] * z + T_world_cam[1, 3]
                 pz = T_world_cam[2, 0] * xc + T_world_cam[2, 1] * yc + T_world_cam[2, 2] * z + T_world_cam[2, 3]
-                vx = int(np.floor(px * inv_v))
-                vy = int(np.floor(py * inv_v))
-                vz = int(np.floor(pz * inv_v))
-                if vx == lx and vy == ly and vz == lz:
+                bx = int(np.floor(px * inv_b))
+                by = int(np.floor(py * inv_b))
+                bz = int(np.floor(pz * inv_b))
+                if bx == lx and by == ly and bz == lz:
                     continue
-                lx, ly, lz = vx, vy, vz
-                # the cube's upper voxels are in the next block along an axis where this voxel is the block's last
-                for dx in range(1 + int((vx & 7) == 7)):
-                    for dy in range(1 + int((vy & 7) == 7)):
-                        for dz in range(1 + int((vz & 7) == 7)):
-                            n_blocks, n_vis, full = _touch((vx >> 3) + dx, (vy >> 3) + dy, (vz >> 3) + dz, keys,
-                                                           vals, coords, n_blocks, stamp, stamps, visible, n_vis)
-                            if full:
-                                return n_blocks, n_vis, True
+                lx, ly, lz = bx, by, bz
+                n_blocks, n_vis, full = _touch(bx, by, bz, keys, vals, coords, n_blocks, stamp, stamps, visible,
+                                               n_vis)
+                if full:
+                    return n_blocks, n_vis, True
     return n_blocks, n_vis, False
 
 
