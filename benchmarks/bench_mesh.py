@@ -1,6 +1,7 @@
 """Mesh quality and cost: our TSDF + marching cubes against the exact surfaces of a synthetic room, beside Open3D.
 
-A ``surfelslam synth`` room (320x240, Kinect noise, ``slow`` hand-held loop; 150 frames by default) is meshed
+A ``surfelslam synth`` room (320x240, Kinect noise, the ``tour-across`` orbit looking across the room, so that
+surfaces are seen from 0.4 m to the sensor's 4.5 m; 150 frames by default) is meshed
 
 * from the ground-truth poses and from the poses a dense ``surfelslam run`` estimated (moved onto the first
   ground-truth pose: the run starts at the identity, the scene's frame is the ground truth's);
@@ -8,8 +9,10 @@ A ``surfelslam synth`` room (320x240, Kinect noise, ``slow`` hand-held loop; 150
   (``t.geometry.VoxelBlockGrid``, CPU) with the same voxel, truncation, depth range, frames and weight threshold,
   and by ``surfelslam mesh --method poisson`` (Open3D's Poisson on the run's ``map.ply``).
 
-Each mesh gets accuracy (mesh to true surface: mean, 90th percentile) and completeness (share of the surface the
-frames saw within 1 cm of the mesh), :mod:`surfelslam.eval.mesh_quality`. Times exclude image decoding (frames are
+Each mesh gets accuracy (mesh to true surface: mean, 90th percentile), completeness (share of the surface the
+frames saw within 1 cm of the mesh), :mod:`surfelslam.eval.mesh_quality`, and the topology counts mesh tools check
+(:func:`surfelslam.mapping.mesh_topology.topology_report`: non-manifold edges and vertices, duplicated triangles,
+inconsistently oriented edges, connected pieces). Times exclude image decoding (frames are
 read first) and, for ours, numba's compilation (a warm-up fuse). With scikit-image importable the marching cubes
 stage is also compared with ``skimage.measure.marching_cubes`` on the same TSDF made dense.
 
@@ -32,16 +35,26 @@ from surfelslam.api import run_sequence
 from surfelslam.datasets import open_sequence
 from surfelslam.eval import mesh_quality as mq
 from surfelslam.mapping.mesh import MeshConfig, TsdfVolume
+from surfelslam.mapping.mesh_topology import topology_report
 from surfelslam.slam import SlamConfig
+from surfelslam.synth.noise import KinectNoiseConfig
 from surfelslam.synth.writer import generate_sequence
 
 DEFAULT_VOXEL_M = 0.01  # the voxel of `surfelslam mesh` (m)
 OURS, GT = "surfelslam TSDF", "ground truth"  # the method and poses of the row the targets apply to
 #: points drawn on each mesh to measure its accuracy
 QUALITY_SAMPLES = 100_000
-#: issue 37's targets, ground-truth poses on Kinect-noise data: mean accuracy (m) and completeness at 1 cm
+#: issue 37's and 70's targets, ground-truth poses on Kinect-noise data: mean accuracy (m) and completeness at 1 cm
 TARGET_ACCURACY_MEAN_M = 0.005
 TARGET_COMPLETENESS = 0.90
+#: the camera motion: looking across the room, so that the frames see surfaces over the sensor's whole range
+TRAJECTORY = "tour-across"
+#: the surface that counts for completeness: what the frames saw within the synthetic Kinect's valid range (m)
+TRUTH_MIN_DEPTH_M = KinectNoiseConfig().min_depth_m
+TRUTH_MAX_DEPTH_M = KinectNoiseConfig().max_depth_m
+#: topology_report's counts shown per mesh
+TOPOLOGY_KEYS = ("non_manifold_edges", "non_manifold_vertices", "duplicated_triangles", "misoriented_edges",
+                 "components")
 
 
 def _open3d():
@@ -90,8 +103,9 @@ def _theirs(o3d, frames, poses, intr, cfg: MeshConfig) -> tuple[np.ndarray, np.n
 
 
 def marching_cubes_comparison(frames, poses, intr, cfg: MeshConfig) -> dict | None:
-    """Our marching cubes vs scikit-image's on the same TSDF (ours on the sparse blocks, theirs on the blocks'
-    bounding box made dense, unobserved voxels masked out); None without scikit-image."""
+    """Our marching cubes (without the topology clean-up) vs scikit-image's on the same TSDF (ours on the sparse
+    blocks, theirs on the blocks' bounding box made dense, unobserved voxels masked out); None without
+    scikit-image."""
     try:
         from skimage.measure import marching_cubes
     except ImportError:
@@ -99,9 +113,9 @@ def marching_cubes_comparison(frames, poses, intr, cfg: MeshConfig) -> dict | No
     vol = TsdfVolume.from_config(cfg)
     for f, T in zip(frames, poses, strict=True):
         vol.integrate(f.depth_m, f.rgb, intr, T)
-    vol.extract_mesh(cfg.min_weight)  # compiled
+    vol.marching_cubes(cfg.min_weight)  # compiled
     t0 = time.perf_counter()
-    ours = vol.extract_mesh(cfg.min_weight)
+    ours = vol.marching_cubes(cfg.min_weight)  # without the clean-up, as scikit-image's
     t_ours = time.perf_counter() - t0
     t0 = time.perf_counter()
     tsdf, weight, _ = vol.dense_grid()
@@ -120,12 +134,12 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
     """Generate (or reuse, in ``work``) the sequence and its dense run, mesh it every way; the rows (module
     docstring). ``samples``: points drawn on each mesh for its accuracy."""
     work = Path(tempfile.mkdtemp(prefix="bench_mesh_")) if work is None else Path(work)
-    seq_dir = work / f"room_{frames}_{noise}_{width}"
+    seq_dir = work / f"room_{TRAJECTORY}_{frames}_{noise}_{width}"
     if not (seq_dir / "INFO.txt").is_file():
-        generate_sequence(seq_dir, scene="room", style="slow", n_frames=frames, noise=noise, seed=0, width=width,
-                          height=width * 3 // 4)
+        generate_sequence(seq_dir, scene="room", style=TRAJECTORY, n_frames=frames, noise=noise, seed=0,
+                          width=width, height=width * 3 // 4)
     seq = open_sequence(seq_dir)
-    run_dir = work / f"run_{frames}_{noise}_{width}"
+    run_dir = work / f"run_{TRAJECTORY}_{frames}_{noise}_{width}"
     if not (run_dir / "metrics.json").is_file():
         run_sequence(seq, run_dir, SlamConfig(), progress=False, figures=False)
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -139,7 +153,7 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
     intr = seq.intrinsics
     cfg = MeshConfig(voxel_m=voxel_m)
     scene = mq.scene_of_sequence(seq_dir)
-    truth = mq.visible_surface_points(scene, gt[::2], intr, cfg.min_depth_m, cfg.max_depth_m)
+    truth = mq.visible_surface_points(scene, gt[::2], intr, TRUTH_MIN_DEPTH_M, TRUTH_MAX_DEPTH_M)
 
     _ours(frames_mem[:2], gt[:2], intr, cfg)  # compile
     o3d = _open3d() if open3d else None
@@ -155,7 +169,8 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
                 again = fn(frames_mem, poses, intr, cfg)[2]
                 cost = {k: min(cost[k], again[k]) for k in ("fuse_s", "extract_s")} | {"memory_mb": cost["memory_mb"]}
             q = mq.mesh_quality(v, f, scene, truth, samples=samples)
-            rows.append({"method": name, "poses": poses_name, **cost, **q})
+            topo = topology_report(v, f)
+            rows.append({"method": name, "poses": poses_name, **cost, **q, **{k: topo[k] for k in TOPOLOGY_KEYS}})
     if o3d is not None:  # Poisson on the run's surfels (estimated poses: the map is in the run's frame)
         from surfelslam.io.ply import read_ply
         from surfelslam.mapping.mesh import poisson_mesh
@@ -167,8 +182,9 @@ def run(frames: int = 150, voxel_m: float = 0.01, work: Path | None = None, open
         cost = {"fuse_s": float("nan"), "extract_s": time.perf_counter() - t0, "memory_mb": float("nan")}
         mesh = mesh.transformed(mq.first_pose_alignment(est_raw[0], gt[0]))
         q = mq.mesh_quality(mesh.vertices, mesh.faces, scene, truth, samples=samples)
+        topo = topology_report(mesh.vertices, mesh.faces)
         rows.append({"method": "Poisson (Open3D) on map.ply's surfels", "poses": "estimated (dense run)", **cost,
-                     **q})
+                     **q, **{k: topo[k] for k in TOPOLOGY_KEYS}})
     return {"sequence": str(seq_dir), "frames": len(seq), "resolution": [intr.width, intr.height],
             "noise": noise, "repeats": repeats, "voxel_m": voxel_m, "trunc_m": cfg.truncation_m,
             "max_depth_m": cfg.max_depth_m,
@@ -184,7 +200,7 @@ def section(frames: int, width: int, work: Path, open3d: bool = True, repeats: i
     for r in res["rows"]:
         r.update({k: None for k, v in r.items() if isinstance(v, float) and math.isnan(v)})
     ours = next(r for r in res["rows"] if r["method"] == OURS and r["poses"] == GT)
-    res["sequence"] = "synthetic room, slow hand-held orbit, Kinect noise"
+    res["sequence"] = "synthetic room, orbit looking across the room (far views), Kinect noise"
     res["targets"] = {"accuracy_mean_m": TARGET_ACCURACY_MEAN_M, "completeness": TARGET_COMPLETENESS,
                       "ok": ours["accuracy_mean_m"] <= TARGET_ACCURACY_MEAN_M
                       and ours["completeness"] >= TARGET_COMPLETENESS}
@@ -200,21 +216,23 @@ def section_markdown(res: dict) -> list[str]:
     t = res["targets"]
     md = [f"### Mesh quality: {res['frames']} synthetic frames at {w}x{h} (`surfelslam mesh`)", ""]
     md.append(table(["method", "poses", "accuracy mean mm", "accuracy p90 mm", "completeness @ 1 cm",
-                     "triangles", "fuse s", "extract s"],
+                     "triangles", "non-manifold edges / vertices", "pieces", "fuse s", "extract s"],
                     [[r["method"], r["poses"], fmt(1e3 * r["accuracy_mean_m"], 2), fmt(1e3 * r["accuracy_p90_m"], 2),
-                      f"{100 * r['completeness']:.1f} %", f"{r['faces']:,}", fmt(r["fuse_s"], 2),
-                      fmt(r["extract_s"], 2)] for r in res["rows"]]))
+                      f"{100 * r['completeness']:.1f} %", f"{r['faces']:,}", _topology(r), f"{r['components']:,}",
+                      fmt(r["fuse_s"], 2), fmt(r["extract_s"], 2)] for r in res["rows"]]))
     ate = res.get("run_ate_rmse_m")
     seq = res["sequence"][0].upper() + res["sequence"][1:]
-    md += [f"{seq}; voxel {100 * res['voxel_m']:g} cm, truncation {100 * res['trunc_m']:g} cm, depth up "
-           f"to {res['max_depth_m']:g} m. Accuracy: distance from points sampled on the mesh to the scene's exact "
-           "surfaces; completeness: share of the surface the frames saw within 1 cm of the mesh "
-           "(`surfelslam.eval.mesh_quality`). Estimated poses: a dense `surfelslam run` of the same frames"
+    md += [f"{seq}; voxel {100 * res['voxel_m']:g} cm, truncation {100 * res['trunc_m']:g} cm (ours: widened "
+           f"to 3 noise sigmas for far depth, each depth weighted by 1 / sigma^2), depth up to {res['max_depth_m']:g} "
+           "m. Accuracy: distance from points sampled on the mesh to the scene's exact surfaces; completeness: share "
+           f"of the surface the frames saw from {TRUTH_MIN_DEPTH_M:g} to {TRUTH_MAX_DEPTH_M:g} m within 1 cm of the "
+           "mesh (`surfelslam.eval.mesh_quality`); topology: our own checker (`surfelslam.mapping.mesh_topology`), "
+           "pieces = connected components. Estimated poses: a dense `surfelslam run` of the same frames"
            + (f" (ATE {100 * ate:.2f} cm)" if ate is not None else "") + ", put on the first ground-truth pose. "
            "Open3D: `t.geometry.VoxelBlockGrid` on the CPU with the same voxel, truncation, depth range, frames and "
            "weight threshold; Poisson: `surfelslam mesh --method poisson` on the run's `map.ply`. Times: wall "
            f"clock, the fastest of {res['repeats']}, frames decoded beforehand, ours with numba's parallel kernels "
-           f"(as `surfelslam mesh`). Issue 37's target (ground-truth poses, Kinect noise: mean accuracy <= "
+           f"(as `surfelslam mesh`). Issues 37 and 70's target (ground-truth poses, Kinect noise: mean accuracy <= "
            f"{1e3 * t['accuracy_mean_m']:g} mm, completeness >= {100 * t['completeness']:g} % at 1 cm): "
            f"{fmt(t['ok'])}.", ""]
     mc = res.get("marching_cubes")
@@ -227,6 +245,13 @@ def section_markdown(res: dict) -> list[str]:
                           fmt(mc["skimage_s"], 2), f"{mc['skimage_faces']:,}"]]))
     md += [_choice(res), ""]
     return md
+
+
+def _topology(row: dict) -> str:
+    """Non-manifold edges / vertices, with the duplicated triangles and misoriented edges when there are any."""
+    text = f"{row['non_manifold_edges']:,} / {row['non_manifold_vertices']:,}"
+    extra = [f"{row[k]:,} {k.replace('_', ' ')}" for k in ("duplicated_triangles", "misoriented_edges") if row[k]]
+    return text + (f" ({', '.join(extra)})" if extra else "")
 
 
 def _choice(res: dict) -> str:
@@ -264,13 +289,13 @@ def markdown(res: dict) -> str:
              f"{res['noise']} noise; voxel {res['voxel_m'] * 100:g} cm, truncation {res['trunc_m'] * 100:g} cm, "
              f"depth <= {res['max_depth_m']:g} m" + (f"; dense run ATE {ate * 100:.2f} cm" if ate is not None else ""),
              "",
-             "| method | poses | accuracy mean (mm) | accuracy p90 (mm) | completeness @ 1 cm | triangles | fuse (s) "
-             "| extract (s) |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "| method | poses | accuracy mean (mm) | accuracy p90 (mm) | completeness @ 1 cm | triangles | "
+             "non-manifold edges / vertices | pieces | fuse (s) | extract (s) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
         lines.append(f"| {r['method']} | {r['poses']} | {r['accuracy_mean_m'] * 1000:.2f} | "
                      f"{r['accuracy_p90_m'] * 1000:.2f} | {r['completeness'] * 100:.1f} % | {r['faces']:,} | "
-                     f"{_secs(r['fuse_s'])} | {_secs(r['extract_s'])} |")
+                     f"{_topology(r)} | {r['components']:,} | {_secs(r['fuse_s'])} | {_secs(r['extract_s'])} |")
     mc = res.get("marching_cubes")
     if mc:
         lines += ["", "| marching cubes (same TSDF, ground-truth poses) | time (s) | triangles |", "|---|---:|---:|",

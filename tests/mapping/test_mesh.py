@@ -15,6 +15,7 @@ from surfelslam.eval.mesh_quality import distance_to_mesh, sample_surface
 from surfelslam.io.ply import read_mesh_ply, write_mesh_ply
 from surfelslam.kernels import tsdf as kt
 from surfelslam.mapping.mesh import MeshConfig, TsdfVolume
+from surfelslam.mapping.mesh_topology import topology_report, triangle_components
 from surfelslam.types import Intrinsics
 
 VOXEL = 0.01
@@ -78,7 +79,9 @@ def test_mesh_of_exact_depth_lies_on_the_surface(box_mesh):
     assert mesh.n_faces > 10_000
     d = _surface_distance(mesh.vertices.astype(np.float64))
     assert np.median(d) < 0.1 * VOXEL
-    assert np.percentile(d, 99) < VOXEL / 2
+    # the tail: the projective distance's 'ears' beside the box's edges (a few voxels along its silhouettes), whose
+    # share depends on how the views are weighted
+    assert np.percentile(d, 98) < VOXEL / 2
     # normals: unit, and where the surface is the flat wall they point at the cameras (-z)
     lens = np.linalg.norm(mesh.normals, axis=1)
     assert np.mean(np.abs(lens - 1) < 1e-4) > 0.999
@@ -122,6 +125,7 @@ def _sphere_volume(radius: float, centre) -> TsdfVolume:
     sdf = np.linalg.norm(p - centre, axis=1) - radius
     vol.tsdf[:n] = np.clip(sdf / vol.trunc_m, -1, 1).reshape(n, -1)
     vol.weight[:n] = 1.0
+    vol.count[:n] = 1
     return vol
 
 
@@ -290,3 +294,107 @@ def test_mesh_command_bad_inputs(tiny_run, tmp_path):
         import open3d  # noqa: F401
     except ImportError:
         _one_error_line(runner.invoke(app, ["mesh", str(run), "--method", "poisson"]), "surfelslam[bench]")
+
+
+# ---------------------------------------------------------------------------------------------- noise-aware fusion
+def test_noise_model_weights_and_truncation():
+    vol = TsdfVolume(VOXEL, 4 * VOXEL)
+    sigma = lambda z: 0.0012 + 0.0019 * (z - 0.4) ** 2  # noqa: E731 (the Kinect-like model of MeshConfig's doc)
+    assert kt.measurement_weight(1.0, vol.noise) == pytest.approx(1.0)
+    assert kt.measurement_weight(4.5, vol.noise) == pytest.approx((sigma(1.0) / sigma(4.5)) ** 2)
+    assert kt.measurement_weight(0.5, vol.noise) > 2.0
+    assert kt.truncation(1.0, vol.trunc_m, vol.noise) == pytest.approx(0.04)  # 3 sigma = 5.6 mm: trunc_m
+    assert kt.truncation(4.5, vol.trunc_m, vol.noise) == pytest.approx(3 * sigma(4.5))  # 9.9 cm
+    assert kt.truncation(9.0, vol.trunc_m, vol.noise) == pytest.approx(0.12)  # at most 3 trunc_m
+
+
+def _plane_mesh(flat_weights: bool) -> np.ndarray:
+    """Vertices of the mesh of the wall z = WALL_Z fused from one exact frame 1 m away and three frames 4.5 m away
+    with Kinect-like noise (sigma 3.3 cm); ``flat_weights``: every frame weighs the same (no noise model)."""
+    vol = TsdfVolume(VOXEL, 4 * VOXEL)
+    if flat_weights:
+        vol.noise[kt.NOISE_QUAD] = 0.0
+    rgb = np.zeros((INTR.height, INTR.width, 3), np.uint8)
+    rng = np.random.default_rng(3)
+    near = np.eye(4)
+    near[2, 3] = WALL_Z - 1.0
+    vol.integrate(np.full((INTR.height, INTR.width), 1.0, np.float32), rgb, INTR, near)
+    far = np.eye(4)
+    far[2, 3] = WALL_Z - 4.5
+    sigma = 0.0012 + 0.0019 * (4.5 - 0.4) ** 2
+    window = np.zeros((INTR.height, INTR.width), bool)
+    window[40:80, 60:100] = True  # the far frames' centre: the wall where the near frame saw it, and some more
+    for _ in range(3):
+        noisy = 4.5 + sigma * rng.standard_normal((INTR.height, INTR.width))
+        vol.integrate(np.where(window, noisy, 0.0).astype(np.float32), rgb, INTR, far)
+    v = vol.extract_mesh(min_component=0).vertices.astype(np.float64)
+    return v[(np.abs(v[:, 0]) < 0.3) & (np.abs(v[:, 1]) < 0.2)]  # what all frames saw
+
+
+def test_far_noisy_depth_does_not_blur_what_near_depth_saw():
+    weighted = np.abs(_plane_mesh(False)[:, 2] - WALL_Z)
+    flat = np.abs(_plane_mesh(True)[:, 2] - WALL_Z)
+    assert len(weighted) > 1000
+    assert np.median(weighted) < 0.001
+    assert np.median(flat) > 0.005  # the same frames, averaged with equal weights
+
+
+# ---------------------------------------------------------------------------------------------- meshes tools accept
+def test_mesh_of_exact_scene_is_manifold_oriented_outward(box_mesh):
+    _, mesh = box_mesh
+    r = topology_report(mesh.vertices, mesh.faces)
+    assert r["manifold"], r
+    assert r["unreferenced_vertices"] == 0
+    sizes = np.bincount(triangle_components(mesh.faces))
+    assert sizes.max() > 0.8 * mesh.n_faces and sizes.min() >= MeshConfig().min_component  # the wall is one piece
+    # outward: the faces' winding points out of the box and, on the wall, towards the cameras (-z)
+    v = mesh.vertices[mesh.faces].astype(np.float64)
+    centres = v.mean(1)
+    fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    area = np.linalg.norm(fn, axis=1)
+    on_wall = np.abs(centres[:, 2] - WALL_Z) < 0.005
+    out = np.where(on_wall, -fn[:, 2], (fn * (centres - (BOX_LO + BOX_HI) / 2)).sum(1)) > 0
+    assert area[out].sum() > 0.99 * area.sum()
+
+
+def test_open3d_accepts_the_mesh(box_mesh):
+    try:
+        import open3d as o3d
+    except ImportError as exc:  # not installed (the optional bench extra), or a system library it needs is missing
+        pytest.skip(f"open3d does not import: {exc}")
+    _, mesh = box_mesh
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
+                                  o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)))
+    assert m.is_edge_manifold(allow_boundary_edges=True)
+    assert m.is_vertex_manifold()
+    assert m.is_orientable()
+    assert len(np.asarray(m.get_non_manifold_edges(allow_boundary_edges=True))) == 0
+    n = len(m.triangles)
+    m.remove_duplicated_triangles()
+    assert len(m.triangles) == n
+
+
+def test_mesh_command_writes_a_manifold_mesh(tiny_run, tmp_path):
+    from surfelslam.cli import app
+
+    _, run = tiny_run
+    res = runner.invoke(app, ["mesh", str(run), "--no-progress", "--voxel", "0.02", "--out", str(tmp_path / "a.ply")])
+    assert res.exit_code == 0, res.output
+    v, f = read_mesh_ply(tmp_path / "a.ply")
+    xyz = np.stack([v["x"], v["y"], v["z"]], 1)
+    report = topology_report(xyz, f)
+    assert report["manifold"], report
+    assert report["unreferenced_vertices"] == 0
+    assert np.bincount(triangle_components(f)).min() >= MeshConfig().min_component
+    res = runner.invoke(app, ["mesh", str(run), "--no-progress", "--voxel", "0.02", "--min-component", "0",
+                              "--out", str(tmp_path / "b.ply")])
+    assert res.exit_code == 0, res.output
+    _, f_all = read_mesh_ply(tmp_path / "b.ply")
+    assert len(f_all) > len(f)  # the small pieces are back
+    assert topology_report(*_xyz_faces(tmp_path / "b.ply"))["components"] > report["components"]
+    _one_error_line(runner.invoke(app, ["mesh", str(run), "--min-component", "-1"]), "--min-component")
+
+
+def _xyz_faces(path):
+    v, f = read_mesh_ply(path)
+    return np.stack([v["x"], v["y"], v["z"]], 1), f

@@ -4,22 +4,29 @@ Storage (:class:`surfelslam.mapping.mesh.TsdfVolume` owns the arrays): block ``b
 ``coords[b] * 8 + (i, j, k)``, ``i, j, k`` in ``[0, 8)``, stored at ``i + 8 j + 64 k``; voxel ``(x, y, z)`` sits at
 ``(x, y, z) * voxel_m`` in the world. Blocks are found through an open-addressing hash (linear probing) of their
 packed coordinates (:func:`block_key`, 21 bits per axis): ``keys`` (``-1`` = empty slot, at most half full) and
-``vals`` (the block index). Per voxel: ``tsdf`` float32 in ``[-1, 1]`` (signed distance / truncation, positive in
-front of the surface), ``weight`` float32 (0 = never observed), colour as ``uint16`` fixed point (value x 256, a
-running average that does not stall as uint8 averages do) with its own ``uint16`` weight (colour is taken only
-within the truncation band).
+``vals`` (the block index). Per voxel: ``tsdf`` float32 (signed distance / ``trunc_m``, positive in front of the
+surface; in ``[-1, 1]`` near the sensor, up to ``trunc_max / trunc_m`` where the truncation widens with the depth
+noise), ``weight`` float32 (the sum of the measurements' weights; 0 = never observed), ``count`` uint16 (frames that
+updated it), colour as ``uint16`` fixed point (value x 256, a running average that does not stall as uint8 averages
+do) with its own ``uint16`` weight (colour is taken only within the truncation band).
 
-Per frame: :func:`allocate` walks every valid pixel's ray through ``depth +- trunc`` and inserts the blocks it
-crosses (serial: it writes the hash) and lists them; :func:`integrate` updates every voxel of those blocks
+Per frame: :func:`allocate` walks every valid pixel's ray through ``depth +- trunc(depth)`` and inserts the blocks
+it crosses (serial: it writes the hash) and lists them; :func:`integrate` updates every voxel of those blocks
 (``prange`` over blocks): projective distance ``sdf = depth(u, v) - z`` at the pixel the voxel projects to (nearest),
-skipped when ``sdf < -trunc``, ``tsdf = min(1, sdf / trunc)`` averaged with weight 1 per frame.
+skipped when ``sdf < -trunc(depth)``, ``min(trunc(depth), sdf) / trunc_m`` averaged with the measurement's weight.
+Noise-aware fusion: a depth ``z`` of axial noise ``sigma(z)`` (a Kinect-like model, growing with ``z^2``) weighs
+``1 / sigma(z)^2`` (so far, noisy depth refines nothing that near depth saw, yet fills what only it saw) and its
+truncation widens to a few sigmas (:func:`truncation`, so that the noise is averaged rather than clipped).
 
 Extraction: marching cubes with a triangle table built here (:func:`build_triangle_table`, the classic 256-case
-table's topology with ambiguous faces split so that inside corners are separated: crack-free), over every cube
-whose 8 corners have ``weight >= min_weight``. Vertices are shared: the vertex on the edge from voxel ``v`` along
-axis ``a`` is owned by ``v`` (``vid[b, k, a]``), so the mesh is welded. Normals: the TSDF gradient (central
-differences) interpolated along the edge; colours interpolated likewise. Two passes each (count, prefix sum,
-fill) so that the parallel kernels write disjoint slices and the output order is fixed.
+table's topology with ambiguous faces split so that inside corners are separated: crack-free; no triangle diagonal
+lies in a cube face, so the surface is edge-manifold and consistently oriented), over every cube whose 8 corners
+were observed (``count >= min_weight``: the extraction kernels take the count array as their ``weight``) and whose
+values do not jump across 0 by more than :data:`MAX_CROSSING_JUMP` (the edge of a truncation band). Vertices
+are shared: the vertex on the edge from voxel ``v`` along axis ``a`` is owned by ``v`` (``vid[b, k, a]``), so the
+mesh is welded. Normals: the TSDF gradient (central differences) interpolated along the edge; colours interpolated
+likewise. Two passes each (count, prefix sum, fill) so that the parallel kernels write disjoint slices and the
+output order is fixed.
 
 Meshing is an offline job with no frame-reading thread to leave a core to, so the block loops always run in
 parallel (``prange``): they have no serial twins (:mod:`surfelslam.kernels.threads`), and the results do not depend
@@ -38,6 +45,16 @@ EMPTY = -1
 #: colour fixed point: stored value = colour x COLOUR_SCALE
 COLOUR_SCALE = 256.0
 _U16_MAX = 65535
+#: a vertex lies at least this fraction of its voxel edge from the edge's ends, so that the vertices of the edges
+#: meeting at a voxel whose TSDF is exactly 0 do not coincide (duplicated positions, zero-area triangles)
+EDGE_T_MIN = 1e-3
+#: a cube whose TSDF values (in units of trunc_m) on either side of 0 differ by more than this is no surface: a
+#: surface changes the signed distance by at most a voxel per voxel (0.25 at trunc_m = 4 voxels, 1.2 seen at 78 deg
+#: by the projective distance), while free space (+1) next to the back of another surface's band jumps by more
+MAX_CROSSING_JUMP = 1.5
+#: allocation samples each ray's truncation band this many voxels apart (a third of a block: every block the band
+#: crosses is met)
+ALLOCATE_STEP_VOXELS = BLOCK / 3.0
 
 
 # ---------------------------------------------------------------------------------------------- triangle table
@@ -59,6 +76,50 @@ def _face_cycles() -> list[list[int]]:
     return cycles
 
 
+def _faces_of_edge(edge: tuple[int, int]) -> set[tuple[int, int]]:
+    """The two cube faces ``(axis, side)`` that contain the cube edge ``(lower corner, axis)``."""
+    c, a = edge
+    return {(b, (c >> b) & 1) for b in range(3) if b != a}
+
+
+def _triangulations(loop: list[int]):
+    """Every triangulation of the polygon ``loop`` (vertices in loop order, so each triangle keeps its winding), as
+    lists of ``(i, j, k)`` triples; the fans come first, from each start in turn."""
+    n = len(loop)
+    for s in range(n):
+        yield [(loop[s], loop[(s + i) % n], loop[(s + i + 1) % n]) for i in range(1, n - 1)]
+    if n < 5:
+        return
+
+    def rec(poly: list[int]):
+        if len(poly) < 3:
+            yield []
+            return
+        a, b = poly[0], poly[-1]
+        for m in range(1, len(poly) - 1):
+            for left in rec(poly[: m + 1]):
+                for right in rec(poly[m:]):
+                    yield [*left, (a, poly[m], b), *right]
+
+    yield from rec(loop)
+
+
+def _triangulate_loop(loop: list[int], edges: list[tuple[int, int]]) -> list[int]:
+    """A triangulation of one loop of cut edges whose inner diagonals never join two edges of the same cube face.
+
+    Such a diagonal lies in the face, which the neighbouring cube shares: where that face is ambiguous (4 cut
+    edges) the neighbour may use the same diagonal (an edge of 4 triangles) or even the same triangle, reversed.
+    Diagonals through the cube's interior are shared by nothing else, so the surface stays edge-manifold.
+    """
+    n = len(loop)
+    for tris in _triangulations(loop):
+        diagonals = {frozenset(p) for t in tris for p in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+        diagonals -= {frozenset((loop[i], loop[(i + 1) % n])) for i in range(n)}
+        if all(not (_faces_of_edge(edges[e]) & _faces_of_edge(edges[f])) for e, f in diagonals):
+            return [e for t in tris for e in t]
+    raise AssertionError(f"no triangulation of the marching cubes loop {loop} avoids the cube's faces")
+
+
 def build_triangle_table() -> tuple[np.ndarray, np.ndarray]:
     """``(table (256, 3 * T) int8, count (256,) int8)``: per corner configuration (bit ``c`` set when corner ``c``
     is inside, ``tsdf < 0``), the triangles as edge indices into :func:`_cube_edges`, ``-1`` padded.
@@ -66,8 +127,8 @@ def build_triangle_table() -> tuple[np.ndarray, np.ndarray]:
     Each face's cut edges are paired into segments from an edge where the face's counter-clockwise walk enters the
     inside to the next edge where it leaves (a face with two inside corners on a diagonal gets two segments, each
     cutting one inside corner off: neighbouring cubes agree, so the surface has no cracks). Every cut edge starts
-    one segment and ends another, so the segments form loops; each loop is a fan of triangles, wound
-    counter-clockwise seen from the outside (positive) side.
+    one segment and ends another, so the segments form loops; each loop is triangulated
+    (:func:`_triangulate_loop`), wound counter-clockwise seen from the outside (positive) side.
     """
     edges = _cube_edges()
     edge_of = {}
@@ -95,8 +156,7 @@ def build_triangle_table() -> tuple[np.ndarray, np.ndarray]:
             while nxt[loop[-1]] != start:
                 loop.append(nxt[loop[-1]])
             seen.update(loop)
-            for i in range(1, len(loop) - 1):
-                tris += [loop[0], loop[i], loop[i + 1]]
+            tris += _triangulate_loop(loop, edges)
         rows.append(tris)
     width = max(len(r) for r in rows)
     table = np.full((256, width), -1, np.int8)
@@ -154,20 +214,67 @@ def rehash(coords: np.ndarray, n_blocks: int, keys: np.ndarray, vals: np.ndarray
 
 
 # ---------------------------------------------------------------------------------------------- integration
+#: layout of the ``noise`` array the integration kernels take (:func:`depth_sigma`, :func:`truncation`,
+#: :func:`measurement_weight`): axial depth noise ``sigma(z) = base + quad (z - offset)^2`` (m), the truncation
+#: ``clip(trunc_sigmas sigma(z), trunc_m, trunc_max_m)`` and the weight ``ref_var / sigma(z)^2``
+NOISE_BASE, NOISE_QUAD, NOISE_OFFSET, NOISE_TRUNC_SIGMAS, NOISE_TRUNC_MAX, NOISE_REF_VAR = range(6)
+
+
 @njit(cache=True, nogil=True)
-def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, block_m, keys, vals, coords,
+def depth_sigma(d, noise):
+    """Axial noise (m, one sigma) of a depth ``d`` (m)."""
+    return noise[NOISE_BASE] + noise[NOISE_QUAD] * (d - noise[NOISE_OFFSET]) ** 2
+
+
+@njit(cache=True, nogil=True)
+def truncation(d, trunc_m, noise):
+    """Truncation (m) of a depth ``d``: ``trunc_m``, widened to ``trunc_sigmas`` noise sigmas, at most
+    ``trunc_max``."""
+    return min(max(trunc_m, noise[NOISE_TRUNC_SIGMAS] * depth_sigma(d, noise)), max(trunc_m, noise[NOISE_TRUNC_MAX]))
+
+
+@njit(cache=True, nogil=True)
+def measurement_weight(d, noise):
+    """Fusion weight of a depth ``d``: inverse noise variance, 1 where the variance is ``ref_var``."""
+    s = depth_sigma(d, noise)
+    return noise[NOISE_REF_VAR] / (s * s)
+
+
+@njit(cache=True, nogil=True)
+def _touch(bx, by, bz, keys, vals, coords, n_blocks, stamp, stamps, visible, n_vis):
+    """Insert block ``(bx, by, bz)`` if new and list it in ``visible`` once per ``stamp``. Returns ``(n_blocks,
+    n_vis, full)``; ``full``: the block is new and does not fit."""
+    key = block_key(bx, by, bz)
+    b = hash_find(keys, vals, key)
+    if b < 0:
+        if n_blocks >= coords.shape[0] or n_blocks >= keys.shape[0] // 2:
+            return n_blocks, n_vis, True
+        b = n_blocks
+        coords[b, 0] = bx
+        coords[b, 1] = by
+        coords[b, 2] = bz
+        _hash_put(keys, vals, key, b)
+        n_blocks += 1
+    if stamps[b] != stamp:
+        stamps[b] = stamp
+        visible[n_vis] = b
+        n_vis += 1
+    return n_blocks, n_vis, False
+
+
+@njit(cache=True, nogil=True)
+def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, noise, voxel_m, keys, vals, coords,
              n_blocks, stamp, stamps, visible):
-    """Insert the blocks within ``trunc_m`` of every valid pixel's surface point (along its ray) and list the
-    blocks this frame touches in ``visible`` (each once: ``stamps[b] == stamp``).
+    """Insert the blocks that every valid pixel's ray crosses within the truncation (:func:`truncation`) of its
+    depth, sampled :data:`ALLOCATE_STEP_VOXELS` apart, and list the blocks this frame touches in ``visible`` (each
+    once: ``stamps[b] == stamp``).
 
     Returns ``(n_blocks, n_visible, full)``; ``full``: a new block did not fit (``coords`` full or the hash
     half full); the caller grows the arrays and calls again (with a new ``stamp``).
     """
     H, W = depth.shape
-    capacity = coords.shape[0]
-    max_fill = keys.shape[0] // 2
-    inv_b = 1.0 / block_m
-    step = block_m / 3.0
+    inv_v = 1.0 / voxel_m
+    inv_b = inv_v / BLOCK
     n_vis = 0
     for v in range(H):
         for u in range(W):
@@ -177,9 +284,10 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
             xr = (u - cx) / fx
             yr = (v - cy) / fy
             ray_len = np.sqrt(xr * xr + yr * yr + 1.0)
-            z0 = max(d - trunc_m, 1e-3)
-            z1 = d + trunc_m
-            n = int(np.ceil((z1 - z0) * ray_len / step)) + 1
+            tr = truncation(d, trunc_m, noise)
+            z0 = max(d - tr, 1e-3)
+            z1 = d + tr
+            n = int(np.ceil((z1 - z0) * ray_len * inv_v / ALLOCATE_STEP_VOXELS)) + 1
             lx = ly = lz = -(1 << 40)
             for s in range(n):
                 z = z0 + (z1 - z0) * s / (n - 1)
@@ -193,27 +301,16 @@ def allocate(depth, fx, fy, cx, cy, T_world_cam, min_depth, max_depth, trunc_m, 
                 if bx == lx and by == ly and bz == lz:
                     continue
                 lx, ly, lz = bx, by, bz
-                key = block_key(bx, by, bz)
-                b = hash_find(keys, vals, key)
-                if b < 0:
-                    if n_blocks >= capacity or n_blocks >= max_fill:
-                        return n_blocks, n_vis, True
-                    b = n_blocks
-                    coords[b, 0] = bx
-                    coords[b, 1] = by
-                    coords[b, 2] = bz
-                    _hash_put(keys, vals, key, b)
-                    n_blocks += 1
-                if stamps[b] != stamp:
-                    stamps[b] = stamp
-                    visible[n_vis] = b
-                    n_vis += 1
+                n_blocks, n_vis, full = _touch(bx, by, bz, keys, vals, coords, n_blocks, stamp, stamps, visible,
+                                               n_vis)
+                if full:
+                    return n_blocks, n_vis, True
     return n_blocks, n_vis, False
 
 
 @njit(cache=True, nogil=True)
-def _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible, coords,
-                     tsdf, weight, colour, colour_weight, max_weight, q):
+def _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, noise, voxel_m, visible,
+                     coords, tsdf, weight, count, colour, colour_weight, max_weight, q):
     """Item ``q`` of :func:`integrate`'s parallel loop, a function of its own: numba's parallel pass then
     handles a loop of one call (see ``icp._normal_equations_chunk``)."""
     H, W = depth.shape
@@ -249,13 +346,16 @@ def _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_dep
                 if not (d >= min_depth and d <= max_depth):
                     continue
                 sdf = d - zc
-                if sdf < -trunc_m:
+                tr = truncation(d, trunc_m, noise)
+                if sdf < -tr:
                     continue
                 k = kx + BLOCK * ky + BLOCK * BLOCK * kz
                 w0 = weight[b, k]
-                tsdf[b, k] = (tsdf[b, k] * w0 + min(1.0, sdf * inv_t)) / (w0 + 1.0)
-                weight[b, k] = min(w0 + 1.0, max_weight)
-                if sdf < trunc_m:
+                w = measurement_weight(d, noise)
+                tsdf[b, k] = (tsdf[b, k] * w0 + min(tr, sdf) * inv_t * w) / (w0 + w)
+                weight[b, k] = min(w0 + w, max_weight)
+                count[b, k] = min(count[b, k] + 1, _U16_MAX)
+                if sdf < tr:
                     cw = np.float64(colour_weight[b, k])
                     inv_w = 1.0 / (cw + 1.0)
                     for c in range(3):
@@ -265,18 +365,19 @@ def _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_dep
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def integrate(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible, coords,
-              tsdf, weight, colour, colour_weight, max_weight):
+def integrate(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, noise, voxel_m, visible,
+              coords, tsdf, weight, count, colour, colour_weight, max_weight):
     """Projective TSDF update of every voxel of the blocks ``visible`` with one frame.
 
     ``depth`` ``(H, W)`` float32 metres (0 / NaN / out of range: no measurement); ``rgb`` ``(H, W, 3)`` uint8, the
     colour of each depth pixel; ``T_cam_world`` ``(4, 4)``. A voxel whose projective distance ``sdf = d - z`` is
-    ``>= -trunc_m`` gets ``min(1, sdf / trunc_m)`` averaged in with weight 1 (the weight saturates at
-    ``max_weight``, so old frames fade); within ``|sdf| < trunc_m`` its colour is averaged too.
+    ``>= -tr`` (``tr``: :func:`truncation` of ``d``) gets ``min(tr, sdf) / trunc_m`` averaged in with the weight
+    :func:`measurement_weight` of ``d`` (the weight saturates at ``max_weight``, so old frames fade) and its
+    ``count`` of frames goes up by one; within ``|sdf| < tr`` its colour is averaged too.
     """
     for q in prange(visible.shape[0]):
-        _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, voxel_m, visible,
-                         coords, tsdf, weight, colour, colour_weight, max_weight, np.int64(q))
+        _integrate_block(depth, rgb, fx, fy, cx, cy, T_cam_world, min_depth, max_depth, trunc_m, noise, voxel_m,
+                         visible, coords, tsdf, weight, count, colour, colour_weight, max_weight, np.int64(q))
 
 
 # ---------------------------------------------------------------------------------------------- extraction
@@ -378,7 +479,7 @@ def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_w
             f1 = tsdf[nb, nk]
             if (f1 < 0) == (f0 < 0):
                 continue
-            t = f0 / (f0 - f1)
+            t = min(max(f0 / (f0 - f1), EDGE_T_MIN), 1.0 - EDGE_T_MIN)
             verts[n, 0] = (ox + i + t * di) * voxel_m
             verts[n, 1] = (oy + j + t * dj) * voxel_m
             verts[n, 2] = (oz + l + t * dl) * voxel_m
@@ -421,14 +522,23 @@ def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, 
 
 @njit(cache=True, nogil=True)
 def _cube_case(nbr, tsdf, weight, min_weight, b, i, j, l):
-    """The cube's configuration (bit c: corner c inside), or -1 when a corner is unobserved."""
+    """The cube's configuration (bit c: corner c inside), or -1 when a corner is unobserved or the sign change along
+    one of its edges is a jump no surface makes (:data:`MAX_CROSSING_JUMP`)."""
     case = 0
+    lo = np.inf
+    hi = -np.inf
     for c in range(8):
         nb, nk = _voxel(nbr, b, i + (c & 1), j + ((c >> 1) & 1), l + (c >> 2))
         if nb < 0 or weight[nb, nk] < min_weight:
             return -1
-        if tsdf[nb, nk] < 0:
+        f = tsdf[nb, nk]
+        if f < 0:
             case |= 1 << c
+            lo = min(lo, f)
+        else:
+            hi = max(hi, f)
+    if hi - lo > MAX_CROSSING_JUMP:
+        return -1
     return case
 
 

@@ -49,8 +49,8 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
     run = open_run(run_dir)
     est = run.trajectory()
     run_cfg = run.config
-    if run_depth_range:  # the depth range the run fused its map with
-        cfg = dataclasses.replace(cfg, min_depth_m=run_cfg.fusion.min_depth_m, max_depth_m=run_cfg.fusion.max_depth_m)
+    if run_depth_range:  # the near limit the run fused its map with (farther than its far limit: noise-weighted)
+        cfg = dataclasses.replace(cfg, min_depth_m=run_cfg.fusion.min_depth_m)
     seq = run.open_sequence(sequence)
     T, has_pose = est.lookup(seq.timestamps, FRAME_MATCH_S)
     positions = np.flatnonzero(has_pose)[:: cfg.stride]
@@ -103,7 +103,7 @@ def mesh_run(run_dir: Path, cfg: MeshConfig, out: Path | None = None, sequence: 
     """Write the mesh of the run in ``run_dir`` to ``out`` (default ``run_dir/mesh.ply``).
 
     ``sequence``: the run's sequence folder when it is not where ``metrics.json`` says. ``run_depth_range``: fuse
-    the depth range of the run's ``[fusion]`` settings instead of ``cfg``'s.
+    from the run's ``[fusion] min_depth_m`` on instead of ``cfg``'s (up to ``cfg.max_depth_m``).
     """
     from surfelslam.io.ply import write_mesh_ply
 

@@ -20,7 +20,8 @@ from surfelslam.tools.common import console, handle_errors
 
 #: MeshConfig fields -> the options that set them (for error messages)
 OPTION_OF = {"method": "--method", "voxel_m": "--voxel", "trunc_m": "--trunc", "max_depth_m": "--max-depth",
-             "min_depth_m": "the run's [fusion] min_depth_m", "stride": "--stride", "min_weight": "--min-weight"}
+             "min_depth_m": "the run's [fusion] min_depth_m", "stride": "--stride", "min_weight": "--min-weight",
+             "min_component": "--min-component"}
 
 
 def mesh_config(**given) -> MeshConfig:
@@ -49,10 +50,13 @@ def register(app: typer.Typer) -> None:
         trunc: Annotated[float | None, typer.Option(
             "--trunc", help="TSDF truncation distance [m]. Default 4 voxels.")] = None,
         max_depth: Annotated[float | None, typer.Option(
-            "--max-depth", help="Fuse depths up to this [m]. Default: the run's [fusion] max_depth_m.")] = None,
+            "--max-depth", help="Fuse depths up to this [m]. Default 5: a Kinect's range, each depth noise-weighted.")
+                                        ] = None,
         stride: Annotated[int | None, typer.Option("--stride", help="Fuse every N-th frame. Default 1.")] = None,
         min_weight: Annotated[float | None, typer.Option(
             "--min-weight", help="Mesh only voxels seen in at least this many frames. Default 1.")] = None,
+        min_component: Annotated[int | None, typer.Option(
+            "--min-component", help="Remove floating pieces of fewer triangles (0: keep all). Default 100.")] = None,
         out: Annotated[Path | None, typer.Option("--out", help="Mesh file to write (default RUN_DIR/mesh.ply).")
                        ] = None,
         sequence: Annotated[Path | None, typer.Option(
@@ -67,7 +71,7 @@ def register(app: typer.Typer) -> None:
         if method not in METHODS:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         cfg = mesh_config(method=method, voxel_m=voxel, trunc_m=trunc, max_depth_m=max_depth, stride=stride,
-                          min_weight=min_weight)
+                          min_weight=min_weight, min_component=min_component)
         res = mesh_run(run_dir, cfg, out, sequence, tsdf_bar if progress else None, run_depth_range=max_depth is None)
         for note in res.notes:
             console.print(f"note: {note}", highlight=False, markup=False, soft_wrap=True)
