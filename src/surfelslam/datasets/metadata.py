@@ -20,6 +20,7 @@ Precedence, highest first: command-line options > metadata in the folder > the l
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -141,7 +142,9 @@ def parse_depth_scale_text(text: str) -> float | None:
 def read_camera_matrix(path: Path) -> tuple[float, float, float, float]:
     """A 3x3 camera matrix file (7-Scenes ``camera-intrinsics.txt``) -> ``(fx, fy, cx, cy)``."""
     try:
-        K = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # an empty file: numpy warns, the shape check below says it in one line
+            warnings.simplefilter("ignore", UserWarning)
+            K = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except (OSError, ValueError) as exc:
         raise DatasetError(path, f"cannot read a 3x3 camera matrix ({exc})") from None
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):

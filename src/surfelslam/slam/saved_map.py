@@ -156,7 +156,7 @@ def from_arrays(arrays: Any) -> SavedMap:
         fx, fy, cx, cy, w, h = man["intrinsics"]
         intr = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
         step = int(man["keyframe_depth_step"])
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError, ConfigError) as exc:  # Overflow: Infinity counts
         raise MapFormatProblem(f"incomplete manifest ({exc})") from None
     surfels = {name: _get(arrays, f"surfel_{name}", dtype, (n, *trail))
                for name, (dtype, trail) in SURFEL_FIELDS.items()}
