@@ -379,6 +379,8 @@ def load_toml(cls: type[C], path: str | Path) -> C:
         raise ConfigError(f"{path}: cannot read config file ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+    except ValueError as exc:  # a path no file can have (a NUL character)
+        raise ConfigError(f"{str(path)!r}: cannot read config file ({exc})") from None
     try:
         return from_dict(cls, data)
     except ConfigError as exc:

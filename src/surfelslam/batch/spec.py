@@ -131,12 +131,21 @@ def sweep_variants(sets: Sequence[str]) -> tuple[ConfigVariant, ...]:
 
 
 # ------------------------------------------------------------------------------------------------ specs
+def sequence_path(text: str | Path, base: Path, where: str) -> str:
+    """``text`` as an absolute path (``~`` expanded, relative to ``base``); ConfigError, prefixed by ``where``, for a
+    path no file can have (a NUL character, ``~user`` of an unknown user)."""
+    try:
+        return str((base / Path(text).expanduser()).resolve())
+    except (ValueError, RuntimeError) as exc:
+        raise ConfigError(f"{where}sequence path {str(text)!r}: {exc}") from None
+
+
 def inline_spec(sequences: Sequence[str | Path], trackers: str | Sequence[str] | None = None,
                 sets: Sequence[str] = (), base: SlamConfig | None = None) -> BatchSpec:
     """The inline form: ``SEQ... --tracker a,b --set KEY=V1,V2 ...``."""
     if not sequences:
         raise ConfigError("no sequences given (SEQ... or a spec file)")
-    return BatchSpec(sequences=tuple(str(Path(s).expanduser().resolve()) for s in sequences),
+    return BatchSpec(sequences=tuple(sequence_path(s, Path(), "") for s in sequences),
                      trackers=split_trackers(trackers), configs=sweep_variants(sets),
                      base=SlamConfig() if base is None else base)
 
@@ -167,6 +176,8 @@ def load_spec(path: str | Path) -> BatchSpec:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{path}: spec file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not UTF-8
+        raise ConfigError(f"{path}: cannot read the spec file ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     unknown = sorted(set(data) - set(SPEC_KEYS))
@@ -178,7 +189,7 @@ def load_spec(path: str | Path) -> BatchSpec:
     if not seqs or not isinstance(seqs, list) or not all(isinstance(s, str) for s in seqs):
         raise ConfigError(f"{path}: sequences must be a non-empty list of paths")
     here = path.resolve().parent
-    sequences = tuple(str((here / Path(s).expanduser()).resolve()) for s in seqs)
+    sequences = tuple(sequence_path(s, here, f"{path}: ") for s in seqs)
     base_name = data.get("base")
     if base_name is not None and not isinstance(base_name, str):
         raise ConfigError(f"{path}: base must be a config file or preset name")
