@@ -30,10 +30,9 @@ _COMMON = dict(
     deadline=DEADLINE_MS,
     # each example makes its own folder below the test's tmp_path (fuzzkit.example_dir); seeds are built once
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large],
-    print_blob=False,
 )
-settings.register_profile("fast", max_examples=FAST_EXAMPLES, derandomize=True, **_COMMON)
-settings.register_profile("fuzz", max_examples=FUZZ_EXAMPLES, **_COMMON)
+settings.register_profile("fast", max_examples=FAST_EXAMPLES, derandomize=True, print_blob=False, **_COMMON)
+settings.register_profile("fuzz", max_examples=FUZZ_EXAMPLES, print_blob=True, **_COMMON)  # a find can be replayed
 if settings.get_current_profile_name() == "default":  # no --hypothesis-profile given
     settings.load_profile("fast")
 

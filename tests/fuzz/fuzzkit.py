@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
+from hypothesis import currently_in_test_context, event
 from hypothesis import strategies as st
 
 from surfelslam.errors import SurfelSlamError
@@ -67,6 +68,12 @@ def assert_one_line(exc: SurfelSlamError) -> str:
     return text
 
 
+def _count(what: str) -> None:
+    """Count the outcome for ``--hypothesis-show-statistics`` (how many inputs were valid, which errors)."""
+    if currently_in_test_context():
+        event(what)
+
+
 def outcome(call: Callable[[], T]) -> T | SurfelSlamError:
     """``call()``'s result, or the SurfelSlamError it raised (checked: one line). Any other exception propagates
     (a find), and so does a hang. A Python warning is a find too: the command line would print it on stderr beside
@@ -75,9 +82,12 @@ def outcome(call: Callable[[], T]) -> T | SurfelSlamError:
         warnings.simplefilter("always")
         try:
             with hang_guard():
-                return call()
+                result = call()
+            _count(f"{getattr(call, '__name__', 'call')}: valid")
+            return result
         except SurfelSlamError as exc:
             assert_one_line(exc)
+            _count(f"{getattr(call, '__name__', 'call')}: {type(exc).__name__}")
             return exc
         finally:
             shown = [f"{w.category.__name__}: {w.message}" for w in caught if not issubclass(w.category, QUIET)]

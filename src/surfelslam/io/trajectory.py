@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -49,8 +50,10 @@ def read_tum(path: str | Path) -> Trajectory:
             raise InputError(path, f"line {lineno}: not a number in {line!r}") from None
         if not np.all(np.isfinite(vals)):
             raise InputError(path, f"line {lineno}: non-finite value in {line!r}")
-        if np.linalg.norm(vals[4:8]) < 1e-6:
+        if math.hypot(*vals[4:8]) < 1e-6:  # hypot: no overflow for huge components
             raise InputError(path, f"line {lineno}: zero quaternion")
+        exponent = math.frexp(max(abs(x) for x in vals[4:8]))[1]
+        vals[4:8] = [math.ldexp(x, -exponent) for x in vals[4:8]]  # exact power-of-two scaling: 1e200 stays finite
         rows.append(vals)
         linenos.append(lineno)
     if not rows:
