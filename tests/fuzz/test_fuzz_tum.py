@@ -94,3 +94,37 @@ def test_dataset_options(tum_seed, tmp_path, start, end, stride, downsample, dep
         return
     with unchanged(tum_seed):
         open_and_check(tum_seed, options=options)
+
+
+_INTR = "intrinsics : fx=14 fy=14 cx=7.5 cy=5.5\n"
+#: extreme values, each a find of the fuzzing (a RuntimeWarning on stderr beside the result) or a neighbour of one
+EXTREMES = {
+    "stamps_overflow_differences": {"rgb.txt": "1e308 rgb/a.png\n-1e308 rgb/b.png\n",
+                                    "depth.txt": "1e308 depth/a.png\n-1e308 depth/b.png\n"},
+    "gt_stamps_overflow_differences": {"groundtruth.txt": "-1e308 0 0 0 0 0 0 1\n1e308 0 0 0 0 0 0 1\n"},
+    "subnormal_depth_scale": {"INFO.txt": _INTR + "depth scale : 1e-320\n"},
+    "depth_scale_beyond_float32": {"INFO.txt": _INTR + "depth scale : 1e300\n"},
+    "huge_focal_length": {"INFO.txt": "intrinsics : fx=1e308 fy=1e308 cx=7.5 cy=5.5\ndepth scale : 5000\n"},
+    "subnormal_focal_length": {"INFO.txt": "intrinsics : fx=1e-320 fy=1e-320 cx=7.5 cy=5.5\ndepth scale : 5000\n"},
+    "extreme_colour_camera": {"INFO.txt": _INTR + "depth scale : 5000\ncolour intrinsics : fx=1e-320 fy=1e308 cx=0 "
+                                                   "cy=0\ncolour translation : 1e308 -1e308 0\n"},
+    "huge_ground_truth_positions": {"groundtruth.txt": "1305031102.17 1e308 1e308 1e308 0 0 0 1\n"
+                                                       "1305031102.2 -1e308 0 0 0 0 0 1\n"},
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXTREMES))
+def test_extreme_values(tum_seed, tmp_path, name):
+    root = copy_seed(tum_seed, tmp_path)
+    for file, text in EXTREMES[name].items():
+        (root / file).write_text(text)
+    with unchanged(root):
+        open_and_check(root)
+
+
+@pytest.mark.parametrize("depth_scale", [1e-320, 1e-38, 1e300])
+def test_extreme_depth_scale_option(tum_seed, depth_scale):
+    """--depth-scale at the ends of the float range (found: divide-by-zero and cast-overflow warnings)."""
+    from surfelslam.datasets import DatasetOptions
+
+    open_and_check(tum_seed, options=DatasetOptions(depth_scale=depth_scale))

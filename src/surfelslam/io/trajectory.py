@@ -15,6 +15,11 @@ from surfelslam.io.atomic import NEW_FILE_MODE, atomic_open, os_error_text
 from surfelslam.types import Trajectory
 
 
+#: Largest |timestamp| read from a TUM-style file [s]: far beyond any clock (nanoseconds since 1970 are 1.7e18), and the
+#: difference of two such stamps is still finite (1e308 - -1e308 overflows)
+MAX_ABS_STAMP_S = 1e300
+
+
 def data_lines(text: str) -> Iterator[tuple[int, str]]:
     """``(line number, stripped line)`` of the lines of a TUM text file that are neither blank nor ``#`` comments.
 
@@ -50,6 +55,8 @@ def read_tum(path: str | Path) -> Trajectory:
             raise InputError(path, f"line {lineno}: not a number in {line!r}") from None
         if not np.all(np.isfinite(vals)):
             raise InputError(path, f"line {lineno}: non-finite value in {line!r}")
+        if abs(vals[0]) > MAX_ABS_STAMP_S:
+            raise InputError(path, f"line {lineno}: timestamp {parts[0]} is out of range (|t| > {MAX_ABS_STAMP_S:g} s)")
         if math.hypot(*vals[4:8]) < 1e-6:  # hypot: no overflow for huge components
             raise InputError(path, f"line {lineno}: zero quaternion")
         exponent = math.frexp(max(abs(x) for x in vals[4:8]))[1]
