@@ -9,13 +9,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
+from surfelslam.datasets.rosbag import POSE_TYPES
+from surfelslam.datasets.rosbag.decode import pose_matrix
 from surfelslam.datasets.rosbag_write import BagRecorder, write_bag
 
-from fuzzkit import SEED_H, SEED_W, copy_seed, example_dir, is_error, make_tum_seed, mutated_bytes, open_and_check, \
-    text_or_bytes, unchanged
+from fuzzkit import SEED_H, SEED_W, check_trajectory, copy_seed, example_dir, is_error, make_tum_seed, mutated_bytes, \
+    open_and_check, outcome, text_or_bytes, unchanged
 
 
 @pytest.fixture(scope="module")
@@ -104,3 +106,28 @@ def test_strange_messages(tmp_path, frames, camera, size, fmt):
     rec.close()
     with unchanged(out.parent):
         open_and_check(out)
+
+
+_POSE_VALUE = st.one_of(st.sampled_from((0.0, -0.0, 1.0, np.nan, np.inf, -np.inf, 1e200, -1e200, 1e-320, 1e155)),
+                        st.floats())
+
+
+@given(position=st.tuples(_POSE_VALUE, _POSE_VALUE, _POSE_VALUE),
+       quaternion=st.tuples(_POSE_VALUE, _POSE_VALUE, _POSE_VALUE, _POSE_VALUE),
+       msgtype=st.sampled_from(POSE_TYPES))
+@example(position=(0.0, 0.0, 0.0), quaternion=(0.0, 0.0, 0.0, 0.0), msgtype=POSE_TYPES[0])  # found: NaN pose
+@example(position=(0.0, 0.0, 0.0), quaternion=(1e200, 0.0, 0.0, 1e200), msgtype=POSE_TYPES[0])  # found: overflow
+def test_ground_truth_pose_messages(position, quaternion, msgtype):
+    """A bag's ground-truth pose message with any values: a rigid pose, or a ValueError (which opening the bag
+    turns into one line naming the message)."""
+    p = types.SimpleNamespace(x=position[0], y=position[1], z=position[2])
+    q = types.SimpleNamespace(x=quaternion[0], y=quaternion[1], z=quaternion[2], w=quaternion[3])
+    pose = types.SimpleNamespace(position=p, orientation=q)
+    msg = types.SimpleNamespace(pose=types.SimpleNamespace(pose=pose, position=p, orientation=q),
+                                transform=types.SimpleNamespace(translation=p, rotation=q))
+    try:
+        T = outcome(lambda: pose_matrix(msg, msgtype))
+    except ValueError as exc:
+        assert "\n" not in str(exc)
+        return
+    check_trajectory(types.SimpleNamespace(timestamps=np.zeros(1), T_world_cam=T[None]))
