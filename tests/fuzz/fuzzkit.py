@@ -28,8 +28,9 @@ HANG_LIMIT_S = 60.0
 #: longest run of random bytes inserted or written over a file [bytes]
 MAX_SPLICE_BYTES = 64
 #: values that break number parsing and checks: not numbers, not finite, negative, huge, empty
-NASTY_TOKENS = ("nan", "NaN", "inf", "-inf", "+inf", "-1", "-0", "0", "1e309", "-1e309", "1e-320", "99999999999999999999",
-                "0x10", "1_0", "abc", "", "#", "\x00", "é", "1,5", "--", "\\", "'", "\"", "[", "{", "=")
+NASTY_TOKENS = ("nan", "NaN", "inf", "-inf", "+inf", "-1", "-0", "0", "1e309", "-1e309", "1e-320", "1e308", "-1e308",
+                "99999999999999999999", "0x10", "1_0", "abc", "", "#", "\x00", "é", "1,5", "--", "\\", "'", "\"", "[",
+                "{", "=")
 
 
 #: warning categories Python does not show by default (not on a user's stderr)

@@ -9,15 +9,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fuzzkit import (
+    SEED_H,
+    SEED_W,
+    check_trajectory,
+    copy_seed,
+    example_dir,
+    is_error,
+    make_tum_seed,
+    mutated_bytes,
+    open_and_check,
+    outcome,
+    text_or_bytes,
+    unchanged,
+)
 from hypothesis import example, given
 from hypothesis import strategies as st
 
 from surfelslam.datasets.rosbag import POSE_TYPES
 from surfelslam.datasets.rosbag.decode import pose_matrix
 from surfelslam.datasets.rosbag_write import BagRecorder, write_bag
-
-from fuzzkit import SEED_H, SEED_W, check_trajectory, copy_seed, example_dir, is_error, make_tum_seed, mutated_bytes, \
-    open_and_check, outcome, text_or_bytes, unchanged
 
 
 @pytest.fixture(scope="module")

@@ -6,14 +6,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from fuzzkit import example_dir, is_error, outcome, text_or_bytes, unchanged
 from hypothesis import example, given
 from hypothesis import strategies as st
 
 from surfelslam.batch.spec import expand_jobs, inline_spec, load_spec
 from surfelslam.config import validate
 from surfelslam.slam import TRACKERS
-
-from fuzzkit import example_dir, is_error, outcome, text_or_bytes, unchanged
 
 SPEC = """\
 sequences = ["data/fr1_xyz", "data/fr1_desk"]

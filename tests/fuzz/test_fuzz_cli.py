@@ -7,17 +7,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from fuzzkit import copy_seed, example_dir, make_tum_seed, mutated_bytes, text_or_bytes, tree, unchanged
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_fuzz_config import LEAF_KEYS, SET_VALUES
+from test_fuzz_trajectory import EST_TEXT, GT_TEXT
 from typer.testing import CliRunner
 
 from surfelslam.config import dumps_toml
 from surfelslam.datasets.rosbag_write import write_bag
 from surfelslam.slam import SlamConfig
-
-from fuzzkit import copy_seed, example_dir, make_tum_seed, mutated_bytes, text_or_bytes, tree, unchanged
-from test_fuzz_config import SET_VALUES, LEAF_KEYS
-from test_fuzz_trajectory import EST_TEXT, GT_TEXT
 
 #: exit code of a command refusing its input (tools/common.py EXIT_BAD_INPUT)
 EXIT_BAD_INPUT = 2

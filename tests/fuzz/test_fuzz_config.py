@@ -8,14 +8,13 @@ import dataclasses
 import json
 import math
 
+from fuzzkit import NASTY_TOKENS, example_dir, is_error, mutated_text, outcome, text_or_bytes, unchanged
 from hypothesis import example, given
 from hypothesis import strategies as st
 
 from surfelslam.config import dumps_toml, iter_tables, validate
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.runner import apply_sets, load_config
-
-from fuzzkit import NASTY_TOKENS, example_dir, is_error, mutated_text, outcome, text_or_bytes, unchanged
 
 DEFAULT_TOML = dumps_toml(SlamConfig())
 #: every setting's dotted path (``icp.min_inliers``), and every table's

@@ -8,12 +8,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
-
-from surfelslam.errors import FrameError
-from surfelslam.io.images import read_depth_raw, read_rgb
-
 from fuzzkit import (
     SEED_H,
     SEED_W,
@@ -26,6 +20,11 @@ from fuzzkit import (
     seed_images,
     unchanged,
 )
+from hypothesis import given
+from hypothesis import strategies as st
+
+from surfelslam.errors import FrameError
+from surfelslam.io.images import read_depth_raw, read_rgb
 
 _RGB, _DEPTH = seed_images(1, seed=7)[0]
 #: encoded seed images: colour PNG, JPEG, grey PNG, 16-bit depth PNG

@@ -9,12 +9,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hypothesis import example, given
+from fuzzkit import SEED_FRAMES, SEED_INFO, copy_seed, is_error, open_and_check, seed_images, text_or_bytes, unchanged
+from hypothesis import given
 from hypothesis import strategies as st
 
 from surfelslam.io.images import write_png_depth
-
-from fuzzkit import SEED_FRAMES, SEED_INFO, copy_seed, is_error, open_and_check, seed_images, text_or_bytes, unchanged
 
 #: a frame number as long as a file name can hold (255 bytes): numbered layouts turn frame numbers into stamps
 HUGE_NUMBER = "9" * 230

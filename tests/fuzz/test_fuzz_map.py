@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fuzzkit import example_dir, is_error, mutated_bytes, mutated_text, outcome, unchanged
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -19,8 +20,6 @@ from surfelslam.slam.map_keyframes import MapKeyframes
 from surfelslam.slam.saved_map import SURFEL_FIELDS, SavedMap, chain_graph, to_arrays
 from surfelslam.tracking.features import Features
 from surfelslam.types import Intrinsics
-
-from fuzzkit import example_dir, is_error, mutated_bytes, mutated_text, outcome, unchanged
 
 N_SURFELS, N_FEATURES = 5, 3
 #: saved keyframe depth images [px] (a 16x12 camera subsampled by 4)

@@ -4,12 +4,11 @@ mutated headers and bodies of files written by the project's own writers, and ra
 from __future__ import annotations
 
 import numpy as np
+from fuzzkit import example_dir, is_error, mutated_bytes, mutated_text, outcome
 from hypothesis import example, given
 from hypothesis import strategies as st
 
 from surfelslam.io.ply import read_mesh_ply, read_ply, write_mesh_ply, write_points_ply
-
-from fuzzkit import example_dir, is_error, mutated_bytes, mutated_text, outcome
 
 _RNG = np.random.default_rng(5)
 _XYZ = _RNG.random((6, 3)).astype(np.float32)

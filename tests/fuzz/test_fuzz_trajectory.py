@@ -8,14 +8,13 @@ import json
 import math
 
 import numpy as np
+from fuzzkit import check_trajectory, example_dir, is_error, outcome, text_or_bytes, tree, unchanged
 from hypothesis import example, given
 from hypothesis import strategies as st
 
 from surfelslam.eval.metrics import evaluate_all
 from surfelslam.io.trajectory import read_tum
 from surfelslam.tools.eval import EVAL_FILES, run_eval
-
-from fuzzkit import check_trajectory, example_dir, is_error, outcome, text_or_bytes, tree, unchanged
 
 #: poses of the seed trajectories, their first stamp and period [s]
 N_POSES, T0_S, DT_S = 24, 1305031102.0, 0.1

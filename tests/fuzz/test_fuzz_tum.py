@@ -7,10 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from fuzzkit import copy_seed, is_error, make_tum_seed, open_and_check, text_or_bytes, unchanged
 from hypothesis import given
 from hypothesis import strategies as st
-
-from fuzzkit import copy_seed, is_error, make_tum_seed, open_and_check, text_or_bytes, unchanged
 
 TUM_FILES = ("rgb.txt", "depth.txt", "groundtruth.txt", "INFO.txt")
 #: a 7-Scenes style camera matrix (fx 14 px on the 16x12 seed images)
@@ -84,9 +83,9 @@ def test_mutated_camera_matrix(tum_seed, tmp_path, data):
        intrinsics=st.one_of(st.none(), st.tuples(st.floats(), st.floats(), st.floats(), st.floats())))
 def test_dataset_options(tum_seed, tmp_path, start, end, stride, downsample, depth_scale, intrinsics):
     """The dataset options (``--start``, ``--intrinsics`` ...) with any values: a valid selection or one line."""
-    from surfelslam.datasets import DatasetOptions
-
     from fuzzkit import outcome
+
+    from surfelslam.datasets import DatasetOptions
 
     options = outcome(lambda: DatasetOptions(intrinsics=intrinsics, depth_scale=depth_scale, start=start, end=end,
                                              stride=stride, downsample=downsample))

@@ -14,7 +14,6 @@ from surfelslam.errors import InputError, OutputError, TrackingError
 from surfelslam.io.atomic import NEW_FILE_MODE, atomic_open, os_error_text
 from surfelslam.types import Trajectory
 
-
 #: Largest |timestamp| read from a TUM-style file [s]: far beyond any clock (nanoseconds since 1970 are 1.7e18), and the
 #: difference of two such stamps is still finite (1e308 - -1e308 overflows)
 MAX_ABS_STAMP_S = 1e300
