@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, settings
 DEADLINE_MS = 20_000
 #: examples per test of each profile
 FAST_EXAMPLES = 12
-FUZZ_EXAMPLES = 250
+FUZZ_EXAMPLES = 500
 
 _COMMON = dict(
     database=None,

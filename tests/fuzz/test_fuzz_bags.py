@@ -142,3 +142,15 @@ def test_ground_truth_pose_messages(position, quaternion, msgtype):
         assert "\n" not in str(exc)
         return
     check_trajectory(types.SimpleNamespace(timestamps=np.zeros(1), T_world_cam=T[None]))
+
+
+@pytest.mark.parametrize("name", ["123", "[1, 2]", "null", "{a: 1}"])
+def test_topic_name_that_is_not_text(bag_seeds, tmp_path, name):
+    """Found: a ROS 2 metadata.yaml whose topic name reads as a number gave an AttributeError (int.rstrip)."""
+    root = copy_seed(bag_seeds["ros2"], tmp_path)
+    meta = root / "metadata.yaml"
+    text = meta.read_text()
+    assert "name: /camera/color/image_raw" in text
+    meta.write_text(text.replace("name: /camera/color/image_raw", f"name: {name}"))
+    with unchanged(root):
+        open_and_check(root)

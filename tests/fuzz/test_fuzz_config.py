@@ -81,6 +81,8 @@ def test_toml_value_of_any_setting(tmp_path, key, value, extra):
     st.sampled_from(LEAF_KEYS).map(lambda k: k.upper()),
     st.sampled_from(LEAF_KEYS).map(lambda k: f"{k}"),
 ), min_size=1, max_size=3))
+@example(items=["icp.robust_kernel=\n"])  # found: the error message quoted the item with its line break
+@example(items=["icp.no\nsuch=1", "dataset.end=0,1"])
 def test_set_items(tmp_path, items):
     """``--set`` items: known and unknown keys, tables, any value, no ``=``."""
     cfg = outcome(lambda: apply_sets(SlamConfig(), items))

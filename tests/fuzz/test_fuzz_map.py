@@ -166,3 +166,13 @@ def test_random_file(tmp_path, content):
     path = example_dir(tmp_path) / "map.npz"
     path.write_bytes(content)
     load_and_check(path)
+
+
+@pytest.mark.parametrize("dtype", ["complex64", "float32", "int64", "<U3"])
+def test_manifest_of_another_dtype(tmp_path, dtype):
+    """Found: a complex manifest array was cast to bytes with a ComplexWarning on stderr."""
+    arrays = to_arrays(tiny_map())
+    arrays["manifest"] = arrays["manifest"].astype(dtype)
+    path = example_dir(tmp_path) / "map.npz"
+    np.savez(path, **arrays)
+    load_and_check(path)

@@ -40,7 +40,7 @@ from surfelslam.config import from_dict
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError
 from surfelslam.slam import TRACKERS, SlamConfig
-from surfelslam.slam.runner import apply_sets, load_config, parse_set
+from surfelslam.slam.runner import apply_sets, load_config, one_line, parse_set
 
 SPEC_KEYS = ("sequences", "trackers", "base", "dataset", "configs")
 DEFAULT_CONFIG_NAME = "default"
@@ -117,7 +117,7 @@ def sweep_variants(sets: Sequence[str]) -> tuple[ConfigVariant, ...]:
         parse_set(item.split(",")[0] if sep else item)  # the key (and KEY=VALUE form) checked
         values = [v for v in split_values(text) if v != ""]
         if not values:
-            raise ConfigError(f"--set {item}: no value")
+            raise ConfigError(f"--set {one_line(item)}: no value")
         axes.setdefault(key, [])
         axes[key] += [v for v in values if v not in axes[key]]
     if not axes:

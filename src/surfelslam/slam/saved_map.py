@@ -120,8 +120,11 @@ def read_manifest(arrays: Any) -> dict:
     """
     if "manifest" not in arrays:
         raise MapFormatProblem("not a surfelslam map (no manifest)")
+    raw = np.asarray(arrays["manifest"])
+    if raw.dtype != np.uint8:  # casting another dtype warns (complex, NaN) or changes the text
+        raise MapFormatProblem(f"unreadable manifest (an array of {raw.dtype}, not of bytes)")
     try:
-        manifest = json.loads(bytes(np.asarray(arrays["manifest"], np.uint8)).decode())
+        manifest = json.loads(bytes(raw).decode())
     except (ValueError, UnicodeDecodeError) as exc:
         raise MapFormatProblem(f"unreadable manifest ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != MAP_FORMAT:
