@@ -7,19 +7,22 @@ Profiles (``--hypothesis-profile NAME``, hypothesis's own pytest option):
   the whole folder takes seconds;
 * ``fuzz`` (``make fuzz``): many random examples, within the 10 minutes of the target on two cores.
 
-Neither keeps hypothesis's example database (``database=None``): nothing is written into the repository.
+Neither keeps hypothesis's example database (``database=None``), and its caches go to the temp folder: nothing is
+written into the repository.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, settings
+from hypothesis.configuration import set_hypothesis_home_dir
 
-#: the longest one example may take before hypothesis reports it as too slow [ms]; a hang is caught sooner or later
-#: by :data:`fuzzkit.HANG_LIMIT_S`; generous because two cores are shared by the whole suite
+#: the longest one example may take before hypothesis reports it as too slow [ms] (a call that never returns is
+#: stopped by :data:`fuzzkit.HANG_LIMIT_S`); generous because two cores are shared by the whole suite
 DEADLINE_MS = 20_000
 #: examples per test of each profile
 FAST_EXAMPLES = 12
@@ -31,6 +34,8 @@ _COMMON = dict(
     # each example makes its own folder below the test's tmp_path (fuzzkit.example_dir); seeds are built once
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large],
 )
+# hypothesis's caches (extracted constants, unicode tables) go to the temp folder, not into the repository's .hypothesis
+set_hypothesis_home_dir(Path(tempfile.gettempdir()) / f"surfelslam-hypothesis-{os.getuid()}")
 settings.register_profile("fast", max_examples=FAST_EXAMPLES, derandomize=True, print_blob=False, **_COMMON)
 settings.register_profile("fuzz", max_examples=FUZZ_EXAMPLES, print_blob=True, **_COMMON)  # a find can be replayed
 if settings.get_current_profile_name() == "default":  # no --hypothesis-profile given

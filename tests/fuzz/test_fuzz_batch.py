@@ -69,6 +69,7 @@ def test_seed_is_valid(tmp_path):
 @example(content=b"sequences = ['a']\n\xff\xfe")  # found: invalid UTF-8 was a UnicodeDecodeError
 @example(content=b'sequences = ["a\\u0000b", "~nosuchuser/seq"]')  # found: ValueError / RuntimeError
 @example(content=b'sequences = ["a"]\nbase = "x\\u0000y.toml"')  # found: ValueError (embedded null byte)
+@example(content=b'sequences = ["a"]\n[[configs]]\nname = "x\\ny"\n[[configs]]\nname = "x\\ny"\n')
 def test_mutated_spec_file(tmp_path, content):
     path = example_dir(tmp_path) / "spec.toml"
     path.write_bytes(content)
@@ -96,6 +97,7 @@ _SET = st.one_of(
        sets=st.lists(_SET, max_size=3))
 @example(sequences=["a\x00b"], trackers=None, sets=[])  # found: ValueError (embedded null byte)
 @example(sequences=["~nosuchuser/seq"], trackers=None, sets=[])  # found: RuntimeError (no home directory)
+@example(sequences=["a/\n", "b/\n"], trackers=None, sets=[])  # found: the paths' line breaks split the message
 def test_inline_spec(tmp_path, sequences, trackers, sets):
     out_root = example_dir(tmp_path) / "out"
     with unchanged(tmp_path):

@@ -209,7 +209,7 @@ def load_spec(path: str | Path) -> BatchSpec:
     names = [v.name for v in variants]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ConfigError(f"{path}: config name(s) used twice: {', '.join(dup)}")
+        raise ConfigError(f"{path}: config name(s) used twice: {one_line(', '.join(dup))}")
     return BatchSpec(sequences=sequences, trackers=split_trackers(data.get("trackers")), configs=variants,
                      base=base)
 
@@ -236,9 +236,9 @@ def expand_jobs(spec: BatchSpec, out_root: str | Path) -> list[Job]:
                 job = make_job(seq, tracker, cfg, variant.name, variant.sets, out_root)
                 other = seen.get(job.name)
                 if other is not None:
-                    raise ConfigError(
+                    raise ConfigError(one_line(  # paths and config names may hold line breaks
                         f"two jobs share the run folder {job.name}: {other.sequence} [{other.config_name}] and "
-                        f"{job.sequence} [{job.config_name}] (same sequence folder name, or the same settings)")
+                        f"{job.sequence} [{job.config_name}] (same sequence folder name, or the same settings)"))
                 seen[job.name] = job
                 jobs.append(job)
     return jobs
