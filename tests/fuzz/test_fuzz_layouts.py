@@ -121,3 +121,18 @@ def test_seven_scenes_pose_values(seeds, tmp_path, pose):
     (root / "frame-000001.pose.txt").write_text(pose)
     with unchanged(root):
         open_and_check(root)
+
+
+@pytest.mark.parametrize("layout, pattern", [("folder", "{k}.png"), ("7scenes", "frame-{k}.")])
+def test_frame_numbers_too_close_for_a_float(seeds, tmp_path, layout, pattern):
+    """Found (ICL, with a ground-truth id of -9e15): frame numbers beyond 2**53 gave frames the same stamp."""
+    root = copy_seed(seeds[layout], tmp_path)
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and path.suffix in (".png", ".txt") and path.name != "INFO.txt" and "ground" not in path.name:
+            k = int("".join(c for c in path.name if c.isdigit()))
+            old = pattern.format(k=k) if layout == "folder" else f"frame-{k:06d}."
+            path.rename(path.with_name(path.name.replace(old, pattern.format(k=2**60 + k))))
+    with unchanged(root):
+        seq = open_and_check(root)
+    assert is_error(seq)
+

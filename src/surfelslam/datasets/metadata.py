@@ -287,6 +287,12 @@ def build_sequence(
     """
     if not entries:
         raise DatasetError(root, "no frames found")
+    stamps = np.array([e.timestamp for e in entries])
+    same = np.nonzero(np.diff(stamps) <= 0)[0]
+    if len(same):  # frame numbers beyond 2**53 (or their offset) round to the same float
+        a, b = entries[same[0]].rgb_path.name, entries[same[0] + 1].rgb_path.name
+        raise DatasetError(root, f"frames {a} and {b} get the same timestamp {stamps[same[0]]:.6f}: their frame "
+                                 "numbers or stamps are too large to tell apart")
     cam = resolve_camera(options, meta, layout_intrinsics, layout_depth_scale, layout_desc, entries)
     if cam is None:
         missing = []
