@@ -110,7 +110,8 @@ def mutated_arrays(draw: st.DrawFn, arrays: dict[str, np.ndarray]) -> dict[str, 
         if op == "drop":
             out.pop(name, None)
         elif op == "dtype" and a is not None:
-            out[name] = a.astype(draw(st.sampled_from(DTYPES)))
+            with np.errstate(all="ignore"):  # the test's own cast (e.g. 1e30 to float16)
+                out[name] = a.astype(draw(st.sampled_from(DTYPES)))
         elif op == "shape" and a is not None:
             flat = a.reshape(-1)
             how = draw(st.sampled_from(("cut", "grow", "flat", "axis", "scalar")))
