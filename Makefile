@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 VIZ_STAMP := $(VENV)/.viz-installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test test-all test-fast warmup bench lint docs clean wheel-check
+.PHONY: demo test test-all test-fast fuzz warmup bench lint docs clean wheel-check
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -62,6 +62,12 @@ warmup: $(STAMP)
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_DIST) -m "not slow and not shared"
+
+# Property-based fuzzing of every reader and loader (tests/fuzz, hypothesis) with the large budget of the `fuzz`
+# profile (tests/fuzz/conftest.py): random mutated inputs, a few minutes on two cores. `make test` runs the same tests
+# with the small, derandomized `fast` profile.
+fuzz: $(STAMP)
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) tests/fuzz --hypothesis-profile=fuzz
 
 bench: $(STAMP)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) || true

@@ -39,6 +39,7 @@ from surfelslam.batch.jobs import Job, make_job
 from surfelslam.config import from_dict
 from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError
+from surfelslam.settings.overrides import one_line
 from surfelslam.slam import TRACKERS, SlamConfig
 from surfelslam.slam.runner import apply_sets, load_config, parse_set
 
@@ -117,7 +118,7 @@ def sweep_variants(sets: Sequence[str]) -> tuple[ConfigVariant, ...]:
         parse_set(item.split(",")[0] if sep else item)  # the key (and KEY=VALUE form) checked
         values = [v for v in split_values(text) if v != ""]
         if not values:
-            raise ConfigError(f"--set {item}: no value")
+            raise ConfigError(f"--set {one_line(item)}: no value")
         axes.setdefault(key, [])
         axes[key] += [v for v in values if v not in axes[key]]
     if not axes:
@@ -131,12 +132,21 @@ def sweep_variants(sets: Sequence[str]) -> tuple[ConfigVariant, ...]:
 
 
 # ------------------------------------------------------------------------------------------------ specs
+def sequence_path(text: str | Path, base: Path, where: str) -> str:
+    """``text`` as an absolute path (``~`` expanded, relative to ``base``); ConfigError, prefixed by ``where``, for a
+    path no file can have (a NUL character, ``~user`` of an unknown user)."""
+    try:
+        return str((base / Path(text).expanduser()).resolve())
+    except (ValueError, RuntimeError) as exc:
+        raise ConfigError(f"{where}sequence path {str(text)!r}: {exc}") from None
+
+
 def inline_spec(sequences: Sequence[str | Path], trackers: str | Sequence[str] | None = None,
                 sets: Sequence[str] = (), base: SlamConfig | None = None) -> BatchSpec:
     """The inline form: ``SEQ... --tracker a,b --set KEY=V1,V2 ...``."""
     if not sequences:
         raise ConfigError("no sequences given (SEQ... or a spec file)")
-    return BatchSpec(sequences=tuple(str(Path(s).expanduser().resolve()) for s in sequences),
+    return BatchSpec(sequences=tuple(sequence_path(s, Path(), "") for s in sequences),
                      trackers=split_trackers(trackers), configs=sweep_variants(sets),
                      base=SlamConfig() if base is None else base)
 
@@ -167,6 +177,8 @@ def load_spec(path: str | Path) -> BatchSpec:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{path}: spec file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not UTF-8
+        raise ConfigError(f"{path}: cannot read the spec file ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     unknown = sorted(set(data) - set(SPEC_KEYS))
@@ -178,7 +190,7 @@ def load_spec(path: str | Path) -> BatchSpec:
     if not seqs or not isinstance(seqs, list) or not all(isinstance(s, str) for s in seqs):
         raise ConfigError(f"{path}: sequences must be a non-empty list of paths")
     here = path.resolve().parent
-    sequences = tuple(str((here / Path(s).expanduser()).resolve()) for s in seqs)
+    sequences = tuple(sequence_path(s, here, f"{path}: ") for s in seqs)
     base_name = data.get("base")
     if base_name is not None and not isinstance(base_name, str):
         raise ConfigError(f"{path}: base must be a config file or preset name")
@@ -198,7 +210,7 @@ def load_spec(path: str | Path) -> BatchSpec:
     names = [v.name for v in variants]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ConfigError(f"{path}: config name(s) used twice: {', '.join(dup)}")
+        raise ConfigError(f"{path}: config name(s) used twice: {one_line(', '.join(dup))}")
     return BatchSpec(sequences=sequences, trackers=split_trackers(data.get("trackers")), configs=variants,
                      base=base)
 
@@ -225,9 +237,9 @@ def expand_jobs(spec: BatchSpec, out_root: str | Path) -> list[Job]:
                 job = make_job(seq, tracker, cfg, variant.name, variant.sets, out_root)
                 other = seen.get(job.name)
                 if other is not None:
-                    raise ConfigError(
+                    raise ConfigError(one_line(  # paths and config names may hold line breaks
                         f"two jobs share the run folder {job.name}: {other.sequence} [{other.config_name}] and "
-                        f"{job.sequence} [{job.config_name}] (same sequence folder name, or the same settings)")
+                        f"{job.sequence} [{job.config_name}] (same sequence folder name, or the same settings)"))
                 seen[job.name] = job
                 jobs.append(job)
     return jobs

@@ -272,7 +272,8 @@ class RGBDSequence:
                 raise FrameError(
                     path, f"image is {shape[1]}x{shape[0]}, expected {full.width}x{full.height}", index=i
                 )
-        depth_m = raw.astype(np.float32) / np.float32(self.depth_scale)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # inf / NaN are made invalid just below
+            depth_m = raw.astype(np.float32) / np.float32(self.depth_scale)
         invalid = ~np.isfinite(depth_m) | (depth_m <= 0)
         for bad in self.depth_invalid_raw:
             invalid |= raw == bad

@@ -20,6 +20,7 @@ Precedence, highest first: command-line options > metadata in the folder > the l
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -141,7 +142,9 @@ def parse_depth_scale_text(text: str) -> float | None:
 def read_camera_matrix(path: Path) -> tuple[float, float, float, float]:
     """A 3x3 camera matrix file (7-Scenes ``camera-intrinsics.txt``) -> ``(fx, fy, cx, cy)``."""
     try:
-        K = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # an empty file: numpy warns, the shape check below says it in one line
+            warnings.simplefilter("ignore", UserWarning)
+            K = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except (OSError, ValueError) as exc:
         raise DatasetError(path, f"cannot read a 3x3 camera matrix ({exc})") from None
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
@@ -284,6 +287,12 @@ def build_sequence(
     """
     if not entries:
         raise DatasetError(root, "no frames found")
+    stamps = np.array([e.timestamp for e in entries])
+    same = np.nonzero(np.diff(stamps) <= 0)[0]
+    if len(same):  # frame numbers beyond 2**53 (or their offset) round to the same float
+        a, b = entries[same[0]].rgb_path.name, entries[same[0] + 1].rgb_path.name
+        raise DatasetError(root, f"frames {a} and {b} get the same timestamp {stamps[same[0]]:.6f}: their frame "
+                                 "numbers or stamps are too large to tell apart")
     cam = resolve_camera(options, meta, layout_intrinsics, layout_depth_scale, layout_desc, entries)
     if cam is None:
         missing = []

@@ -22,6 +22,7 @@ focal length is nominally 525 and its baseline to the IR camera 2.5 cm). Mean ed
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -87,14 +88,18 @@ def _native_folder(root: Path) -> Path | None:
 
 def _read_pose(path: Path) -> np.ndarray:
     try:
-        T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # an empty file: numpy warns, the shape check below says it in one line
+            warnings.simplefilter("ignore", UserWarning)
+            T = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except (OSError, ValueError) as exc:
         raise DatasetError(path, f"cannot read a 4x4 pose ({exc})") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         shape = f"{T.shape[0]}x{T.shape[1]}"
         raise DatasetError(path, f"expected a 4x4 camera-to-world matrix, got shape {shape}")
     R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > POSE_ORTHONORMAL_TOL or not np.allclose(T[3], [0, 0, 0, 1]):
+    with np.errstate(over="ignore", invalid="ignore"):  # entries like 1e200: inf / NaN, refused just below
+        deviation = np.abs(R @ R.T - np.eye(3)).max()
+    if not deviation <= POSE_ORTHONORMAL_TOL or not np.allclose(T[3], [0, 0, 0, 1]):
         raise DatasetError(path, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
     return T
 

@@ -30,7 +30,7 @@ from surfelslam.datasets.base import (
 )
 from surfelslam.datasets.metadata import FolderMetadata, build_sequence, read_metadata
 from surfelslam.errors import DatasetError, GroundTruthError, InputError
-from surfelslam.io.trajectory import data_lines, read_tum
+from surfelslam.io.trajectory import MAX_ABS_STAMP_S, data_lines, read_tum
 from surfelslam.types import Trajectory
 
 #: Largest colour/depth timestamp difference accepted as one frame (seconds).
@@ -83,6 +83,8 @@ def _timestamp(path: Path, lineno: int, text: str) -> float:
         raise DatasetError(path, f"line {lineno}: timestamp {text!r} is not a number") from None
     if not np.isfinite(t):
         raise DatasetError(path, f"line {lineno}: timestamp {text!r} is not finite")
+    if abs(t) > MAX_ABS_STAMP_S:
+        raise DatasetError(path, f"line {lineno}: timestamp {text!r} is out of range (|t| > {MAX_ABS_STAMP_S:g} s)")
     return t
 
 

@@ -365,13 +365,14 @@ def evaluate_all(
         EvaluationError: degenerate trajectories (no motion, motion along a line) or a bad ``max_diff_s``; any
             other failure inside evo is reported as one too, never as a traceback.
     """
-    try:
-        a = ate(est, gt, max_diff_s)
-        rf = rpe(est, gt, 1, "frames", max_diff_s)
-        try:
-            rs: RpeResult | None = rpe(est, gt, 1.0, "seconds", max_diff_s)
-        except EvaluationError:
-            rs = None
+    try:  # overflow (coordinates like 1e154 in a file): a FloatingPointError below, not warnings and NaN metrics
+        with np.errstate(over="raise", invalid="raise"):
+            a = ate(est, gt, max_diff_s)
+            rf = rpe(est, gt, 1, "frames", max_diff_s)
+            try:
+                rs: RpeResult | None = rpe(est, gt, 1.0, "seconds", max_diff_s)
+            except EvaluationError:
+                rs = None
     except (GroundTruthError, EvaluationError):
         raise
     except (GeometryException, evo_filters.FilterException, evo_sync.SyncException, np.linalg.LinAlgError,

@@ -8,6 +8,7 @@ through a temp file + rename (:mod:`surfelslam.io.atomic`).
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -139,16 +140,37 @@ def _read_header(path: Path) -> tuple[list[str], bytes]:
     return header, data[end + len(b"end_header\n") :]
 
 
-def read_mesh_ply(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def _malformed(read):
+    """``read(path)`` with the errors of a malformed header (a count that is no number, a property without a name,
+    the same property twice, no property) as one-line InputErrors naming the file."""
+    @functools.wraps(read)
+    def wrapper(path: str | Path):
+        path = Path(path)
+        try:
+            return read(path)
+        except (ValueError, IndexError, TypeError) as exc:
+            raise InputError(path, f"malformed PLY ({exc})") from None
+
+    return wrapper
+
+
+def _count(path: Path, text: str) -> int:
+    n = int(text)
+    if n < 0:
+        raise InputError(path, f"negative element count {n}")
+    return n
+
+
+@_malformed
+def read_mesh_ply(path: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Read a binary little-endian triangle mesh: ``({vertex property: (V,) array}, faces (F, 3) int32)``.
     The ``face`` element must hold one ``list uchar int|uint`` property of triangles; other elements are refused."""
-    path = Path(path)
     header, body = _read_header(path)
     elements: list[tuple[str, int, list[tuple[str, str]]]] = []
     for line in header:
         parts = line.split()
         if parts[:1] == ["element"] and len(parts) == 3:
-            elements.append((parts[1], int(parts[2]), []))
+            elements.append((parts[1], _count(path, parts[2]), []))
         elif parts[:1] == ["property"] and elements:
             if parts[1] == "list":
                 if len(parts) != 5 or parts[2] not in ("uchar", "uint8") or parts[3] not in ("int", "int32", "uint",
@@ -188,9 +210,9 @@ def read_mesh_ply(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
     return vertices, faces
 
 
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+@_malformed
+def read_ply(path: Path) -> dict[str, np.ndarray]:
     """Read the ``vertex`` element of a binary little-endian PLY into ``{property: (N,) array}``."""
-    path = Path(path)
     header, body = _read_header(path)
     n = None
     props: list[tuple[str, str]] = []
@@ -202,7 +224,7 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
                 break  # other elements after the vertices are ignored
             in_vertex = parts[1] == "vertex"
             if in_vertex:
-                n = int(parts[2])
+                n = _count(path, parts[2])
         elif parts[:1] == ["property"] and in_vertex:
             if parts[1] == "list" or parts[1] not in _PLY_TYPES:
                 raise InputError(path, f"unsupported vertex property: {line!r}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,6 +14,10 @@ from surfelslam.errors import InputError, OutputError, TrackingError
 from surfelslam.geometry.se3 import make_T, quat_xyzw_to_rotation, rotation_to_quat_xyzw
 from surfelslam.io.atomic import NEW_FILE_MODE, atomic_open, os_error_text
 from surfelslam.types import Trajectory
+
+#: Largest |timestamp| read from a TUM-style file [s]: far beyond any clock (nanoseconds since 1970 are 1.7e18), and the
+#: difference of two such stamps is still finite (1e308 - -1e308 overflows)
+MAX_ABS_STAMP_S = 1e300
 
 
 def tum_rows(traj: Trajectory) -> np.ndarray:
@@ -63,8 +68,12 @@ def read_tum(path: str | Path) -> Trajectory:
             raise InputError(path, f"line {lineno}: not a number in {line!r}") from None
         if not np.all(np.isfinite(vals)):
             raise InputError(path, f"line {lineno}: non-finite value in {line!r}")
-        if np.linalg.norm(vals[4:8]) < 1e-6:
+        if abs(vals[0]) > MAX_ABS_STAMP_S:
+            raise InputError(path, f"line {lineno}: timestamp {parts[0]} is out of range (|t| > {MAX_ABS_STAMP_S:g} s)")
+        if math.hypot(*vals[4:8]) < 1e-6:  # hypot: no overflow for huge components
             raise InputError(path, f"line {lineno}: zero quaternion")
+        exponent = math.frexp(max(abs(x) for x in vals[4:8]))[1]
+        vals[4:8] = [math.ldexp(x, -exponent) for x in vals[4:8]]  # exact power-of-two scaling: 1e200 stays finite
         rows.append(vals)
         linenos.append(lineno)
     if not rows:

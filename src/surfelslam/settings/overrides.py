@@ -35,6 +35,11 @@ def _unwrap_optional(tp: Any) -> Any:
     return tp
 
 
+def one_line(text: str) -> str:
+    """``text`` with its line breaks written as ``\\n`` / ``\\r``: a message quoting a ``--set`` item stays one line."""
+    return text.replace("\r", "\\r").replace("\n", "\\n")
+
+
 def parse_set(item: str, cls: type) -> dict[str, Any]:
     """``"icp.min_inliers=300"`` -> ``{"icp": {"min_inliers": 300}}``, the key checked against ``cls``.
 
@@ -54,17 +59,19 @@ def parse_set(item: str, cls: type) -> dict[str, Any]:
     for i, name in enumerate(parts):
         here = ".".join(parts[:i])
         if not dataclasses.is_dataclass(tp):
-            raise ConfigError(f"--set {item}: unknown setting {key} ({here} is a setting, not a table)")
+            raise ConfigError(f"--set {one_line(item)}: unknown setting {one_line(key)} ({here} is a setting, "
+                              "not a table)")
         names = [f.name for f in dataclasses.fields(tp)]
         if name not in names:
             close = difflib.get_close_matches(key, _leaf_paths(cls), n=3, cutoff=0.6)
             hint = f"did you mean {_or_list(close)}?" if close else (
                 f"[{here}] has {', '.join(names)}" if here else f"the top level has {', '.join(names)}")
-            raise ConfigError(f"--set {item}: unknown setting {key} ({hint})")
+            raise ConfigError(f"--set {one_line(item)}: unknown setting {one_line(key)} ({hint})")
         tp = _unwrap_optional(typing.get_type_hints(tp)[name])
     if dataclasses.is_dataclass(tp):
         first = dataclasses.fields(tp)[0].name
-        raise ConfigError(f"--set {item}: {key} is a table, not a setting (set its keys, e.g. {key}.{first}=...)")
+        raise ConfigError(f"--set {one_line(item)}: {key} is a table, not a setting (set its keys, e.g. "
+                          f"{key}.{first}=...)")
     try:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
@@ -103,8 +110,8 @@ def apply_sets(cfg: C, sets: Sequence[str]) -> C:
             try:
                 from_dict(cls, parse_set(item, cls), base=cfg)
             except ConfigError as alone:
-                raise ConfigError(f"--set {item}: {alone}") from None
-        raise ConfigError(f"--set {' --set '.join(sets)}: {exc}") from None
+                raise ConfigError(f"--set {one_line(item)}: {alone}") from None
+        raise ConfigError(f"--set {one_line(' --set '.join(sets))}: {exc}") from None
 
 
 def load_config(cls: type[C], path: str | Path | None = None, sets: Sequence[str] = ()) -> C:

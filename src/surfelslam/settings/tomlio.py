@@ -162,10 +162,22 @@ def load_toml(cls: type[C], path: str | Path | Readable) -> C:
         raise ConfigError(f"{path}: cannot read config file ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+    except ValueError as exc:  # a path no file can have (a NUL character)
+        raise ConfigError(f"{str(path)!r}: cannot read config file ({exc})") from None
     try:
         return from_dict(cls, data)
     except ConfigError as exc:
         raise type(exc)(f"{path}: {exc}") from None
+
+
+def _toml_char(ch: str) -> str:
+    """One character inside a TOML basic string: backslash, quote and the control characters TOML forbids there
+    (a newline, NUL, DEL ... in a path given with --set) escaped, so that the written config.toml reads back."""
+    if ch in '\\"':
+        return "\\" + ch
+    if ord(ch) < 0x20 or ord(ch) == 0x7F:
+        return f"\\u{ord(ch):04x}"
+    return ch
 
 
 def toml_value(v: Any) -> str:
@@ -181,7 +193,7 @@ def toml_value(v: Any) -> str:
             return "inf" if v > 0 else "-inf"
         return repr(v)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return '"' + "".join(_toml_char(c) for c in v) + '"'
     if isinstance(v, list | tuple):
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise ConfigError(f"config: cannot write {v!r} as TOML")

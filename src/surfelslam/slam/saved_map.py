@@ -120,8 +120,11 @@ def read_manifest(arrays: Any) -> dict:
     """
     if "manifest" not in arrays:
         raise MapFormatProblem("not a surfelslam map (no manifest)")
+    raw = np.asarray(arrays["manifest"])
+    if raw.dtype != np.uint8:  # casting another dtype warns (complex, NaN) or changes the text
+        raise MapFormatProblem(f"unreadable manifest (an array of {raw.dtype}, not of bytes)")
     try:
-        manifest = json.loads(bytes(np.asarray(arrays["manifest"], np.uint8)).decode())
+        manifest = json.loads(bytes(raw).decode())
     except (ValueError, UnicodeDecodeError) as exc:
         raise MapFormatProblem(f"unreadable manifest ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != MAP_FORMAT:
@@ -156,7 +159,7 @@ def from_arrays(arrays: Any) -> SavedMap:
         fx, fy, cx, cy, w, h = man["intrinsics"]
         fx, fy, cx, cy, w, h = float(fx), float(fy), float(cx), float(cy), int(w), int(h)
         step = int(man["keyframe_depth_step"])
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError, ConfigError) as exc:  # Overflow: Infinity counts
         raise MapFormatProblem(f"incomplete manifest ({exc})") from None
     if not (np.all(np.isfinite([fx, fy, cx, cy])) and fx > 0 and fy > 0 and w > 0 and h > 0 and step > 0):
         raise MapFormatProblem(f"manifest intrinsics {[fx, fy, cx, cy, w, h]} or keyframe_depth_step {step} are not "

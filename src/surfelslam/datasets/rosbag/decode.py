@@ -28,8 +28,11 @@ def pose_matrix(msg, msgtype: str) -> np.ndarray:
     else:  # PoseWithCovarianceStamped, Odometry: pose.pose
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
     qv = np.array([q.x, q.y, q.z, q.w], np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):  # a zero quaternion gives NaN: left out by the indexer
-        qv /= np.linalg.norm(qv)
+    big = np.abs(qv).max()
+    if not (np.isfinite(big) and big > 0 and np.all(np.isfinite([p.x, p.y, p.z]))):
+        return np.full((4, 4), np.nan)  # a zero or non-finite pose: left out (and counted) by the indexer
+    qv = np.ldexp(qv, -np.frexp(big)[1])  # exact power-of-two scaling: components like 1e200 do not overflow
+    qv /= np.linalg.norm(qv)
     x, y, z, w = qv
     R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                   [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],

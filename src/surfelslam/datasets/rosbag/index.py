@@ -153,6 +153,9 @@ def index_bag(root: Path, reader, options: DatasetOptions) -> BagIndex:
     types: dict[str, str] = {}
     conns: dict[str, list] = {}
     for c in reader.connections:
+        if not (isinstance(c.topic, str) and isinstance(c.msgtype, str)):  # a corrupt ROS 2 metadata.yaml
+            raise DatasetError(root, f"the bag names a topic {c.topic!r} of type {c.msgtype!r}: not names; is its "
+                                     "metadata corrupt?")
         types.setdefault(c.topic, c.msgtype)
         conns.setdefault(c.topic, []).append(c)
     rgb, depth, info, notes = choose_topics(types, options, root)
