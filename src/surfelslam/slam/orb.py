@@ -47,11 +47,7 @@ def sparse_metrics(sparse: SparseSlam, res) -> dict:
         "lost_frames_placed": int(sparse.n_lost_placed),
         "sparse_rejected": dict(res.rejected),
         **sparse.edge_counts,
-        "edge_sigma_m": sparse.dense_edge_sigma_m,
-        "edge_spread_m": sparse.dense_edge_spread_m,
-        "edges_refined_trusted": sparse.dense_edges_trusted,
-        "edge_residual_rad": sparse.dense_edge_residual_rad,
-        "edge_residual_m": sparse.dense_edge_residual_m,
+        **sparse.dense_edge_stats(),
     }
 
 

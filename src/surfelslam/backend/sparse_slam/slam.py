@@ -107,37 +107,24 @@ class SparseSlam:
         self._lost: list[tuple[int, Features]] = []  # (frame slot, features) of the lost frames in a row
         self.n_lost_placed = 0  # lost frames placed afterwards against the keyframe of a new segment
 
-    # --- state -------------------------------------------------------------------------------------
-
-    @property
-    def dense_edge_sigma_m(self) -> float | None:
-        """Sigma (m and rad) that new dense-refined edges get now; ``None`` without an edge refiner."""
-        return None if self._refiner is None else self._refiner.edge_sigma()
-
-    @property
-    def dense_edge_spread_m(self) -> float | None:
-        """Robust spread (m and rad) of the dense-refined nearby edges against the odometry (``None`` without an
-        edge refiner or before enough edges)."""
-        return None if self._refiner is None else self._refiner.spread()
-
+    # --- state: the keyframe graph's edges, loops and poses -------------------------------------------
     @property
     def dense_edges_trusted(self) -> bool | None:
         """Whether the poses come from the graph of dense-refined edges (else from the PnP edges' graph);
         ``None`` without an edge refiner."""
         return None if self._refiner is None else self._graph.refined_trusted
 
-    @property
-    def dense_edge_residual_rad(self) -> float | None:
-        """Robust spread (rad) of the refined edges' rotation residuals at the last optimisation of their graph
-        (``None`` without an edge refiner or before one)."""
-        return self._graph.refined_residual_rad
-
-    @property
-    def dense_edge_residual_m(self) -> float | None:
-        """The same spread (m) of their translation residuals."""
-        return self._graph.refined_residual_m
-
-    # edge counts (:class:`KeyframeGraph`)
+    def dense_edge_stats(self) -> dict[str, float | bool | None]:
+        """The refined edges' gate by their ``metrics.json`` names: ``edge_sigma_m`` (the sigma, m and rad, new
+        refined edges get now), ``edge_spread_m`` (their robust spread against the odometry), whether they are
+        trusted, and the robust spreads of their rotation (rad) and translation (m) residuals at the last
+        optimisation of their graph; ``None`` without an edge refiner or before enough edges."""
+        ref = self._refiner
+        return {"edge_sigma_m": None if ref is None else ref.edge_sigma(),
+                "edge_spread_m": None if ref is None else ref.spread(),
+                "edges_refined_trusted": self.dense_edges_trusted,
+                "edge_residual_rad": self._graph.refined_residual_rad,
+                "edge_residual_m": self._graph.refined_residual_m}
 
     @property
     def loops_found(self) -> list[tuple[int, int, int]]:
