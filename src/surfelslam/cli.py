@@ -122,6 +122,14 @@ def _lazy_command_group() -> type:
     class LazyCommandGroup(TyperGroup):
         """Imports a command's module on first use; lists unloaded commands from :data:`COMMANDS`."""
 
+        def get_help_option(self, ctx):
+            option = super().get_help_option(ctx)
+            if option is not None and option.default is None:
+                # a bool default: typer then skips its value coercion, whose first use imports pydantic (about
+                # 0.3 s): `surfelslam COMMAND --help` would pay it for the group's --help, which was not given
+                option.default = False
+            return option
+
         def list_commands(self, ctx) -> list[str]:
             return [*self.commands, *(name for name in COMMANDS if name not in self.commands)]
 
