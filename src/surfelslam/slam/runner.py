@@ -89,9 +89,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
         stage = writer.open(dumps_toml(cfg))
         if on_start is not None:
             on_start(stage)
-        session.warm_up()
         outcome = track_sequence(seq, session, given=given, on_pose=writer.append_pose, on_frame=on_frame,
-                                 on_progress=on_progress)
+                                 on_progress=on_progress, warm_up=True)  # the first frames are read meanwhile
         metrics = writer.finish(outcome, seq.ground_truth)
         if before_commit is not None:
             before_commit(stage)
