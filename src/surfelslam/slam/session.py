@@ -46,12 +46,15 @@ class RunOutcome:
         result: the tracker's end-of-run result (map, saved map, loop stamps).
         metrics: the run's numbers (``metrics.json`` without the writer's fields: evaluation, start/end times).
         frames: the per-frame results in order.
+        clock_perf_s: the ``time.perf_counter()`` stamps at which the FPS clock started (before the first frame
+            was read) and stopped (after the last frame): ``metrics["wall_s"]`` apart; ``None`` without frames.
     """
 
     trajectory: Trajectory
     result: SlamResult
     metrics: dict
     frames: list[FrameResult] = field(default_factory=list, repr=False)
+    clock_perf_s: tuple[float, float] | None = None
 
 
 def _stats(v: list[float]) -> dict:
@@ -161,7 +164,8 @@ class Session:
         if self.finished:
             raise ConfigError("the session is finished already")
         self.finished = True
-        wall_s = 0.0 if self._t_start is None else time.perf_counter() - self._t_start
+        t_end = time.perf_counter()
+        wall_s = 0.0 if self._t_start is None else t_end - self._t_start
         result = self.tracker.finish()
         trajectory = result.trajectory_override
         if trajectory is None:
@@ -169,7 +173,8 @@ class Session:
             trajectory = Trajectory(np.array([r.timestamp for r in posed], np.float64),
                                     np.array([r.T_world_cam for r in posed], np.float64).reshape(-1, 4, 4))
         metrics = self._metrics(seq, result, wall_s, len(trajectory))
-        return RunOutcome(trajectory, result, metrics, self.frames)
+        clock = None if self._t_start is None else (self._t_start, t_end)
+        return RunOutcome(trajectory, result, metrics, self.frames, clock)
 
     def _metrics(self, seq, result: SlamResult, wall_s: float, poses: int) -> dict:
         n_done = len(self.frames)

@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-
 from surfelslam.errors import ConfigError, ConfigValueError
 from surfelslam.tools.common import console, handle_errors
 

@@ -43,6 +43,9 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
     t.add_row("frames", frames)
     t.add_row("tracking failures", str(metrics.get("tracking_failures", 0)))
     t.add_row("FPS", f"{metrics['fps']:.1f}  (JIT warm-up {metrics['warmup_s']:.1f} s excluded)")
+    if metrics.get("startup_s") is not None:
+        t.add_row("start, end", f"{metrics['startup_s']:.1f} s to the first frame, {metrics['shutdown_s']:.1f} s "
+                                "from the last frame to the outputs written")
     stages = "  ".join(f"{k} {v['mean']:.1f}" for k, v in metrics["stage_ms"].items())
     t.add_row("ms per stage", stages)
     t.add_row("map points", f"{metrics['map_points']:,}  (compression {metrics['compression_ratio'] * 100:.2f}%)")
@@ -196,6 +199,7 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     OUT/config.toml` repeats the run. A --out folder that holds a previous run needs --overwrite; the run
     writes into OUT/.partial-PID/ and moves its files into OUT when complete.
     """
+    from surfelslam import IMPORTED_PERF_S
     from surfelslam.api import run_folder
     from surfelslam.viz.live import finish_viewer, viewer_for_run
 
@@ -213,7 +217,8 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     try:
         made = run_folder(seq_path, out, cfg, poses=poses, map_dir=map_dir, localize_only=localize_only,
                           record=record, mesh=mesh, rerun=rerun, viewer=start_viewer, overwrite=overwrite,
-                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",))
+                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",),
+                          started_perf_s=IMPORTED_PERF_S)
     except BaseException:
         finish_viewer(live[0] if live else None, None, warn=note, wait_when_serving=False)
         raise

@@ -40,6 +40,16 @@ def run_report(figures: bool | Collection[str] = True) -> RunReport:
     return report
 
 
+def preload_figure_modules(figures: bool | Collection[str] = True) -> None:
+    """Import the modules the ``figures`` need (matplotlib and the plotting modules: about a second of a run's end)
+    ahead of time; a run calls it in a background thread while it tracks."""
+    wanted = figures_wanted(figures)
+    if wanted & {"map_camera", "map_top"}:
+        import surfelslam.viz.map_figures  # noqa: F401
+    if wanted & {"trajectory", "ate_errors"}:
+        import surfelslam.viz.trajectory_plots  # noqa: F401
+
+
 def write_run_figures(record: RunRecord, wanted: frozenset[str]) -> None:
     """The ``wanted`` figures of :data:`RUN_FIGURES` into the run's folder (ATE figures only with an evaluation)."""
     from surfelslam.viz.map_figures import save_map_figures
