@@ -41,11 +41,14 @@ def run_report(figures: bool | Collection[str] = True) -> RunReport:
 
 
 def preload_figure_modules(figures: bool | Collection[str] = True) -> None:
-    """Import the modules the ``figures`` need (matplotlib and the plotting modules: about a second of a run's end)
-    ahead of time; a run calls it in a background thread while it tracks."""
+    """Import the modules the ``figures`` need (matplotlib and the plotting modules) and warm the map figures'
+    first use (:func:`~surfelslam.viz.map_figures.warm_up_map_figures`) ahead of time: about a second of a run's
+    end; a run calls it in a background thread while it tracks."""
     wanted = figures_wanted(figures)
     if wanted & {"map_camera", "map_top"}:
-        import surfelslam.viz.map_figures  # noqa: F401
+        from surfelslam.viz.map_figures import warm_up_map_figures
+
+        warm_up_map_figures()
     if wanted & {"trajectory", "ate_errors"}:
         import surfelslam.viz.trajectory_plots  # noqa: F401
 
