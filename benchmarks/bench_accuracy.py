@@ -88,6 +88,7 @@ def row_from_metrics(name: str, tracker: str, m: dict, cpu_s: float | None = Non
         "ms_per_frame": round(m["ms_per_frame"]["mean"], 2),
         "stage_ms": {k: round(v["mean"], 2) for k, v in m["stage_ms"].items()},
         "warmup_s": round(m["warmup_s"], 2),
+        "startup_s": _r(m.get("startup_s"), 1), "shutdown_s": _r(m.get("shutdown_s"), 1),
     }
     if cpu_s is not None:
         row["cpu_s"] = round(cpu_s, 1)

@@ -91,11 +91,15 @@ def to_markdown(res: dict) -> str:
     if res["accuracy"]:
         md += ["### Accuracy: ATE RMSE and RPE per frame against ground truth (`surfelslam run`)", ""]
         md.append(table(["sequence", "resolution", "frames", "tracker", "ATE RMSE cm", "ATE max cm", "RPE mm/frame",
-                         "RPE deg/frame", "failures", "FPS"],
+                         "RPE deg/frame", "failures", "FPS", "start s", "end s"],
                         [[r["sequence"], r["resolution"], r["frames"], r["tracker"], fmt(r["ate_rmse_cm"], 2),
                           fmt(r["ate_max_cm"], 2), fmt(r["rpe_trans_mm_per_frame"], 2),
-                          fmt(r["rpe_rot_deg_per_frame"], 3), r["failures"], r["fps"]]
+                          fmt(r["rpe_rot_deg_per_frame"], 3), r["failures"], r["fps"], fmt(r.get("startup_s"), 2),
+                          fmt(r.get("shutdown_s"), 2)]
                          for r in _grouped(res["accuracy"])]))
+        md += ["start s / end s: `metrics.json`'s `startup_s` (from the run's call, in the bench's process: opening "
+               "the sequence and the JIT warm-up) and `shutdown_s` (from the last frame to the outputs written; the "
+               "bench writes no figures).", ""]
         if any(r.get("from") for r in res["accuracy"]):
             md += ["Dense rows without FPS: the first poses of the longer dense run on that sequence (the dense "
                    "tracker is causal and deterministic, so a run on those frames alone gives the same poses), for "

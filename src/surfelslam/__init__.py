@@ -6,7 +6,13 @@ The public API (:mod:`surfelslam.api`): :func:`open_sequence`, :class:`Slam` (``
 command line's start-up) stays fast: nothing but the error types is imported up front.
 """
 
+import time
+
 from surfelslam.errors import SurfelSlamError
+
+#: ``time.perf_counter()`` when the package was first imported: for the ``surfelslam`` command, the process's start
+#: (less the interpreter's own start-up); ``surfelslam run`` counts ``metrics.json``'s ``startup_s`` from it.
+IMPORTED_PERF_S = time.perf_counter()
 
 __version__ = "0.1.0"
 

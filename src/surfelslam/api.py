@@ -16,6 +16,7 @@ Everything here is a thin layer over :mod:`surfelslam.slam` (the trackers and th
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Collection
 from contextlib import contextmanager
@@ -42,7 +43,7 @@ from surfelslam.tracking.icp import ICPConfig
 from surfelslam.tracking.preprocess import PreprocessConfig, Preprocessor
 from surfelslam.tracking.registration import PairRegistration, register_pair
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
-from surfelslam.viz.run_report import run_report
+from surfelslam.viz.run_report import preload_figure_modules, run_report
 
 #: The progress bar's FPS and map size are refreshed every this many frames (a redraw costs a little).
 PROGRESS_EVERY = 10
@@ -220,13 +221,32 @@ def run_sequence(seq: RGBDSequence, out_dir: str | Path, cfg: SlamConfig, tracke
     :data:`~surfelslam.viz.run_report.RUN_FIGURES`, none, or those named).
 
     ``kwargs``: :func:`surfelslam.slam.runner.run_sequence`'s other arguments (``overwrite``, ``on_start``,
-    ``before_commit``, ``on_frame``, ``prior_map``, ``localize_only``, ``formats``). Returns the metrics
-    (``metrics.json``).
+    ``before_commit``, ``on_frame``, ``prior_map``, ``localize_only``, ``formats``, ``started_perf_s``). Returns
+    the metrics (``metrics.json``).
     """
     report = run_report(figures)  # checks the names before anything runs
-    with progress_bar(len(seq), progress) as on_progress:
-        return _run_sequence(seq, Path(out_dir), cfg, tracker, poses, report=report, on_progress=on_progress,
-                             **kwargs)
+    with progress_bar(len(seq), progress) as on_progress, preloading(figures, on_progress) as on_slot:
+        return _run_sequence(seq, Path(out_dir), cfg, tracker, poses, report=report, on_progress=on_slot, **kwargs)
+
+
+@contextmanager
+def preloading(figures: bool | Collection[str], on_progress: Callable[[int, Any], None] | None):
+    """An ``on_progress`` callback (calling ``on_progress``) that, once the first frame is done, imports the figures'
+    modules in a background thread (:func:`~surfelslam.viz.run_report.preload_figure_modules`): the import overlaps
+    the tracking instead of adding to the run's end. The thread is joined on leaving."""
+    thread = threading.Thread(target=preload_figure_modules, args=(figures,), name="surfelslam-preload")
+
+    def on_slot(done: int, res: FrameResult | None) -> None:
+        if thread.ident is None:
+            thread.start()
+        if on_progress is not None:
+            on_progress(done, res)
+
+    try:
+        yield on_slot
+    finally:
+        if thread.ident is not None:
+            thread.join()
 
 
 @dataclass
@@ -244,11 +264,11 @@ def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, pose
                **kwargs: Any) -> FolderRun:
     """``surfelslam run`` without its printing: open ``source`` with ``cfg.dataset`` (``record``: the live camera,
     its frames also written to this bag), continue from the map of ``map_dir`` if given, run (:func:`run_sequence`;
-    ``kwargs``: its ``overwrite``, ``progress``, ``figures``, ``on_start``, ``formats``), and with ``mesh`` /
-    ``rerun`` also write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into the staging
-    folder before the hand-over, so that an interrupted run leaves neither half written. ``viewer(seq)``: the live
-    viewer's ``on_frame`` callback for the opened sequence (``None``: none). Everything is checked before the run
-    starts."""
+    ``kwargs``: its ``overwrite``, ``progress``, ``figures``, ``on_start``, ``formats``, ``started_perf_s``), and with
+    ``mesh`` / ``rerun`` also write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into
+    the staging folder before the hand-over, so that an interrupted run leaves neither half written.
+    ``viewer(seq)``: the live viewer's ``on_frame`` callback for the opened sequence (``None``: none). Everything is
+    checked before the run starts."""
     from surfelslam.datasets.realsense import open_realsense
     from surfelslam.mapping.mesh import MeshConfig
     from surfelslam.slam.map_file import read_map_file

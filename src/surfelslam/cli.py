@@ -112,7 +112,7 @@ def _build_app() -> Any:
 def _lazy_command_group() -> type:
     """The app's command group class (built on first use: defining it imports typer)."""
     import typer
-    from typer.core import TyperCommand, TyperGroup
+    from typer.core import TyperGroup
 
     try:  # typer >= 0.20 vendors click
         from typer._click.exceptions import UsageError
@@ -121,6 +121,9 @@ def _lazy_command_group() -> type:
 
     class LazyCommandGroup(TyperGroup):
         """Imports a command's module on first use; lists unloaded commands from :data:`COMMANDS`."""
+
+        def get_help_option(self, ctx):
+            return _help_flag_off_by_default(super().get_help_option(ctx))
 
         def list_commands(self, ctx) -> list[str]:
             return [*self.commands, *(name for name in COMMANDS if name not in self.commands)]
@@ -131,17 +134,7 @@ def _lazy_command_group() -> type:
             return self.commands.get(cmd_name)
 
         def format_commands(self, ctx, formatter) -> None:
-            rows = []
-            names = [n for n in self.list_commands(ctx)
-                     if not (n in self.commands and self.commands[n].hidden)]
-            if not names:
-                return
-            limit = formatter.width - 6 - max(len(n) for n in names)
-            for name in names:
-                cmd = self.commands.get(name) or TyperCommand(name, help=COMMANDS[name][1])
-                rows.append((name, cmd.get_short_help_str(limit)))
-            with formatter.section("Commands"):
-                formatter.write_dl(rows)
+            _list_commands(self.commands, self.list_commands(ctx), formatter)
 
         # typer turns a KeyboardInterrupt into a silent exit 130: report it where start-up takes time
         def make_context(self, *args, **kwargs):
@@ -167,6 +160,31 @@ def _lazy_command_group() -> type:
                 raise
 
     return LazyCommandGroup
+
+
+def _list_commands(loaded: dict, names: list[str], formatter: Any) -> None:
+    """The "Commands" section of the help: the ``loaded`` commands' own help, the others' from :data:`COMMANDS`."""
+    from typer.core import TyperCommand
+
+    names = [n for n in names if not (n in loaded and loaded[n].hidden)]
+    if not names:
+        return
+    limit = formatter.width - 6 - max(len(n) for n in names)
+    rows = []
+    for name in names:
+        cmd = loaded.get(name) or TyperCommand(name, help=COMMANDS[name][1])
+        rows.append((name, cmd.get_short_help_str(limit)))
+    with formatter.section("Commands"):
+        formatter.write_dl(rows)
+
+
+def _help_flag_off_by_default(option: Any) -> Any:
+    """The group's ``--help`` option with the default ``False``, not ``None``: typer skips its value coercion for a
+    bool, whose first use imports pydantic (about 0.3 s) that ``surfelslam COMMAND --help`` would otherwise pay for
+    the group's ``--help``, which was not given."""
+    if option is not None and option.default is None:
+        option.default = False
+    return option
 
 
 def _suggest_commands(exc: Any, word: str, names: list[str]) -> None:

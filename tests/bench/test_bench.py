@@ -93,6 +93,7 @@ def test_accuracy_and_notes(bench) -> None:
         assert key in rows, (key, sorted(rows))
         r = rows[key]
         assert r["frames"] == frames and r["fps"] > 0
+        assert r["startup_s"] >= r["warmup_s"] >= 0 and r["shutdown_s"] >= 0  # start-up includes the warm-up
         if r["ate_rmse_cm"] is None:  # a run lost from its first frames cannot be aligned: the reason is kept
             assert key[0] == "synthetic walking loop" and "alignment" in r["eval_error"]
             continue

@@ -64,6 +64,44 @@ def test_help_imports_no_command_module():
         assert f"\n  {name} " in res.stdout
 
 
+#: What a command's --help must not import: the library's heavy dependencies, and pydantic (typer's value coercion,
+#: which only the options given need)
+HELP_HEAVY = ("numpy", "scipy", "numba", "cv2", "matplotlib", "evo", "pydantic", "surfelslam.datasets",
+              "surfelslam.kernels", "surfelslam.slam", "surfelslam.api")
+
+
+def test_each_commands_help_is_light():
+    res = _python(f"""
+        import json, sys
+        from surfelslam import cli
+        report = {{}}
+        for name in cli.COMMANDS:
+            try:
+                cli.main([name, "--help"])
+            except SystemExit as exc:
+                code = exc.code
+            report[name] = [code, [m for m in {HELP_HEAVY!r} if m in sys.modules]]
+        print(json.dumps(report), file=sys.stderr)
+    """)
+    report = json.loads(res.stderr.strip().splitlines()[-1])
+    assert report == {name: [0, []] for name in cli_module.COMMANDS}, res.stderr
+    assert res.stdout.count("Show this message and exit.") == len(cli_module.COMMANDS)
+
+
+def test_eval_default_window_is_the_metrics_one():
+    from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
+    from surfelslam.tools.eval import MAX_DIFF_DEFAULT_S
+
+    assert MAX_DIFF_DEFAULT_S == DEFAULT_MAX_DIFF_S == 0.02
+
+
+def test_run_help_describes_every_tracker():
+    from surfelslam.slam import TRACKERS
+    from surfelslam.tools.run import TRACKER_HELP
+
+    assert len(TRACKERS) == 3 and all(f"{name}: " in TRACKER_HELP for name in TRACKERS)
+
+
 def test_listed_help_is_each_commands_docstring():
     app = cli_module.get_app()
     group = typer.main.get_command(app)

@@ -22,7 +22,8 @@ pytestmark = pytest.mark.slow  # short sequences through a tracker and the CLI
 
 runner = CliRunner()
 #: metrics.json fields that are wall-clock measurements (they differ between any two runs)
-WALL_CLOCK = {"fps", "wall_s", "warmup_s", "ms_per_frame", "stage_ms", "started", "finished"}
+WALL_CLOCK = {"fps", "wall_s", "warmup_s", "ms_per_frame", "stage_ms", "started", "finished", "startup_s",
+              "shutdown_s"}
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +55,10 @@ def test_a_run_saved_from_python_is_the_run_of_the_cli(seqs, tmp_path, tracker):
     assert list(m_api) == list(m_cli)
     assert m_api["sequence"] == m_cli["sequence"] == str(seqs[0]) and m_api["complete"] is True
     assert m_api["eval"] == m_cli["eval"] and m_api["frames_processed"] == len(seq) == 8
+    # start-up (from run_sequence's call: it includes the warm-up) and shut-down: measured for a run, not for a
+    # session fed frame by frame
+    assert m_cli["startup_s"] > m_cli["warmup_s"] > 0 and m_cli["shutdown_s"] > 0
+    assert m_api["startup_s"] is None and m_api["shutdown_s"] is None
     differ = {k for k in m_api if m_api[k] != m_cli[k]}
     assert differ <= WALL_CLOCK | {"prepare_in_reader"}, differ  # the CLI prepares frames in its reader thread
     # the commands that read a run folder work on the one saved from Python: its sequence is recorded

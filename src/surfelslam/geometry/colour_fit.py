@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize
 
 from surfelslam.config import Config, ordered, setting
 from surfelslam.errors import ConfigError
@@ -159,6 +158,8 @@ def fit_colour_camera(frames: Sequence[RGBDFrame], intr: Intrinsics, cfg: Colour
 
     def f(x: np.ndarray) -> float:
         return cost(*x, *([0.0] * (5 - n)))
+
+    from scipy.optimize import minimize  # here: importing scipy.optimize costs a run's start-up about 0.3 s
 
     res = minimize(f, x0[:n], method="Nelder-Mead",
                    options={"initial_simplex": simplex, "xatol": 1e-3, "fatol": 1e-5, "maxiter": 2000})

@@ -49,6 +49,66 @@ def _load(seq, i: int, prepare: Callable[[RGBDFrame], object] | None = None) -> 
     return LoadedFrame(i, frame, err, read_ms, prepared)
 
 
+def _prepare_loaded(read: Future, prepare: Callable[[RGBDFrame], object] | None) -> LoadedFrame:
+    """``prepare`` a slot read before ``prepare`` was known (queued behind its read on the one reader thread)."""
+    item = read.result()
+    if prepare is not None and item.frame is not None:
+        try:
+            item.prepared = prepare(item.frame)
+        except Exception:  # noqa: BLE001 - as in _load
+            item.prepared = None
+    return item
+
+
+class FrameReader:
+    """The reader thread of :func:`prefetch_frames`, started before the frames are wanted.
+
+    ``FrameReader(seq, ahead)`` starts decoding the first ``ahead`` frames at once (e.g. while the tracker's kernels
+    compile); :meth:`frames` then yields every slot in order, running ``prepare`` (known only now) on those first
+    frames in the same thread, before any later frame is read: the slots are those of ``prefetch_frames``. Use as a
+    context manager (or :meth:`close`): the thread stops with it.
+    """
+
+    def __init__(self, seq, ahead: int = 3):
+        self.seq = seq
+        self.ahead = max(int(ahead), 0)
+        self._pool: ThreadPoolExecutor | None = None
+        self._early: dict[int, Future] = {}
+        if self.ahead > 0:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-read")
+            for i in range(min(self.ahead, len(seq))):
+                self._early[i] = self._pool.submit(_load, seq, i, None)
+
+    def frames(self, prepare: Callable[[RGBDFrame], object] | None = None) -> Iterator[LoadedFrame]:
+        """Every slot of the sequence in order (see :func:`prefetch_frames` for ``prepare``); once only."""
+        seq, n, ahead = self.seq, len(self.seq), self.ahead
+        if self._pool is None:
+            for i in range(n):
+                yield _load(seq, i)
+            return
+        try:
+            pending = {i: self._pool.submit(_prepare_loaded, read, prepare) for i, read in self._early.items()}
+            self._early = {}
+            for i in range(n):
+                nxt = i + ahead
+                if nxt < n:
+                    pending[nxt] = self._pool.submit(_load, seq, nxt, prepare)
+                yield pending.pop(i).result()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the thread: wait for the frame being read, drop the queued ones."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> FrameReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def prefetch_frames(seq, ahead: int = 3, prepare: Callable[[RGBDFrame], object] | None = None
                     ) -> Iterator[LoadedFrame]:
     """Yield every position of ``seq`` in order; ``ahead`` frames are decoded in advance.
@@ -56,22 +116,6 @@ def prefetch_frames(seq, ahead: int = 3, prepare: Callable[[RGBDFrame], object] 
     ``prepare``: optional frame-only work run on each frame in the reader thread (its result is the slot's
     ``prepared``); it must be safe to run beside the consumer's processing. ``ahead = 0`` reads
     synchronously (no thread, and ``prepare`` is not called: the consumer does that work itself).
+    A consumer that stops early (error, Ctrl-C) waits for the frame being read, not for the queued ones.
     """
-    n = len(seq)
-    if ahead <= 0:
-        for i in range(n):
-            yield _load(seq, i)
-        return
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-read")
-    try:
-        pending: dict[int, Future] = {}
-        for i in range(min(ahead, n)):
-            pending[i] = pool.submit(_load, seq, i, prepare)
-        for i in range(n):
-            nxt = i + ahead
-            if nxt < n:
-                pending[nxt] = pool.submit(_load, seq, nxt, prepare)
-            yield pending.pop(i).result()
-    finally:
-        # a consumer that stops early (error, Ctrl-C) waits for the frame being read, not for the queued ones
-        pool.shutdown(wait=True, cancel_futures=True)
+    yield from FrameReader(seq, ahead).frames(prepare)

@@ -13,6 +13,7 @@ overrides.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
@@ -52,7 +53,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
                  on_frame: Callable[[Any, Any, Any], None] | None = None,
                  on_progress: ProgressSink | None = None,
                  prior_map: SavedMap | None = None, localize_only: bool = False,
-                 formats: Collection[str] = ("tum",)) -> dict:
+                 formats: Collection[str] = ("tum",), started_perf_s: float | None = None) -> dict:
     """Run the pipeline on an opened sequence and write every output into ``out_dir``: a :class:`Session`
     over :func:`track_sequence`, written by a :class:`RunWriter`.
 
@@ -68,9 +69,12 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     ``prior_map`` (``--map``): continue from a saved map (``dense``, ``hybrid``); ``localize_only``: track against it
     without changing it. A run in which no frame is localised in it ends normally, with no poses (its metrics'
     ``prior_map`` says why). ``formats``: the pose files besides TUM (``"kitti"``: ``trajectory_kitti.txt``).
+    ``started_perf_s``: the ``time.perf_counter()`` the metrics' ``startup_s`` counts from (``surfelslam run``: the
+    process's start; default: this call).
 
     Returns the metrics dict (also written as ``metrics.json``).
     """
+    started_perf_s = time.perf_counter() if started_perf_s is None else started_perf_s
     tracker = cfg.tracker if tracker is None else tracker
     if tracker not in TRACKERS:
         raise ConfigError(f"tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
@@ -79,7 +83,7 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
     cfg = dataclasses.replace(cfg, tracker=tracker, dataset=seq.options)
     given = poses_for_mapping(seq, poses, cfg) if poses is not None else None
     check_map_options(tracker, prior_map, localize_only, poses)
-    writer = RunWriter(out_dir, overwrite=overwrite, report=report, formats=formats)
+    writer = RunWriter(out_dir, overwrite=overwrite, report=report, formats=formats, started_perf_s=started_perf_s)
     writer.check()  # nothing written yet; before the colour check, which reads frames
     colour_registered, colour_check = colour_is_registered(seq, cfg.colour_registration)
     session = Session(seq.intrinsics, cfg, tracker, colour_registered=colour_registered,
@@ -89,9 +93,8 @@ def run_sequence(seq, out_dir: Path, cfg: SlamConfig, tracker: str | None = None
         stage = writer.open(dumps_toml(cfg))
         if on_start is not None:
             on_start(stage)
-        session.warm_up()
         outcome = track_sequence(seq, session, given=given, on_pose=writer.append_pose, on_frame=on_frame,
-                                 on_progress=on_progress)
+                                 on_progress=on_progress, warm_up=True)  # the first frames are read meanwhile
         metrics = writer.finish(outcome, seq.ground_truth)
         if before_commit is not None:
             before_commit(stage)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from surfelslam.errors import ConfigError
-from surfelslam.io.prefetch import prefetch_frames
+from surfelslam.io.prefetch import FrameReader
 from surfelslam.kernels.threads import concurrent_launch_safe, parallel_enabled
 from surfelslam.slam import TRACKERS, SlamConfig, build_slam
 from surfelslam.slam.frame import FrameResult, PreparedFrame, SlamResult
@@ -46,12 +46,15 @@ class RunOutcome:
         result: the tracker's end-of-run result (map, saved map, loop stamps).
         metrics: the run's numbers (``metrics.json`` without the writer's fields: evaluation, start/end times).
         frames: the per-frame results in order.
+        clock_perf_s: the ``time.perf_counter()`` stamps at which the FPS clock started (before the first frame
+            was read) and stopped (after the last frame): ``metrics["wall_s"]`` apart; ``None`` without frames.
     """
 
     trajectory: Trajectory
     result: SlamResult
     metrics: dict
     frames: list[FrameResult] = field(default_factory=list, repr=False)
+    clock_perf_s: tuple[float, float] | None = None
 
 
 def _stats(v: list[float]) -> dict:
@@ -161,7 +164,8 @@ class Session:
         if self.finished:
             raise ConfigError("the session is finished already")
         self.finished = True
-        wall_s = 0.0 if self._t_start is None else time.perf_counter() - self._t_start
+        t_end = time.perf_counter()
+        wall_s = 0.0 if self._t_start is None else t_end - self._t_start
         result = self.tracker.finish()
         trajectory = result.trajectory_override
         if trajectory is None:
@@ -169,7 +173,8 @@ class Session:
             trajectory = Trajectory(np.array([r.timestamp for r in posed], np.float64),
                                     np.array([r.T_world_cam for r in posed], np.float64).reshape(-1, 4, 4))
         metrics = self._metrics(seq, result, wall_s, len(trajectory))
-        return RunOutcome(trajectory, result, metrics, self.frames)
+        clock = None if self._t_start is None else (self._t_start, t_end)
+        return RunOutcome(trajectory, result, metrics, self.frames, clock)
 
     def _metrics(self, seq, result: SlamResult, wall_s: float, poses: int) -> dict:
         n_done = len(self.frames)
@@ -225,8 +230,10 @@ def sequence_metrics(seq, intrinsics: Intrinsics, frames: int) -> dict:
 
 def track_sequence(seq, session: Session, *, given: Mapping[int, np.ndarray] | None = None,
                    on_pose: PoseSink | None = None, on_frame: Callable[[Any, Any, Any], None] | None = None,
-                   on_progress: ProgressSink | None = None) -> RunOutcome:
+                   on_progress: ProgressSink | None = None, warm_up: bool = False) -> RunOutcome:
     """Every frame of ``seq`` through ``session``, read (and prepared) ahead in a background thread.
+
+    ``warm_up``: run :meth:`Session.warm_up` first, while the reader thread already decodes the first frames.
 
     ``given``: position -> ``T_world_cam`` for a ``given_poses`` session (a frame without one is skipped).
     ``on_pose`` gets each posed frame as it is tracked, ``on_frame(frame, result, tracker)`` each tracked frame (a
@@ -234,13 +241,22 @@ def track_sequence(seq, session: Session, *, given: Mapping[int, np.ndarray] | N
     metrics also say whether frames were prepared in the reader thread.
     """
     cfg = session.config
+    with FrameReader(seq, ahead=cfg.io.prefetch_frames) as reader:
+        if warm_up:
+            session.warm_up()
+        return _track_frames(reader, session, given, on_pose, on_frame, on_progress)
+
+
+def _track_frames(reader: FrameReader, session: Session, given, on_pose, on_frame, on_progress) -> RunOutcome:
+    """:func:`track_sequence`'s loop, the session warmed up: the frames of ``reader`` through ``session``."""
+    cfg = session.config
     # the warm-up ran the kernels, so numba's threading layer is known: with parallel kernels on a layer that
     # cannot launch from two threads at once, frames are prepared in the main thread (same results, slower)
     prepare_in_reader = cfg.io.prepare_in_reader and concurrent_launch_safe()
     prepare = session.tracker.prepare if prepare_in_reader else None
     session.start_clock()
     done = 0
-    for item in prefetch_frames(seq, ahead=cfg.io.prefetch_frames, prepare=prepare):
+    for item in reader.frames(prepare):
         res = None
         T_given = None if given is None else given.get(item.position)
         if item.error is not None:
@@ -256,6 +272,6 @@ def track_sequence(seq, session: Session, *, given: Mapping[int, np.ndarray] | N
             done += 1
         if on_progress is not None:
             on_progress(done, res)
-    outcome = session.finish(seq)
-    outcome.metrics["prepare_in_reader"] = bool(prepare_in_reader and cfg.io.prefetch_frames > 0)
+    outcome = session.finish(reader.seq)
+    outcome.metrics["prepare_in_reader"] = bool(prepare_in_reader and reader.ahead > 0)
     return outcome

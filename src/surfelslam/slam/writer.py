@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from datetime import datetime
@@ -75,7 +76,7 @@ class RunWriter:
     """
 
     def __init__(self, out_dir: str | Path, *, overwrite: bool = True, report: RunReport | None = None,
-                 formats: Collection[str] = ("tum",)):
+                 formats: Collection[str] = ("tum",), started_perf_s: float | None = None):
         unknown = sorted(set(formats) - set(POSE_FORMATS))
         if unknown:
             raise ConfigError(f"--format: unknown {', '.join(unknown)}; known: {', '.join(POSE_FORMATS)}")
@@ -83,6 +84,7 @@ class RunWriter:
         self.out = Path(out_dir)
         self.folder = RunFolder(self.out, overwrite=overwrite)
         self.report = report
+        self.started_perf_s = started_perf_s
         self.stage: Path | None = None
         self.recipe = ""
         self.started = ""
@@ -124,9 +126,18 @@ class RunWriter:
         if self.report is not None:
             written = read_tum(path) if len(outcome.trajectory) else outcome.trajectory
             self.report(RunRecord(self.stage, outcome, metrics, written, ground_truth))
-        metrics.update(complete=True, started=self.started, finished=now_text())
+        metrics.update(complete=True, started=self.started, finished=now_text(), **self._overhead(outcome))
         write_text_atomic(self.stage / COMPLETE_MARKER, json.dumps(metrics, indent=2, default=json_default) + "\n")
         return metrics
+
+    def _overhead(self, outcome: RunOutcome) -> dict:
+        """``startup_s``: from ``started_perf_s`` (the process's start, for ``surfelslam run``) to the start of the
+        frames' clock; ``shutdown_s``: from the end of that clock (after the last frame) to now, every output but
+        ``metrics.json`` written. ``None`` where not measured (a session fed frame by frame, or no frames)."""
+        clock = outcome.clock_perf_s
+        if clock is None or self.started_perf_s is None:
+            return {"startup_s": None, "shutdown_s": None}
+        return {"startup_s": clock[0] - self.started_perf_s, "shutdown_s": time.perf_counter() - clock[1]}
 
     def _write_pose_files(self, outcome: RunOutcome) -> None:
         """``keyframes.txt`` (this run's keyframes of its saved map, at their final poses) and the other formats."""

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-import numpy as np
 import typer
 from rich.table import Table
 
@@ -32,6 +31,8 @@ def register(app: typer.Typer) -> None:
         json_out: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
     ) -> None:
         """Fit the colour camera (intrinsics + sideways offset) so that colour edges fall on depth edges."""
+        import numpy as np
+
         from surfelslam.datasets import open_sequence
         from surfelslam.geometry.colour_fit import fit_colour_camera
 

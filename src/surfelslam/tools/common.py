@@ -10,13 +10,12 @@ import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
-from surfelslam.datasets.base import DatasetOptions
 from surfelslam.errors import ConfigError, SurfelSlamError
 from surfelslam.tools.exits import (
     EXIT_INTERNAL_ERROR,
@@ -26,6 +25,9 @@ from surfelslam.tools.exits import (
     internal_error_message,
     interrupt_requested,
 )
+
+if TYPE_CHECKING:  # the dataset layer (numpy, scipy) is imported when a command runs, not for its --help
+    from surfelslam.datasets.base import DatasetOptions
 
 try:  # typer >= 0.20 vendors click
     from typer._click.exceptions import ClickException
@@ -150,6 +152,8 @@ class DatasetOptionsArgs:
 
     def resolve(self, base: DatasetOptions | None = None) -> DatasetOptions:
         """The options given override ``base`` (e.g. a config file's ``[dataset]``; default: the defaults)."""
+        from surfelslam.datasets.base import DatasetOptions
+
         return dataclasses.replace(DatasetOptions() if base is None else base, **self.given())
 
 

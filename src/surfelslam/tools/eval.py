@@ -10,20 +10,21 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.markup import escape
 from rich.table import Table
 
 from surfelslam.errors import ConfigError, EvaluationError, GroundTruthError, InputError
-from surfelslam.eval import metrics
-from surfelslam.io.atomic import write_text_atomic
-from surfelslam.io.trajectory import read_tum
-from surfelslam.slam.run_reader import open_run
 from surfelslam.tools.common import console, handle_errors
-from surfelslam.types import Trajectory
 
+if TYPE_CHECKING:  # the library (numpy, evo) is imported when the command runs, not for its --help
+    from surfelslam.types import Trajectory
+
+#: --max-diff's default [s]: the TUM association window, :data:`surfelslam.eval.metrics.DEFAULT_MAX_DIFF_S` (a test
+#: keeps the two equal; written out here so that ``eval --help`` does not import evo)
+MAX_DIFF_DEFAULT_S = 0.02
 GT_FILENAME = "groundtruth.txt"
 #: what ``eval`` writes into its output folder (key -> file name); ``run`` writes none of these names
 EVAL_FILES = {"json": "eval.json", "trajectory_png": "eval_trajectory.png", "ate_errors_png": "eval_ate_errors.png"}
@@ -31,6 +32,8 @@ EVAL_FILES = {"json": "eval.json", "trajectory_png": "eval_trajectory.png", "ate
 
 def load_ground_truth(path: Path) -> Trajectory:
     """GT from a TUM file, or from a sequence folder (its ``ground_truth``)."""
+    from surfelslam.io.trajectory import read_tum
+
     if not path.exists():
         raise InputError(path, "ground truth not found (expected a TUM trajectory file or a sequence folder)")
     if path.is_file():
@@ -50,6 +53,9 @@ def load_ground_truth(path: Path) -> Trajectory:
 
 def load_estimate(path: Path) -> Trajectory:
     """The estimate: a TUM file, or a run folder's trajectory (:func:`~surfelslam.slam.run_reader.open_run`)."""
+    from surfelslam.io.trajectory import read_tum
+    from surfelslam.slam.run_reader import open_run
+
     if path.is_dir():
         return open_run(path).trajectory()
     return read_tum(path)
@@ -95,6 +101,10 @@ def results_table(res: dict, title: str) -> Table:
 
 
 def run_eval(est_path: Path, gt_path: Path, out_dir: Path | None, max_diff_s: float, plots: bool) -> dict:
+    from surfelslam.eval import metrics
+    from surfelslam.io.atomic import write_text_atomic
+    from surfelslam.types import Trajectory
+
     check_max_diff(max_diff_s)
     est = load_estimate(est_path)
     gt = load_ground_truth(gt_path)
@@ -135,7 +145,7 @@ def register(app: typer.Typer) -> None:
         ] = None,
         max_diff: Annotated[
             float, typer.Option("--max-diff", help="Max timestamp difference for association [s].")
-        ] = metrics.DEFAULT_MAX_DIFF_S,
+        ] = MAX_DIFF_DEFAULT_S,
         figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")] = True,
         no_plots: Annotated[bool, typer.Option("--no-plots", hidden=True, help="Old name of --no-figures.")] = False,
     ) -> None:

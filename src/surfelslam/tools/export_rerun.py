@@ -9,7 +9,6 @@ import typer
 
 from surfelslam.errors import ConfigError
 from surfelslam.tools.common import DepthScaleOpt, IntrinsicsOpt, console, handle_errors, parse_intrinsics
-from surfelslam.viz.run_export import export_run
 
 
 def print_export(summary, notes: list[str]) -> None:
@@ -45,6 +44,8 @@ def register(app: typer.Typer) -> None:
         """
         if images_every < 1:
             raise ConfigError(f"--images-every must be >= 1, got {images_every}")
+        from surfelslam.viz.run_export import export_run
+
         print_export(*export_run(run_dir, out, seq, images_every, not no_images, parse_intrinsics(intrinsics),
                                  depth_scale, downsample))
 

@@ -8,15 +8,15 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from surfelslam.api import tsdf_bar
 from surfelslam.errors import ConfigError, ConfigValueError
-from surfelslam.mapping.mesh import METHODS, MeshConfig
-from surfelslam.slam.run_mesh import mesh_run
 from surfelslam.tools.common import console, handle_errors
+
+if TYPE_CHECKING:  # the library is imported when the command runs, not for its --help
+    from surfelslam.mapping.mesh import MeshConfig
 
 #: MeshConfig fields -> the options that set them (for error messages)
 OPTION_OF = {"method": "--method", "voxel_m": "--voxel", "trunc_m": "--trunc", "max_depth_m": "--max-depth",
@@ -26,6 +26,8 @@ OPTION_OF = {"method": "--method", "voxel_m": "--voxel", "trunc_m": "--trunc", "
 
 def mesh_config(**given) -> MeshConfig:
     """A :class:`MeshConfig` from the options given (``None``: the default); a bad value names its option."""
+    from surfelslam.mapping.mesh import MeshConfig
+
     try:
         return MeshConfig(**{k: v for k, v in given.items() if v is not None})
     except ConfigValueError as exc:
@@ -68,6 +70,10 @@ def register(app: typer.Typer) -> None:
         TSDF (the default) reads the run's sequence again with the run's dataset options and fuses its depth
         frames at the poses of trajectory.txt; Poisson uses the surfels of map.ply.
         """
+        from surfelslam.api import tsdf_bar
+        from surfelslam.mapping.mesh import METHODS
+        from surfelslam.slam.run_mesh import mesh_run
+
         if method not in METHODS:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         cfg = mesh_config(method=method, voxel_m=voxel, trunc_m=trunc, max_depth_m=max_depth, stride=stride,

@@ -8,13 +8,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
 
 from surfelslam.errors import ConfigError
 from surfelslam.tools.common import DatasetOptionsArgs, SeqArg, console, handle_errors, with_dataset_options
+
+if TYPE_CHECKING:  # numpy and the library are imported when the command runs, not for its --help
+    import numpy as np
 
 
 def per_level(text: str | None, default: tuple, levels: int, name: str, cast=float,
@@ -75,6 +77,8 @@ def _print_guesses(result: dict, init: str) -> None:
 
 
 def _print_result(result: dict, res, T: np.ndarray, agree: dict, written: list[Path]) -> None:
+    import numpy as np
+
     source, target = result["source"], result["target"]
     console.print(f"registered frame {source} -> {target}: inliers {res.inliers} "
                   f"({100 * res.inlier_fraction:.1f}%), RMSE {1000 * res.rmse_m:.2f} mm, "

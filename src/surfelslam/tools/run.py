@@ -1,4 +1,8 @@
-"""``surfelslam run``: the whole pipeline on a sequence, writing trajectory, map, config, metrics and figures."""
+"""``surfelslam run``: the whole pipeline on a sequence, writing trajectory, map, config, metrics and figures.
+
+The library (numba, OpenCV, the trackers) is imported inside the command, so that ``surfelslam run --help`` stays
+light: at module level only typer, rich and the package's light modules are imported.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +14,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from surfelslam.api import run_folder
 from surfelslam.errors import ConfigError
-from surfelslam.slam import TRACKERS
-from surfelslam.slam.runner import load_config
-from surfelslam.slam.segments import Segment
 from surfelslam.tools.common import (
     DatasetOptionsArgs,
     SeqArg,
@@ -25,8 +25,7 @@ from surfelslam.tools.common import (
 
 TRACKER_HELP = ("hybrid: dense ICP + ORB back end (PnP guesses, relocalisation, loop-corrected trajectory and "
                 "surfel map); dense: frame-to-model ICP alone; orb: sparse ORB/PnP odometry + loop-closing pose graph "
-                "(map = keyframe cloud). One of " + ", ".join(TRACKERS) + ". Default: the --config file's, else "
-                "hybrid.")
+                "(map = keyframe cloud). Default: the --config file's, else hybrid.")
 #: Skipped frames quoted under the summary (``metrics.json`` lists them all).
 SUMMARY_EXAMPLES = 5
 
@@ -35,6 +34,8 @@ SEGMENT_MIN_FRAMES_SHOWN = 5  # weak stretches shorter than this (frames) are on
 
 
 def print_summary(metrics: dict, out_dir: Path) -> None:
+    from surfelslam.slam.segments import Segment
+
     t = Table(title=f"surfelslam run -> {escape(str(out_dir))}", show_header=False)
     frames = f"{metrics['frames_processed']} processed, {metrics['frames_skipped']} skipped"
     if metrics.get("frames_unpaired"):
@@ -42,6 +43,9 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
     t.add_row("frames", frames)
     t.add_row("tracking failures", str(metrics.get("tracking_failures", 0)))
     t.add_row("FPS", f"{metrics['fps']:.1f}  (JIT warm-up {metrics['warmup_s']:.1f} s excluded)")
+    if metrics.get("startup_s") is not None:
+        t.add_row("start, end", f"{metrics['startup_s']:.1f} s to the first frame, {metrics['shutdown_s']:.1f} s "
+                                "from the last frame to the outputs written")
     stages = "  ".join(f"{k} {v['mean']:.1f}" for k, v in metrics["stage_ms"].items())
     t.add_row("ms per stage", stages)
     t.add_row("map points", f"{metrics['map_points']:,}  (compression {metrics['compression_ratio'] * 100:.2f}%)")
@@ -110,6 +114,9 @@ def resolve_run_config(config: str | None, sets: list[str] | None, tracker: str 
                        dataset: DatasetOptionsArgs):
     """The run's settings: the command-line flags, over ``--set``, over the ``--config`` file (or preset), over
     the defaults."""
+    from surfelslam.slam import TRACKERS
+    from surfelslam.slam.runner import load_config
+
     if tracker is not None and tracker not in TRACKERS:
         raise ConfigError(f"--tracker must be one of {', '.join(TRACKERS)}, got {tracker!r}")
     cfg = load_config(config, sets or ())
@@ -192,6 +199,8 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     OUT/config.toml` repeats the run. A --out folder that holds a previous run needs --overwrite; the run
     writes into OUT/.partial-PID/ and moves its files into OUT when complete.
     """
+    from surfelslam import IMPORTED_PERF_S
+    from surfelslam.api import run_folder
     from surfelslam.viz.live import finish_viewer, viewer_for_run
 
     cfg = resolve_run_config(config, sets, tracker, dataset)
@@ -208,7 +217,8 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     try:
         made = run_folder(seq_path, out, cfg, poses=poses, map_dir=map_dir, localize_only=localize_only,
                           record=record, mesh=mesh, rerun=rerun, viewer=start_viewer, overwrite=overwrite,
-                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",))
+                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",),
+                          started_perf_s=IMPORTED_PERF_S)
     except BaseException:
         finish_viewer(live[0] if live else None, None, warn=note, wait_when_serving=False)
         raise

@@ -8,6 +8,7 @@ virtual camera and the room's inside do not hide it (the map's normals face the 
 
 from __future__ import annotations
 
+import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,8 @@ RADIUS_SCALE = 1.5  # splats drawn larger than the fusion radius: closes the gap
 ELEVATION_DEG = 35.0  # the framing camera looks down at the map by this angle
 FIT_PERCENTILE = 0.2  # framing ignores this percentage of outlying surfels on each side
 MARGIN = 0.04  # fraction of the image kept free on each side
+#: surfels of the throwaway figure of :func:`warm_up_map_figures` (a few: it is drawn for its first-use costs)
+WARM_UP_SURFELS = 200
 
 
 def _rotate(R: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -376,3 +379,19 @@ def save_map_figures(out_dir: str | Path, position: np.ndarray, normal: np.ndarr
         fig = map_figure(cam, position, normal, colour, confidence, first_seen, radius, poses, fig_title)
         written.append(save_figure(fig, out_dir / f"{prefix}_{name}.png"))
     return written
+
+
+def warm_up_map_figures() -> None:
+    """Draw a small map figure in memory (nothing is written): the splat kernel is loaded from numba's cache and
+    matplotlib's fonts and PNG writer are set up, so that a run's map figures do not pay for them at its end (a run
+    calls this in a background thread while it tracks)."""
+    rng = np.random.default_rng(0)
+    position = rng.uniform(-1.0, 1.0, (WARM_UP_SURFELS, 3))
+    normal = position / np.linalg.norm(position, axis=1, keepdims=True)
+    colour = rng.integers(0, 256, (WARM_UP_SURFELS, 3))
+    values = np.arange(WARM_UP_SURFELS, dtype=np.float64)
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, 0, 3] = 0.5
+    cam = top_view(position, poses, normal)
+    fig = map_figure(cam, position, normal, colour, values, values, np.full(WARM_UP_SURFELS, 0.01), poses, "warm-up")
+    fig.savefig(io.BytesIO(), format="png", dpi=style.DPI)

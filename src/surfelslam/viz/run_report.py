@@ -40,6 +40,19 @@ def run_report(figures: bool | Collection[str] = True) -> RunReport:
     return report
 
 
+def preload_figure_modules(figures: bool | Collection[str] = True) -> None:
+    """Import the modules the ``figures`` need (matplotlib and the plotting modules) and warm the map figures'
+    first use (:func:`~surfelslam.viz.map_figures.warm_up_map_figures`) ahead of time: about a second of a run's
+    end; a run calls it in a background thread while it tracks."""
+    wanted = figures_wanted(figures)
+    if wanted & {"map_camera", "map_top"}:
+        from surfelslam.viz.map_figures import warm_up_map_figures
+
+        warm_up_map_figures()
+    if wanted & {"trajectory", "ate_errors"}:
+        import surfelslam.viz.trajectory_plots  # noqa: F401
+
+
 def write_run_figures(record: RunRecord, wanted: frozenset[str]) -> None:
     """The ``wanted`` figures of :data:`RUN_FIGURES` into the run's folder (ATE figures only with an evaluation)."""
     from surfelslam.viz.map_figures import save_map_figures

@@ -1,0 +1,32 @@
+"""The run's figures warmed while it tracks (viz.run_report.preload_figure_modules): nothing is written, and the
+figures drawn afterwards are byte for byte those drawn without it."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from surfelslam.viz import map_figures as mf
+from surfelslam.viz.run_report import preload_figure_modules
+
+
+def _figures(out_dir) -> dict[str, bytes]:
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-1, 1, (300, 3)).astype(np.float32)
+    normal = pos / np.linalg.norm(pos, axis=1, keepdims=True)
+    conf, seen = rng.uniform(1, 20, 300), rng.integers(0, 50, 300)
+    written = mf.save_map_figures(out_dir, pos, normal, rng.integers(0, 256, (300, 3)), conf, seen, np.eye(4),
+                                  radius=np.full(300, 0.01))
+    return {p.name: p.read_bytes() for p in written}
+
+
+def test_warming_writes_nothing_and_changes_no_figure(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    before = _figures(tmp_path / "before")
+    preload_figure_modules(True)
+    preload_figure_modules(False)  # no figures wanted: nothing to do
+    after = _figures(tmp_path / "after")
+    assert sorted(before) == ["map_camera.png", "map_top.png"] and min(len(b) for b in before.values()) > 10_000
+    assert after == before
+    assert sorted(os.listdir(tmp_path)) == ["after", "before"]
