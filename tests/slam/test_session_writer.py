@@ -99,6 +99,11 @@ def test_a_map_in_which_nothing_localises_ends_as_a_normal_run(seqs, tmp_path, l
     assert metrics["prior_map"]["localised"] is False and "eval" not in metrics
     assert (out / "trajectory.txt").read_text() == "# timestamp tx ty tz qx qy qz qw\n"
     assert not [p for p in out.iterdir() if p.name.startswith(STAGING_PREFIX)]
+    # every frame without a pose is reported with its reason: in metrics.json, and one summary line each (the first 5)
+    assert [u["frame"] for u in metrics["unposed"]] == list(range(6))
+    assert {u["reason"] for u in metrics["unposed"]} == {"not_localised_in_map"}
+    assert sum(line.startswith("unposed frame ") for line in res.output.splitlines()) == 5
+    assert "1 more unposed frames" in " ".join(res.output.split())
 
 
 def test_keyframes_and_kitti_poses_beside_the_trajectory(seqs, tmp_path):

@@ -187,6 +187,9 @@ class Session:
             "frames_skipped": len(self.skipped),
             "skipped": self.skipped,
             "poses_written": poses,
+            # frames with no pose (before the run was localised in a loaded map), each with its reason
+            "unposed": [{"frame": int(r.index), "timestamp": float(r.timestamp), "reason": r.reason}
+                        for r in self.frames if not r.posed],
             "fps": n_done / wall_s if wall_s > 0 else 0.0,
             "wall_s": wall_s,
             "warmup_s": self.warmup_s,

@@ -79,12 +79,22 @@ def print_summary(metrics: dict, out_dir: Path) -> None:
     if len(shown) > SUMMARY_EXAMPLES:
         console.print(f"[yellow]... and {len(shown) - SUMMARY_EXAMPLES} more segments (metrics.json)[/]")
     print_prior_map(metrics.get("prior_map"))
+    print_unposed(metrics.get("unposed", []))
     if metrics.get("poses_written") == 0:
         console.print("[bold red]no frame has a pose:[/] trajectory.txt is empty", highlight=False, soft_wrap=True)
     elif metrics.get("lost_at_end"):
         last = [s for s in segs if s["kind"] == "lost"][-1]
         console.print(f"[bold red]the run ended lost[/] (from frame {last['first_frame']}): the poses after it are "
                       "predictions, not measurements", highlight=False, soft_wrap=True)
+
+
+def print_unposed(unposed: list[dict]) -> None:
+    """One line per frame that has no pose (not localised in the loaded map), the first few of them."""
+    for u in unposed[:SUMMARY_EXAMPLES]:
+        console.print(f"[yellow]unposed frame {u['frame']}[/] (t={u['timestamp']:.3f} s): {escape(str(u['reason']))}",
+                      highlight=False, soft_wrap=True)
+    if len(unposed) > SUMMARY_EXAMPLES:
+        console.print(f"[yellow]... and {len(unposed) - SUMMARY_EXAMPLES} more unposed frames (metrics.json)[/]")
 
 
 def prior_map_line(rep: dict | None) -> str | None:
