@@ -31,6 +31,7 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from surfelslam.errors import ConfigError, InputError, OutputError
@@ -44,6 +45,8 @@ RUN_OUTPUT_PATTERNS = ("map_*.png", "eval*.json", "eval*.png")
 #: The file that marks a complete run; handed over last, deleted first.
 COMPLETE_MARKER = "metrics.json"
 LOCK_NAME = ".lock"
+#: Tries to take over a stale lock before giving up (another process keeps taking it in between).
+LOCK_TAKEOVER_ATTEMPTS = 3
 STAGING_PREFIX = ".partial-"
 COMMIT_PREFIX = ".commit-"
 #: inside ``.commit-<pid>/``: the names of the new run's files, one a line
@@ -90,7 +93,7 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def _lock_holder(path: Path) -> int | None:
+def lock_holder(path: Path) -> int | None:
     """The PID in a lock file, ``None`` when it is empty or unreadable."""
     try:
         text = path.read_text().strip()
@@ -102,13 +105,54 @@ def _lock_holder(path: Path) -> int | None:
         return -1  # garbage: no process of ours wrote it
 
 
-def _lock_is_stale(path: Path, holder: int | None) -> bool:
+def lock_is_stale(path: Path, holder: int | None) -> bool:
+    """Whether the lock file ``path`` (held by ``holder``: :func:`lock_holder`) is left by a process that died: its PID
+    is gone, or it stayed empty longer than a writer takes to fill it."""
     if holder is None:  # being written right now, or its writer died before writing
         try:
             return time.time() - path.stat().st_mtime > EMPTY_LOCK_STALE_S
         except FileNotFoundError:
             return True
     return not pid_alive(holder)
+
+
+def take_lock(path: Path, what: str, owner: str, held_message: Callable[[int | None], str]) -> None:
+    """Create the lock file ``path`` holding this process's PID (``O_EXCL``: one holder), taking over a stale one (a
+    dead holder's: :func:`lock_is_stale`). ``what`` names the file and ``owner`` the kind of holder in messages.
+
+    Raises:
+        OutputError: a live holder has it (``held_message(holder_pid)``), or it cannot be created or written.
+    """
+    for _ in range(LOCK_TAKEOVER_ATTEMPTS):
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            holder = lock_holder(path)
+            if not lock_is_stale(path, holder):
+                raise OutputError(path, held_message(holder)) from None
+            if lock_holder(path) == holder:  # still the same stale lock: take it over
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+            continue
+        except OSError as exc:
+            raise OutputError(path, f"cannot create the {what} ({os_error_text(exc)})") from None
+        try:
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError as exc:
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                path.unlink()
+            raise OutputError(path, f"cannot write the {what} ({os_error_text(exc)})") from None
+        os.close(fd)
+        return
+    raise OutputError(path, f"cannot take over the stale {what} (another {owner} keeps taking it)")
+
+
+def release_lock(path: Path) -> None:
+    """Remove the lock file ``path`` if this process holds it."""
+    if lock_holder(path) == os.getpid():
+        with contextlib.suppress(OSError):
+            path.unlink()
 
 
 def _held_message(out: Path, holder: int | None) -> str:
@@ -148,8 +192,8 @@ class RunFolder:
                 break
         lock = out / LOCK_NAME
         if lock.exists():
-            holder = _lock_holder(lock)
-            if not _lock_is_stale(lock, holder):
+            holder = lock_holder(lock)
+            if not lock_is_stale(lock, holder):
                 raise OutputError(lock, _held_message(out, holder))
         self._refuse_previous_run()
 
@@ -165,36 +209,13 @@ class RunFolder:
     # ---------------------------------------------------------------------------------------------- lock
     def _acquire(self) -> None:
         path = self.out / LOCK_NAME
-        for _ in range(3):
-            try:
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            except FileExistsError:
-                holder = _lock_holder(path)
-                if not _lock_is_stale(path, holder):
-                    raise OutputError(path, _held_message(self.out, holder)) from None
-                if _lock_holder(path) == holder:  # still the same stale lock: take it over
-                    with contextlib.suppress(FileNotFoundError):
-                        path.unlink()
-                continue
-            except OSError as exc:
-                raise OutputError(path, f"cannot create the lock file ({os_error_text(exc)})") from None
-            try:
-                os.write(fd, f"{os.getpid()}\n".encode())
-            except OSError as exc:
-                os.close(fd)
-                with contextlib.suppress(OSError):
-                    path.unlink()
-                raise OutputError(path, f"cannot write the lock file ({os_error_text(exc)})") from None
-            os.close(fd)
-            self._lock = path
-            return
-        raise OutputError(path, "cannot take over the stale lock file (another run keeps taking it)")
+        take_lock(path, "lock file", "run", lambda holder: _held_message(self.out, holder))
+        self._lock = path
 
     def _release(self) -> None:
         path, self._lock = self._lock, None
-        if path is not None and _lock_holder(path) == os.getpid():
-            with contextlib.suppress(OSError):
-                path.unlink()
+        if path is not None:
+            release_lock(path)
 
     # ---------------------------------------------------------------------------------------------- the run
     def open(self) -> Path:
