@@ -4,10 +4,9 @@ Writes ``benchmarks/results/latest.json``, ``latest.md`` (markdown tables with t
 README) and ``pipeline_cost_<W>x<H>.png`` (per-frame cost against frame index). Sections:
 
 * ``jit``: numba compile (or cache load) and warm-up time, excluded from every FPS.
-* ``stages``: ms per frame at 320x240 and 640x480 on the first real sequence with ground truth (7-Scenes):
-  read (:mod:`benchmarks.bench_stages`, the dataset reader), preprocess / render / ICP / fuse and the whole loop
-  (from the ``metrics.json`` of a dense ``surfelslam run``), ORB extract and match + PnP
-  (:mod:`benchmarks.bench_stages`).
+* ``stages``: ms per frame at 320x240 and 640x480 on the first real sequence with ground truth (7-Scenes): read,
+  preprocess / render / ICP / fuse and the whole loop (from a dense run's ``metrics.json``), ORB extract and match +
+  PnP (:mod:`benchmarks.bench_stages`).
 * ``icp``: one pairwise registration (:mod:`benchmarks.bench_icp`): preprocessing and pyramid ICP (3 levels, and
   the 4-level default) at 320x240 and 640x480 on 1 and 2 threads, median ms after the JIT warm-up.
 * ``sustained``: the dense loop over 2,000 generated frames at 320x240 (:mod:`benchmarks.bench_pipeline`): FPS,
