@@ -73,3 +73,15 @@ class EvaluationError(SurfelSlamError, ValueError):
 
     Also a ValueError, which the metrics raised for these cases before.
     """
+
+
+#: Every character :meth:`str.splitlines` breaks a line at (CR, LF, VT, FF, the file/group/record separators, NEL and
+#: the Unicode line and paragraph separators): a message holding one of them would print as two lines.
+LINE_BREAKS = "\r\n\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
+_ESCAPED_BREAKS = str.maketrans({c: c.encode("unicode_escape").decode("ascii") for c in LINE_BREAKS})
+
+
+def one_line(text: str) -> str:
+    """``text`` with every line break character written as its escape (``\\n``, ``\\x1e`` ...): a message quoting user
+    input stays one line."""
+    return text.translate(_ESCAPED_BREAKS)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 from fuzzkit import copy_seed, example_dir, make_tum_seed, mutated_bytes, text_or_bytes, tree, unchanged
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from test_fuzz_config import LEAF_KEYS, SET_VALUES
 from test_fuzz_trajectory import EST_TEXT, GT_TEXT
@@ -91,6 +91,9 @@ def test_eval_on_mutated_trajectories(tmp_path, est, gt, max_diff):
 @given(content=text_or_bytes(dumps_toml(SlamConfig())),
        sets=st.lists(st.tuples(st.sampled_from(LEAF_KEYS), SET_VALUES).map(lambda kv: f"{kv[0]}={kv[1]}"),
                      max_size=2))
+# found by make fuzz: a record separator (one of str.splitlines' line breaks) in a --set value split the message
+@example(content=dumps_toml(SlamConfig()).encode(), sets=["colour_registration.check=\x1e"])
+@example(content=dumps_toml(SlamConfig()).encode(), sets=["tracker=a\u2028b"])
 def test_run_with_a_mutated_config(tmp_path, content, sets):
     """``run`` refuses the config or, when it is valid, the missing sequence: one line either way."""
     folder = example_dir(tmp_path)

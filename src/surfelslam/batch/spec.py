@@ -38,8 +38,7 @@ from typing import Any
 from surfelslam.batch.jobs import Job, make_job
 from surfelslam.config import from_dict
 from surfelslam.datasets.base import DatasetOptions
-from surfelslam.errors import ConfigError
-from surfelslam.settings.overrides import one_line
+from surfelslam.errors import ConfigError, one_line
 from surfelslam.slam import TRACKERS, SlamConfig
 from surfelslam.slam.runner import apply_sets, load_config, parse_set
 

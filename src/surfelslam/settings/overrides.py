@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-from surfelslam.errors import ConfigError
+from surfelslam.errors import ConfigError, one_line
 from surfelslam.settings.presets import resolve_config_path
 from surfelslam.settings.tomlio import from_dict, load_toml
 
@@ -33,11 +33,6 @@ def _unwrap_optional(tp: Any) -> Any:
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         return args[0] if len(args) == 1 else tp
     return tp
-
-
-def one_line(text: str) -> str:
-    """``text`` with its line breaks written as ``\\n`` / ``\\r``: a message quoting a ``--set`` item stays one line."""
-    return text.replace("\r", "\\r").replace("\n", "\\n")
 
 
 def parse_set(item: str, cls: type) -> dict[str, Any]:

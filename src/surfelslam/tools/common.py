@@ -16,7 +16,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from surfelslam.errors import ConfigError, SurfelSlamError
+from surfelslam.errors import ConfigError, SurfelSlamError, one_line
 from surfelslam.tools.exits import (
     EXIT_INTERNAL_ERROR,
     EXIT_INTERRUPTED,
@@ -54,7 +54,7 @@ def _stderr_lock():
 def print_error(message: object) -> None:
     """``error: <message>`` on stderr, on one line, the message printed as it is (rich markup would eat
     ``[section]`` names and bracketed paths)."""
-    text = re.sub(r"\s*[\r\n]+\s*", " ", str(message)).strip()
+    text = one_line(re.sub(r"\s*[\r\n]+\s*", " ", str(message)).strip())
     with _stderr_lock():
         err_console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
 
