@@ -56,6 +56,8 @@ def read_map_file(path: str | Path) -> SavedMap:
         return saved
     except MapFormatProblem as exc:
         raise MapFileError(file, str(exc)) from None
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as exc:
+    # NotImplementedError: zipfile's word for a member that needs a zip version or compression it does not have
+    except (OSError, ValueError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile,
+            zipfile.LargeZipFile) as exc:
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise MapFileError(file, f"not a readable map archive, truncated or corrupt ({text})") from None
