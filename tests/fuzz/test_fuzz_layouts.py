@@ -136,3 +136,23 @@ def test_frame_numbers_too_close_for_a_float(seeds, tmp_path, layout, pattern):
         seq = open_and_check(root)
     assert is_error(seq)
 
+
+
+def test_a_seven_scenes_pose_near_a_rotation_is_made_one(tmp_path):
+    """Found by make fuzz: a pose.txt rotation within the accepted tolerance but not orthonormal was passed on as it
+    was (downstream code assumes rotations); it is replaced by the nearest rotation, and a reflection is refused."""
+    from surfelslam.datasets.sevenscenes import _read_pose
+    from surfelslam.errors import DatasetError
+
+    T = np.eye(4)
+    T[:3, :3] = [[1.0, 0.003, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = [0.5, -0.2, 1.0]
+    path = tmp_path / "frame-000000.pose.txt"
+    np.savetxt(path, T)
+    R = _read_pose(path)[:3, :3]
+    assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12 and np.linalg.det(R) > 0
+    assert np.abs(R - T[:3, :3]).max() < 3e-3
+    T[2, 2] = -1.0
+    np.savetxt(path, T)
+    with pytest.raises(DatasetError, match="reflection"):
+        _read_pose(path)

@@ -49,6 +49,9 @@ SEVENSCENES_INVALID_RAW = (0, 65535)
 SEVENSCENES_FPS_HZ = 30.0
 #: Largest deviation of a pose.txt rotation from orthonormal accepted (|R R^T - I| max).
 POSE_ORTHONORMAL_TOL = 1e-2
+#: Deviation below which an accepted rotation is kept as written; above it, it is replaced by the nearest rotation
+#: (the printed matrices carry a few digits only; downstream code assumes exact rotations).
+POSE_EXACT_TOL = 1e-9
 _NAME = re.compile(r"7[-_ ]?scenes|sevenscenes|seven[-_]scenes")
 _FRAME = re.compile(r"^frame-(\d+)\.depth\.png$")
 _COLOUR = re.compile(r"^frame-(\d+)\.color\.(?:png|jpg)$")
@@ -101,6 +104,12 @@ def _read_pose(path: Path) -> np.ndarray:
         deviation = np.abs(R @ R.T - np.eye(3)).max()
     if not deviation <= POSE_ORTHONORMAL_TOL or not np.allclose(T[3], [0, 0, 0, 1]):
         raise DatasetError(path, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    if np.linalg.det(R) <= 0:  # orthonormal within the tolerance, but a reflection: no rotation
+        raise DatasetError(path, "not a rigid transform (the rotation part is a reflection)")
+    if deviation > POSE_EXACT_TOL:
+        U, _, Vt = np.linalg.svd(R)
+        T = T.copy()
+        T[:3, :3] = U @ Vt  # the nearest rotation (det > 0 above)
     return T
 
 
