@@ -136,10 +136,7 @@ class Session:
             raise ConfigError("the session is finished; start a new one")
         self.start_clock()
         t0 = time.perf_counter()
-        if T_world_cam is not None:
-            res = self.tracker.process(frame, T_world_cam=T_world_cam, prepared=prepared)
-        else:
-            res = self.tracker.process(frame, prepared=prepared)
+        res = self.tracker.process(frame, prepared=prepared, T_world_cam=T_world_cam)
         self.frames.append(res)
         if read_ms is not None:
             self.stage_ms["read"].append(read_ms)
