@@ -40,23 +40,24 @@ def _load(seq, i: int, prepare: Callable[[RGBDFrame], object] | None = None) -> 
     except FrameError as exc:
         frame, err = None, exc
     read_ms = (time.perf_counter() - t0) * 1e3
-    prepared = None
-    if prepare is not None and frame is not None:
-        try:
-            prepared = prepare(frame)
-        except Exception:  # noqa: BLE001 - redone (and raised or reported) by the pipeline in order
-            prepared = None
-    return LoadedFrame(i, frame, err, read_ms, prepared)
+    return LoadedFrame(i, frame, err, read_ms, _prepared(frame, prepare))
+
+
+def _prepared(frame: RGBDFrame | None, prepare: Callable[[RGBDFrame], object] | None) -> object | None:
+    """``prepare(frame)``, or ``None`` without either or when it fails (the pipeline redoes the work in order and
+    raises or reports the failure there)."""
+    if prepare is None or frame is None:
+        return None
+    try:
+        return prepare(frame)
+    except Exception:  # noqa: BLE001 - see the docstring
+        return None
 
 
 def _prepare_loaded(read: Future, prepare: Callable[[RGBDFrame], object] | None) -> LoadedFrame:
     """``prepare`` a slot read before ``prepare`` was known (queued behind its read on the one reader thread)."""
     item = read.result()
-    if prepare is not None and item.frame is not None:
-        try:
-            item.prepared = prepare(item.frame)
-        except Exception:  # noqa: BLE001 - as in _load
-            item.prepared = None
+    item.prepared = _prepared(item.frame, prepare)
     return item
 
 
