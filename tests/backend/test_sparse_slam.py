@@ -114,9 +114,9 @@ def test_relocalise_and_pose_guess(loop_frames, loop_run) -> None:
     flat = RGBDFrame(0, 0.0, np.full_like(frames[0].rgb, 90), frames[0].depth_m)
     assert slam.relocalise(flat) is None
     # the last frame against the last keyframe
-    g = slam.pose_guess_against_last_keyframe(frames[-1])
+    g = slam.match_reference_keyframe(frames[-1])
     assert g is not None
-    assert pose_error(g, poses[-1])[0] < 0.05
+    assert pose_error(g.T_world_cam, poses[-1])[0] < 0.05
 
 
 def test_coarse_reference_match_is_close_to_the_precise_one(loop_frames, loop_run) -> None:

@@ -162,6 +162,7 @@ def _frame_to_model_icp() -> ICPConfig:
 DEFAULT_TRACKER = "hybrid"
 
 JOINT_MODES = PHOTOMETRIC_MODES  # the same auto | on | off colour switch (tracking.photometric.colour_switch)
+FRAME_FEATURE_MODES = ("tracked", "extracted")
 JOINT_WEIGHT_UNITS = ("robust_scale", "depth_noise")  # hybrid.joint_weight_unit
 
 
@@ -207,6 +208,11 @@ class HybridConfig(Config):
         "auto", choices=JOINT_MODES,
         doc="add the PnP inliers against the reference keyframe as reprojection terms to every ICP iteration (ORB "
             "features and PnP on every frame); auto: on unless colour and depth are not registered", user=True)
+    frame_features: str = setting(
+        "tracked", choices=FRAME_FEATURE_MODES,
+        doc="how each frame's points against the reference keyframe are found: tracked = followed by Lucas-Kanade "
+            "from the predicted pose (ORB only for keyframes and relocalisation); extracted = ORB and PnP-RANSAC in "
+            "every frame (slower)", user=True)
     joint_sigma_px: float = setting(1.0, unit="px", gt=0, le=100, doc="pixel noise of those terms (residual unit)")
     joint_huber: float = setting(2.0, unit="sigmas", gt=0, le=100, doc="Huber threshold of their residual norm")
     joint_weight: float = setting(

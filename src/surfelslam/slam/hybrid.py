@@ -2,8 +2,11 @@
 
 Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the sparse back end alongside:
 
-1. ``match``: the frame is matched to the reference keyframe by PnP (``SparseSlam.match_reference_keyframe``):
-   a pose and its inliers (keyframe points, sub-pixel pixels in the frame).
+1. ``match``: the reference keyframe's points are found in the frame (a pose and its inliers: keyframe points,
+   sub-pixel pixels in the frame): by default tracked by Lucas-Kanade from the predicted pose
+   (``SparseSlam.track_reference_keyframe``, ``hybrid.frame_features``), on a worker thread while the map is
+   rendered; ORB features are extracted only for keyframes, relocalisation, and frames where too few points track
+   (then matched by PnP, ``SparseSlam.match_reference_keyframe``).
 2. ``track``: ICP from the constant-velocity guess, as in dense SLAM, when the last step succeeded, jointly
    with the inliers' reprojection terms (``hybrid.joint_features``; off by default where colour and depth are
    not registered). When ICP fails (:func:`icp_failure`), reports degeneracy, or the velocity is not trusted
@@ -143,10 +146,11 @@ class HybridSlam:
 
     def prepare(self, frame: RGBDFrame) -> PreparedFrame:
         """Preprocessing and ORB extraction, for another thread to do ahead (see :meth:`DenseFrontEnd.prepare`).
-        Without the joint term or the PnP check a frame needs features only when it becomes a keyframe or tracking
-        fails: they are then extracted when needed, not ahead for every frame."""
+        Without the joint term or the PnP check, or with the keyframe's points tracked into the frame
+        (``hybrid.frame_features``), a frame needs features only when it becomes a keyframe or tracking fails: they
+        are then extracted when needed, not ahead for every frame."""
         p = self.front.prepare(frame)
-        if not (self.joint or self.cfg.hybrid.pnp_check):
+        if not (self.joint or self.cfg.hybrid.pnp_check) or self.localiser.tracks_features:
             return p
         c0, t0 = time.thread_time(), time.perf_counter()
         p.features = self.sparse.features(frame)
@@ -295,6 +299,7 @@ class HybridSlam:
 
     def finish(self) -> SlamResult:
         """End of the run: the final loop correction, the map, the corrected trajectory and the counts."""
+        self.localiser.close()
         res = self.sparse.finish()
         kf_final = self._final_keyframes(res.keyframe_poses)
         corrected = self.cfg.hybrid.loop_correction and self.anchors.map_corrections > 0

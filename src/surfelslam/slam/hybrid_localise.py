@@ -7,6 +7,7 @@ back end's PnP poses (stages 1 and 2 of :mod:`surfelslam.slam.hybrid`); it decid
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +19,13 @@ from surfelslam.slam.frame import StageTimer
 from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.hybrid_anchors import KeyframeAnchors
 from surfelslam.slam.motion import step_and_pose
-from surfelslam.tracking.features import Features, on_occluding_contour, reprojection_inliers, reprojection_spread_px
+from surfelslam.tracking.features import (
+    Features,
+    on_occluding_contour,
+    reprojection_inliers,
+    reprojection_spread_px,
+    to_grey,
+)
 from surfelslam.tracking.icp import ICPResult, ReprojectionTerm
 from surfelslam.types import Intrinsics, RGBDFrame
 
@@ -72,19 +79,30 @@ class HybridLocaliser:
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
         # finest-level point-to-plane noise of every tracked frame (the last weighs the joint term)
         self.depth_noise_per_frame: list[float] = []
+        # one worker: the frame's match against the keyframe runs beside the map's rendering (deterministic: the
+        # main thread waits for it before ICP)
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-match")
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "pnp_disagreements": 0}
+
+    def close(self) -> None:
+        """Stop the match worker (end of the run)."""
+        self._worker.shutdown(wait=True)
 
     def record_noise(self, res: ICPResult) -> None:
         """Keep a tracked frame's finest-level depth noise (when its finest ICP level is the input's)."""
         if res.levels and res.levels[-1].level == 0:
             self.depth_noise_per_frame.append(res.levels[-1].geometric_noise_m)
 
-    def icp_from(self, T_render: np.ndarray, T_init_rel: np.ndarray, match: KeyframeMatch | None = None):
+    def icp_from(self, T_render: np.ndarray, T_init_rel: np.ndarray, match: KeyframeMatch | None = None,
+                 match_of: Callable[[], KeyframeMatch | None] | None = None):
         """ICP of the current source against the map rendered at ``T_render``, jointly with ``match``'s
-        reprojection terms when ``hybrid.joint_features`` is on; returns (res, failure, T)."""
+        reprojection terms when ``hybrid.joint_features`` is on; returns (res, failure, T). ``match_of``: a match
+        to wait for instead, once the map is rendered (one found alongside the rendering)."""
         front = self.front
         target = front.render_target(T_render)
+        if match_of is not None:
+            match = match_of()
         term = self._reprojection_term(T_render, match)
         res = front.register(target, se3.orthonormalize(T_init_rel), reprojection=term)
         return res, front.failure_of(res), step_and_pose(T_render, res)[1]
@@ -141,11 +159,17 @@ class HybridLocaliser:
         loc = Localised()
         trusted = self.front.state.failures_in_a_row == 0 or not h.pnp_when_velocity_untrusted
         match = None
-        if self.joint or h.pnp_check or not trusted:
+        if not trusted:
             match = self.pnp_match(frame, T_pred)
             t.lap("pnp")
         if trusted:
-            loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, se3.invert(T_prev) @ T_pred, match)
+            T_init_rel = se3.invert(T_prev) @ T_pred
+            if self.joint or h.pnp_check:  # the match is found while the map is rendered (both release the GIL)
+                pending = self._worker.submit(self.pnp_match, frame, T_pred)
+                loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, T_init_rel, match_of=pending.result)
+                match = pending.result()
+            else:
+                loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, T_init_rel)
             loc.from_prev = True
             t.lap("icp")
         bad = loc.res is None or loc.failure is not None or loc.res.degenerate
@@ -186,8 +210,10 @@ class HybridLocaliser:
         checks ICP (``pnp_check``, a 5 cm / 5 deg gate), starts it again or measures the joint term's pixel noise,
         and the joint term uses the inliers."""
         C = self.anchors.correction(self.sparse.n_keyframes - 1)
-        m = self.sparse.match_reference_keyframe(frame, C @ T_pred, feats=self._features_of(frame),
-                                                 coarse=not (self.joint and self.cfg.hybrid.joint_fine_match))
+        m = self._tracked_match(frame, C @ T_pred)
+        if m is None:
+            m = self.sparse.match_reference_keyframe(frame, C @ T_pred, feats=self._features_of(frame),
+                                                     coarse=not (self.joint and self.cfg.hybrid.joint_fine_match))
         if m is None:
             return None
         C_inv = se3.invert(self.anchors.correction(m.kf_id))
@@ -197,6 +223,22 @@ class HybridLocaliser:
         keep = ~on_occluding_contour(frame.depth_m, m.uv_cur, self._contour_cfg)
         return KeyframeMatch(se3.orthonormalize(C_inv @ m.T_world_cam), m.kf_id,
                              se3.transform_points(C_inv, m.points_world[keep]), m.uv_cur[keep])
+
+    @property
+    def tracks_features(self) -> bool:
+        """Whether the reference keyframe's points are tracked into each frame (``hybrid.frame_features``) rather
+        than matched with the frame's own ORB features (also when the joint term asks for the fine match)."""
+        h = self.cfg.hybrid
+        return h.frame_features == "tracked" and not (self.joint and h.joint_fine_match)
+
+    def _tracked_match(self, frame: RGBDFrame, T_pred_graph: np.ndarray) -> KeyframeMatch | None:
+        """With ``hybrid.frame_features = "tracked"`` (and no fine match asked for): the reference keyframe's points
+        tracked into the frame from the prediction ``T_pred_graph`` (graph frame), when at least
+        ``hybrid.pnp_trust_min_inliers`` are found; else ``None`` (the frame's ORB features are then matched)."""
+        if not self.tracks_features:
+            return None
+        m = self.sparse.track_reference_keyframe(to_grey(frame.rgb), T_pred_graph)
+        return m if m is not None and self.trusted(m) else None
 
     def trusted(self, match: KeyframeMatch) -> bool:
         """Whether ``match`` has the inliers (``hybrid.pnp_trust_min_inliers``, at least one) for its PnP pose to add

@@ -26,6 +26,7 @@ from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
 from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, SparseFrameResult, SparseSlamResult
 from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
 from surfelslam.tracking.features import Features, MotionResult, estimate_motion, extract
+from surfelslam.tracking.features.keyframe_track import track_keyframe
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
@@ -176,7 +177,7 @@ class SparseSlam:
         """ORB features of ``frame`` with this SLAM's settings (thread-safe: no state is touched).
 
         Pass them as ``feats`` to :meth:`process`, :meth:`relocalise` or
-        :meth:`pose_guess_against_last_keyframe` so a frame is extracted once (possibly ahead, in another thread).
+        :meth:`match_reference_keyframe` so a frame is extracted once (possibly ahead, in another thread).
         """
         return extract(frame.rgb, frame.depth_m, self.intr, self.cfg.features)
 
@@ -423,18 +424,20 @@ class SparseSlam:
         best = self._relocalise_features(feats)
         return None if best is None else (best[0], best[1])
 
-    def pose_guess_against_last_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
-                                         feats: Features | None = None) -> np.ndarray | None:
-        """PnP pose ``T_world_cam`` of ``frame`` against the reference keyframe (an ICP initial guess).
-
-        Args:
-            T_world_cam_pred: optional prediction used as PnP initial guess.
-
-        Returns:
-            ``(4, 4)`` or ``None`` when a rejection rule fired. State is unchanged.
-        """
-        m = self.match_reference_keyframe(frame, T_world_cam_pred, feats)
-        return None if m is None else m.T_world_cam
+    def track_reference_keyframe(self, grey: np.ndarray, T_world_cam_pred: np.ndarray) -> KeyframeMatch | None:
+        """The reference keyframe's points found in a frame (``grey (H, W)`` uint8) by Lucas-Kanade from the predicted
+        pose, without the frame's features (:func:`~surfelslam.tracking.features.keyframe_track.track_keyframe`);
+        ``None`` when too few are found or there is no keyframe. State is unchanged."""
+        if not self._kfs:
+            return None
+        kf = self._ref_kf
+        T_world_kf = self._kf_poses[kf]
+        tracked = track_keyframe(self._kfs[kf].features, grey, invert(T_world_cam_pred) @ T_world_kf, self.intr,
+                                 self.cfg.features)
+        if tracked is None:
+            return None
+        return KeyframeMatch(T_world_kf @ invert(tracked.T_cur_ref), kf,
+                             transform_points(T_world_kf, tracked.points_ref), tracked.uv_cur)
 
     def match_reference_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
                                  feats: Features | None = None, coarse: bool = False) -> KeyframeMatch | None:

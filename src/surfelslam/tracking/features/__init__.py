@@ -19,7 +19,7 @@ Modules: :mod:`.config` (:class:`FeatureConfig`), :mod:`.extract` (detection, :c
 
 from surfelslam.tracking.features.config import DETECTORS, MATCHING_MODES, FeatureConfig, with_max_motion_norm
 from surfelslam.tracking.features.depth import keypoint_depth, on_occluding_contour
-from surfelslam.tracking.features.extract import Features, bucket_keypoints, extract
+from surfelslam.tracking.features.extract import Features, bucket_keypoints, extract, to_grey
 from surfelslam.tracking.features.matching import MatchResult, match
 from surfelslam.tracking.features.motion import REJECT_REASONS, MotionResult, estimate_motion, feature_guess
 from surfelslam.tracking.features.refine import refine_rgbd
@@ -53,6 +53,7 @@ __all__ = [
     "reprojection_spread_px",
     "robust_sigma",
     "search_by_projection",
+    "to_grey",
     "track_subpixel",
     "with_max_motion_norm",
 ]

@@ -56,7 +56,8 @@ def _detector(cfg: FeatureConfig):
     )
 
 
-def _to_grey(rgb: np.ndarray) -> np.ndarray:
+def to_grey(rgb: np.ndarray) -> np.ndarray:
+    """The ``(H, W)`` uint8 grey image features are detected and tracked in, of ``rgb (H, W, 3)`` (or grey)."""
     if rgb.ndim == 2:
         return np.ascontiguousarray(rgb, dtype=np.uint8)
     return cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
@@ -107,7 +108,7 @@ def extract(rgb: np.ndarray, depth_m: np.ndarray, intr: Intrinsics, cfg: Feature
     Returns:
         :class:`Features`; ``points_cam`` rows are NaN where the depth is invalid.
     """
-    grey = _to_grey(rgb)
+    grey = to_grey(rgb)
     if grey.shape != depth_m.shape:
         raise ValueError(f"rgb {grey.shape} and depth {depth_m.shape} sizes differ")
     kps, desc = _detector(cfg).detectAndCompute(grey, None)
