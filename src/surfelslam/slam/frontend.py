@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import time
 from collections.abc import Callable
 
@@ -47,13 +49,15 @@ class DenseFrontEnd:
 
     ``colour_registered``: the sequence's colour and depth pixels see the same rays (``tracking.photometric``).
     ``colour_camera``: the sequence's separate colour camera, if known. ``features_of``: the ORB features of a frame
-    for the saved map and the map localisation (default: extracted by the mapper). ``tracker_name``: written into
+    for the saved map and the map localisation (default: extracted by the mapper); ``features_later``: a future of
+    them for the saved map (see :class:`FusingMapper`). ``tracker_name``: written into
     the saved map.
     """
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
                  colour_camera: ColourCamera | None = None,
-                 features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = ""):
+                 features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = "",
+                 features_later: Callable[[RGBDFrame], Future] | None = None):
         self.intr = intr
         self.cfg = cfg
         self.photometric = cfg.icp.photometric_weight > 0 and colour_switch(cfg.tracking.photometric,
@@ -63,7 +67,7 @@ class DenseFrontEnd:
         self.track_level = level_for_width(intr.width, cfg.tracking.max_width_px)
         self.mapper = FusingMapper(intr, cfg, min_levels=self.track_level + cfg.icp.levels,
                                    track_level=self.track_level, colour_camera=colour_camera,
-                                   features_of=features_of, tracker_name=tracker_name)
+                                   features_of=features_of, tracker_name=tracker_name, features_later=features_later)
         level_intrinsics = self.mapper.pre.level_intrinsics
         self.target = FramePyramid.empty(level_intrinsics[self.track_level], len(level_intrinsics) - self.track_level)
         self.state = TrackingState()

@@ -41,6 +41,7 @@ PnP-guided localisation (:mod:`.hybrid_localise`) and the keyframe anchors with 
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
@@ -96,12 +97,16 @@ class HybridSlam:
         self.cfg = cfg
         # the saved keyframes and the map localisation use the back end's features
         self.front = DenseFrontEnd(intr, cfg, colour_registered, colour_camera, features_of=self._features,
-                                   tracker_name=self.name)
+                                   tracker_name=self.name, features_later=self._features_later)
         self.joint = colour_switch(cfg.hybrid.joint_features, colour_registered)
         self.sparse = _sparse_back_end(cfg, intr, colour_registered)
         self.anchors = KeyframeAnchors(self.sparse)
+        # one worker thread beside the main one: the frame's match while the map is rendered, a new keyframe's
+        # features while the frame is fused
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-hybrid")
         self.localiser = HybridLocaliser(self.front, self.sparse, self.anchors, cfg, intr, self.joint,
-                                         self._features)
+                                         self._features, self._worker)
+        self._keyframe_feats: Future | None = None  # the features of a frame about to become a keyframe
         self._stamp_of_frame: dict[int, float] = {}
         self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
         self._final_correction_m: float | None = None
@@ -172,6 +177,17 @@ class HybridSlam:
             self._feats = self.sparse.features(frame)
         return self._feats
 
+    def _features_later(self, frame: RGBDFrame) -> Future:
+        """A future of the current frame's ORB features for the saved map: the prepared ones, the ones a new
+        keyframe is having extracted, else extracted on the worker thread."""
+        if self._feats is None and self._keyframe_feats is None:
+            self._keyframe_feats = self._worker.submit(self.sparse.features, frame)
+        if self._keyframe_feats is not None:
+            return self._keyframe_feats
+        done: Future = Future()
+        done.set_result(self._feats)
+        return done
+
     def process(self, frame: RGBDFrame, prepared: PreparedFrame | None = None,
                 T_world_cam: np.ndarray | None = None) -> FrameResult:
         """Localise the frame (ICP, PnP guesses and checks, relocalisation), fuse it when tracked, then feed the
@@ -192,6 +208,9 @@ class HybridSlam:
             loc = self.localiser.relocalise(frame, T_prev, t)
         else:
             loc = self.localiser.localise(frame, T_prev, T_pred, t)
+        if loc.failure is None and loc.T_new is not None and self._feats is None \
+                and self.sparse.becomes_keyframe(self._graph_pose(loc.T_new)):
+            self._keyframe_feats = self._worker.submit(self.sparse.features, frame)  # extracted while fusing
         tracked, T_new, failure, status = self._fuse_or_count(frame, loc, T_prev, T_pred, t)
         self._after_tracking(frame, T_new, tracked, t)
         front.end_frame()
@@ -252,14 +271,17 @@ class HybridSlam:
         if tracked:
             # the graph frame may differ from the dense frame by the last keyframe's pending correction:
             # feed the pose in the graph frame, so the odometry edge is exactly the dense relative motion
-            T_feed = T_new if K == 0 else self.anchors.correction(K - 1) @ T_new
+            T_feed = self._graph_pose(T_new)
+            if self._feats is None and self._keyframe_feats is not None and self.sparse.becomes_keyframe(T_feed):
+                self._feats = self._keyframe_feats.result()
             # feats None: extracted there if it becomes a keyframe; the source pyramid serves its loop checks when
             # its finest level is computed (the input is not reduced first)
-            sr = self.sparse.process(frame, T_world_cam_dense=se3.orthonormalize(T_feed), feats=self._feats,
+            sr = self.sparse.process(frame, T_world_cam_dense=T_feed, feats=self._feats,
                                      tracker_pyramid=self.front.full_source())
             t.lap("sparse")
             if sr.is_keyframe:
                 self.anchors.add_keyframe(T_new)
+        self._keyframe_feats = None
         self.anchors.record(frame.index, frame.timestamp, T_new, tracked)
         self.front.state.T_world_cam = T_new
         if sr is not None and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
@@ -268,6 +290,12 @@ class HybridSlam:
             if np.linalg.norm(C[:, :3, 3], axis=1).max() > self.cfg.hybrid.live_correction_min_m:
                 self.correct(kf, C)
                 t.lap("correct")
+
+    def _graph_pose(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """A dense pose in the graph frame: moved by the last keyframe's pending correction, so the odometry edge is
+        exactly the dense relative motion."""
+        K = self.sparse.n_keyframes
+        return se3.orthonormalize(T_world_cam if K == 0 else self.anchors.correction(K - 1) @ T_world_cam)
 
     def correct(self, kf_new: np.ndarray, C: np.ndarray | None = None) -> None:
         """Move the surfels and the current pose by each keyframe's correction ``C`` (default: to the graph poses
@@ -299,7 +327,7 @@ class HybridSlam:
 
     def finish(self) -> SlamResult:
         """End of the run: the final loop correction, the map, the corrected trajectory and the counts."""
-        self.localiser.close()
+        self._worker.shutdown(wait=True)
         res = self.sparse.finish()
         kf_final = self._final_keyframes(res.keyframe_poses)
         corrected = self.cfg.hybrid.loop_correction and self.anchors.map_corrections > 0

@@ -7,7 +7,7 @@ back end's PnP poses (stages 1 and 2 of :mod:`surfelslam.slam.hybrid`); it decid
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,10 +65,12 @@ class HybridLocaliser:
         anchors: the keyframes' dense poses (the graph frame's pending corrections are undone with them).
         joint: whether ICP has the inliers' reprojection terms (``hybrid.joint_features``).
         features_of: the current frame's ORB features (extracted at most once per frame).
+        worker: where the frame's match runs while the main thread renders the map (the main thread waits for it
+            before ICP: results do not depend on the timing).
     """
 
     def __init__(self, front: DenseFrontEnd, sparse: SparseSlam, anchors: KeyframeAnchors, cfg: SlamConfig,
-                 intr: Intrinsics, joint: bool, features_of: Callable[[RGBDFrame], Features]):
+                 intr: Intrinsics, joint: bool, features_of: Callable[[RGBDFrame], Features], worker: Executor):
         self.front = front
         self.sparse = sparse
         self.anchors = anchors
@@ -79,15 +81,9 @@ class HybridLocaliser:
         self._contour_cfg = features_for_width(cfg.sparse, intr.width).features
         # finest-level point-to-plane noise of every tracked frame (the last weighs the joint term)
         self.depth_noise_per_frame: list[float] = []
-        # one worker: the frame's match against the keyframe runs beside the map's rendering (deterministic: the
-        # main thread waits for it before ICP)
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-match")
+        self._worker = worker
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "pnp_disagreements": 0}
-
-    def close(self) -> None:
-        """Stop the match worker (end of the run)."""
-        self._worker.shutdown(wait=True)
 
     def record_noise(self, res: ICPResult) -> None:
         """Keep a tracked frame's finest-level depth noise (when its finest ICP level is the input's)."""

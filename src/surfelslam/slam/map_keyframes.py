@@ -9,6 +9,8 @@ tracking or the map.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -64,12 +66,14 @@ class KeyframeRecorder:
     Args:
         keyframe_motion: motion norm (m + rad) from the last keyframe that makes a new one.
         depth_step: subsampling step of the saved depth.
-        features_of: the frame's ORB features (the tracker's own when it has them, else extracted).
+        features_of: the frame's ORB features (the tracker's own when it has them, else extracted), or a future of
+            them (extracted on another thread; awaited when the keyframes are read).
         prior: keyframes of a loaded map, kept first (a run that continues a map); this run's are session
             ``prior.session.max() + 1``.
     """
 
-    def __init__(self, keyframe_motion: float, depth_step: int, features_of: Callable[[RGBDFrame], Features],
+    def __init__(self, keyframe_motion: float, depth_step: int,
+                 features_of: Callable[[RGBDFrame], Features | Future],
                  prior: MapKeyframes | None = None) -> None:
         self.keyframe_motion = keyframe_motion
         self.depth_step = depth_step
@@ -79,7 +83,7 @@ class KeyframeRecorder:
         self._poses: list[np.ndarray] = []
         self._frames: list[int] = []
         self._stamps: list[float] = []
-        self._features: list[Features] = []
+        self._features: list[Features | Future] = []
         self._depth: list[np.ndarray] = []
 
     @property
@@ -96,7 +100,8 @@ class KeyframeRecorder:
         self._poses.append(np.asarray(T_world_cam, np.float64).copy())
         self._frames.append(int(frame.index))
         self._stamps.append(float(frame.timestamp))
-        self._features.append(slim_features(self._features_of(frame)))
+        feats = self._features_of(frame)
+        self._features.append(feats if isinstance(feats, Future) else slim_features(feats))
         self._depth.append(np.ascontiguousarray(frame.depth_m[::s, ::s], np.float32))
         return True
 
@@ -112,6 +117,7 @@ class KeyframeRecorder:
     def keyframes(self) -> MapKeyframes:
         """The prior map's keyframes followed by this session's."""
         n = len(self._poses)
+        self._features = [slim_features(f.result()) if isinstance(f, Future) else f for f in self._features]
         mine = MapKeyframes(np.asarray(self._poses, np.float64).reshape(n, 4, 4),
                             np.asarray(self._frames, np.int64), np.asarray(self._stamps, np.float64),
                             np.full(n, self.session, np.int32), list(self._features), list(self._depth),

@@ -7,6 +7,8 @@ the saved map (its keyframe recorder and a loaded map to continue from). The den
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import threading
 import time
 from collections.abc import Callable
@@ -43,12 +45,15 @@ class FusingMapper:
             through it.
         features_of: the ORB features of a frame that becomes a saved keyframe (a holder with features of its own
             passes its own; default: extracted here).
+        features_later: a future of those features, for the saved keyframes only (a holder with a worker thread
+            passes it; default: ``features_of``).
         tracker_name: the tracker's name, written into the saved map.
     """
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, min_levels: int = 1, track_level: int | None = None,
                  colour_camera: ColourCamera | None = None,
-                 features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = ""):
+                 features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = "",
+                 features_later: Callable[[RGBDFrame], Future] | None = None):
         apply_compute(cfg.compute)
         self.intr = intr
         self.cfg = cfg
@@ -73,13 +78,14 @@ class FusingMapper:
         self.frozen = False  # localise only: the map is never changed
         self.prior_report: dict | None = None  # metrics of the loaded map (``prior_map`` in metrics.json)
         self._features_of = self.map_features if features_of is None else features_of
+        self._features_later = features_later
         self.tracker_name = tracker_name
         self._recorder = self._new_recorder() if cfg.map_reuse.save else None
 
     def _new_recorder(self, prior: SavedMap | None = None) -> KeyframeRecorder:
         mr = self.cfg.map_reuse
         step = depth_step_for_width(self.intr.width, mr.keyframe_depth_max_width_px)
-        return KeyframeRecorder(mr.keyframe_motion, step, self._features_of,
+        return KeyframeRecorder(mr.keyframe_motion, step, self._features_later or self._features_of,
                                 None if prior is None else prior.keyframes)
 
     def map_features(self, frame: RGBDFrame) -> Features:

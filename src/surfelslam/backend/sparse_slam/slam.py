@@ -281,6 +281,14 @@ class SparseSlam:
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, True, None, -1, loops_added)
 
+    def becomes_keyframe(self, T_world_cam: np.ndarray) -> bool:
+        """Whether a frame posed at ``T_world_cam`` by another tracker, processed next, becomes a keyframe (its
+        features can then be extracted ahead). State is unchanged."""
+        if not self._kfs:
+            return True
+        return (motion_norm(invert(self._kf_poses[self._ref_kf]) @ T_world_cam) >= self.cfg.keyframe_threshold
+                and self._frames_since_kf + 1 >= self.cfg.keyframe_min_gap_frames)
+
     def _keyframe_or_record(self, frame: RGBDFrame, feats: Features | None, T_world_cam: np.ndarray,
                             T_kf_cam: np.ndarray, information: np.ndarray | None = None,
                             pyramid: FramePyramid | None = None) -> tuple[np.ndarray, bool]:
