@@ -15,10 +15,9 @@
 
 from __future__ import annotations
 
-from concurrent.futures import Future
-
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 
 import numpy as np
 

@@ -266,7 +266,6 @@ class HybridSlam:
 
     def _after_tracking(self, frame: RGBDFrame, T_new: np.ndarray, tracked: bool, t: StageTimer) -> None:
         """Feed the sparse back end, anchor the frame, apply large pose-graph corrections to the dense state."""
-        K = self.sparse.n_keyframes
         sr = None
         if tracked:
             # the graph frame may differ from the dense frame by the last keyframe's pending correction:

@@ -9,9 +9,8 @@ tracking or the map.
 
 from __future__ import annotations
 
-from concurrent.futures import Future
-
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np

@@ -7,11 +7,10 @@ the saved map (its keyframe recorder and a loaded map to continue from). The den
 
 from __future__ import annotations
 
-from concurrent.futures import Future
-
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import replace
 
 import cv2
