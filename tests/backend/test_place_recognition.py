@@ -37,7 +37,8 @@ def test_hashed_search_equals_brute_force_where_it_finds_the_nearest() -> None:
     db = np.concatenate(kfs)
     e1, e2, ei = hamming.nearest_two_ref(q, db)
     h1, h2, hi = idx._nearest_two(q, len(db))
-    # 12 flipped bits: the planted neighbour shares a 18-bit key in one of 16 tables with probability > 0.999
+    # 12 flipped bits: the planted neighbour shares a 20-bit key (grown from 16 over 6 doublings) in one of 16 tables
+    # with probability > 0.999
     found = hi == ei
     assert found.mean() > 0.98
     np.testing.assert_array_equal(h1[found], e1[found])
@@ -107,3 +108,17 @@ def test_balanced_bits_are_preferred() -> None:
     desc[:, :16] = 0  # bits 0..127 constant: they carry nothing
     bits = hash_bit_positions(desc, 8, 16)
     assert bits.min() >= 128
+
+
+def test_keys_gain_a_bit_per_doubling_and_still_find_the_planted_keyframe() -> None:
+    kfs, q = _planted(n_kf=40, kf=30)
+    idx = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=1000, hash_key_bits=8))
+    bits = []
+    for d in kfs:
+        idx.add(d)
+        bits.append(idx.key_bits)
+    # keyframe k ends at row 200 (k + 1): tables from 1000 rows with 8 bits, rebuilt with 9 at 2000, 10 at 4000, 11
+    # at 8000
+    assert bits[:4] == [0] * 4
+    assert [bits[k] for k in (4, 8, 9, 18, 19, 38, 39)] == [8, 8, 9, 9, 10, 10, 11]
+    assert idx.query(q, 1)[0][0] == 30

@@ -8,8 +8,9 @@ distance bound casts one vote for the keyframe that owns the nearest descriptor.
 The nearest descriptors are searched by brute force (exact, :mod:`surfelslam.kernels.hamming`) while the database
 is small (``exact_below_descriptors``), beyond that in a locality-sensitive hash index that every descriptor enters
 when it is added (bit sampling, :mod:`surfelslam.kernels.hamming_hash`): a query then compares each descriptor with
-the few rows that share one of its hash keys instead of every keyframe's, so its cost stays nearly flat as a
-floor-sized map gathers thousands of keyframes (``benchmarks/bench_retrieval.py`` measures it). The hashed search
+the few rows that share one of its hash keys instead of every keyframe's, and the keys gain a bit each time the
+database doubles (the tables are rebuilt, O(1) per row on average), so its cost stays nearly flat as a floor-sized
+map gathers thousands of keyframes (``benchmarks/bench_retrieval.py`` measures it). The hashed search
 finds a close nearest neighbour with a high probability and may miss the second-nearest (the ratio test is then
 looser); the bit positions are drawn from a fixed seed, so results are deterministic. A library index was weighed:
 OpenCV's FLANN LSH cannot append rows without rebuilding and draws its tables from the C library's global random
@@ -35,6 +36,9 @@ _HASH_SEED = 0  # seed of the hash tables' bit positions (fixed: retrieval is de
 # the bits keys are drawn from: the half whose share of ones is nearest 1/2 (ORB bits are unbalanced; on a floor walk
 # the balanced half gave 5x smaller buckets than all 256 bits, at 3% lower recall of the voting neighbours)
 _BALANCED_BITS = 128
+# the key grows by one bit per doubling of the database up to this: the bucket heads take tables x 2 ** bits x 4 bytes
+# (64 MB for 16 tables at 20 bits)
+_MAX_KEY_BITS = 20
 
 
 @dataclass(frozen=True)
@@ -53,8 +57,10 @@ class RetrievalConfig(Config):
         doc="queries over a database smaller than this are brute force (exact); larger ones use the hash index")
     hash_tables: int = setting(16, unit="tables", ge=1, le=64,
                                doc="hash tables of the index (more: higher recall, slower queries)")
-    hash_key_bits: int = setting(18, unit="bits", ge=1, le=20,
-                                 doc="sampled bits per hash key (more: smaller buckets, faster queries, lower recall)")
+    hash_key_bits: int = setting(
+        16, unit="bits", ge=1, le=_MAX_KEY_BITS,
+        doc="sampled bits per hash key when the index starts; one more each time the database doubles (up to 20), so "
+            "the buckets keep their size as keyframes accumulate (more bits: faster queries, lower recall)")
 
 
 def select_descriptors(descriptors: np.ndarray, response: np.ndarray, valid: np.ndarray, n_max: int) -> np.ndarray:
@@ -84,8 +90,9 @@ class DescriptorIndex:
         self._owner = np.zeros(_INITIAL_CAPACITY, np.int64)
         self._n = 0
         self._kf_end: list[int] = []  # database rows [0, _kf_end[k]) belong to keyframes 0..k
-        # the hash tables, made once the database reaches exact_below_descriptors rows (:meth:`_start_hashing`)
+        # the hash tables, made once the database reaches exact_below_descriptors rows (:meth:`_build_tables`)
         self._bits: np.ndarray | None = None  # (tables, key bits) bit positions
+        self._rebuild_at = 0  # rows at which the tables are rebuilt with one more key bit
         self._head = np.zeros((0, 0), np.int32)  # (tables, 2 ** key bits) newest row of each bucket
         self._next = np.zeros((0, 0), np.int32)  # (tables, capacity) the next (older) row of each row's bucket
 
@@ -118,16 +125,25 @@ class DescriptorIndex:
         self._n = need
         self._kf_end.append(need)
         if not self.hashed and need >= self.cfg.exact_below_descriptors:
-            self._start_hashing()
+            self._build_tables(self.cfg.hash_key_bits)
+        elif self.hashed and need >= self._rebuild_at:
+            self._build_tables(self.key_bits + 1)
         return kf
 
-    def _start_hashing(self) -> None:
-        """Draw the tables' bit positions from the rows so far and enter every row (once per index)."""
+    @property
+    def key_bits(self) -> int:
+        """Bits of the hash keys now (0 before the tables exist)."""
+        return 0 if self._bits is None else self._bits.shape[1]
+
+    def _build_tables(self, key_bits: int) -> None:
+        """(Re)make the tables with ``key_bits``-bit keys, their bit positions drawn from the rows so far, and enter
+        every row; the next rebuild (one more bit) comes when the rows have doubled."""
         cfg = self.cfg
-        self._bits = hash_bit_positions(self._desc[: self._n], cfg.hash_tables, cfg.hash_key_bits)
-        self._head = np.full((cfg.hash_tables, 1 << cfg.hash_key_bits), hamming_hash.NO_ROW, np.int32)
+        self._bits = hash_bit_positions(self._desc[: self._n], cfg.hash_tables, key_bits)
+        self._head = np.full((cfg.hash_tables, 1 << key_bits), hamming_hash.NO_ROW, np.int32)
         self._next = np.zeros((len(self._desc), cfg.hash_tables), np.int32).T  # grown along rows, as _desc
         hamming_hash.insert_rows(self._keys(self._desc[: self._n]), 0, self._head, self._next)
+        self._rebuild_at = 2 * max(self._n, 1) if key_bits < _MAX_KEY_BITS else np.iinfo(np.int64).max
 
     def query(self, descriptors: np.ndarray, n_results: int, before_kf: int | None = None) -> list[tuple[int, int]]:
         """Best keyframes for a query frame.
