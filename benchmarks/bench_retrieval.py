@@ -52,8 +52,8 @@ def run(quick: bool = False) -> list[dict]:
         same = [[k for k, _ in exact.query(q, 1)] == [k for k, _ in hashed.query(q, 1)] == [p] for p, q in queries]
         rows.append({
             "keyframes": n_kf, "descriptors": n_kf * PER_KEYFRAME,
-            "exact_ms": float(np.mean([median_ms(lambda q=q: exact.query(q, 3), 3) for _, q in queries])),
-            "hashed_ms": float(np.mean([median_ms(lambda q=q: hashed.query(q, 3), 3) for _, q in queries])),
+            "exact_ms": float(np.mean([median_ms(lambda q=q, idx=exact: idx.query(q, 3), 3) for _, q in queries])),
+            "hashed_ms": float(np.mean([median_ms(lambda q=q, idx=hashed: idx.query(q, 3), 3) for _, q in queries])),
             "same_best": float(np.mean(same)),  # both return the query's place first
         })
     return rows

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from surfelslam.kernels.hamming import NO_MATCH, _popcount64
+from surfelslam.kernels.hamming import NO_MATCH, popcount64
 
 NO_ROW = -1  # end of a bucket's list
 _WORD_BITS = 64
@@ -79,7 +79,7 @@ def nearest_two_hashed(query, query_keys, train, head, next_row, end, best_d, se
                 if r < end and r != bi:
                     d = 0
                     for w in range(n_words):
-                        d += int(_popcount64(query[i, w] ^ train[r, w]))
+                        d += int(popcount64(query[i, w] ^ train[r, w]))
                     if d < b1 or (d == b1 and r < bi):
                         b2 = b1
                         b1 = d
