@@ -122,3 +122,19 @@ def test_keys_gain_a_bit_per_doubling_and_still_find_the_planted_keyframe() -> N
     assert bits[:4] == [0] * 4
     assert [bits[k] for k in (4, 8, 9, 18, 19, 38, 39)] == [8, 8, 9, 9, 10, 10, 11]
     assert idx.query(q, 1)[0][0] == 30
+
+
+def test_bucket_bound_silences_descriptors_of_crowded_buckets() -> None:
+    rng = np.random.default_rng(6)
+    a = rng.integers(0, 256, (200, 32), dtype=np.uint8)
+    b = _noisy(a, 40, rng)  # a second keyframe of look-alikes, 40 bits away: some share a bucket with their twin
+    q = _noisy(a, 5, rng)
+    votes = {}
+    for bound in (0, 1):
+        idx = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=0, hash_bucket_rows=bound))
+        idx.add(a)
+        idx.add(b)
+        votes[bound] = dict(idx.query(q, 2)).get(0, 0)
+    assert votes[0] == 200  # 5 bits against 40: every descriptor passes the ratio test
+    # with at most one row per bucket, those sharing a bucket with their look-alike are silenced, the others vote
+    assert 20 < votes[1] < 180

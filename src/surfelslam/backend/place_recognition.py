@@ -57,6 +57,11 @@ class RetrievalConfig(Config):
         doc="queries over a database smaller than this are brute force (exact); larger ones use the hash index")
     hash_tables: int = setting(16, unit="tables", ge=1, le=64,
                                doc="hash tables of the index (more: higher recall, slower queries)")
+    hash_bucket_rows: int = setting(
+        0, unit="rows", ge=0, le=1 << 30,
+        doc="a query descriptor one of whose hash buckets holds more rows than this is a common appearance and casts "
+            "no vote, as a stop word of a vocabulary: bounds a query's cost whatever the map size (0: no bound; on the "
+            "synthetic floor, with its repeated textures, 64 lost three quarters of the retrieved keyframes)")
     hash_key_bits: int = setting(
         16, unit="bits", ge=1, le=_MAX_KEY_BITS,
         doc="sampled bits per hash key when the index starts; one more each time the database doubles (up to 20), so "
@@ -115,8 +120,10 @@ class DescriptorIndex:
                 cap *= 2
             self._desc = _grown(self._desc, self._n, cap)
             self._owner = _grown(self._owner, self._n, cap)
-            if self.hashed:
-                self._next = _grown(self._next.T, self._n, cap).T
+            if self.hashed:  # grown along rows: each table's links stay contiguous (its bucket walks stay in cache)
+                nxt = np.zeros((len(self._next), cap), np.int32)
+                nxt[:, : self._n] = self._next[:, : self._n]
+                self._next = nxt
         kf = len(self._kf_end)
         self._desc[self._n : need] = d
         self._owner[self._n : need] = kf
@@ -141,7 +148,7 @@ class DescriptorIndex:
         cfg = self.cfg
         self._bits = hash_bit_positions(self._desc[: self._n], cfg.hash_tables, key_bits)
         self._head = np.full((cfg.hash_tables, 1 << key_bits), hamming_hash.NO_ROW, np.int32)
-        self._next = np.zeros((len(self._desc), cfg.hash_tables), np.int32).T  # grown along rows, as _desc
+        self._next = np.zeros((cfg.hash_tables, len(self._desc)), np.int32)
         hamming_hash.insert_rows(self._keys(self._desc[: self._n]), 0, self._head, self._next)
         self._rebuild_at = 2 * max(self._n, 1) if key_bits < _MAX_KEY_BITS else np.iinfo(np.int64).max
 
@@ -184,7 +191,7 @@ class DescriptorIndex:
         n = len(words)
         best_d, second_d, best_idx = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
         hamming_hash.nearest_two_hashed(words, self._keys(descriptors), hamming.as_words(self._desc), self._head,
-                                        self._next, end, best_d, second_d, best_idx)
+                                        self._next, end, self.cfg.hash_bucket_rows, best_d, second_d, best_idx)
         return best_d, second_d, best_idx
 
 

@@ -55,7 +55,7 @@ def insert_rows(keys, row0, head, next_row):
 
 
 @njit(cache=True, nogil=True)
-def nearest_two_hashed(query, query_keys, train, head, next_row, end, best_d, second_d, best_idx):
+def nearest_two_hashed(query, query_keys, train, head, next_row, end, max_bucket_rows, best_d, second_d, best_idx):
     """For each query row, the two smallest Hamming distances to the train rows ``< end`` that share one of its keys,
     and the nearest such row (the lowest index on ties, as in brute force); ``NO_MATCH`` / -1 where none.
 
@@ -63,6 +63,9 @@ def nearest_two_hashed(query, query_keys, train, head, next_row, end, best_d, se
         query: ``(N, W)`` uint64; query_keys: ``(N, T)`` int64 (:func:`hash_keys`).
         train: ``(M, W)`` uint64; head, next_row: the tables (:func:`insert_rows`) over ``train``'s rows.
         end: only rows ``< end`` are candidates (a prefix of the database).
+        max_bucket_rows: a query row one of whose buckets holds more candidate rows than this is a common
+            appearance (a stop word): its second distance is set to its best, so no ratio test passes (0: no bound).
+            Bounds the cost of a query row to ``T x max_bucket_rows`` whatever the database size.
         best_d, second_d, best_idx: ``(N,)`` int64 outputs.
 
     A row reached through several tables is compared each time; only its repeat as the nearest row needs a guard
@@ -73,20 +76,29 @@ def nearest_two_hashed(query, query_keys, train, head, next_row, end, best_d, se
         b1 = NO_MATCH
         b2 = NO_MATCH
         bi = -1
+        common = False
         for t in range(query_keys.shape[1]):
             r = head[t, query_keys[i, t]]
+            seen = 0
             while r != NO_ROW:
-                if r < end and r != bi:
-                    d = 0
-                    for w in range(n_words):
-                        d += int(popcount64(query[i, w] ^ train[r, w]))
-                    if d < b1 or (d == b1 and r < bi):
-                        b2 = b1
-                        b1 = d
-                        bi = r
-                    elif d < b2:
-                        b2 = d
+                if r < end:
+                    seen += 1
+                    if max_bucket_rows > 0 and seen > max_bucket_rows:
+                        common = True
+                        break
+                    if r != bi:
+                        d = 0
+                        for w in range(n_words):
+                            d += int(popcount64(query[i, w] ^ train[r, w]))
+                        if d < b1 or (d == b1 and r < bi):
+                            b2 = b1
+                            b1 = d
+                            bi = r
+                        elif d < b2:
+                            b2 = d
                 r = next_row[t, r]
+            if common:
+                break
         best_d[i] = b1
-        second_d[i] = b2
+        second_d[i] = b1 if common else b2
         best_idx[i] = bi
