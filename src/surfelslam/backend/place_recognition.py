@@ -59,9 +59,9 @@ class RetrievalConfig(Config):
                                doc="hash tables of the index (more: higher recall, slower queries)")
     hash_bucket_rows: int = setting(
         0, unit="rows", ge=0, le=1 << 30,
-        doc="a query descriptor one of whose hash buckets holds more rows than this is a common appearance and casts "
-            "no vote, as a stop word of a vocabulary: bounds a query's cost whatever the map size (0: no bound; on the "
-            "synthetic floor, with its repeated textures, 64 lost three quarters of the retrieved keyframes)")
+        doc="a query descriptor with a hash bucket of more rows than this is a common appearance and casts no vote "
+            "(a stop word): bounds a query's cost whatever the map size (0: no bound; 64 lost 3/4 of the retrieved "
+            "keyframes on the synthetic floor)")
     hash_key_bits: int = setting(
         16, unit="bits", ge=1, le=_MAX_KEY_BITS,
         doc="sampled bits per hash key when the index starts; one more each time the database doubles (up to 20), so "
