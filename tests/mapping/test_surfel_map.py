@@ -118,11 +118,20 @@ def test_cull_and_gather_match_reference_and_keep_every_visible_surfel():
     cand = m.visible_candidates(T, CAM_NEG, 0.1, 4.0).copy()
     # reference culling + gathering
     Tcw = invert(T)
-    vis_ref = kr.cull_blocks_ref(
-        m._block_ijk, m.n_blocks, 0.5, m.cfg.block_margin_m, Tcw[:3, :3], Tcw[:3, 3],
-        CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, -0.5, CAM_NEG.width - 0.5, -0.5, CAM_NEG.height - 0.5, 0.1, 4.0,
-    )
+    view = (CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, -0.5, CAM_NEG.width - 0.5, -0.5, CAM_NEG.height - 0.5)
+    reach = kr.frustum_reach(*view, 4.0)
+    assert reach == pytest.approx(4.0 * np.sqrt(1 + (CAM_NEG.cx + 0.5) ** 2 / CAM_NEG.fx ** 2
+                                                + (CAM_NEG.cy + 0.5) ** 2 / CAM_NEG.fy ** 2))
+    vis_ref = kr.cull_blocks_ref(m._block_ijk, m.n_blocks, 0.5, m.cfg.block_margin_m, Tcw[:3, :3], Tcw[:3, 3],
+                                 *view, 0.1, 4.0, reach)
     np.testing.assert_array_equal(m._visible[: m.n_blocks], vis_ref)
+    # the distance test keeps whatever the face tests keep within the frustum's reach (here: all), culls beyond it
+    vis_faces = kr.cull_blocks_ref(m._block_ijk, m.n_blocks, 0.5, m.cfg.block_margin_m, Tcw[:3, :3], Tcw[:3, 3],
+                                   *view, 0.1, 4.0)
+    np.testing.assert_array_equal(vis_ref, vis_faces)
+    vis_near = kr.cull_blocks_ref(m._block_ijk, m.n_blocks, 0.5, m.cfg.block_margin_m, Tcw[:3, :3], Tcw[:3, 3],
+                                  *view, 0.1, 4.0, 1.5)
+    assert np.all(vis_near <= vis_faces) and 0 < vis_near.sum() < vis_faces.sum()
     assert 0 < vis_ref.sum() < m.n_blocks  # some culled, some kept
     ref = ks.gather_candidates_ref(vis_ref, m._order, m._block_start, m._block_count, m._n_blocks_grouped,
                                    m._block_id, m.n_grouped, m.size, m._dead)
@@ -301,3 +310,19 @@ def test_reorder_by_block_groups_checked_rows_and_keeps_the_rest():
     assert not m2.maybe_reorder()
     m2.dormant_cursor = 60
     assert m2.maybe_reorder() and np.all(np.diff(m2._block_id[:60]) >= 0)
+
+
+def test_maybe_reorder_regroups_only_new_rows_until_they_reach_a_quarter():
+    m = _random_map(3000, seed=5, cfg=MapConfig(initial_capacity=8, block_size_m=0.5, reorder_every_rows=100))
+    m.dormant_cursor = 2000
+    assert m.maybe_reorder() and np.all(np.diff(m._block_id[:2000]) >= 0)  # the first time: all checked rows
+    head = m.position[:2000].copy()
+    m.dormant_cursor = 2300  # 300 new rows < 2000 / 4: regrouped among themselves, the first 2000 stay
+    tail_before = sorted(map(tuple, m.position[2000:2300].tolist()))
+    assert m.maybe_reorder()
+    np.testing.assert_array_equal(m.position[:2000], head)
+    assert np.all(np.diff(m._block_id[2000:2300]) >= 0)
+    assert sorted(map(tuple, m.position[2000:2300].tolist())) == tail_before
+    assert not np.all(np.diff(m._block_id[:2300]) >= 0)  # two groupings, one after the other
+    m.dormant_cursor = 2500  # 500 rows since the whole regrouping: all 2500 again
+    assert m.maybe_reorder() and np.all(np.diff(m._block_id[:2500]) >= 0)

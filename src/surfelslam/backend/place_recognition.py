@@ -1,14 +1,23 @@
 """Appearance-based keyframe retrieval by descriptor voting.
 
 Every keyframe's ORB descriptors are appended to one database (grown by doubling). A query frame
-matches each of its descriptors to its two nearest database descriptors (exact Hamming kNN,
-numba brute force, :mod:`surfelslam.kernels.hamming`); a match passing the ratio test and a distance
-bound casts one vote for the keyframe that owns the nearest descriptor. Keyframes are ranked by votes
+matches each of its descriptors to its two nearest database descriptors; a match passing the ratio test and a
+distance bound casts one vote for the keyframe that owns the nearest descriptor. Keyframes are ranked by votes
 (ties: lower id first).
+
+The nearest descriptors are searched by brute force (exact, :mod:`surfelslam.kernels.hamming`) while the database
+is small (``exact_below_descriptors``), beyond that in a locality-sensitive hash index that every descriptor enters
+when it is added (bit sampling, :mod:`surfelslam.kernels.hamming_hash`): a query then compares each descriptor with
+the few rows that share one of its hash keys instead of every keyframe's, and the keys gain a bit each time the
+database doubles (the tables are rebuilt, O(1) per row on average), so its cost stays nearly flat as a floor-sized
+map gathers thousands of keyframes (``benchmarks/bench_retrieval.py`` measures it). The hashed search
+finds a close nearest neighbour with a high probability and may miss the second-nearest (the ratio test is then
+looser); the bit positions are drawn from a fixed seed, so results are deterministic. A library index was weighed:
+OpenCV's FLANN LSH cannot append rows without rebuilding and draws its tables from the C library's global random
+state, and no other binary-descriptor index is among the dependencies.
 
 Keyframes are stored in id order, so restricting a query to "keyframes older than k" is a prefix
 of the database: recent keyframes (which trivially look alike) are excluded without copying.
-Brute-force search is exact and deterministic; no vocabulary needs training.
 """
 
 from __future__ import annotations
@@ -18,10 +27,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from surfelslam.config import Config, setting
-from surfelslam.kernels import hamming
+from surfelslam.kernels import hamming, hamming_hash
 
 _DESCRIPTOR_BYTES = 32
+_DESCRIPTOR_BITS = 8 * _DESCRIPTOR_BYTES
 _INITIAL_CAPACITY = 4096
+_HASH_SEED = 0  # seed of the hash tables' bit positions (fixed: retrieval is deterministic)
+# the bits keys are drawn from: the half whose share of ones is nearest 1/2 (ORB bits are unbalanced; on a floor walk
+# the balanced half gave 5x smaller buckets than all 256 bits, at 3% lower recall of the voting neighbours)
+_BALANCED_BITS = 128
+# the key grows by one bit per doubling of the database up to this: the bucket heads take tables x 2 ** bits x 4 bytes
+# (64 MB for 16 tables at 20 bits)
+_MAX_KEY_BITS = 20
 
 
 @dataclass(frozen=True)
@@ -34,7 +51,21 @@ class RetrievalConfig(Config):
     min_votes: int = setting(8, unit="votes", ge=0, le=1_000_000, doc="keyframes with fewer votes are not returned")
     max_descriptors_per_keyframe: int = setting(300, unit="descriptors", ge=1, le=100_000,
                                                 doc="only the strongest keypoints with depth are stored and queried "
-                                                    "(bounds the brute-force cost)")
+                                                    "(bounds the search cost)")
+    exact_below_descriptors: int = setting(
+        30_000, unit="descriptors", ge=0, le=1 << 40,
+        doc="queries over a database smaller than this are brute force (exact); larger ones use the hash index")
+    hash_tables: int = setting(16, unit="tables", ge=1, le=64,
+                               doc="hash tables of the index (more: higher recall, slower queries)")
+    hash_bucket_rows: int = setting(
+        0, unit="rows", ge=0, le=1 << 30,
+        doc="a query descriptor with a hash bucket of more rows than this is a common appearance and casts no vote "
+            "(a stop word): bounds a query's cost whatever the map size (0: no bound; 64 lost 3/4 of the retrieved "
+            "keyframes on the synthetic floor)")
+    hash_key_bits: int = setting(
+        16, unit="bits", ge=1, le=_MAX_KEY_BITS,
+        doc="sampled bits per hash key when the index starts; one more each time the database doubles (up to 20), so "
+            "the buckets keep their size as keyframes accumulate (more bits: faster queries, lower recall)")
 
 
 def select_descriptors(descriptors: np.ndarray, response: np.ndarray, valid: np.ndarray, n_max: int) -> np.ndarray:
@@ -46,8 +77,17 @@ def select_descriptors(descriptors: np.ndarray, response: np.ndarray, valid: np.
     return descriptors[idx]
 
 
+def hash_bit_positions(descriptors: np.ndarray, n_tables: int, key_bits: int, seed: int = _HASH_SEED) -> np.ndarray:
+    """``(n_tables, key_bits)`` int64 distinct bit positions per table, drawn (from ``seed``) among the
+    ``_BALANCED_BITS`` bits of ``descriptors`` ``(N, 32)`` uint8 whose share of ones is nearest one half."""
+    ones = np.unpackbits(np.asarray(descriptors, np.uint8), axis=1, bitorder="little").mean(axis=0)
+    pool = np.argsort(np.abs(ones - 0.5), kind="stable")[: max(_BALANCED_BITS, key_bits)]
+    rng = np.random.default_rng(seed)
+    return np.stack([rng.choice(pool, key_bits, replace=False) for _ in range(n_tables)]).astype(np.int64)
+
+
 class DescriptorIndex:
-    """Database of keyframe descriptors with voting queries."""
+    """Database of keyframe descriptors with voting queries (brute force while small, then hashed)."""
 
     def __init__(self, cfg: RetrievalConfig | None = None) -> None:
         self.cfg = cfg or RetrievalConfig()
@@ -55,10 +95,20 @@ class DescriptorIndex:
         self._owner = np.zeros(_INITIAL_CAPACITY, np.int64)
         self._n = 0
         self._kf_end: list[int] = []  # database rows [0, _kf_end[k]) belong to keyframes 0..k
+        # the hash tables, made once the database reaches exact_below_descriptors rows (:meth:`_build_tables`)
+        self._bits: np.ndarray | None = None  # (tables, key bits) bit positions
+        self._rebuild_at = 0  # rows at which the tables are rebuilt with one more key bit
+        self._head = np.zeros((0, 0), np.int32)  # (tables, 2 ** key bits) newest row of each bucket
+        self._next = np.zeros((0, 0), np.int32)  # (tables, capacity) the next (older) row of each row's bucket
 
     @property
     def n_keyframes(self) -> int:
         return len(self._kf_end)
+
+    @property
+    def hashed(self) -> bool:
+        """Whether the hash tables exist (the database has reached ``exact_below_descriptors`` rows)."""
+        return self._bits is not None
 
     def add(self, descriptors: np.ndarray) -> int:
         """Append the next keyframe's ``(N, 32)`` uint8 descriptors; returns its keyframe id."""
@@ -68,17 +118,39 @@ class DescriptorIndex:
             cap = len(self._desc)
             while cap < need:
                 cap *= 2
-            desc = np.zeros((cap, _DESCRIPTOR_BYTES), np.uint8)
-            owner = np.zeros(cap, np.int64)
-            desc[: self._n] = self._desc[: self._n]
-            owner[: self._n] = self._owner[: self._n]
-            self._desc, self._owner = desc, owner
+            self._desc = _grown(self._desc, self._n, cap)
+            self._owner = _grown(self._owner, self._n, cap)
+            if self.hashed:  # grown along rows: each table's links stay contiguous (its bucket walks stay in cache)
+                nxt = np.zeros((len(self._next), cap), np.int32)
+                nxt[:, : self._n] = self._next[:, : self._n]
+                self._next = nxt
         kf = len(self._kf_end)
         self._desc[self._n : need] = d
         self._owner[self._n : need] = kf
+        if self.hashed:
+            hamming_hash.insert_rows(self._keys(d), self._n, self._head, self._next)
         self._n = need
         self._kf_end.append(need)
+        if not self.hashed and need >= self.cfg.exact_below_descriptors:
+            self._build_tables(self.cfg.hash_key_bits)
+        elif self.hashed and need >= self._rebuild_at:
+            self._build_tables(self.key_bits + 1)
         return kf
+
+    @property
+    def key_bits(self) -> int:
+        """Bits of the hash keys now (0 before the tables exist)."""
+        return 0 if self._bits is None else self._bits.shape[1]
+
+    def _build_tables(self, key_bits: int) -> None:
+        """(Re)make the tables with ``key_bits``-bit keys, their bit positions drawn from the rows so far, and enter
+        every row; the next rebuild (one more bit) comes when the rows have doubled."""
+        cfg = self.cfg
+        self._bits = hash_bit_positions(self._desc[: self._n], cfg.hash_tables, key_bits)
+        self._head = np.full((cfg.hash_tables, 1 << key_bits), hamming_hash.NO_ROW, np.int32)
+        self._next = np.zeros((cfg.hash_tables, len(self._desc)), np.int32)
+        hamming_hash.insert_rows(self._keys(self._desc[: self._n]), 0, self._head, self._next)
+        self._rebuild_at = 2 * max(self._n, 1) if key_bits < _MAX_KEY_BITS else np.iinfo(np.int64).max
 
     def query(self, descriptors: np.ndarray, n_results: int, before_kf: int | None = None) -> list[tuple[int, int]]:
         """Best keyframes for a query frame.
@@ -97,10 +169,34 @@ class DescriptorIndex:
         end = self._kf_end[k_max - 1]
         if end < 2:
             return []
-        db = self._desc[:end]
-        d1, d2, idx = hamming.nearest_two_words(hamming.as_words(descriptors), hamming.as_words(db))
+        d1, d2, idx = self._nearest_two(np.asarray(descriptors, np.uint8), end)
         good = (d1 < self.cfg.max_hamming_bits) & (d1 < self.cfg.ratio * d2)
         owners = self._owner[idx[good]]
         votes = np.bincount(owners, minlength=k_max)
         order = np.lexsort((np.arange(k_max), -votes))
         return [(int(k), int(votes[k])) for k in order[:n_results] if votes[k] >= self.cfg.min_votes]
+
+    def _keys(self, descriptors: np.ndarray) -> np.ndarray:
+        """``(N, hash_tables)`` int64 hash keys of ``(N, 32)`` uint8 descriptors."""
+        keys = np.empty((len(descriptors), len(self._bits)), np.int64)
+        hamming_hash.hash_keys(hamming.as_words(descriptors), self._bits, keys)
+        return keys
+
+    def _nearest_two(self, descriptors: np.ndarray, end: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(best_d, second_d, best_idx)`` ``(N,)`` of the query over database rows ``[0, end)``: brute force below
+        ``exact_below_descriptors`` rows, else through the hash tables."""
+        words = hamming.as_words(descriptors)
+        if not self.hashed or end < self.cfg.exact_below_descriptors:
+            return hamming.nearest_two_words(words, hamming.as_words(self._desc[:end]))
+        n = len(words)
+        best_d, second_d, best_idx = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+        hamming_hash.nearest_two_hashed(words, self._keys(descriptors), hamming.as_words(self._desc), self._head,
+                                        self._next, end, self.cfg.hash_bucket_rows, best_d, second_d, best_idx)
+        return best_d, second_d, best_idx
+
+
+def _grown(a: np.ndarray, n: int, cap: int) -> np.ndarray:
+    """A copy of ``a`` with ``cap`` rows (zeros after the first ``n``, which are copied)."""
+    out = np.zeros((cap,) + a.shape[1:], a.dtype)
+    out[:n] = a[:n]
+    return out

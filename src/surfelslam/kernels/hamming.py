@@ -32,6 +32,9 @@ def _popcount64(x):
     return (x * _H01) >> np.uint64(56)
 
 
+popcount64 = _popcount64  # set bits of a uint64 (njit), for the other descriptor kernels (hamming_hash)
+
+
 @njit(cache=True, nogil=True)
 def _distances(query, i, train, d):
     """``d[j]`` = Hamming distance of ``query[i]`` to every ``train[j]``: a branch-free loop of its own, which LLVM

@@ -20,21 +20,37 @@ _GRAZING_COS = 1e-3  # |n . ray| below this: the splat plane is edge-on, only th
 # ---------------------------------------------------------------------------------------------------- culling
 @njit(cache=True, nogil=True)
 def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far,
-                visible_out):
-    """Frustum test of block boxes: ``visible_out[b] = 1`` unless all 8 corners lie outside one face.
+                reach, visible_out):
+    """Frustum test of block boxes: ``visible_out[b] = 1`` unless all 8 corners lie outside one face, or the box's
+    bounding sphere lies farther than ``reach`` (metres) from the camera centre.
 
     Args:
         block_ijk: int32 ``(>= nb, 3)`` integer block coordinates; block ``b`` spans
             ``[ijk * block_size - margin, (ijk + 1) * block_size + margin]`` (metres, world frame).
         R, t: ``(3, 3)``, ``(3,)`` float64 world-to-camera rotation and translation.
         umin, umax, vmin, vmax: image rectangle (pixels); near, far: depth range (metres).
+        reach: the distance from the camera centre within which the frustum lies (:func:`frustum_reach`; ``inf``:
+            no distance test). Most blocks of a floor-sized map are far away: one distance per block rejects them,
+            instead of 8 corners against 6 faces.
         visible_out: uint8 ``(>= nb,)``.
 
     The frustum faces are the half-spaces ``z >= near``, ``z <= far``, ``fx x + (cx - umin) z >= 0``,
     ``(umax - cx) z - fx x >= 0`` and the same for ``v`` with ``fy`` (valid for either sign of ``fy``).
     """
+    half = 0.5 * block_size
+    sphere = math.sqrt(3.0) * (half + margin)  # bounding-sphere radius of a grown box
+    outside = np.zeros(6, np.int64)
     for b in range(nb):
-        outside = np.zeros(6, np.int64)
+        mx = block_ijk[b, 0] * block_size + half
+        my = block_ijk[b, 1] * block_size + half
+        mz = block_ijk[b, 2] * block_size + half
+        dx = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + t[0]
+        dy = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + t[1]
+        dz = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
+        if dx * dx + dy * dy + dz * dz > (reach + sphere) * (reach + sphere):
+            visible_out[b] = 0
+            continue
+        outside[:] = 0
         for c in range(8):
             wx = (block_ijk[b, 0] + (c & 1)) * block_size + (margin if (c & 1) else -margin)
             wy = (block_ijk[b, 1] + ((c >> 1) & 1)) * block_size + (margin if ((c >> 1) & 1) else -margin)
@@ -61,18 +77,29 @@ def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, u
         visible_out[b] = vis
 
 
-def cull_blocks_ref(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far):
+def frustum_reach(fx, fy, cx, cy, umin, umax, vmin, vmax, far):
+    """Distance (metres) from the camera centre of the farthest point of the frustum (image rectangle ``[umin, umax]
+    x [vmin, vmax]`` pixels, depth up to ``far``): a far-plane corner's."""
+    tx = max(abs((umin - cx) / fx), abs((umax - cx) / fx))
+    ty = max(abs((vmin - cy) / fy), abs((vmax - cy) / fy))
+    return far * math.sqrt(1.0 + tx * tx + ty * ty)
+
+
+def cull_blocks_ref(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far,
+                    reach=math.inf):
     """Numpy reference of :func:`cull_blocks`; returns uint8 ``(nb,)``."""
     bits = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.float64)  # (8, 3)
     lo = block_ijk[:nb].astype(np.float64)[:, None, :] * block_size - margin
     corners = lo + bits[None] * (block_size + 2 * margin)  # (nb, 8, 3)
+    centre = block_ijk[:nb].astype(np.float64) * block_size + 0.5 * block_size
+    dist = np.linalg.norm(centre @ R.T + t, axis=1)
     cam = corners @ R.T + t
     x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
     faces = [
         z < near, z > far, fx * x + (cx - umin) * z < 0, (umax - cx) * z - fx * x < 0,
         fy * y + (cy - vmin) * z < 0, (vmax - cy) * z - fy * y < 0,
     ]
-    culled = np.zeros(nb, bool)
+    culled = dist > reach + math.sqrt(3.0) * (0.5 * block_size + margin)
     for f in faces:
         culled |= f.all(axis=1)
     return (~culled).astype(np.uint8)

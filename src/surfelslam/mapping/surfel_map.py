@@ -30,7 +30,9 @@ The grouping is by index, so a block's surfels still lie wherever fusion appende
 scene every block is scattered over the whole array and the renderers' gathers miss the cache. :meth:`maybe_reorder`
 therefore regroups the rows themselves by block, but only the rows the dormant rule has already checked (before
 ``dormant_cursor``): the rows after it keep their fusion order, which that rule relies on. This keeps the per-frame
-cost of long runs from growing (``benchmarks/bench_pipeline.py``).
+cost of long runs from growing (``benchmarks/bench_pipeline.py``). Only the rows checked since the last regrouping are
+regrouped (among themselves), except when they reach a quarter of the rows regrouped as a whole last time: then all of
+them are, so each row moves O(1) times on average and a floor-sized map does not pay O(map) every few frames.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ from surfelslam.kernels import surfels as ks
 from surfelslam.types import Intrinsics
 
 _KEY_BITS = 21
+# all checked rows are regrouped together once those checked since the last whole regrouping reach this fraction of
+# it (geometric: O(1) moves per row; below, only the new rows are regrouped, among themselves)
+_FULL_REORDER_GROWTH = 0.25
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
@@ -92,6 +97,7 @@ class SurfelMap:
         self.latest_frame = -1  # highest frame index fused so far (set by fusion)
         self.dormant_cursor = 0  # rows before this were already checked by the dormant rule (fusion)
         self._reordered_upto = 0  # dormant_cursor at the last regrouping of rows by block
+        self._full_reordered_upto = 0  # ... at the last regrouping of all checked rows together
         self._alloc(self.cfg.initial_capacity)
         # block index
         self._inv_block = 1.0 / self.cfg.block_size_m
@@ -252,6 +258,7 @@ class SurfelMap:
         if self._n_dead == 0:
             return 0
         n_before_cursor = int(np.count_nonzero(self._dead[: self.dormant_cursor] == 0))
+        n_before_full = int(np.count_nonzero(self._dead[: self._full_reordered_upto] == 0))
         new_size = ks.compact_rows(
             self._position, self._normal, self._colour, self._confidence, self._radius,
             self._first_seen, self._last_seen, self._hits, self._block_id, self._dead, self._size,
@@ -260,6 +267,7 @@ class SurfelMap:
         self._size = new_size
         self._n_dead = 0
         self._reordered_upto = min(self._reordered_upto, n_before_cursor)
+        self._full_reordered_upto = min(n_before_full, self._reordered_upto)
         self.dormant_cursor = n_before_cursor
         self.rebuild_index()  # rows moved: regroup (O(size), like the compaction itself)
         return removed
@@ -337,27 +345,33 @@ class SurfelMap:
 
     def maybe_reorder(self) -> bool:
         """Regroup the checked rows by block (:meth:`reorder_by_block`) when ``reorder_every_rows`` more rows
-        have been checked by the dormant rule since the last time; returns whether it did."""
+        have been checked by the dormant rule since the last time: all of them when the rows checked since the last
+        whole regrouping reach ``_FULL_REORDER_GROWTH`` of it, else only the new ones; returns whether it did."""
         every = self.cfg.reorder_every_rows
-        if every <= 0 or self.dormant_cursor - self._reordered_upto < every:
+        cursor = self.dormant_cursor
+        if every <= 0 or cursor - self._reordered_upto < every:
             return False
-        self.reorder_by_block(self.dormant_cursor)
+        full = self._full_reordered_upto
+        self.reorder_by_block(cursor, 0 if cursor - full >= _FULL_REORDER_GROWTH * full else self._reordered_upto)
         return True
 
-    def reorder_by_block(self, n: int) -> None:
-        """Move rows ``0..n-1`` so that each block's surfels are contiguous (stable within a block); rows from
-        ``n`` on are untouched. O(n + n_blocks); the block index is rebuilt."""
+    def reorder_by_block(self, n: int, start: int = 0) -> None:
+        """Move rows ``start..n-1`` so that each block's surfels among them are contiguous (stable within a block);
+        the other rows are untouched. O(n - start + n_blocks); the block index is rebuilt."""
         n = min(int(n), self._size)
-        if n <= 0:
+        start = min(max(int(start), 0), n)
+        if n <= start:
             return
-        order = np.empty(n, np.int32)
-        start = np.empty(max(self._n_blocks, 1), np.int32)
+        order = np.empty(n - start, np.int32)
+        first = np.empty(max(self._n_blocks, 1), np.int32)
         count = np.empty(max(self._n_blocks, 1), np.int32)
-        ks.group_by_block(self._block_id, n, self._n_blocks, order, start, count)
+        ks.group_by_block(self._block_id[start:], n - start, self._n_blocks, order, first, count)
         for name in self._FIELDS:
             a = getattr(self, name)
-            a[:n] = a[order]
+            a[start:n] = a[start:n][order]
         self._reordered_upto = n
+        if start == 0:
+            self._full_reordered_upto = n
         self.rebuild_index()
 
     def visible_candidates(
@@ -381,12 +395,13 @@ class SurfelMap:
         if self._size == 0 or nb == 0:
             return self._cand[:0]
         T_cam_world = se3.invert(np.asarray(T_world_cam, np.float64))
+        image = (-0.5 - margin_px, intr.width - 0.5 + margin_px, -0.5 - margin_px, intr.height - 0.5 + margin_px)
+        camera = (float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy))
         kr.cull_blocks(
             self._block_ijk, nb, self.cfg.block_size_m, self.cfg.block_margin_m,
             np.ascontiguousarray(T_cam_world[:3, :3]), np.ascontiguousarray(T_cam_world[:3, 3]),
-            float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy),
-            -0.5 - margin_px, intr.width - 0.5 + margin_px, -0.5 - margin_px, intr.height - 0.5 + margin_px,
-            float(min_depth_m), float(max_depth_m), self._visible,
+            *camera, *image, float(min_depth_m), float(max_depth_m),
+            kr.frustum_reach(*camera, *image, float(max_depth_m)), self._visible,
         )
         m = ks.gather_candidates(
             self._visible, self._order, self._block_start, self._block_count, self._n_blocks_grouped,

@@ -1,0 +1,73 @@
+"""Keyframe retrieval cost as the keyframe count grows: a query of :class:`DescriptorIndex` (300 descriptors against
+every older keyframe's 300) by brute force and through the hash index, at 100, 500, 1000 and 2000 keyframes, and how
+often the hashed query returns the brute-force best keyframe.
+
+Descriptors: synthetic, with unbalanced bits as ORB's (each bit set with its own probability, uniform in [0.05,
+0.95]). A walk of ``n`` keyframes sees ``n`` places: a keyframe is its place's descriptors with 6 % of the bits
+flipped, and a query is a second view of a random place, so its best keyframe is that place's (one view per place in
+the database: several would fail the ratio test together). No data set or camera needed.
+
+Usage: ``.venv/bin/python -m benchmarks.bench_retrieval [--quick]``; ``run(quick)`` returns the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+import numpy as np
+
+from benchmarks.common import median_ms
+from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
+
+PER_KEYFRAME = 300  # descriptors per keyframe (RetrievalConfig.max_descriptors_per_keyframe)
+FLIP = 0.06  # share of bits flipped in a view of a place (two views: ~29 bits apart, as ORB matches on a floor walk)
+QUERIES = 20
+
+
+def _views(place: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A view of ``place`` ``(N, 256)`` bits: ``FLIP`` of its bits flipped, packed to ``(N, 32)`` uint8."""
+    return np.packbits(place ^ (rng.random(place.shape) < FLIP), axis=1)
+
+
+def _walk(n_kf: int, seed: int = 0) -> tuple[list[np.ndarray], list[tuple[int, np.ndarray]]]:
+    """``n_kf`` keyframes' descriptors (one per place) and ``QUERIES`` queries ``(place, descriptors)``."""
+    rng = np.random.default_rng(seed)
+    p_one = rng.uniform(0.05, 0.95, 256)
+    places = [(rng.random((PER_KEYFRAME, 256)) < p_one).astype(np.uint8) for _ in range(n_kf)]
+    keyframes = [_views(p, rng) for p in places]
+    queries = [(int(p), _views(places[p], rng)) for p in rng.integers(0, len(places), QUERIES)]
+    return keyframes, queries
+
+
+def run(quick: bool = False) -> list[dict]:
+    rows = []
+    for n_kf in (100, 500) if quick else (100, 500, 1000, 2000):
+        keyframes, queries = _walk(n_kf)
+        exact = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=1 << 40))
+        hashed = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=0))
+        for d in keyframes:
+            exact.add(d)
+            hashed.add(d)
+        same = [[k for k, _ in exact.query(q, 1)] == [k for k, _ in hashed.query(q, 1)] == [p] for p, q in queries]
+        rows.append({
+            "keyframes": n_kf, "descriptors": n_kf * PER_KEYFRAME,
+            "exact_ms": float(np.mean([median_ms(lambda q=q, idx=exact: idx.query(q, 3), 3) for _, q in queries])),
+            "hashed_ms": float(np.mean([median_ms(lambda q=q, idx=hashed: idx.query(q, 3), 3) for _, q in queries])),
+            "same_best": float(np.mean(same)),  # both return the query's place first
+        })
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    rows = run(ap.parse_args().quick)
+    cols = list(rows[0])
+    print(" | ".join(cols))
+    for r in rows:
+        print(" | ".join(f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+
+
+if __name__ == "__main__":
+    main()

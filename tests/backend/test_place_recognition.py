@@ -1,0 +1,140 @@
+"""The keyframe retrieval index: hashed nearest neighbours against brute force, and the votes they give."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig, hash_bit_positions
+from surfelslam.kernels import hamming, hamming_hash
+
+HASHED = replace(RetrievalConfig(), exact_below_descriptors=0)  # hashed from the first keyframe on
+
+
+def _noisy(desc: np.ndarray, n_bits: int, rng: np.random.Generator) -> np.ndarray:
+    """``desc`` ``(N, 32)`` with ``n_bits`` distinct random bits of every row flipped."""
+    bits = np.unpackbits(desc, axis=1)
+    for row in bits:
+        row[rng.choice(256, n_bits, replace=False)] ^= 1
+    return np.packbits(bits, axis=1)
+
+
+def _planted(n_kf: int = 60, kf: int = 17, seed: int = 0):
+    """``n_kf`` keyframes of 200 random descriptors, and a query made of keyframe ``kf``'s with 12 of 256 bits
+    flipped."""
+    rng = np.random.default_rng(seed)
+    kfs = [rng.integers(0, 256, (200, 32), dtype=np.uint8) for _ in range(n_kf)]
+    return kfs, _noisy(kfs[kf], 12, rng)
+
+
+def test_hashed_search_equals_brute_force_where_it_finds_the_nearest() -> None:
+    kfs, q = _planted()
+    idx = DescriptorIndex(HASHED)
+    for d in kfs:
+        idx.add(d)
+    assert idx.hashed
+    db = np.concatenate(kfs)
+    e1, e2, ei = hamming.nearest_two_ref(q, db)
+    h1, h2, hi = idx._nearest_two(q, len(db))
+    # 12 flipped bits: the planted neighbour shares a 20-bit key (grown from 16 over 6 doublings) in one of 16 tables
+    # with probability > 0.999
+    found = hi == ei
+    assert found.mean() > 0.98
+    np.testing.assert_array_equal(h1[found], e1[found])
+    assert np.all(h1 >= e1) and np.all(h2 >= e2)  # never nearer than the truth: only fewer rows are seen
+    np.testing.assert_array_equal(ei[:5], 17 * 200 + np.arange(5))
+
+
+def test_hashed_votes_give_the_brute_force_top_candidates() -> None:
+    kfs, q = _planted()
+    exact, hashed = DescriptorIndex(), DescriptorIndex(HASHED)
+    for d in kfs:
+        exact.add(d)
+        hashed.add(d)
+    assert not exact.hashed
+    top_e, top_h = exact.query(q, 3), hashed.query(q, 3)
+    assert top_e[0] == (17, 200)  # every planted descriptor votes for its keyframe
+    assert top_h[0][0] == 17 and top_h[0][1] >= 196
+    assert [k for k, _ in top_h] == [k for k, _ in top_e]
+    # the prefix: keyframe 17 and later do not vote
+    assert all(k < 17 for k, _ in hashed.query(q, 3, before_kf=17))
+
+
+def test_switch_to_hashing_at_the_threshold_keeps_exact_results_below_it() -> None:
+    kfs, q = _planted(n_kf=10, kf=2)
+    idx = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=1000))
+    ref = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=10**9))
+    for k, d in enumerate(kfs):
+        idx.add(d)
+        ref.add(d)
+        assert idx.hashed == (200 * (k + 1) >= 1000)
+    below = idx.query(q, 3, before_kf=4)
+    assert below == ref.query(q, 3, before_kf=4) and below[0] == (2, 200)  # 800 rows: brute force
+    assert idx.query(q, 3)[0][0] == ref.query(q, 3)[0][0] == 2  # 2000 rows: hashed
+
+
+def test_hash_tables_hold_every_row_once_per_table() -> None:
+    rng = np.random.default_rng(3)
+    desc = rng.integers(0, 256, (500, 32), dtype=np.uint8)
+    bits = hash_bit_positions(desc, 4, 10)
+    assert bits.shape == (4, 10) and all(len(set(b)) == 10 for b in bits)
+    keys = np.empty((500, 4), np.int64)
+    hamming_hash.hash_keys(hamming.as_words(desc), bits, keys)
+    # the key's bits are the descriptor's bits at those positions (little-endian within a byte)
+    unpacked = np.unpackbits(desc, axis=1, bitorder="little")
+    np.testing.assert_array_equal(keys[:, 0], unpacked[:, bits[0]] @ (1 << np.arange(9, -1, -1)))
+    head = np.full((4, 1 << 10), hamming_hash.NO_ROW, np.int32)
+    nxt = np.zeros((4, 500), np.int32)
+    hamming_hash.insert_rows(keys[:300], 0, head, nxt)
+    hamming_hash.insert_rows(keys[300:], 300, head, nxt)
+    for t in range(4):
+        rows = []
+        for k in range(1 << 10):
+            r = head[t, k]
+            bucket = []
+            while r != hamming_hash.NO_ROW:
+                assert keys[r, t] == k
+                bucket.append(r)
+                r = nxt[t, r]
+            assert bucket == sorted(bucket, reverse=True)  # newest first
+            rows += bucket
+        assert sorted(rows) == list(range(500))
+
+
+def test_balanced_bits_are_preferred() -> None:
+    rng = np.random.default_rng(4)
+    desc = rng.integers(0, 256, (2000, 32), dtype=np.uint8)
+    desc[:, :16] = 0  # bits 0..127 constant: they carry nothing
+    bits = hash_bit_positions(desc, 8, 16)
+    assert bits.min() >= 128
+
+
+def test_keys_gain_a_bit_per_doubling_and_still_find_the_planted_keyframe() -> None:
+    kfs, q = _planted(n_kf=40, kf=30)
+    idx = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=1000, hash_key_bits=8))
+    bits = []
+    for d in kfs:
+        idx.add(d)
+        bits.append(idx.key_bits)
+    # keyframe k ends at row 200 (k + 1): tables from 1000 rows with 8 bits, rebuilt with 9 at 2000, 10 at 4000, 11
+    # at 8000
+    assert bits[:4] == [0] * 4
+    assert [bits[k] for k in (4, 8, 9, 18, 19, 38, 39)] == [8, 8, 9, 9, 10, 10, 11]
+    assert idx.query(q, 1)[0][0] == 30
+
+
+def test_bucket_bound_silences_descriptors_of_crowded_buckets() -> None:
+    rng = np.random.default_rng(6)
+    a = rng.integers(0, 256, (200, 32), dtype=np.uint8)
+    b = _noisy(a, 40, rng)  # a second keyframe of look-alikes, 40 bits away: some share a bucket with their twin
+    q = _noisy(a, 5, rng)
+    votes = {}
+    for bound in (0, 1):
+        idx = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=0, hash_bucket_rows=bound))
+        idx.add(a)
+        idx.add(b)
+        votes[bound] = dict(idx.query(q, 2)).get(0, 0)
+    assert votes[0] == 200  # 5 bits against 40: every descriptor passes the ratio test
+    # with at most one row per bucket, those sharing a bucket with their look-alike are silenced, the others vote
+    assert 20 < votes[1] < 180
