@@ -3,6 +3,7 @@ again here, and the children killed when the caller's work is interrupted."""
 
 from __future__ import annotations
 
+import gc
 import os
 import threading
 import time
@@ -29,6 +30,7 @@ def test_jobs_run_in_children_while_the_block_runs(tmp_path, monkeypatch):
         here = os.getpid()
     pids = {int((tmp_path / n).read_text()) for n in "ab"}
     assert len(pids) == 2 and here not in pids
+    assert gc.get_freeze_count() == 0  # frozen for the fork only (the children's collections skip the parent's)
 
 
 def test_without_fork_the_jobs_run_here_after_the_block(tmp_path, monkeypatch):

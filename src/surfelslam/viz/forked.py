@@ -13,6 +13,7 @@ process when the ``with`` block ends, so its outputs are the same and its error 
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import signal
 import sys
@@ -34,10 +35,18 @@ def _fork(job: Callable[[], object]) -> int:
     """Fork a child that runs ``job`` and exits with :data:`_CHILD_DONE` or :data:`_CHILD_FAILED`; the child's pid.
 
     The child leaves through ``os._exit``: no exit handlers, no flushing of the parent's buffered output."""
-    with warnings.catch_warnings():
-        # Python 3.12 warns when forking a process with other threads: here only idle native pools (BLAS, OpenCV)
-        warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
+    parent = os.getpid()
+    freeze = gc.get_freeze_count() == 0  # (else someone froze objects on purpose: left as they are)
+    if freeze:
+        gc.freeze()  # the child's garbage collections leave the inherited objects alone (no copy of their pages)
+    try:
+        with warnings.catch_warnings():
+            # Python 3.12 warns when forking a process with other threads: here only idle native pools (BLAS, OpenCV)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    finally:
+        if freeze and os.getpid() == parent:
+            gc.unfreeze()
     if pid:
         return pid
     status = _CHILD_FAILED
