@@ -53,6 +53,17 @@ def test_no_fork_while_another_thread_runs():
 
 
 @linux_only
+def test_no_fork_on_a_saturated_machine(monkeypatch):
+    """A load average of the CPU count or more: a child would only share the same CPU time (the jobs run here)."""
+    cpus = len(os.sched_getaffinity(0))
+    monkeypatch.setattr(forked.threading, "active_count", lambda: 1)  # (a test worker may run threads of its own)
+    monkeypatch.setattr(forked.os, "getloadavg", lambda: (float(cpus), 0.0, 0.0))
+    assert not forked.can_fork()
+    monkeypatch.setattr(forked.os, "getloadavg", lambda: (cpus - 1.0, 0.0, 0.0))
+    assert forked.can_fork() == (cpus > 1)
+
+
+@linux_only
 def test_a_job_whose_child_failed_runs_again_here(tmp_path, monkeypatch):
     monkeypatch.setattr(forked, "can_fork", lambda: True)
     parent = os.getpid()

@@ -5,9 +5,11 @@ anything; a forked child does, on another core. A run's report draws its map fig
 and draws the trajectory figures itself (:mod:`surfelslam.viz.run_report`).
 
 A job runs in a child only where that is safe and useful (:func:`can_fork`): Linux (elsewhere the system's libraries
-may not survive a fork), more than one CPU for this process, and no other Python thread alive (a lock another thread
-held at the fork would stay locked in the child). Otherwise, and for a job whose child failed, the job runs in this
-process when the ``with`` block ends, so its outputs are the same and its error is raised here.
+may not survive a fork), more than one CPU for this process and a CPU to spare (a load average, this process
+included, below the CPU count: on a saturated machine a child only adds its start-up to the same share of CPU), and
+no other Python thread alive (a lock another thread held at the fork would stay locked in the child). Otherwise,
+and for a job whose child failed, the job runs in this process when the ``with`` block ends, so its outputs are the
+same and its error is raised here.
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ _CHILD_FAILED = 1  # ... when it raised (the job is run again in the parent, whi
 
 def can_fork() -> bool:
     """True when jobs may run in forked children here and now (see the module docstring)."""
-    return (sys.platform.startswith("linux") and hasattr(os, "fork") and len(os.sched_getaffinity(0)) > 1
-            and threading.active_count() == 1)
+    if not (sys.platform.startswith("linux") and hasattr(os, "fork")) or threading.active_count() != 1:
+        return False
+    cpus = len(os.sched_getaffinity(0))
+    return cpus > 1 and os.getloadavg()[0] < cpus
 
 
 def _fork(job: Callable[[], object]) -> int:
