@@ -316,7 +316,11 @@ def progress_bar(total: int, show: bool):
         return
     from tqdm import tqdm
 
-    bar = tqdm(total=total, unit="frame", dynamic_ncols=True, leave=False)
+    class Bar(tqdm):
+        # no monitor thread: the report's figures are drawn in forked processes only when no other thread runs
+        monitor_interval = 0
+
+    bar = Bar(total=total, unit="frame", dynamic_ncols=True, leave=False)
     t_start = time.perf_counter()
 
     def on_progress(done: int, res: FrameResult | None) -> None:

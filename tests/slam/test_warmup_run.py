@@ -37,3 +37,29 @@ def test_the_warmup_run_changes_no_result(tracker, frames, monkeypatch):
     assert calls == [tracker]
     assert slam.sparse.n_keyframes >= 3
     assert np.array_equal(poses[0], poses[1])
+
+
+def _loaded_signatures() -> dict[str, int]:
+    """Every numba dispatcher with at least one compiled (or cache-loaded) signature -> how many it has."""
+    import gc
+
+    from numba.core.registry import CPUDispatcher
+
+    return {f"{d.py_func.__module__}.{d.py_func.__qualname__}": len(d.overloads) for d in gc.get_objects()
+            if isinstance(d, CPUDispatcher) and d.overloads}
+
+
+def test_the_hybrid_short_warmup_run_loads_what_the_full_one_does():
+    """The hybrid's throwaway run is short (``_RUN_FRAMES_BY_TRACKER``): after its warm-up, the full-length run of
+    the other trackers reaches no numba kernel signature it did not load."""
+    w = surfelslam.slam.warmup
+    assert w._RUN_FRAMES_BY_TRACKER["hybrid"] < w._RUN_FRAMES
+    slam = build_slam(INTR, SlamConfig(), "hybrid")
+    slam.warmup()
+    before = _loaded_signatures()
+    tracker = build_slam(w._RUN_INTR, w._no_map_saving(SlamConfig()), "hybrid")
+    for frame in w._run_frames(w._RUN_FRAMES):
+        tracker.process(frame)
+    tracker.finish()
+    assert len(before) > 20
+    assert _loaded_signatures() == before

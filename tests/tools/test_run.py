@@ -63,6 +63,17 @@ def test_run_with_gt_poses_writes_every_output_and_map_lies_on_the_true_surfaces
     assert np.median(dist) < 0.003
 
 
+def test_figure_kinds_chosen_one_by_one(synth_seq, tmp_path):
+    out = tmp_path / "run"
+    res = runner.invoke(app, ["run", str(synth_seq), "--out", str(out), "--poses", "gt", "--no-progress", "--end",
+                              "6", "--figure", "trajectory", "--figure", "map_top"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in out.glob("*.png")) == ["map_top.png", "trajectory.png"]
+    res = runner.invoke(app, ["run", str(synth_seq), "--out", str(tmp_path / "bad"), "--figure", "map_side"])
+    assert res.exit_code == 2 and "--figure: unknown map_side" in res.output
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
+
+
 def test_given_trajectory_file_skips_frames_without_a_pose(synth_seq, tmp_path):
     gt = open_sequence(synth_seq).ground_truth
     keep = np.arange(len(gt)) % 2 == 0

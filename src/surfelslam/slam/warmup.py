@@ -38,7 +38,10 @@ _DENSE_INTR = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
 _DENSE_FRAMES = 2  # the first frame starts the map, the second is tracked against it and fused
 # the throwaway run: wider than the 320 px working width, so that the reduced-input paths run too
 _RUN_INTR = Intrinsics(130.0, 130.0, 175.5, 63.5, 352, 128)
-_RUN_FRAMES = 18  # five or six keyframes at the default spacing, with nearby loop checks
+_RUN_FRAMES = 18  # five or six keyframes at the default spacing, with nearby loop checks (orb's loop ICP needs them)
+#: trackers whose throwaway run can be shorter: the hybrid loads the same numba kernels (signature for signature) by
+#: its fourth frame as in all 18; the other frames would cost a run's start about 0.25 s of ORB and PnP work
+_RUN_FRAMES_BY_TRACKER = {"hybrid": 4}
 _RUN_SHIFT_PX = 3  # the camera moves sideways by this much of the image per frame
 _SMALL = (80, 60)  # px: the parts' synthetic frames
 _SHAPE_BUMPS = 12  # the shape guess's synthetic surface: enough bumps for distinct FPFH features everywhere
@@ -60,21 +63,22 @@ def warm_up_dense(cfg: SlamConfig) -> None:
         slam.process(RGBDFrame(i, i / 30.0, rgb, depth.astype(np.float32)))
 
 
-def _run_frames() -> list[RGBDFrame]:
-    """A textured plane at 1.5 m with a bump (the depth constrains ICP), passing sideways across the view."""
+def _run_frames(n: int = _RUN_FRAMES) -> list[RGBDFrame]:
+    """``n`` frames of a textured plane at 1.5 m with a bump (the depth constrains ICP), passing sideways across the
+    view."""
     h, w = _RUN_INTR.height, _RUN_INTR.width
     rgb = block_texture(h, w)
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     depth_m = (1.5 - 0.15 * np.exp(-((u - w / 2) ** 2 + (v - h / 2) ** 2) / 300.0)).astype(np.float32)
     return [RGBDFrame(k, k / 30.0, np.roll(rgb, -_RUN_SHIFT_PX * k, axis=1),
-                      np.roll(depth_m, -_RUN_SHIFT_PX * k, axis=1)) for k in range(_RUN_FRAMES)]
+                      np.roll(depth_m, -_RUN_SHIFT_PX * k, axis=1)) for k in range(n)]
 
 
 def warm_up_run(cfg: SlamConfig, tracker: str) -> None:
     """A throwaway run of ``tracker`` with ``cfg`` (map saving off) on :func:`_run_frames`, finished; nothing is
     kept (``tests/slam/test_warmup_run.py`` checks that it changes no result)."""
     slam = build_tracker(tracker, _RUN_INTR, _no_map_saving(cfg))
-    for frame in _run_frames():
+    for frame in _run_frames(_RUN_FRAMES_BY_TRACKER.get(tracker, _RUN_FRAMES)):
         slam.process(frame)
     slam.finish()
 

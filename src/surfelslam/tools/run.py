@@ -147,6 +147,9 @@ TrackerOpt = Annotated[str | None, typer.Option("--tracker", help=TRACKER_HELP)]
 PosesOpt = Annotated[str | None, typer.Option(
     "--poses", help="Map with given poses and skip tracking: 'gt' or a TUM trajectory file.")]
 FiguresOpt = Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")]
+FigureOpt = Annotated[list[str] | None, typer.Option(
+    "--figure", metavar="KIND", help="Only these figures: trajectory, ate_errors, map_camera, map_top (repeatable; "
+                                     "default: all of them; each map figure costs about half a second of CPU).")]
 FormatOpt = Annotated[list[str] | None, typer.Option(
     "--format", help="Pose file formats: tum (always: trajectory.txt) and kitti (also trajectory_kitti.txt, the "
                      "3x4 poses row by row); repeatable.")]
@@ -195,13 +198,26 @@ def print_export_of_run(made, out: Path) -> None:
         print_export(replace(summary, path=out / Path(summary.path).name), notes)
 
 
+def figures_asked(figures: bool, kinds: list[str] | None) -> bool | tuple[str, ...]:
+    """``--figures/--no-figures`` and ``--figure KIND``: none, every figure, or the kinds named (checked here, so
+    that a wrong name is refused before the run)."""
+    if not figures or not kinds:
+        return figures
+    from surfelslam.viz.run_report import RUN_FIGURES
+
+    unknown = sorted(set(kinds) - RUN_FIGURES)
+    if unknown:
+        raise ConfigError(f"--figure: unknown {', '.join(unknown)}; known: {', '.join(sorted(RUN_FIGURES))}")
+    return tuple(kinds)
+
+
 def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("out/run"),
             overwrite: OverwriteOpt = False, config: ConfigOpt = None, sets: SetOpt = None,
             tracker: TrackerOpt = None, poses: PosesOpt = None, figures: FiguresOpt = True,
             progress: ProgressOpt = True, rerun: RerunOpt = False, viewer: ViewerOpt = None,
             viewer_images_every: ViewerImagesOpt = 5, viewer_map_every: ViewerMapOpt = 30, map_dir: MapOpt = None,
             localize_only: LocalizeOnlyOpt = False, mesh: MeshOpt = False, record: RecordOpt = None,
-            formats: FormatOpt = None) -> None:
+            formats: FormatOpt = None, figure_kinds: FigureOpt = None) -> None:
     """Track and fuse a sequence; writes trajectory.txt, map.ply, config.toml, metrics.json and figures.
 
     Settings come from the command-line flags, then --set, then the --config file, then the defaults.
@@ -214,6 +230,7 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     from surfelslam.viz.live import finish_viewer, viewer_for_run
 
     cfg = resolve_run_config(config, sets, tracker, dataset)
+    wanted = figures_asked(figures, figure_kinds)
     live = []  # the live viewer, once the sequence is open
 
     def start_viewer(seq):
@@ -227,7 +244,7 @@ def run_cmd(seq_path: SeqArg, dataset: DatasetOptionsArgs, out: OutOpt = Path("o
     try:
         made = run_folder(seq_path, out, cfg, poses=poses, map_dir=map_dir, localize_only=localize_only,
                           record=record, mesh=mesh, rerun=rerun, viewer=start_viewer, overwrite=overwrite,
-                          progress=progress, figures=figures, on_start=started, formats=formats or ("tum",),
+                          progress=progress, figures=wanted, on_start=started, formats=formats or ("tum",),
                           started_perf_s=IMPORTED_PERF_S)
     except BaseException:
         finish_viewer(live[0] if live else None, None, warn=note, wait_when_serving=False)

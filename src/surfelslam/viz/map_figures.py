@@ -23,12 +23,13 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from surfelslam.errors import ConfigError
 from surfelslam.kernels.splat import splat_discs
 from surfelslam.viz import style
-from surfelslam.viz.save import new_figure, save_figure
+from surfelslam.viz.save import new_figure, save_figure, write_png
 
 COLOUR_MODES = ("normal", "confidence", "time", "rgb")
 IMAGE_SIZE_PX = (800, 600)  # (width, height) of one rendered panel
 FIGURE_SIZE_PX = (1600, 1200)
 BACKGROUND = 1.0  # white
+_FULL_SCALE = 255  # an 8-bit channel's value for 1.0
 AMBIENT = 0.45  # Lambert shading: brightness of a surfel lit edge-on
 FIXED_RADIUS_PX = 1.5  # splat radius of points without a radius (the ORB keyframe cloud)
 MAX_RADIUS_PX = 16.0
@@ -275,10 +276,11 @@ def pixel_shade(index: np.ndarray, depth: np.ndarray, shade: np.ndarray) -> np.n
 
 
 def compose(index: np.ndarray, brightness: np.ndarray, colours: np.ndarray) -> np.ndarray:
-    """``(H, W, 3)`` float32 image: surfel colours ``(N, 3)`` times :func:`pixel_shade`, white background."""
-    img = np.full((*index.shape, 3), BACKGROUND, np.float32)
+    """``(H, W, 3)`` uint8 image: surfel colours ``(N, 3)`` in [0, 1] times :func:`pixel_shade`, white background
+    (8 bits, as the PNG has them: matplotlib draws it without a float conversion of every pixel)."""
+    img = np.full((*index.shape, 3), round(BACKGROUND * _FULL_SCALE), np.uint8)
     hit = index >= 0
-    img[hit] = colours[index[hit]] * brightness[hit, None]
+    img[hit] = (colours[index[hit]] * (brightness[hit, None] * _FULL_SCALE) + 0.5).astype(np.uint8)
     return img
 
 
@@ -394,4 +396,4 @@ def warm_up_map_figures() -> None:
     poses[1, 0, 3] = 0.5
     cam = top_view(position, poses, normal)
     fig = map_figure(cam, position, normal, colour, values, values, np.full(WARM_UP_SURFELS, 0.01), poses, "warm-up")
-    fig.savefig(io.BytesIO(), format="png", dpi=style.DPI)
+    write_png(fig, io.BytesIO())
