@@ -316,11 +316,7 @@ def progress_bar(total: int, show: bool):
         return
     from tqdm import tqdm
 
-    class Bar(tqdm):
-        # no monitor thread: the report's figures are drawn in forked processes only when no other thread runs
-        monitor_interval = 0
-
-    bar = Bar(total=total, unit="frame", dynamic_ncols=True, leave=False)
+    bar = tqdm(total=total, unit="frame", dynamic_ncols=True, leave=False)
     t_start = time.perf_counter()
 
     def on_progress(done: int, res: FrameResult | None) -> None:

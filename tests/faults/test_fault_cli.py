@@ -225,35 +225,6 @@ def test_ctrl_c_at_start_up_and_later(synth_seq, where, patch):
     assert res.stderr.strip().splitlines() == ["interrupted"], (where, res.stderr)
 
 
-def test_ctrl_c_while_map_figures_are_drawn_in_child_processes(synth_seq, tmp_path):
-    """Ctrl-C at a run's end, while its map figures are drawn in forked children (viz.forked): 'interrupted', exit
-    130, and the children are gone (their jobs here would run for a minute)."""
-    pids = tmp_path / "children"
-    code = f"""
-        import time
-        from surfelslam import cli
-        import surfelslam.viz.forked as forked
-        import surfelslam.viz.run_report as rr
-        children = []
-        real_fork = forked._fork
-        forked._fork = lambda job: children.append(real_fork(job)) or children[-1]
-        forked.can_fork = lambda: True
-        rr.map_figure_jobs = lambda record, wanted: [lambda: time.sleep(60.0)] * 2
-        def evaluating(record):
-            open({str(pids)!r}, "w").write(" ".join(map(str, children)))
-            {SIGINT_SELF}
-        rr.evaluate_run = evaluating
-        cli.main(["run", {str(synth_seq)!r}, "-o", {str(tmp_path / "out")!r}, "--no-progress", "--tracker", "dense"])
-    """
-    res = _python(code)
-    assert res.returncode == 130 and res.stderr.strip().splitlines() == ["interrupted"], res.stderr
-    children = [int(p) for p in pids.read_text().split()]
-    assert len(children) == 2
-    for pid in children:
-        with pytest.raises(ProcessLookupError):
-            os.kill(pid, 0)
-
-
 @pytest.mark.slow
 def test_ctrl_c_during_the_jit_warm_up_is_one_line(synth_seq, tmp_path):
     """A real run with an empty numba cache (so it compiles), Ctrl-C after a few seconds: 'interrupted', exit 130,

@@ -13,7 +13,6 @@ from surfelslam.errors import ConfigError
 from surfelslam.eval.metrics import ate
 from surfelslam.eval.run_eval import evaluate_run
 from surfelslam.slam.writer import RunRecord, RunReport
-from surfelslam.viz.forked import jobs_in_children
 
 #: The PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views.
 RUN_FIGURES = frozenset({"trajectory", "ate_errors", "map_camera", "map_top"})
@@ -31,17 +30,15 @@ def figures_wanted(figures: bool | Collection[str]) -> frozenset[str]:
 
 
 def run_report(figures: bool | Collection[str] = True) -> RunReport:
-    """The report step: evaluation against the ground truth (when known), then the ``figures`` wanted. The map
-    figures are drawn in forked child processes (:mod:`surfelslam.viz.forked`) while the evaluation and the
-    trajectory figures are done here: about half a second less at the end of a run on two cores."""
+    """The report step: evaluation against the ground truth (when known), then the ``figures`` wanted."""
     wanted = figures_wanted(figures)
 
     def report(record: RunRecord) -> None:
-        posed = bool(wanted) and len(record.trajectory) > 0
-        with jobs_in_children(map_figure_jobs(record, wanted) if posed else ()):
-            evaluate_run(record)
-            if posed:
-                write_trajectory_figures(record, wanted)
+        evaluate_run(record)
+        if wanted and len(record.trajectory):
+            write_trajectory_figures(record, wanted)
+            for job in map_figure_jobs(record, wanted):
+                job()
 
     return report
 
