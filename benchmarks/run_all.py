@@ -57,6 +57,7 @@ from benchmarks import (
     bench_mesh,
     bench_pipeline,
     bench_robustness,
+    bench_scale,
     bench_stages,
     bench_viewer,
     open3d_slam,
@@ -75,6 +76,7 @@ STAGES = ("read", "preprocess", "render", "icp", "fuse")
 # a-priori cost of a frame of the optional trackers relative to the dense one, until one run measured it
 OPEN3D_S_PER_FRAME_GUESS = 0.5  # at 320x240 on 2 cores, until the first Open3D run measured it
 RESERVE_S = 20.0  # kept free at the end of the budget (writing results)
+CHILD_START_S = 4.0  # a child `surfelslam run`'s start-up and exit beyond its frames (imports, JIT cache, outputs)
 
 
 @dataclass(frozen=True)
@@ -100,12 +102,16 @@ class Plan:
     # only when its estimated time still fits in the budget
     extra_runs: tuple[tuple[str, str, int | None], ...] = (
         ("hybrid", "real", None), ("hybrid", "slow", None), ("hybrid", "loop", None), ("hybrid", "fast", None),
-        ("orb", "real", 200), ("hybrid-full", "real", 200), ("hybrid-full", "loop", None), ("orb", "loop", None),
+        ("hybrid", "real@640", None), ("hybrid", "slow@640", None), ("hybrid", "loop@640", None),
+        ("hybrid", "fast@640", None), ("orb", "real", 200), ("hybrid-full", "real", 200), ("hybrid-full", "loop", None), ("orb", "loop", None),
         ("hybrid-full", "slow", 200), ("orb", "slow", 200), ("hybrid-full", "fast", None), ("orb", "fast", None),
         ("hybrid-odometry", "slow", None), ("hybrid-odometry", "loop", None), ("hybrid-odometry", "fast", None))
+    hires_frames: int = 150  # frames of the 640x480 rows (real files at full size, synthetic ones generated at
+    # 640x480 over the same paths as the 320x240 ones; fewer frames: the first ones); 0: no 640x480 rows
+    open3d_frames_hires: int = 100  # Open3D beside ours on the first frames of the 640x480 rows (0: none)
     min_frames: int = 30  # shorter real sequences are listed as too short to track
     fallback_frames: int = 150  # synthetic 640x480 stage sequence when there is no real sequence
-    budget_s: float = 720.0  # optional runs are skipped when they would not fit (0: no limit)
+    budget_s: float = 900.0  # optional runs are skipped when they would not fit (0: no limit)
     viewer_frames: int = 300  # live viewer cost: frames of the generated sequence (0: no viewer section)
     viewer_width: int = 320
     viewer_repeats: int = 5  # runs of each variant (without / with the viewer), interleaved
@@ -122,17 +128,22 @@ class Plan:
     robust_trackers: tuple[str, ...] = ("hybrid", "hybrid-odometry", "orb", "orb-odometry", "hybrid-full")
     robust_open3d_frames: int = 1500  # Open3D beside dense on the first generated sequence (0: none)
     robust_budget_s: float = 2700.0  # the section's own budget for the optional runs (0: no limit)
+    scale_frames: int = 5000  # the floor walk of the scale section (0: no scale section)
+    scale_width: int = 320
+    scale_open3d_frames: int = 300  # Open3D on the first frames of the floor (0: none)
 
 
 FULL = Plan("full")
 QUICK = Plan("quick", read_frames=10, orb_pairs=2, icp_pairs=2, icp_reps=3, stage_runs=((2, 100), (1, 30)),
              sustained_frames=300, sustained_window=50, synth_slow_frames=90, synth_loop_run_frames=90,
-             open3d_frames_real=20, open3d_frames_synth=0, extra_runs=(), fallback_frames=30, budget_s=150.0,
+             open3d_frames_real=20, open3d_frames_synth=0, fallback_frames=30, budget_s=150.0, hires_frames=30,
+             open3d_frames_hires=0, extra_runs=(("hybrid", "slow", None), ("hybrid", "slow@640", None)),
              viewer_frames=150, viewer_repeats=2, mesh_frames=60, mesh_repeats=1, robust_frames=300,
              robust_synthetic=("ceiling_plain", "wall_textured", "corridor_plain"), robust_real_frames=100,
-             robust_trackers=(), robust_open3d_frames=0, robust_budget_s=150.0)
+             robust_trackers=(), robust_open3d_frames=0, robust_budget_s=150.0, scale_frames=300,
+             scale_open3d_frames=30)
 #: the sections ``--sections`` can run on their own, spliced into the last results (:func:`run_sections`)
-STANDALONE = ("viewer", "mesh", "robustness")
+STANDALONE = ("viewer", "mesh", "robustness", "scale")
 
 
 class Budget:
@@ -269,7 +280,7 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
                  "numba": _version("numba"), "open3d": o3d_version, "git": git_state(),
                  "parallel_kernels": threads.parallel_enabled(), "plan": asdict(plan), "section_seconds": {}},
         "jit": None, "stages": [], "icp": [], "sustained": None, "accuracy": [], "not_tracked": [], "open3d": None,
-        "viewer": None, "mesh": None, "robustness": None, "skipped": budget.skipped, "errors": [],
+        "viewer": None, "mesh": None, "robustness": None, "scale": None, "skipped": budget.skipped, "errors": [],
     }
     res["jit"] = _section(res, "jit", jit)
     res["icp"] = _section(res, "icp", bench_icp.run, False, plan.icp_pairs, plan.icp_reps) or []
@@ -277,16 +288,15 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
     dense_s_per_frame: list[float] = []
 
     def timed_run(name, path, tracker, ds, out, end=None):
-        t0 = time.perf_counter()
-        row = bench_accuracy.run_tracker(name, path, tracker, ds, out, end=end)
-        row["wall_s"] = round(time.perf_counter() - t0, 1)
+        row = bench_accuracy.run_tracker(name, path, tracker, ds, out, end=end)  # wall_s: the whole child process
         if tracker == "dense":
             dense_s_per_frame.append(row["wall_s"] / max(row["frames"], 1))
         return row
 
     with tempfile.TemporaryDirectory(prefix="surfelslam_bench_") as tmp_name:
         tmp = Path(tmp_name)
-        dense_runs: dict[tuple[str, int], tuple[Path, int]] = {}  # (sequence, downsample) -> (run folder, frames)
+        # (sequence, folder, downsample) -> (dense run folder, frames)
+        dense_runs: dict[tuple[str, str, int], tuple[Path, int]] = {}
         # stage timings at both resolutions (the runs are also the stage sequence's accuracy rows)
         src_name, src_path, src_real = stage_source(plan, real, tmp)  # 7-Scenes here
         out = _section(res, "stages", stages, plan, src_name, src_path, tmp)
@@ -295,21 +305,17 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
             res["accuracy"] += acc
             dense_s_per_frame += [r["ms_per_frame"] / 1e3 for r in acc]
             for (ds, _), r in zip(plan.stage_runs, acc, strict=True):
-                dense_runs[(src_name, ds)] = (tmp / f"stages_{ds}", r["frames"])
-        # accuracy, dense tracker: the other real sequences at 320x240, then the synthetic ones
-        seqs = [("real", name, path, _downsample_to_320(path), None) for name, path in real]
-        synth = _section(res, "synthetic sequences", bench_accuracy.synthetic_sequences, tmp / "synth",
-                         plan.synth_width, plan.synth_slow_frames, plan.synth_loop_frames) or []
-        seqs += [(path.name, name, path, 1, plan.synth_loop_run_frames if path.name == "loop" else None)
-                 for name, path in synth]  # keys "slow", "loop", "fast"
-        for _, name, path, ds, end in seqs:
-            if (name, ds) in dense_runs:
+                dense_runs[(src_name, str(src_path), ds)] = (tmp / f"stages_{ds}", r["frames"])
+        # accuracy, dense tracker: the real sequences at 320x240, then the synthetic ones, then all at 640x480
+        seqs = _sequences(res, plan, real, tmp)
+        for key, name, path, ds, end in seqs:
+            if (name, str(path), ds) in dense_runs:
                 continue
-            run_dir = tmp / f"dense_{path.name}_{ds}"
+            run_dir = tmp / f"dense_{key}_{path.name}_{ds}"
             row = _section(res, f"accuracy {name}", timed_run, name, path, "dense", ds, run_dir, end)
             if row:
                 res["accuracy"].append(row)
-                dense_runs[(name, ds)] = (run_dir, row["frames"])
+                dense_runs[(name, str(path), ds)] = (run_dir, row["frames"])
         # sustained throughput
         sus = _section(res, "sustained", bench_pipeline.bench, plan.sustained_width, plan.sustained_frames,
                        plan.sustained_window, "handheld", 400, 0, out_dir)
@@ -318,6 +324,7 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
             sus["plot"] = Path(sus["plot"]).name
             res["sustained"] = sus
         # Open3D side by side at 320x240, on the same first frames
+        synth = [(name, path) for key, name, path, _, _ in seqs if key in ("slow", "loop", "fast")]
         res["open3d"] = _open3d(res, plan, budget, open3d, o3d_version,
                                 [(name, path, ds) for key, name, path, ds, _ in seqs if key == "real"], synth, tmp)
         # optional trackers in the plan's order of priority, while the budget allows
@@ -329,25 +336,30 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
                 caps = [e for e in (max_frames, end) if e is not None]
                 end = min(caps) if caps else None
                 n = len(open_sequence(path, DatasetOptions(downsample=ds, end=end)))
-                kind = "real" if k == "real" else "synthetic"
+                kind = ("real" if k.startswith("real") else "synthetic") + ("@640" if k.endswith("@640") else "")
                 per = _per_frame_estimate(measured, tracker, kind, _mean(dense_s_per_frame, 0.05))
-                if not budget.fits(f"{tracker} on {name} ({n} frames)", 1.25 * n * per + 3.0):
+                if not budget.fits(f"{tracker} on {name} {_resolution(path, ds)} ({n} frames)",
+                                   1.25 * n * per + CHILD_START_S):
                     continue
                 row = _section(res, f"accuracy {tracker} {name}", timed_run, name, path, tracker, ds,
-                               tmp / f"{tracker}_{path.name}_{ds}", end)
+                               tmp / f"{tracker}_{k}_{path.name}_{ds}", end)
                 if not row:
                     continue
                 res["accuracy"].append(row)
                 measured[(tracker, kind)] = row["wall_s"] / max(row["frames"], 1)
-                dense = dense_runs.get((name, ds))
+                dense = dense_runs.get((name, str(path), ds))
                 have = {(r["sequence"], r["resolution"], r["frames"])
                         for r in res["accuracy"] if r["tracker"] == "dense"}
                 if dense and dense[1] > row["frames"] and (name, row["resolution"], row["frames"]) not in have:
                     res["accuracy"].append(_section(res, f"prefix {name}", bench_accuracy.prefix_row, name, path,
                                                     ds, dense[0], row["frames"]))
+        # Open3D beside ours on the 640x480 rows' first frames, last (a few FPS there)
+        if res["open3d"].get("available") and plan.open3d_frames_hires:
+            hires = [(name, path, ds) for key, name, path, ds, _ in seqs if key.endswith("@640")]
+            res["open3d"]["rows"] += _open3d_rows(res, budget, hires, plan.open3d_frames_hires, tmp / "hires")
         res["accuracy"] = [r for r in res["accuracy"] if r]
         # always run (not budgeted): the viewer's cost and the mesh quality
-        res.update({name: standalone_section(res, name, plan, tmp, open3d, shared) for name in STANDALONE})
+        res.update({name: standalone_section(res, name, plan, tmp, open3d, shared, out_dir) for name in STANDALONE})
     res["meta"]["seconds"] = round(budget.elapsed(), 1)
     res["meta"]["cpu_seconds"] = round(time.process_time() - c_start, 1)
     write(res, out_dir)
@@ -355,10 +367,10 @@ def run(plan: Plan, out_dir: Path, shared: Path = SHARED, open3d: bool = True) -
 
 
 def standalone_section(res: dict, name: str, plan: Plan, tmp: Path, open3d: bool,
-                       shared: Path = SHARED) -> dict | None:
-    """Run the ``viewer``, ``mesh`` or ``robustness`` section of ``plan`` (``None``: not in the plan, or it failed:
-    see errors); the result carries when and on what it was measured (``measured``), as it may be spliced into
-    another run's results (:func:`run_sections`)."""
+                       shared: Path = SHARED, out_dir: Path | None = None) -> dict | None:
+    """Run the ``viewer``, ``mesh``, ``robustness`` or ``scale`` section of ``plan`` (``None``: not in the plan, or
+    it failed: see errors); the result carries when and on what it was measured (``measured``), as it may be
+    spliced into another run's results (:func:`run_sections`). ``out_dir``: where the scale section's plot goes."""
     if name == "viewer":
         why = bench_viewer.missing() if plan.viewer_frames else None
         if why:  # an optional extra: the page says the section was skipped, and the bench goes on (exit 0)
@@ -382,6 +394,11 @@ def standalone_section(res: dict, name: str, plan: Plan, tmp: Path, open3d: bool
             real_end=plan.robust_real_frames), plan.robust_frames, plan.robust_width, tmp / name, budget)
         if out is not None:
             out["skipped"] = budget.skipped
+    elif name == "scale":
+        if not plan.scale_frames:
+            return None
+        out = _section(res, name, bench_scale.section, plan.scale_frames, plan.scale_width, tmp / name,
+                       plan.scale_open3d_frames if open3d else 0, out_dir)
     else:
         raise ValueError(f"not a standalone section: {name!r} (one of {', '.join(STANDALONE)})")
     if out is not None:
@@ -408,7 +425,7 @@ def run_sections(plan: Plan, names: list[str], out_dir: Path, open3d: bool = Tru
     res["meta"].setdefault("section_seconds", {})
     with tempfile.TemporaryDirectory(prefix="surfelslam_bench_") as tmp_name:
         for name in names:
-            res[name] = standalone_section(res, name, plan, Path(tmp_name), open3d, shared)
+            res[name] = standalone_section(res, name, plan, Path(tmp_name), open3d, shared, out_dir)
     write(res, out_dir)
     return res
 
@@ -422,21 +439,54 @@ def _open3d(res: dict, plan: Plan, budget: Budget, enabled: bool, version: str |
         return {"available": False, "rows": [],
                 "reason": "open3d not importable: install the bench extra (pip install -e '.[bench]'; "
                           "needs libusb-1.0-0)"}
-    jobs = [(n, p, ds, plan.open3d_frames_real) for n, p, ds in real] if plan.open3d_frames_real else []
-    jobs += [(n, p, 1, plan.open3d_frames_synth) for n, p in synth] if plan.open3d_frames_synth else []
-    rows, per = [], OPEN3D_S_PER_FRAME_GUESS
-    for name, path, ds, n_frames in jobs:
-        n = len(open_sequence(path, DatasetOptions(downsample=ds, end=n_frames)))
-        if not budget.fits(f"Open3D on {name} ({n} frames)", n * per + 5.0):
-            continue
-        row = _section(res, f"open3d {name}", bench_accuracy.open3d_side_by_side, name, path, ds, n,
-                       tmp / f"o3d_ours_{path.name}")
-        if row:
-            rows.append(row)
-            per = 1.2 / max(row["open3d_fps"], 1e-9)  # measured, plus our run on the same frames
+    rows = _open3d_rows(res, budget, real, plan.open3d_frames_real, tmp) if plan.open3d_frames_real else []
+    if plan.open3d_frames_synth:
+        rows += _open3d_rows(res, budget, [(n, p, 1) for n, p in synth], plan.open3d_frames_synth, tmp)
     return {"available": True, "version": version, "device": "CPU:0",
             "settings": "examples/python/t_reconstruction_system defaults (benchmarks/open3d_slam.py)",
             "rows": rows}
+
+
+def _open3d_rows(res: dict, budget: Budget, jobs: list[tuple[str, Path, int]], n_frames: int, tmp: Path) -> list:
+    """Open3D beside our dense run on the first ``n_frames`` of each ``(name, path, downsample)``, while the budget
+    allows (the first estimate: :data:`OPEN3D_S_PER_FRAME_GUESS` per 320x240 frame, by pixels for larger ones)."""
+    rows, per = [], None
+    for name, path, ds in jobs:
+        seq = open_sequence(path, DatasetOptions(downsample=ds, end=n_frames))
+        n = len(seq)
+        guess = OPEN3D_S_PER_FRAME_GUESS * seq.intrinsics.width * seq.intrinsics.height / (320 * 240)
+        if not budget.fits(f"Open3D on {name} {_resolution(path, ds)} ({n} frames)", n * (per or guess) + 5.0):
+            continue
+        row = _section(res, f"open3d {name}", bench_accuracy.open3d_side_by_side, name, path, ds, n,
+                       tmp / f"o3d_ours_{path.name}_{seq.intrinsics.width}")
+        if row:
+            rows.append(row)
+            per = 1.2 / max(row["open3d_fps"], 1e-9)  # measured, plus our run on the same frames
+    return rows
+
+
+def _sequences(res: dict, plan: Plan, real: list[tuple[str, Path]], tmp: Path) -> list[tuple]:
+    """``(key, name, path, downsample, end)`` of every accuracy row's sequence: the real ones at about 320x240
+    (key ``real``), the synthetic ones generated at 320x240 (``slow``, ``loop``, ``fast``), then, with
+    ``plan.hires_frames``, all of them at 640x480 on their first ``hires_frames`` frames (the same keys with
+    ``@640``: real files at full size, synthetic ones generated again at 640x480 over the same paths)."""
+    seqs = [("real", name, path, _downsample_to_320(path), None) for name, path in real]
+    synth = _section(res, "synthetic sequences", bench_accuracy.synthetic_sequences, tmp / "synth",
+                     plan.synth_width, plan.synth_slow_frames, plan.synth_loop_frames) or []
+    seqs += [(path.name, name, path, 1, plan.synth_loop_run_frames if path.name == "loop" else None)
+             for name, path in synth]  # keys "slow", "loop", "fast"
+    if not plan.hires_frames:
+        return seqs
+    n = plan.hires_frames
+    seqs += [("real@640", name, path, ds // 2, n) for _, name, path, ds, _ in seqs[:len(real)] if ds >= 2]
+    synth = _section(res, "synthetic sequences 640x480", bench_accuracy.synthetic_sequences, tmp / "synth640",
+                     2 * plan.synth_width, plan.synth_slow_frames, plan.synth_loop_frames) or []
+    return seqs + [(f"{path.name}@640", name, path, 1, n) for name, path in synth]
+
+
+def _resolution(path: Path, downsample: int) -> str:
+    intr = open_sequence(path, DatasetOptions(downsample=downsample)).intrinsics
+    return f"{intr.width}x{intr.height}"
 
 
 def _downsample_to_320(path: Path) -> int:
