@@ -135,7 +135,8 @@ def run_row(tracker: str, seq_dir: Path, run_dir: Path, scene, gt) -> dict:
             round(100 * e["ate_rmse_m"], 2), "worst_1m_drift_cm": None if drift is None else round(100 * drift[0], 2),
             "worst_1m_drift_frames": None if drift is None else [drift[1], drift[2]],
             "loops_found": m.get("loops_found"), "loops_accepted": m.get("loops_accepted"),
-            "fps": round(m["fps"], 2), "wall_s": child["wall_s"], "cpu_ms_per_frame": round(1e3 * child["cpu_s"] / n, 2),
+            "fps": round(m["fps"], 2), "wall_s": child["wall_s"],
+            "cpu_ms_per_frame": round(1e3 * child["cpu_s"] / n, 2),
             "peak_mb": child["peak_mb"], "surfels": m.get("map_points"), "startup_s": round(m["startup_s"], 2),
             "shutdown_s": round(m["shutdown_s"], 2), "failures": m.get("tracking_failures"),
             "lost_segments": m.get("lost_segments"),
@@ -247,7 +248,8 @@ def section_markdown(res: dict) -> list[str]:
     rows = list(res["rows"]) + ([res["open3d"]] if res.get("open3d") else [])
     md.append(table(
         ["tracker", "frames", "ATE cm", "worst 1 m drift cm", "loops found / accepted", "FPS", "wall s",
-         "CPU ms/frame", f"last/first {res['rows'][0].get('window', FLAT_WINDOW)} CPU", "peak MB", "surfels", "map acc. mean / p90 mm", "map within 1 cm",
+         "CPU ms/frame", f"last/first {res['rows'][0].get('window', FLAT_WINDOW)} CPU", "peak MB", "surfels",
+         "map acc. mean / p90 mm", "map within 1 cm",
          "start s", "end s", "map.ply / map.npz MB"],
         [[r["tracker"], r["frames"], fmt(r.get("ate_cm"), 2), fmt(r.get("worst_1m_drift_cm"), 2),
           f"{fmt(r.get('loops_found'))} / {fmt(r.get('loops_accepted'))}" if "loops_found" in r else "–",

@@ -24,9 +24,9 @@ def _walk(n: int, step_m: float) -> np.ndarray:
 
 
 def test_worst_drift_over_one_metre_finds_the_planted_jump() -> None:
-    """8 frames per metre (0.125 m steps; windows of 0.999 m, clear of rounding); from frame 15 on the estimate is 5 cm off sideways (in the camera
-    frame of frame 14), so every window of 1 m straddling the jump (starts 7 to 14) drifts 5 cm, the others 0;
-    the answer does not depend on either trajectory's world frame."""
+    """8 frames per metre (0.125 m steps; windows of 0.999 m, clear of rounding); from frame 15 on the estimate is
+    5 cm off sideways (in the camera frame of frame 14), so every window of 1 m straddling the jump (starts 7 to
+    14) drifts 5 cm, the others 0; the answer does not depend on either trajectory's world frame."""
     gt = _walk(40, 0.125)
     est = gt.copy()
     jump = np.eye(4)
