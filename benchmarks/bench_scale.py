@@ -169,15 +169,20 @@ def outputs(run_dir: Path, work: Path) -> list[dict]:
 
 
 def open3d_part(seq_dir: Path, n_frames: int) -> dict | None:
-    """Open3D's ``t.pipelines.slam`` on the first ``n_frames`` frames (``None`` when it does not import)."""
+    """Open3D's ``t.pipelines.slam`` on the first ``n_frames`` frames (``None`` when it does not import; its error,
+    e.g. a full voxel-block hash map, in ``error``: it runs last and must not lose the section's other rows)."""
     from benchmarks import open3d_slam
     from surfelslam.eval.metrics import evaluate
 
     if not n_frames or not open3d_slam.available():
         return None
     seq = open_sequence(seq_dir, DatasetOptions(end=n_frames))
-    o3 = open3d_slam.run_open3d_slam(seq)
-    e = evaluate(o3["trajectory"], seq.ground_truth)
+    try:
+        o3 = open3d_slam.run_open3d_slam(seq)
+        e = evaluate(o3["trajectory"], seq.ground_truth)
+    except Exception as exc:  # noqa: BLE001 - reported on the page, the section goes on
+        return {"tracker": "open3d", "frames": len(seq), "version": open3d_slam.version(),
+                "error": f"{type(exc).__name__}: {exc}"}
     return {"tracker": "open3d", "frames": len(seq), "ate_cm": round(100 * e["ate_rmse_m"], 2),
             "fps": round(o3["fps"], 2), "failures": o3["failed"], "version": open3d_slam.version()}
 
@@ -274,7 +279,8 @@ def section_markdown(res: dict) -> list[str]:
            f"the same tracker (between two frames' ends), last over first {res['rows'][0].get('window', '–')} "
            f"frames (issue 68: <= {res['flat_max_ratio']}); plot: `{res.get('plot', '–')}`."
            + (f" Open3D {o['version']} `t.pipelines.slam` (CPU, example defaults) on the first {o['frames']} "
-              "frames only, in the bench's process (frames decoded first)." if o else ""), ""]
+              "frames only, in the bench's process (frames decoded first)" if o else "")
+           + (f"; it failed: {o['error']}." if o and o.get("error") else "." if o else ""), ""]
     out = res.get("outputs") or []
     if out:
         md.append(table(["on the default's run", "wall s", "CPU s", "peak MB", "file MB", "exit"],

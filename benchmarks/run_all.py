@@ -115,10 +115,10 @@ class Plan:
         ("hybrid-odometry", "slow", None), ("hybrid-odometry", "loop", None), ("hybrid-odometry", "fast", None))
     hires_frames: int = 150  # frames of the 640x480 rows (real files at full size, synthetic ones generated at
     # 640x480 over the same paths as the 320x240 ones; fewer frames: the first ones); 0: no 640x480 rows
-    open3d_frames_hires: int = 100  # Open3D beside ours on the first frames of the 640x480 rows (0: none)
+    open3d_frames_hires: int = 50  # Open3D beside ours on the first frames of the 640x480 rows (0: none)
     min_frames: int = 30  # shorter real sequences are listed as too short to track
     fallback_frames: int = 150  # synthetic 640x480 stage sequence when there is no real sequence
-    budget_s: float = 900.0  # optional runs are skipped when they would not fit (0: no limit)
+    budget_s: float = 1000.0  # optional runs are skipped when they would not fit (0: no limit)
     viewer_frames: int = 300  # live viewer cost: frames of the generated sequence (0: no viewer section)
     viewer_width: int = 320
     viewer_repeats: int = 5  # runs of each variant (without / with the viewer), interleaved
@@ -143,7 +143,7 @@ class Plan:
 FULL = Plan("full")
 QUICK = Plan("quick", read_frames=10, orb_pairs=2, icp_pairs=2, icp_reps=3, stage_runs=((2, 100), (1, 30)),
              sustained_frames=300, sustained_window=50, synth_slow_frames=90, synth_loop_run_frames=90,
-             open3d_frames_real=20, open3d_frames_synth=0, fallback_frames=30, budget_s=150.0, hires_frames=30,
+             open3d_frames_real=20, open3d_frames_synth=0, fallback_frames=30, budget_s=300.0, hires_frames=30,
              open3d_frames_hires=0, extra_runs=(("hybrid", "slow", None), ("hybrid", "slow@640", None)),
              viewer_frames=150, viewer_repeats=2, mesh_frames=60, mesh_repeats=1, robust_frames=300,
              robust_synthetic=("ceiling_plain", "wall_textured", "corridor_plain"), robust_real_frames=100,
