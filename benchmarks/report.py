@@ -123,8 +123,8 @@ def to_markdown(res: dict) -> str:
                               fmt(r["fps_ratio"], 2), fmt(r["ours_ate_cm"], 2), fmt(r["open3d_ate_cm"], 2),
                               fmt(r["ate_ratio"], 2)] for r in o["rows"]]))
             md += ["Both read the same frames through our dataset reader; frames are decoded before Open3D's timer "
-                   "starts, and our FPS excludes the JIT warm-up. At 640x480 on fewer frames, while the bench's time budget "
-                   "allows (Open3D runs at a few FPS).", ""]
+                   "starts, and our FPS excludes the JIT warm-up. At 640x480 on fewer frames, while the bench's time "
+                   "budget allows (Open3D runs at a few FPS).", ""]
         else:
             md += [f"Open3D side by side: {o.get('reason', 'no rows')}.", ""]
     for key, module in (("viewer", bench_viewer), ("mesh", bench_mesh), ("robustness", bench_robustness),
