@@ -140,8 +140,8 @@ def run_row(tracker: str, seq_dir: Path, run_dir: Path, scene, gt) -> dict:
             "peak_mb": child["peak_mb"], "surfels": m.get("map_points"), "startup_s": round(m["startup_s"], 2),
             "shutdown_s": round(m["shutdown_s"], 2), "failures": m.get("tracking_failures"),
             "lost_segments": m.get("lost_segments"),
-            "map_ply_mb": round((run_dir / "map.ply").stat().st_size / MB, 1),
-            "map_npz_mb": round((run_dir / "map.npz").stat().st_size / MB, 1) if (run_dir / "map.npz").is_file()
+            "map_ply_mb": round((run_dir / "map.ply").stat().st_size / MB, 2),
+            "map_npz_mb": round((run_dir / "map.npz").stat().st_size / MB, 2) if (run_dir / "map.npz").is_file()
             else None, **acc}
 
 
@@ -153,7 +153,7 @@ def outputs(run_dir: Path, work: Path) -> list[dict]:
     mesh = work / "mesh.ply"
     c = child_run(["mesh", str(run_dir), "--out", str(mesh), "--no-progress"])
     rows.append({"what": "surfelslam mesh (TSDF, defaults)", **c,
-                 "size_mb": round(mesh.stat().st_size / MB, 1) if mesh.is_file() else None})
+                 "size_mb": round(mesh.stat().st_size / MB, 2) if mesh.is_file() else None})
     why = missing()
     if why:
         rows.append({"what": "surfelslam rerun", "skipped": why})
@@ -161,7 +161,7 @@ def outputs(run_dir: Path, work: Path) -> list[dict]:
         rrd = work / "run.rrd"
         c = child_run(["rerun", str(run_dir), "--out", str(rrd)])
         rows.append({"what": "surfelslam rerun (images every 10 frames)", **c,
-                     "size_mb": round(rrd.stat().st_size / MB, 1) if rrd.is_file() else None})
+                     "size_mb": round(rrd.stat().st_size / MB, 2) if rrd.is_file() else None})
     for r in rows:
         if r.get("returncode") == 0:
             del r["stderr"]  # kept only to say why a command failed
@@ -233,9 +233,9 @@ def _plot(series: dict[str, np.ndarray], res: dict, out_dir: Path) -> Path:
         k = np.arange(len(cpu))
         c = np.nan_to_num(cpu, nan=float(np.nanmean(cpu)))
         ax.plot(k, c, lw=0.4, color=f"C{i}", alpha=0.3)
-        if len(c) > SMOOTH_FRAMES:
-            ax.plot(k[SMOOTH_FRAMES - 1 :], np.convolve(c, np.ones(SMOOTH_FRAMES) / SMOOTH_FRAMES, mode="valid"),
-                    lw=1.5, color=f"C{i}", label=f"{tracker} (mean of {SMOOTH_FRAMES})")
+        win = max(1, min(SMOOTH_FRAMES, len(c) // 5))  # short runs (--quick): a shorter running mean
+        ax.plot(k[win - 1 :], np.convolve(c, np.ones(win) / win, mode="valid"), lw=1.5, color=f"C{i}",
+                label=f"{tracker} (mean of {win})")
         top = max(top, float(np.nanpercentile(cpu, 99)) * 1.2)
     ax.set_ylim(0, top)
     ax.set_xlabel("frame index")
@@ -263,7 +263,7 @@ def section_markdown(res: dict) -> list[str]:
           f"{fmt(r.get('map_accuracy_mean_mm'), 1)} / {fmt(r.get('map_accuracy_p90_mm'), 1)}",
           f"{fmt(r.get('map_within_1cm_pct'))} %" if r.get("map_within_1cm_pct") is not None else "–",
           fmt(r.get("startup_s"), 2), fmt(r.get("shutdown_s"), 2),
-          f"{fmt(r.get('map_ply_mb'))} / {fmt(r.get('map_npz_mb'))}" if "map_ply_mb" in r else "–"]
+          f"{fmt(r.get('map_ply_mb'), 2)} / {fmt(r.get('map_npz_mb'), 2)}" if "map_ply_mb" in r else "–"]
          for r in rows]))
     o = res.get("open3d")
     md += ["`surfelslam synth --scene floor --trajectory walk` (Kinect noise, seed 0). Each of our rows is one "
@@ -285,7 +285,7 @@ def section_markdown(res: dict) -> list[str]:
     if out:
         md.append(table(["on the default's run", "wall s", "CPU s", "peak MB", "file MB", "exit"],
                         [[r["what"], fmt(r.get("wall_s")), fmt(r.get("cpu_s")), fmt(r.get("peak_mb"), 0),
-                          fmt(r.get("size_mb")), r.get("skipped") or fmt(r.get("returncode"))] for r in out]))
+                          fmt(r.get("size_mb"), 2), r.get("skipped") or fmt(r.get("returncode"))] for r in out]))
         md += ["Each command in a child process on the whole floor's run (times and peak memory as above); writing "
                "map.ply and map.npz is part of the run's end s above.", ""]
     return md

@@ -362,3 +362,27 @@ def test_a_synthetic_rows_seed_reaches_the_generator_and_the_cache_key(tmp_path,
     assert calls == [0, 5] and paths[1] == paths[2] != paths[0] and "_s5_" in paths[1].name
     assert next(s for s in br.SYNTHETIC if s.key == "corridor_plain_seed5") == replace(
         spec, key="corridor_plain_seed5", label="corridor, plain, seed 5", seed=5)
+
+
+@pytest.mark.heavy  # make test-all: four runs and two commands on a generated floor
+def test_scale_section_spliced_into_the_last_results(tmp_path) -> None:
+    """``run_all --sections scale`` on a 45-frame floor walk at 80x60: both trackers' rows from child runs, the
+    measures issue 68 asks for, the mesh command's cost, the plot, the page regenerated."""
+    plan = run_all.Plan("tiny", scale_frames=45, scale_width=80, scale_open3d_frames=0)
+    out = tmp_path / "out"
+    res = run_all.run_sections(plan, ["scale"], out, open3d=False, shared=tmp_path / "no_shared")
+    assert res["errors"] == [], res["errors"]
+    s = res["scale"]
+    assert (s["frames"], s["resolution"], s["open3d"]) == (45, "80x60", None) and s["path_m"] > 1.0
+    assert [r["tracker"] for r in s["rows"]] == ["hybrid", "dense"]
+    for r in s["rows"]:
+        assert r["frames"] == 45 and r["fps"] > 0 and r["wall_s"] > r["startup_s"] > 0 and r["peak_mb"] > 50
+        assert r["worst_1m_drift_cm"] >= 0 and r["surfels"] > 0 and r["map_points_measured"] > 0
+        assert 0 <= r["map_accuracy_median_mm"] <= r["map_accuracy_p90_mm"] and r["window"] == 15
+        assert r["map_ply_mb"] > 0 and r["last_over_first"] > 0
+    assert s["rows"][0]["loops_found"] >= s["rows"][0]["loops_accepted"] >= 0
+    mesh = s["outputs"][0]
+    assert mesh["what"].startswith("surfelslam mesh") and mesh["returncode"] == 0 and mesh["size_mb"] > 0
+    assert (out / s["plot"]).is_file()
+    md = (out / "latest.md").read_text()
+    assert "### Scale: a multi-room floor, 45 synthetic frames at 80x60" in md and "| hybrid | 45 |" in md
