@@ -183,6 +183,8 @@ def _default_speed(rows: list[dict]) -> list[str]:
 
 #: the trackers of the speed tables: the default, what its ratio is against, Open3D (from the side by side)
 SPEED_TRACKERS = (DEFAULT_TRACKER, "dense", "open3d")
+#: issue 69's target: the default's FPS over dense's on every 320x240 row, in the same run
+DEFAULT_OVER_DENSE_TARGET = 0.75
 
 
 def speed_rows(accuracy: list[dict], open3d_rows: list[dict], resolution: str) -> list[list]:
@@ -220,6 +222,12 @@ def speed_tables(accuracy: list[dict], open3d_rows: list[dict]) -> list[str]:
         md += [f"### Speed at {resolution}: the default (`{DEFAULT_TRACKER}`) beside dense and Open3D", ""]
         md.append(table(["sequence", "tracker", "frames", "ATE cm", "FPS", "wall s", "CPU ms/frame", "start s",
                          "end s", "default / dense FPS"], rows))
+        ratios = {r[0]: float(r[-1]) for r in rows if r[-1] != "–"}
+        if ratios and resolution == "320x240":
+            below = [seq for seq, v in ratios.items() if v < DEFAULT_OVER_DENSE_TARGET]
+            md += [f"Default / dense FPS at {resolution}: {min(ratios.values()):.2f}-{max(ratios.values()):.2f} over "
+                   f"{len(ratios)} rows; at least {DEFAULT_OVER_DENSE_TARGET} on every row (issue 69): "
+                   + ("yes." if not below else "**NO** on " + ", ".join(below) + "."), ""]
     if md:
         md += ["Ours: each row one `python -m surfelslam run SEQ --no-figures --no-progress` in a child process. "
                "FPS: `metrics.json` (frames over the tracking loop's wall time, warm-up excluded); wall s: the whole "

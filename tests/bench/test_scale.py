@@ -95,6 +95,9 @@ def test_speed_tables_put_the_default_beside_dense_and_open3d() -> None:
     assert report.speed_rows(acc, o3d, "640x480")[1][-1] == "0.50"
     md = report.speed_tables(acc, o3d)
     assert md[0] == "### Speed at 320x240: the default (`hybrid`) beside dense and Open3D"
+    assert "Default / dense FPS at 320x240: 0.75-0.75 over 1 rows; at least 0.75 on every row (issue 69): yes." in md
+    slow = report.speed_tables([dict(r, fps=44.0) if r["tracker"] == "hybrid" else r for r in acc], o3d)
+    assert any(line.endswith("(issue 69): **NO** on a.") for line in slow)
     assert "### Speed at 640x480: the default (`hybrid`) beside dense and Open3D" in md
 
 
@@ -119,6 +122,9 @@ def test_scale_markdown_has_one_cell_per_header() -> None:
     md = "\n".join(bench_scale.section_markdown(res))
     assert "| hybrid | 300 | 1.00 | 0.50 | 5 / 3 | 30.0 |" in md and "last/first 100 CPU" in md
     assert "| surfelslam rerun | – | – | – | – | rerun-sdk is not installed |" in md
+    assert ("The default (`hybrid`) against issue 68's targets (indicative: they are for >= 5000 frames): FPS >= 30 "
+            "yes; >= 0.75x dense's FPS (0.50) **NO**; last/first CPU <= 1.3 yes; peak memory < 4 GB yes; ATE <= 2 cm "
+            "yes.") in md
     for block in md.split("\n\n"):
         lines = [ln for ln in block.splitlines() if ln.startswith("|")]
         if lines:
