@@ -95,7 +95,8 @@ def test_speed_tables_put_the_default_beside_dense_and_open3d() -> None:
     assert report.speed_rows(acc, o3d, "640x480")[1][-1] == "0.50"
     md = report.speed_tables(acc, o3d)
     assert md[0] == "### Speed at 320x240: the default (`hybrid`) beside dense and Open3D"
-    assert "Default / dense FPS at 320x240: 0.75-0.75 over 1 rows; at least 0.75 on every row (issue 69): yes." in md
+    assert ("Default / dense FPS at 320x240: 0.75-0.75 over the 1 of 1 sequences with both; at least 0.75 on each "
+            "(issue 69): yes.") in md
     slow = report.speed_tables([dict(r, fps=44.0) if r["tracker"] == "hybrid" else r for r in acc], o3d)
     assert any(line.endswith("(issue 69): **NO** on a.") for line in slow)
     assert "### Speed at 640x480: the default (`hybrid`) beside dense and Open3D" in md
