@@ -5,6 +5,7 @@ in a child process timed from outside (:func:`child_run`), and the Markdown cell
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
 import sys
 import tempfile
@@ -151,3 +152,31 @@ def cli_tracker_args(label: str) -> list[str]:
     if label in VARIANT_TRACKERS:
         return ["--tracker", VARIANT_TRACKERS[label]["tracker"]] + variant_set_options(label).split()
     return ["--tracker", label]
+
+
+def machine() -> dict:
+    """The CPU, cores, architecture, OS and load average at the start: the page's machine line."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu": cpu, "cores": cores, "arch": platform.machine(), "os": f"{platform.system()} {platform.release()}",
+            "load_average_at_start": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None}
+
+
+def git_state() -> dict:
+    """The repository's short commit and whether ``src/`` holds uncommitted changes (the page names both)."""
+    repo = Path(__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True,
+                                check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=repo, capture_output=True,
+                               text=True, check=True).stdout.strip() != ""
+    except (OSError, subprocess.CalledProcessError):
+        return {"commit": None, "src_modified": None}
+    return {"commit": commit, "src_modified": dirty}

@@ -47,9 +47,7 @@ import argparse
 import datetime
 import functools
 import json
-import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -69,7 +67,7 @@ from benchmarks import (
     bench_viewer,
     open3d_slam,
 )
-from benchmarks.common import SHARED_DATA, tracker_cost_vs_dense
+from benchmarks.common import SHARED_DATA, git_state, machine, tracker_cost_vs_dense
 from benchmarks.report import DOCS_HEADER, DOCS_PAGE, to_markdown, write, write_docs_page  # noqa: F401
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.kernels import threads
@@ -171,32 +169,6 @@ class Budget:
                              f"{max(self.seconds - self.elapsed(), 0):.0f} s of {self.seconds:.0f} s left"})
         print(f"  skipped {what}: {self.skipped[-1]['reason']}", file=sys.stderr, flush=True)
         return False
-
-
-def machine() -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"cpu": cpu, "cores": cores, "arch": platform.machine(), "os": f"{platform.system()} {platform.release()}",
-            "load_average_at_start": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None}
-
-
-def git_state() -> dict:
-    repo = HERE.parent
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True,
-                                check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=repo, capture_output=True,
-                               text=True, check=True).stdout.strip() != ""
-    except (OSError, subprocess.CalledProcessError):
-        return {"commit": None, "src_modified": None}
-    return {"commit": commit, "src_modified": dirty}
 
 
 def _cache_files() -> dict[str, float]:
