@@ -5,9 +5,10 @@
 * Synthetic sequences (room scene, Kinect-like noise, written to a temporary folder in TUM layout and read back
   through the dataset reader like real data): ``slow`` (orbit across the room), ``walking loop`` (one lap round
   the room), ``fast`` (the ``slow`` path at 3x speed: a third of the frames over the same path).
-* Every run goes through :func:`surfelslam.slam.runner.run_sequence` (what ``surfelslam run`` does: background
-  reading, warm-up excluded from FPS, ``metrics.json`` with the per-stage breakdown, ATE/RPE against the ground
-  truth); the row is built from the ``metrics.json`` written by the run.
+* Every run is ``python -m surfelslam run`` in a child process (background reading, warm-up excluded from FPS,
+  ``metrics.json`` with the per-stage breakdown, ATE/RPE against the ground truth), timed from outside (the whole
+  process: what a user waits) with the child's own CPU time and peak memory; the rest of the row is built from
+  the ``metrics.json`` written by the run.
 * Open3D side by side (:mod:`benchmarks.open3d_slam`): the first ``n`` frames of a sequence through Open3D's
   ``t.pipelines.slam`` and through ``surfelslam run`` on exactly the same frames; ratios ours / theirs.
 """
@@ -18,11 +19,9 @@ import json
 import time
 from pathlib import Path
 
-from benchmarks.common import tracker_setup
-from surfelslam.api import run_sequence
+from benchmarks.common import child_run, cli_tracker_args
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.errors import SurfelSlamError
-from surfelslam.slam import SlamConfig
 from surfelslam.synth.writer import generate_sequence
 
 SYNTH_SCENE = "room"
@@ -63,16 +62,22 @@ def synthetic_sequences(tmp: Path, width: int, n_slow: int, n_loop: int, seed: i
     return out
 
 
-def run_tracker(name: str, path: Path, tracker: str, downsample: int, out_dir: Path, end: int | None = None,
-                cfg: SlamConfig | None = None) -> dict:
-    """``surfelslam run`` on ``path`` (frames ``[0, end)``); the row from its ``metrics.json``."""
-    seq = open_sequence(path, DatasetOptions(downsample=downsample, end=end))
-    run_as, preset_cfg = tracker_setup(tracker)
-    c0 = time.process_time()
-    run_sequence(seq, out_dir, cfg or preset_cfg, run_as, progress=False, figures=False)
-    cpu_s = time.process_time() - c0
+def run_tracker(name: str, path: Path, tracker: str, downsample: int, out_dir: Path, end: int | None = None) -> dict:
+    """``python -m surfelslam run`` on ``path`` (frames ``[0, end)``) in a child process, as a user runs it (no
+    figures): the row from its ``metrics.json``, with the whole process's wall time timed from outside
+    (``wall_s``), its CPU time (``cpu_s``, ``cpu_ms_per_frame``: the child's rusage, every thread, start-up and
+    warm-up included) and peak memory (``peak_mb``), :func:`benchmarks.common.child_run`."""
+    args = ["run", str(path), "--out", str(out_dir), "--downsample", str(downsample), "--no-figures",
+            "--no-progress", "--overwrite", *cli_tracker_args(tracker)]
+    child = child_run(args + ([] if end is None else ["--end", str(end)]))
+    if child["returncode"] != 0:
+        raise RuntimeError(f"surfelslam run --tracker {tracker} on {name} exited {child['returncode']}: "
+                           f"{child['stderr']}")
     m = json.loads((out_dir / "metrics.json").read_text())
-    return row_from_metrics(name, tracker, m, cpu_s)
+    row = row_from_metrics(name, tracker, m, child["cpu_s"])
+    row.update({"wall_s": round(child["wall_s"], 2), "peak_mb": child["peak_mb"],
+                "cpu_ms_per_frame": round(1e3 * child["cpu_s"] / max(row["frames"], 1), 2)})
+    return row
 
 
 def row_from_metrics(name: str, tracker: str, m: dict, cpu_s: float | None = None) -> dict:

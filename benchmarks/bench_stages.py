@@ -19,12 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.bench_accuracy import run_tracker
 from benchmarks.common import median_ms
 from surfelslam.datasets import DatasetOptions, open_sequence
 from surfelslam.slam import SlamConfig
 from surfelslam.tracking.features import estimate_motion, extract
 
 PAIR_GAP = 5  # frames between the two frames of an ORB pair
+STAGES = ("read", "preprocess", "render", "icp", "fuse")  # the stage columns of the page (metrics.json names)
 
 
 def read_ms(path: Path, downsample: int, n_frames: int) -> dict:
@@ -58,6 +60,40 @@ def orb_ms(path: Path, downsample: int, n_pairs: int, reps: int = 3) -> dict:
         inl.append(estimate_motion(fa, fb, intr, cfg).n_inliers)
     return {"orb_extract_ms": round(float(np.median(ext)), 2), "orb_match_pnp_ms": round(float(np.median(mp)), 2),
             "orb_features": cfg.n_features, "orb_pairs": len(idx), "orb_median_inliers": float(np.median(inl))}
+
+
+def stage_source(fallback_frames: int, real: list[tuple[str, Path]], tmp: Path) -> tuple[str, Path, bool]:
+    """The sequence the stage timings run on: the longest real one, else a generated 640x480 one."""
+    if real:
+        name, path = max(real, key=lambda r: len(open_sequence(r[1], DatasetOptions())))
+        return name, path, True
+    from surfelslam.synth.writer import generate_sequence
+
+    path = generate_sequence(tmp / "stages", scene="room", style="slow", n_frames=fallback_frames,
+                             noise="kinect", width=640, height=480)
+    return "synthetic slow 640x480", path, False
+
+
+def stages(stage_runs, read_frames: int, orb_pairs: int, name: str, path: Path, tmp: Path
+           ) -> tuple[list[dict], list[dict]]:
+    """Stage rows per ``(downsample, frames)`` of ``stage_runs``, and the accuracy rows of the dense runs they came
+    from (``read_frames`` frames read, ``orb_pairs`` pairs matched per resolution)."""
+    rows, acc = [], []
+    for ds, n in stage_runs:
+        read = read_ms(path, ds, read_frames)
+        orb = orb_ms(path, ds, orb_pairs)
+        run = run_tracker(name, path, "dense", ds, tmp / f"stages_{ds}", end=n)
+        acc.append(run)
+        sm = run["stage_ms"]
+        rows.append({
+            "resolution": run["resolution"], "sequence": name, "frames": run["frames"],
+            "read_ms": read["read_ms"], **{f"{k}_ms": sm.get(k) for k in STAGES[1:]},
+            "loop_ms": run["ms_per_frame"], "fps": run["fps"],
+            "orb_extract_ms": orb["orb_extract_ms"], "orb_match_pnp_ms": orb["orb_match_pnp_ms"],
+            "read_in_run_ms": sm.get("read"), "read_frames": read["read_frames"], "orb_pairs": orb["orb_pairs"],
+            "orb_features": orb["orb_features"], "metrics_json_stages": sorted(sm),
+        })
+    return rows, acc
 
 
 def main() -> None:

@@ -1,13 +1,21 @@
-"""Helpers shared by the benchmark scripts: where the real sequences are, one timing rule, and the Markdown
-cells and tables of their sections (:func:`fmt`, :func:`table`)."""
+"""Helpers shared by the benchmark scripts: where the real sequences are, one timing rule, ``surfelslam`` commands
+in a child process timed from outside (:func:`child_run`), and the Markdown cells and tables of their sections
+(:func:`fmt`, :func:`table`)."""
 
 from __future__ import annotations
 
+import os
+import platform
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+import surfelslam
 
 #: The real sequences (``../shared/data`` beside the repository).
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -35,6 +43,7 @@ TRACKER_ORDER = ("dense", "hybrid", "hybrid-odometry", "hybrid-full", "orb", "or
 TRACKER_COST_VS_DENSE = {"hybrid": 1.5, "hybrid-odometry": 1.5, "hybrid-full": 6.0, "orb": 3.0, "orb-odometry": 2.0,
                          "open3d": 8.0}
 UNKNOWN_TRACKER_COST = 5.0
+MB = 2.0**20  # bytes per MiB (sizes and peak memory on the page)
 
 
 def tracker_rank(label: str) -> int:
@@ -102,3 +111,72 @@ def table(header: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(fmt(c) if not isinstance(c, str) else c for c in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
+
+
+def child_env() -> dict[str, str]:
+    """The environment of a child ``python -m surfelslam``: this process's, with the ``surfelslam`` package this
+    process imported first on ``PYTHONPATH`` (a worktree's ``src``, not whatever the interpreter has installed)."""
+    src = str(Path(surfelslam.__file__).resolve().parents[1])
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([src] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return env
+
+
+def child_run(args: list[str]) -> dict:
+    """``python -m surfelslam ARGS`` in a child process: ``{"wall_s", "cpu_s", "peak_mb", "returncode", "stderr"}``.
+
+    Wall time from before the start to after the exit (what a user waits); CPU and peak resident memory from the
+    rusage of that child alone (``os.wait4``; ``ru_maxrss`` is in KiB on Linux)."""
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen([sys.executable, "-m", "surfelslam", *args], stdout=subprocess.DEVNULL, stderr=err,
+                                env=child_env())
+        try:
+            _, status, ru = os.wait4(proc.pid, 0)
+        except BaseException:
+            proc.kill()
+            raise
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        err.seek(0)
+        tail = err.read().decode(errors="replace").strip().splitlines()[-3:]
+    return {"wall_s": round(wall, 2), "cpu_s": round(ru.ru_utime + ru.ru_stime, 2),
+            "peak_mb": round(ru.ru_maxrss * 1024 / MB, 1), "returncode": proc.returncode, "stderr": " / ".join(tail)}
+
+
+def cli_tracker_args(label: str) -> list[str]:
+    """The ``surfelslam run`` options of a bench row's tracker label (:func:`tracker_setup`'s rows, as a user types
+    them): ``--tracker T``, a preset's ``--config NAME``, a variant's ``--set KEY=VALUE`` options."""
+    if label in PRESET_TRACKERS:
+        return ["--config", label]
+    if label in VARIANT_TRACKERS:
+        return ["--tracker", VARIANT_TRACKERS[label]["tracker"]] + variant_set_options(label).split()
+    return ["--tracker", label]
+
+
+def machine() -> dict:
+    """The CPU, cores, architecture, OS and load average at the start: the page's machine line."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu": cpu, "cores": cores, "arch": platform.machine(), "os": f"{platform.system()} {platform.release()}",
+            "load_average_at_start": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None}
+
+
+def git_state() -> dict:
+    """The repository's short commit and whether ``src/`` holds uncommitted changes (the page names both)."""
+    repo = Path(__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True,
+                                check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=repo, capture_output=True,
+                               text=True, check=True).stdout.strip() != ""
+    except (OSError, subprocess.CalledProcessError):
+        return {"commit": None, "src_modified": None}
+    return {"commit": commit, "src_modified": dirty}

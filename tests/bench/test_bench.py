@@ -25,6 +25,8 @@ TINY = run_all.Plan(
     open3d_frames_synth=0, extra_runs=(("orb", "real", 6), ("orb", "slow", 6)), min_frames=8, budget_s=0.0,
     viewer_frames=0, mesh_frames=0,  # run apart below (test_viewer_and_mesh_sections_spliced_into_the_last_results)
     robust_frames=0,  # run apart below (test_robustness_section_spliced_into_the_last_results)
+    hires_frames=6, open3d_frames_hires=0,  # the synthetic sequences again at 160x120, 6 frames each
+    scale_frames=0,  # tests/bench/test_scale.py
 )
 
 # whole sequences through trackers or commands; the tests share a module fixture, so they run on one worker
@@ -48,8 +50,9 @@ def test_json_sections(bench) -> None:
     res, out = bench
     on_disk = json.loads((out / "latest.json").read_text())
     assert set(on_disk) == {"meta", "jit", "stages", "icp", "sustained", "accuracy", "not_tracked", "open3d", "viewer",
-                            "mesh", "robustness", "skipped", "errors"}
+                            "mesh", "robustness", "scale", "skipped", "errors"}
     assert on_disk["viewer"] is None and on_disk["mesh"] is None and on_disk["robustness"] is None  # not planned
+    assert on_disk["scale"] is None
     assert on_disk["errors"] == [], on_disk["errors"]
     assert on_disk["meta"]["mode"] == "tiny" and on_disk["meta"]["machine"]["cores"] >= 1
     assert on_disk["jit"]["warmup_s"] >= 0.0 and "cache" in on_disk["jit"]
@@ -88,12 +91,16 @@ def test_accuracy_and_notes(bench) -> None:
     expected = {("tiny_real", "80x60", "dense"): 12, ("tiny_real", "160x120", "dense"): 8,
                 ("synthetic slow", "80x60", "dense"): 24, ("synthetic walking loop", "80x60", "dense"): 12,
                 ("synthetic fast (slow x3)", "80x60", "dense"): 8, ("tiny_real", "160x120", "orb"): 6,
-                ("synthetic slow", "80x60", "orb"): 6}
+                ("synthetic slow", "80x60", "orb"): 6, ("synthetic slow", "160x120", "dense"): 6,
+                ("synthetic walking loop", "160x120", "dense"): 6, ("synthetic fast (slow x3)", "160x120", "dense"): 6}
     for key, frames in expected.items():
         assert key in rows, (key, sorted(rows))
         r = rows[key]
         assert r["frames"] == frames and r["fps"] > 0
         assert r["startup_s"] >= r["warmup_s"] >= 0 and r["shutdown_s"] >= 0  # start-up includes the warm-up
+        # a child process timed from outside: its wall time holds the frames, start-up and end
+        assert r["wall_s"] >= r["frames"] / r["fps"] + r["startup_s"] + r["shutdown_s"] - 0.05
+        assert r["cpu_ms_per_frame"] == pytest.approx(1e3 * r["cpu_s"] / r["frames"], rel=0.05) and r["peak_mb"] > 50
         if r["ate_rmse_cm"] is None:  # a run lost from its first frames cannot be aligned: the reason is kept
             assert key[0] == "synthetic walking loop" and "alignment" in r["eval_error"]
             continue
@@ -123,6 +130,8 @@ def test_markdown(bench) -> None:
     assert "### Sustained throughput: 30 synthetic frames at 80x60" in md
     assert "### One registration" in md and "\n| icp 3-level | 320x240 | 1 |" in md
     assert "| synthetic fast (slow x3) | 80x60 | 8 | dense |" in md
+    assert "### Speed at 80x60: the default (`hybrid`) beside dense and Open3D" in md
+    assert "### Speed at 160x120" in md and "| synthetic slow | dense | 6 |" in md
     assert "`short` (4 frames): too short to track" in md
     assert "Open3D side by side: disabled" in md
     # every table row has as many cells as its header
@@ -353,3 +362,27 @@ def test_a_synthetic_rows_seed_reaches_the_generator_and_the_cache_key(tmp_path,
     assert calls == [0, 5] and paths[1] == paths[2] != paths[0] and "_s5_" in paths[1].name
     assert next(s for s in br.SYNTHETIC if s.key == "corridor_plain_seed5") == replace(
         spec, key="corridor_plain_seed5", label="corridor, plain, seed 5", seed=5)
+
+
+@pytest.mark.heavy  # make test-all: four runs and two commands on a generated floor
+def test_scale_section_spliced_into_the_last_results(tmp_path) -> None:
+    """``run_all --sections scale`` on a 45-frame floor walk at 80x60: both trackers' rows from child runs, the
+    measures issue 68 asks for, the mesh command's cost, the plot, the page regenerated."""
+    plan = run_all.Plan("tiny", scale_frames=45, scale_width=80, scale_open3d_frames=0)
+    out = tmp_path / "out"
+    res = run_all.run_sections(plan, ["scale"], out, open3d=False, shared=tmp_path / "no_shared")
+    assert res["errors"] == [], res["errors"]
+    s = res["scale"]
+    assert (s["frames"], s["resolution"], s["open3d"]) == (45, "80x60", None) and s["path_m"] > 1.0
+    assert [r["tracker"] for r in s["rows"]] == ["hybrid", "dense"]
+    for r in s["rows"]:
+        assert r["frames"] == 45 and r["fps"] > 0 and r["wall_s"] > r["startup_s"] > 0 and r["peak_mb"] > 50
+        assert r["worst_1m_drift_cm"] >= 0 and r["surfels"] > 0 and r["map_points_measured"] > 0
+        assert 0 <= r["map_accuracy_median_mm"] <= r["map_accuracy_p90_mm"] and r["window"] == 15
+        assert r["map_ply_mb"] > 0 and r["last_over_first"] > 0
+    assert s["rows"][0]["loops_found"] >= s["rows"][0]["loops_accepted"] >= 0
+    mesh = s["outputs"][0]
+    assert mesh["what"].startswith("surfelslam mesh") and mesh["returncode"] == 0 and mesh["size_mb"] > 0
+    assert (out / s["plot"]).is_file()
+    md = (out / "latest.md").read_text()
+    assert "### Scale: a multi-room floor, 45 synthetic frames at 80x60" in md and "| hybrid | 45 |" in md
