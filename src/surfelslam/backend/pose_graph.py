@@ -1,4 +1,4 @@
-"""Keyframe pose graph optimised with gtsam (Levenberg-Marquardt).
+"""Keyframe pose graph optimised with gtsam (ISAM2, or Levenberg-Marquardt over the whole graph).
 
 Nodes are keyframe poses ``T_world_kf``; the first one is anchored by a tight prior. Edges are
 relative-pose measurements ``T_i_j = T_world_i^-1 T_world_j`` (gtsam ``BetweenFactorPose3``).
@@ -35,7 +35,7 @@ ISAM2_CONVERGED_M = 1e-4
 
 @dataclass(frozen=True)
 class PoseGraphConfig(Config):
-    """Pose-graph edge weights, robust kernels and Levenberg-Marquardt settings."""
+    """Pose-graph edge weights, robust kernels and solver settings."""
 
     edge_information: str = setting(
         "estimated", choices=EDGE_INFORMATION_MODES,
