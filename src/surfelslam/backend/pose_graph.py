@@ -10,7 +10,8 @@ iterations.
 Solvers: ``batch`` re-solves the whole graph by Levenberg-Marquardt at every :meth:`PoseGraph.optimise` (its cost
 grows with the keyframes); ``isam2`` (default) keeps gtsam's incremental smoother and hands it only the factors and
 nodes added since, plus a few relinearising updates, so a loop costs what it changes (an overwritten estimate,
-:meth:`PoseGraph.set_pose`, rebuilds it once from the whole graph).
+:meth:`PoseGraph.set_pose`, rebuilds it once from the whole graph; a system too poorly conditioned for its
+undamped Gauss-Newton steps is solved by the batch solver that time, and the smoother rebuilt).
 """
 
 from __future__ import annotations
@@ -158,6 +159,7 @@ class PoseGraph:
         self._isam: gtsam.ISAM2 | None = None
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
+        self.n_batch_fallbacks = 0  # isam2 optimisations solved by the batch solver instead (nearly singular system)
         # the graph's size and the estimates before and after the last optimisation (errors computed when asked)
         self._last = (0, gtsam.Values(), gtsam.Values())
 
@@ -199,16 +201,26 @@ class PoseGraph:
             return np.zeros((0, 4, 4))
         before = gtsam.Values(self._values)
         if self.cfg.solver == "batch":
-            params = gtsam.LevenbergMarquardtParams()
-            params.setMaxIterations(self.cfg.max_iterations)
-            params.setRelativeErrorTol(self.cfg.relative_error_tol)
-            self._values = gtsam.LevenbergMarquardtOptimizer(self._graph, self._values, params).optimize()
+            self._values = self._batch_solve()
         else:
-            self._values = self._isam2_solve()
+            try:
+                self._values = self._isam2_solve()
+            except RuntimeError:  # gtsam: a nearly indeterminate system, which Gauss-Newton cannot solve
+                self._isam = None  # rebuilt at the next optimisation, from the damped solve's result
+                self.n_batch_fallbacks += 1
+                self._values = self._batch_solve()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._last = (self._graph.size(), before, gtsam.Values(self._values))
         return self.poses()
+
+    def _batch_solve(self) -> gtsam.Values:
+        """Levenberg-Marquardt over the whole graph from the current estimate (damped: solves nearly indeterminate
+        systems too)."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.cfg.max_iterations)
+        params.setRelativeErrorTol(self.cfg.relative_error_tol)
+        return gtsam.LevenbergMarquardtOptimizer(self._graph, self._values, params).optimize()
 
     def _isam2_solve(self) -> gtsam.Values:
         """Hand the smoother what is new (or the whole graph when it must be rebuilt), then update until no keyframe
