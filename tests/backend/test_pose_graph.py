@@ -164,3 +164,15 @@ def test_incremental_solver_agrees_with_the_batch_one_over_many_loops():
     assert g_inc.last_error_after <= g_inc.last_error_before + 1e-9
     g_inc.set_pose(5, inc[5] @ make_T(np.eye(3), [0.3, 0.0, 0.0]))  # knocked off: the rebuilt smoother restores it
     np.testing.assert_allclose(g_inc.optimise()[:, :3, 3], inc[:, :3, 3], atol=2e-3)
+
+
+def test_isam2_falls_back_to_the_damped_batch_solve_on_an_indeterminate_system():
+    """A node held along five directions only (information 0 along the sixth) stops isam2's Gauss-Newton; that
+    optimisation is Levenberg-Marquardt's, which still meets the measurement."""
+    g = PoseGraph(PoseGraphConfig(estimated_robust_kernel="none"))
+    g.add_node(np.eye(4))
+    g.add_node(make_T(np.eye(3), [1.0, 0.0, 0.0]))
+    g.add_edge(PoseEdge(0, 1, make_T(np.eye(3), [1.1, 0.0, 0.0]), information_matrix=np.diag([1e4] * 5 + [0.0])))
+    P = g.optimise()
+    assert g.n_batch_fallbacks == 1
+    np.testing.assert_allclose(P[1][:3, 3], [1.1, 0.0, 0.0], atol=1e-6)
