@@ -195,13 +195,16 @@ class PoseGraph:
         else:
             self._isam = None  # the smoother holds the old estimate: rebuilt at the next optimisation
 
-    def optimise(self) -> np.ndarray:
-        """Solve (config ``solver``) from the current estimate; returns and stores the poses ``(K, 4, 4)``."""
+    def optimise(self, full: bool = False) -> np.ndarray:
+        """Solve (config ``solver``; ``full``: by the batch solver whatever it is, e.g. once at the end, so that the
+        result does not depend on when the edges came) from the current estimate; returns and stores the poses
+        ``(K, 4, 4)``."""
         if self._n == 0:
             return np.zeros((0, 4, 4))
         before = gtsam.Values(self._values)
-        if self.cfg.solver == "batch":
+        if self.cfg.solver == "batch" or full:
             self._values = self._batch_solve()
+            self._isam = None  # isam2: its linearisation point is stale, rebuilt at the next optimisation
         else:
             try:
                 self._values = self._isam2_solve()
