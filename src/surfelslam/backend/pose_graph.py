@@ -30,8 +30,6 @@ SOLVERS = ("isam2", "batch")
 # isam2: a variable is relinearised when its update exceeds this (tangent norm, rad and m); 0.01 keeps the result
 # within millimetres of the batch solve on the floor walk while touching only what a loop moved
 ISAM2_RELINEARIZE_THRESHOLD = 0.01
-# isam2: the extra updates stop once no keyframe moves more than this (m) in one
-ISAM2_CONVERGED_M = 1e-4
 
 
 @dataclass(frozen=True)
@@ -226,24 +224,22 @@ class PoseGraph:
         return gtsam.LevenbergMarquardtOptimizer(self._graph, self._values, params).optimize()
 
     def _isam2_solve(self) -> gtsam.Values:
-        """Hand the smoother what is new (or the whole graph when it must be rebuilt), then update until no keyframe
-        moves more than ``ISAM2_CONVERGED_M`` or ``isam2_max_updates`` are done; returns the estimate."""
+        """Hand the smoother what is new (or the whole graph when it must be rebuilt), then update until an update
+        relinearises nothing (the estimate no longer changes) or ``isam2_max_updates`` are done; returns the
+        estimate."""
         if self._isam is None:
             params = gtsam.ISAM2Params()
             params.setRelinearizeThreshold(ISAM2_RELINEARIZE_THRESHOLD)
             params.relinearizeSkip = 1
             self._isam = gtsam.ISAM2(params)
-            self._isam.update(self._graph, self._values)
+            result = self._isam.update(self._graph, self._values)
         else:
-            self._isam.update(self._new_factors, self._new_values)
-        est = self._isam.calculateEstimate()
+            result = self._isam.update(self._new_factors, self._new_values)
         for _ in range(self.cfg.isam2_max_updates - 1):
-            prev = gtsam.utilities.extractPose3(est)[:, 9:]
-            self._isam.update()
-            est = self._isam.calculateEstimate()
-            if np.abs(gtsam.utilities.extractPose3(est)[:, 9:] - prev).max() <= ISAM2_CONVERGED_M:
+            if result.getVariablesRelinearized() == 0:
                 break
-        return est
+            result = self._isam.update()
+        return self._isam.calculateEstimate()
 
     @property
     def last_error_before(self) -> float:
