@@ -350,3 +350,23 @@ def test_transform_some_rows_moves_them_alone_and_regroups_their_blocks():
     assert m.n_grouped == m.size
     with pytest.raises(ValueError, match="rows"):
         m.transform_surfels(R_all[:1], t_all[:1], np.array([3000]))
+
+
+def test_transform_groups_matches_its_reference():
+    """Rows moved by their group's transform (the numba kernel) equal the per-row matrix products of the reference;
+    the other rows stay."""
+    m = _random_map(2000, seed=6, cfg=MapConfig(initial_capacity=8, block_size_m=0.5))
+    rng = np.random.default_rng(2)
+    R = np.array([so3_exp(rng.normal(0, 0.2, 3)) for _ in range(5)], np.float32)
+    t = rng.normal(0, 1.0, (5, 3)).astype(np.float32)
+    rows = np.flatnonzero(rng.random(2000) < 0.5)
+    group = rng.integers(0, 5, len(rows))
+    pos0, nrm0 = m.position.copy(), m.normal.copy()
+    ref_p, ref_n = ks.transform_rows_ref(pos0, nrm0, rows, group, R, t)
+    m.transform_groups(R, t, group, rows)
+    np.testing.assert_allclose(m.position[rows], ref_p, atol=1e-5)
+    np.testing.assert_allclose(m.normal[rows], ref_n, atol=1e-6)
+    keep = np.setdiff1d(np.arange(2000), rows)
+    np.testing.assert_array_equal(m.position[keep], pos0[keep])
+    with pytest.raises(ValueError, match="groups"):
+        m.transform_groups(R, t, np.array([5]), np.array([0]))

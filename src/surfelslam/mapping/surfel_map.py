@@ -284,22 +284,35 @@ class SurfelMap:
         """Move surfels by their own rigid transforms: every surfel (``rows`` ``None``; ``R`` ``(size, 3, 3)``, ``t``
         ``(size, 3)``) or the surfels ``rows`` ``(m,)`` (``R`` ``(m, 3, 3)``, ``t`` ``(m, 3)``), float32: positions
         ``R p + t``, normals ``R n``. The moved surfels' culling blocks and the grouping are rebuilt (a pose-graph
-        correction of the map; moving only some rows keeps its cost with them, apart from the O(size) grouping)."""
+        correction of the map)."""
         n = self._size if rows is None else len(rows)
         if R.shape != (n, 3, 3) or t.shape != (n, 3):
             raise ValueError(f"transform_surfels: R must be ({n}, 3, 3) and t ({n}, 3), got {R.shape} and {t.shape}")
-        if n == 0:
+        rows = np.arange(n) if rows is None else rows
+        self.transform_groups(np.ascontiguousarray(R, np.float32), np.ascontiguousarray(t, np.float32),
+                              np.arange(n), rows)
+
+    def transform_groups(self, R: np.ndarray, t: np.ndarray, group: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Move each surfel (``rows`` ``None``) or each of ``rows`` ``(m,)`` by the rigid transform of its group
+        ``group`` ``(size,)`` or ``(m,)``: ``R`` ``(G, 3, 3)``, ``t`` ``(G, 3)`` float32 (e.g. one per keyframe:
+        positions ``R p + t``, normals ``R n``); the moved surfels' culling blocks and the grouping are rebuilt (a
+        pose-graph correction of the map; moving only some rows keeps its cost with them, apart from the O(size)
+        grouping)."""
+        every = rows is None
+        rows = np.arange(self._size) if every else np.asarray(rows, np.int64)
+        group = np.asarray(group, np.int64)
+        if group.shape != rows.shape or R.shape[1:] != (3, 3) or t.shape != (len(R), 3):
+            raise ValueError(f"transform_groups: group must be {rows.shape}, R (G, 3, 3) and t (G, 3), got "
+                             f"{group.shape}, {R.shape} and {t.shape}")
+        if len(rows) == 0:
             return
-        if rows is None:
-            self.position[:] = np.einsum("nij,nj->ni", R, self.position) + t
-            self.normal[:] = np.einsum("nij,nj->ni", R, self.normal)
-            self._assign_blocks(0, n)  # positions moved: new culling blocks and a fresh grouping
+        if rows.min() < 0 or rows.max() >= self._size or group.min() < 0 or group.max() >= len(R):
+            raise ValueError(f"transform_groups: rows must lie in [0, {self._size}) and groups in [0, {len(R)})")
+        ks.transform_rows(self._position, self._normal, rows, group, np.ascontiguousarray(R, np.float32),
+                          np.ascontiguousarray(t, np.float32))
+        if every:
+            self._assign_blocks(0, self._size)
         else:
-            rows = np.asarray(rows, np.int64)
-            if rows.min() < 0 or rows.max() >= self._size:
-                raise ValueError(f"transform_surfels: rows must lie in [0, {self._size})")
-            self._position[rows] = np.einsum("nij,nj->ni", R, self._position[rows]) + t
-            self._normal[rows] = np.einsum("nij,nj->ni", R, self._normal[rows])
             self._block_id[rows] = self._block_ids(self._position[rows])
         self.rebuild_index()
 

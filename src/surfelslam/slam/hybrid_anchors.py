@@ -83,20 +83,22 @@ class KeyframeAnchors:
         moved = self.keyframe_moves_m(kf_new) > min_move_m if min_move_m > 0 else np.ones(len(kf_new), bool)
         if smap is not None and smap.size and moved.any():
             a = self.surfel_anchors(smap)
+            R, t = C[:, :3, :3].astype(np.float32), C[:, :3, 3].astype(np.float32)
             if moved.all():
-                smap.transform_surfels(C[a, :3, :3].astype(np.float32), C[a, :3, 3].astype(np.float32))
+                smap.transform_groups(R, t, a)
             else:
                 rows = np.flatnonzero(moved[a])
-                a = a[rows]
-                smap.transform_surfels(C[a, :3, :3].astype(np.float32), C[a, :3, 3].astype(np.float32), rows)
+                smap.transform_groups(R, t, a[rows], rows)
         self.kf_dense.poses[moved] = kf_new[moved]
         return se3.orthonormalize(self.kf_dense.poses[self.anchor[-1]] @ self.T_kf_cam[-1])
 
     def surfel_anchors(self, smap: SurfelMap) -> np.ndarray:
         """``(size,)`` int64 anchor keyframe of each surfel of ``smap`` (that of the fused frame that created it)."""
         frames = np.asarray(self.fused_frames, np.int64)
-        row = np.clip(np.searchsorted(frames, smap.first_seen), 0, len(frames) - 1)
-        return np.asarray(self.fused_anchor, np.int64)[row]
+        first_seen = smap.first_seen
+        # a table per frame index up to the newest surfel's (the frame count): one gather per surfel, no search
+        row = np.clip(np.searchsorted(frames, np.arange(int(first_seen.max()) + 1)), 0, len(frames) - 1)
+        return np.asarray(self.fused_anchor, np.int64)[row][first_seen]
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""
