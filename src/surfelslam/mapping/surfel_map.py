@@ -298,8 +298,7 @@ class SurfelMap:
         positions ``R p + t``, normals ``R n``); the moved surfels' culling blocks and the grouping are rebuilt (a
         pose-graph correction of the map; moving only some rows keeps its cost with them, apart from the O(size)
         grouping)."""
-        every = rows is None
-        rows = np.arange(self._size) if every else np.asarray(rows, np.int64)
+        rows = np.arange(self._size) if rows is None else np.asarray(rows, np.int64)
         group = np.asarray(group, np.int64)
         if group.shape != rows.shape or R.shape[1:] != (3, 3) or t.shape != (len(R), 3):
             raise ValueError(f"transform_groups: group must be {rows.shape}, R (G, 3, 3) and t (G, 3), got "
@@ -310,10 +309,10 @@ class SurfelMap:
             raise ValueError(f"transform_groups: rows must lie in [0, {self._size}) and groups in [0, {len(R)})")
         ks.transform_rows(self._position, self._normal, rows, group, np.ascontiguousarray(R, np.float32),
                           np.ascontiguousarray(t, np.float32))
-        if every:
-            self._assign_blocks(0, self._size)
-        else:
-            self._block_id[rows] = self._block_ids(self._position[rows])
+        # only the surfels that left their block need a new one (a correction moves most by less than a block)
+        ijk = np.floor(self._position[rows] * self._inv_block).astype(np.int32)
+        left = np.flatnonzero(np.any(ijk != self._block_ijk[self._block_id[rows]], axis=1))
+        self._block_id[rows[left]] = self._block_ids(self._position[rows[left]])
         self.rebuild_index()
 
     # ------------------------------------------------------------------ block index
