@@ -326,3 +326,47 @@ def test_maybe_reorder_regroups_only_new_rows_until_they_reach_a_quarter():
     assert not np.all(np.diff(m._block_id[:2300]) >= 0)  # two groupings, one after the other
     m.dormant_cursor = 2500  # 500 rows since the whole regrouping: all 2500 again
     assert m.maybe_reorder() and np.all(np.diff(m._block_id[:2500]) >= 0)
+
+
+def test_transform_some_rows_moves_them_alone_and_regroups_their_blocks():
+    """``transform_surfels`` on some rows equals the whole-map move on those rows, leaves the others untouched, and
+    puts every moved surfel in the block of its new position (the grouping covers the whole map again)."""
+    m = _random_map(3000, seed=5, cfg=MapConfig(initial_capacity=8, block_size_m=0.5))
+    whole = _random_map(3000, seed=5, cfg=MapConfig(initial_capacity=8, block_size_m=0.5))
+    rows = np.flatnonzero(np.random.default_rng(1).random(3000) < 0.3)
+    T = make_T(so3_exp([0.1, -0.2, 0.3]), [2.0, -1.0, 0.7])
+    R_all = np.broadcast_to(T[:3, :3].astype(np.float32), (3000, 3, 3)).copy()
+    t_all = np.broadcast_to(T[:3, 3].astype(np.float32), (3000, 3)).copy()
+    before = m.position.copy()
+    m.transform_surfels(R_all[rows], t_all[rows], rows)
+    whole.transform_surfels(R_all, t_all)
+    keep = np.ones(3000, bool)
+    keep[rows] = False
+    np.testing.assert_array_equal(m.position[rows], whole.position[rows])
+    np.testing.assert_array_equal(m.normal[rows], whole.normal[rows])
+    np.testing.assert_array_equal(m.position[keep], before[keep])
+    ijk = np.floor(m.position / 0.5).astype(np.int32)
+    np.testing.assert_array_equal(m._block_ijk[m._block_id[: m.size]], ijk)
+    assert m.n_grouped == m.size
+    with pytest.raises(ValueError, match="rows"):
+        m.transform_surfels(R_all[:1], t_all[:1], np.array([3000]))
+
+
+def test_transform_groups_matches_its_reference():
+    """Rows moved by their group's transform (the numba kernel) equal the per-row matrix products of the reference;
+    the other rows stay."""
+    m = _random_map(2000, seed=6, cfg=MapConfig(initial_capacity=8, block_size_m=0.5))
+    rng = np.random.default_rng(2)
+    R = np.array([so3_exp(rng.normal(0, 0.2, 3)) for _ in range(5)], np.float32)
+    t = rng.normal(0, 1.0, (5, 3)).astype(np.float32)
+    rows = np.flatnonzero(rng.random(2000) < 0.5)
+    group = rng.integers(0, 5, len(rows))
+    pos0, nrm0 = m.position.copy(), m.normal.copy()
+    ref_p, ref_n = ks.transform_rows_ref(pos0, nrm0, rows, group, R, t)
+    m.transform_groups(R, t, group, rows)
+    np.testing.assert_allclose(m.position[rows], ref_p, atol=1e-5)
+    np.testing.assert_allclose(m.normal[rows], ref_n, atol=1e-6)
+    keep = np.setdiff1d(np.arange(2000), rows)
+    np.testing.assert_array_equal(m.position[keep], pos0[keep])
+    with pytest.raises(ValueError, match="groups"):
+        m.transform_groups(R, t, np.array([5]), np.array([0]))

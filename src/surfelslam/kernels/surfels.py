@@ -126,3 +126,24 @@ def gather_candidates_ref(visible, order, start, count, n_blocks_sorted, block_i
     tail = np.arange(n_sorted, size)
     tail = tail[(visible[block_id[tail]] != 0) & (dead[tail] == 0)]
     return np.concatenate([grouped, tail]).astype(np.int32)
+
+
+@njit(cache=True, nogil=True)
+def transform_rows(position, normal, rows, group, R, t):
+    """Move rows ``rows`` ``(m,)`` in place by the rigid transform of their group ``group`` ``(m,)``:
+    ``position = R[g] p + t[g]``, ``normal = R[g] n`` (``R`` ``(G, 3, 3)``, ``t`` ``(G, 3)`` float32; ``position``,
+    ``normal`` float32 ``(cap, 3)``). A map correction per keyframe without a ``(m, 3, 3)`` array per surfel."""
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        g = group[j]
+        p0, p1, p2 = position[i, 0], position[i, 1], position[i, 2]
+        n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
+        for r in range(3):
+            position[i, r] = R[g, r, 0] * p0 + R[g, r, 1] * p1 + R[g, r, 2] * p2 + t[g, r]
+            normal[i, r] = R[g, r, 0] * n0 + R[g, r, 1] * n1 + R[g, r, 2] * n2
+
+
+def transform_rows_ref(position, normal, rows, group, R, t):
+    """Reference of :func:`transform_rows` (returns the moved rows' positions and normals)."""
+    return (np.einsum("nij,nj->ni", R[group], position[rows]) + t[group],
+            np.einsum("nij,nj->ni", R[group], normal[rows]))

@@ -280,25 +280,50 @@ class SurfelMap:
         self.mark_dead(mask)
         return self.compact()
 
-    def transform_surfels(self, R: np.ndarray, t: np.ndarray) -> None:
-        """Move every surfel by its own rigid transform: ``R`` ``(size, 3, 3)`` and ``t`` ``(size, 3)`` float32
-        (positions ``R p + t``, normals ``R n``), then rebuild the culling blocks and their grouping (a pose-graph
+    def transform_surfels(self, R: np.ndarray, t: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Move surfels by their own rigid transforms: every surfel (``rows`` ``None``; ``R`` ``(size, 3, 3)``, ``t``
+        ``(size, 3)``) or the surfels ``rows`` ``(m,)`` (``R`` ``(m, 3, 3)``, ``t`` ``(m, 3)``), float32: positions
+        ``R p + t``, normals ``R n``. The moved surfels' culling blocks and the grouping are rebuilt (a pose-graph
         correction of the map)."""
-        n = self._size
+        n = self._size if rows is None else len(rows)
         if R.shape != (n, 3, 3) or t.shape != (n, 3):
             raise ValueError(f"transform_surfels: R must be ({n}, 3, 3) and t ({n}, 3), got {R.shape} and {t.shape}")
-        if n == 0:
+        rows = np.arange(n) if rows is None else rows
+        self.transform_groups(np.ascontiguousarray(R, np.float32), np.ascontiguousarray(t, np.float32),
+                              np.arange(n), rows)
+
+    def transform_groups(self, R: np.ndarray, t: np.ndarray, group: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Move each surfel (``rows`` ``None``) or each of ``rows`` ``(m,)`` by the rigid transform of its group
+        ``group`` ``(size,)`` or ``(m,)``: ``R`` ``(G, 3, 3)``, ``t`` ``(G, 3)`` float32 (e.g. one per keyframe:
+        positions ``R p + t``, normals ``R n``); the moved surfels' culling blocks and the grouping are rebuilt (a
+        pose-graph correction of the map; moving only some rows keeps its cost with them, apart from the O(size)
+        grouping)."""
+        rows = np.arange(self._size) if rows is None else np.asarray(rows, np.int64)
+        group = np.asarray(group, np.int64)
+        if group.shape != rows.shape or R.shape[1:] != (3, 3) or t.shape != (len(R), 3):
+            raise ValueError(f"transform_groups: group must be {rows.shape}, R (G, 3, 3) and t (G, 3), got "
+                             f"{group.shape}, {R.shape} and {t.shape}")
+        if len(rows) == 0:
             return
-        self.position[:] = np.einsum("nij,nj->ni", R, self.position) + t
-        self.normal[:] = np.einsum("nij,nj->ni", R, self.normal)
-        self._assign_blocks(0, n)  # positions moved: new culling blocks and a fresh grouping
+        if rows.min() < 0 or rows.max() >= self._size or group.min() < 0 or group.max() >= len(R):
+            raise ValueError(f"transform_groups: rows must lie in [0, {self._size}) and groups in [0, {len(R)})")
+        ks.transform_rows(self._position, self._normal, rows, group, np.ascontiguousarray(R, np.float32),
+                          np.ascontiguousarray(t, np.float32))
+        # only the surfels that left their block need a new one (a correction moves most by less than a block)
+        ijk = np.floor(self._position[rows] * self._inv_block).astype(np.int32)
+        left = np.flatnonzero(np.any(ijk != self._block_ijk[self._block_id[rows]], axis=1))
+        self._block_id[rows[left]] = self._block_ids(self._position[rows[left]])
         self.rebuild_index()
 
     # ------------------------------------------------------------------ block index
     def _assign_blocks(self, start: int, stop: int) -> None:
         if stop <= start:
             return
-        ijk = np.floor(self._position[start:stop] * self._inv_block).astype(np.int32)
+        self._block_id[start:stop] = self._block_ids(self._position[start:stop])
+
+    def _block_ids(self, position: np.ndarray) -> np.ndarray:
+        """``(n,)`` int32 block of each position ``(n, 3)``, blocks created as needed."""
+        ijk = np.floor(position * self._inv_block).astype(np.int32)
         keys = _pack_keys(ijk)
         uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
         ids = np.empty(len(uniq), np.int32)
@@ -308,7 +333,7 @@ class SurfelMap:
                 b = self._new_block(ijk[first[j]])
                 self._key_to_block[key] = b
             ids[j] = b
-        self._block_id[start:stop] = ids[inv.reshape(-1)]
+        return ids[inv.reshape(-1)]
 
     def _new_block(self, ijk: np.ndarray) -> int:
         b = self._n_blocks

@@ -196,8 +196,12 @@ class HybridConfig(Config):
                                     doc="apply pose-graph corrections to the dense trajectory and the surfel map")
     live_correction_min_m: float = setting(
         0.03, unit="m", ge=0, le=100,
-        doc="during the run the map and pose follow a graph optimisation only when a keyframe moved more than this; "
-            "smaller corrections are applied once, at the end")
+        doc="during the run the map and pose follow a graph optimisation only when it moves some keyframe's surfels "
+            "more than this; smaller corrections are applied once, at the end")
+    live_correction_keyframe_min_m: float = setting(
+        0.01, unit="m", ge=0, le=100,
+        doc="a live correction moves only the keyframes (and their surfels) it moves more than this, the others at "
+            "a later one or at the end; 0 moves all")
     untrusted_min_correction_m: float = setting(
         0.001, unit="m", ge=0, le=100,
         doc="at the end, when the refined edges are not trusted, the PnP graph's correction is applied only if some "

@@ -28,9 +28,12 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
    anchor). A keyframe's correction is ``C_k = T_kf_graph inv(T_kf_dense)``. Dense poses are fed to the
    graph as ``C_last T_world_cam``, so odometry edges are exactly the dense relative motion whatever the
    pending correction. Corrections are applied to the surfels (positions and normals, one vectorised
-   numpy step over all surfels, culling index rebuilt) and to the current pose during the run only when a
-   keyframe moved by more than ``hybrid.live_correction_min_m`` (re-posing the live map for centimetre
-   corrections smears it); otherwise once, in ``finish``. The written trajectory is every frame's
+   numpy step, culling index rebuilt) and to the current pose during the run only when a keyframe's surfels
+   would move by more than ``hybrid.live_correction_min_m`` (re-posing the live map for centimetre
+   corrections smears it), and then only the keyframes (with their surfels) that move by more than
+   ``hybrid.live_correction_keyframe_min_m``, so the cost follows what moves, not the map; the rest wait for
+   a later correction or ``finish``, which moves every surfel to its keyframe's final correction. The
+   written trajectory is every frame's
    ``T_kf_graph(final) T_kf_cam``.
 
 The parts are components the tracker holds: the dense front end (:mod:`.frontend`), the sparse back end, the
@@ -285,9 +288,8 @@ class HybridSlam:
         self.front.state.T_world_cam = T_new
         if sr is not None and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
             kf = self.sparse.keyframe_poses()
-            C = self.anchors.corrections(kf)
-            if np.linalg.norm(C[:, :3, 3], axis=1).max() > self.cfg.hybrid.live_correction_min_m:
-                self.correct(kf, C)
+            if self.anchors.keyframe_moves_m(kf).max() > self.cfg.hybrid.live_correction_min_m:
+                self.correct(kf, min_move_m=self.cfg.hybrid.live_correction_keyframe_min_m)
                 t.lap("correct")
 
     def _graph_pose(self, T_world_cam: np.ndarray) -> np.ndarray:
@@ -296,11 +298,12 @@ class HybridSlam:
         K = self.sparse.n_keyframes
         return se3.orthonormalize(T_world_cam if K == 0 else self.anchors.correction(K - 1) @ T_world_cam)
 
-    def correct(self, kf_new: np.ndarray, C: np.ndarray | None = None) -> None:
+    def correct(self, kf_new: np.ndarray, C: np.ndarray | None = None, min_move_m: float = 0.0) -> None:
         """Move the surfels and the current pose by each keyframe's correction ``C`` (default: to the graph poses
-        ``kf_new`` ``(K, 4, 4)``, :meth:`KeyframeAnchors.corrections`); a localise-only run's map never moves."""
+        ``kf_new`` ``(K, 4, 4)``, :meth:`KeyframeAnchors.corrections`), only the keyframes moving more than
+        ``min_move_m`` when it is > 0 (:meth:`KeyframeAnchors.correct`); a localise-only run's map never moves."""
         smap = None if self.front.mapper.frozen else self.map
-        self.front.state.T_world_cam = self.anchors.correct(kf_new, smap, C)
+        self.front.state.T_world_cam = self.anchors.correct(kf_new, smap, C, min_move_m)
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""

@@ -15,6 +15,10 @@ from surfelslam.geometry import se3
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.types import PoseArray, Trajectory
 
+# surfels lie within the sensor's depth range of the keyframe that anchors them: a correction's rotation moves them by
+# at most its angle times this
+SURFEL_REACH_M = 5.0
+
 
 class KeyframeAnchors:
     """Keyframe poses in the dense frame, every frame's anchor and relative pose, the fused frames' anchors.
@@ -58,21 +62,43 @@ class KeyframeAnchors:
         """``(K, 4, 4)`` each keyframe's correction ``T_new inv(T_dense)`` for the graph poses ``kf_new``."""
         return kf_new @ se3.invert(self.kf_dense.poses)
 
-    def correct(self, kf_new: np.ndarray, smap: SurfelMap | None, C: np.ndarray | None = None) -> np.ndarray:
+    def keyframe_moves_m(self, kf_new: np.ndarray) -> np.ndarray:
+        """``(K,)`` bound (m) on how far the graph poses ``kf_new`` ``(K, 4, 4)`` would move each keyframe's surfels:
+        the keyframe's own displacement plus its correction's rotation angle over :data:`SURFEL_REACH_M`."""
+        dense = self.kf_dense.poses
+        shift_m = np.linalg.norm(kf_new[:, :3, 3] - dense[:, :3, 3], axis=1)
+        R_corr = kf_new[:, :3, :3] @ np.transpose(dense[:, :3, :3], (0, 2, 1))
+        cos = np.clip((np.trace(R_corr, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+        return shift_m + np.arccos(cos) * SURFEL_REACH_M
+
+    def correct(self, kf_new: np.ndarray, smap: SurfelMap | None, C: np.ndarray | None = None,
+                min_move_m: float = 0.0) -> np.ndarray:
         """Move the surfels of ``smap`` (``None``: the map stays) by their anchors' corrections ``C``
-        (:meth:`corrections` of ``kf_new`` by default); the keyframes take the poses ``kf_new``. Returns the last
-        frame's corrected pose ``(4, 4)``."""
+        (:meth:`corrections` of ``kf_new`` by default); the keyframes take the poses ``kf_new``. With ``min_move_m``
+        > 0 only the keyframes that :meth:`keyframe_moves_m` moves farther, and their surfels, do (the others keep
+        their pending correction for a later call: the cost follows what moves). Returns the last frame's corrected
+        pose ``(4, 4)``."""
         C = self.corrections(kf_new) if C is None else C
         self.map_corrections += 1
-        if smap is not None and smap.size:
-            frames = np.asarray(self.fused_frames, np.int64)
-            anchors = np.asarray(self.fused_anchor, np.int64)
-            row = np.clip(np.searchsorted(frames, smap.first_seen), 0, len(frames) - 1)
-            a = anchors[row]
-            smap.transform_surfels(C[a, :3, :3].astype(np.float32), C[a, :3, 3].astype(np.float32))
-        T_world_cam = se3.orthonormalize(kf_new[self.anchor[-1]] @ self.T_kf_cam[-1])
-        self.kf_dense.poses[:] = kf_new
-        return T_world_cam
+        moved = self.keyframe_moves_m(kf_new) > min_move_m if min_move_m > 0 else np.ones(len(kf_new), bool)
+        if smap is not None and smap.size and moved.any():
+            a = self.surfel_anchors(smap)
+            R, t = C[:, :3, :3].astype(np.float32), C[:, :3, 3].astype(np.float32)
+            if moved.all():
+                smap.transform_groups(R, t, a)
+            else:
+                rows = np.flatnonzero(moved[a])
+                smap.transform_groups(R, t, a[rows], rows)
+        self.kf_dense.poses[moved] = kf_new[moved]
+        return se3.orthonormalize(self.kf_dense.poses[self.anchor[-1]] @ self.T_kf_cam[-1])
+
+    def surfel_anchors(self, smap: SurfelMap) -> np.ndarray:
+        """``(size,)`` int64 anchor keyframe of each surfel of ``smap`` (that of the fused frame that created it)."""
+        frames = np.asarray(self.fused_frames, np.int64)
+        first_seen = smap.first_seen
+        # a table per frame index up to the newest surfel's (the frame count): one gather per surfel, no search
+        row = np.clip(np.searchsorted(frames, np.arange(int(first_seen.max()) + 1)), 0, len(frames) - 1)
+        return np.asarray(self.fused_anchor, np.int64)[row][first_seen]
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""

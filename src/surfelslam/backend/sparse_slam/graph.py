@@ -187,16 +187,17 @@ class KeyframeGraph:
             self.n_nearby_rejected_inconsistent += 1
         return False
 
-    def optimise(self) -> None:
-        """Optimise, and take the poses from the refined edges' graph when it is trusted, else from the PnP one."""
+    def optimise(self, full: bool = False) -> None:
+        """Optimise (``full``: by the batch solver, :meth:`PoseGraph.optimise`), and take the poses from the refined
+        edges' graph when it is trusted, else from the PnP one."""
         if self._graph_refined is None:
-            self.poses[:] = self._graph.optimise()
+            self.poses[:] = self._graph.optimise(full)
             return
-        poses = self._graph_refined.optimise()
+        poses = self._graph_refined.optimise(full)
         spread = self._refiner.residual_spread(self._graph_refined.edges, poses)
         self.refined_residual_rad, self.refined_residual_m = (None, None) if spread is None else spread
         self.refined_trusted = self._refiner.trusted(spread)
-        self.poses[:] = poses if self.refined_trusted else self._graph.optimise()
+        self.poses[:] = poses if self.refined_trusted else self._graph.optimise(full)
 
     def add_edge(self, pnp: PoseEdge | None, refined: PoseEdge | None = None, dense_rejected: bool = False) -> bool:
         """Add an edge: ``pnp`` (odometry or PnP-verified; ``None``: a depth-only edge, in the refined graph only)

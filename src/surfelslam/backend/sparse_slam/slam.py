@@ -491,11 +491,11 @@ class SparseSlam:
         return joined_clouds(self._kfs, self._kf_poses, self.cfg.map.voxel_size_m)
 
     def finish(self) -> SparseSlamResult:
-        """Optimise the graph once more and return trajectory, keyframes, loops and the map."""
+        """Optimise the whole graph once more (batch: not hanging on when loops came); return trajectory, map etc."""
         self._collect_loop_checks()
         self._loops.shutdown()
         if self.n_keyframes > 1:
-            self._graph.optimise()
+            self._graph.optimise(full=True)
         xyz, rgb = self.map_points()
         return SparseSlamResult(
             trajectory=self.trajectory(),

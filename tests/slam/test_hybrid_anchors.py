@@ -1,0 +1,86 @@
+"""Keyframe anchors: a partial live correction moves exactly the surfels of the keyframes it moves, and the final
+(full) correction leaves every surfel at its keyframe's final correction, whatever was moved before."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surfelslam.geometry import se3
+from surfelslam.mapping.surfel_map import SurfelMap
+from surfelslam.slam.hybrid_anchors import SURFEL_REACH_M, KeyframeAnchors
+
+
+class _Graph:
+    """The back end as the anchors see it: a keyframe count and the graph poses."""
+
+    def __init__(self) -> None:
+        self.poses: list[np.ndarray] = []
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self.poses)
+
+    def keyframe_poses(self) -> np.ndarray:
+        return np.array(self.poses)
+
+
+N_KF, FRAMES_PER_KF, SURFELS_PER_FRAME = 6, 3, 40
+
+
+def _anchored_map() -> tuple[KeyframeAnchors, _Graph, SurfelMap]:
+    """Six keyframes 1 m apart along x, three fused frames each, 40 surfels per frame within 2 m of its camera."""
+    rng = np.random.default_rng(4)
+    graph = _Graph()
+    anchors = KeyframeAnchors(graph)
+    smap = SurfelMap()
+    frame = 0
+    for k in range(N_KF):
+        T_kf = se3.make_T(se3.so3_exp([0.0, 0.1 * k, 0.0]), [float(k), 0.0, 0.0])
+        graph.poses.append(T_kf)
+        anchors.add_keyframe(T_kf)
+        for _ in range(FRAMES_PER_KF):
+            T_cam = T_kf @ se3.exp(rng.normal(0, 0.02, 6))
+            anchors.record(frame, 0.1 * frame, T_cam, fused=True)
+            pts = T_cam[:3, 3] + rng.uniform(-2.0, 2.0, (SURFELS_PER_FRAME, 3))
+            normals = rng.normal(size=(SURFELS_PER_FRAME, 3))
+            smap.append(pts, normals / np.linalg.norm(normals, axis=1, keepdims=True), np.full((40, 3), 128.0),
+                        1.0, 0.01, frame)
+            frame += 1
+    return anchors, graph, smap
+
+
+def _moved(points: np.ndarray, C: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    return np.einsum("nij,nj->ni", C[anchor, :3, :3], points) + C[anchor, :3, 3]
+
+
+def test_partial_correction_moves_only_the_keyframes_that_move_and_the_final_one_all() -> None:
+    anchors, graph, smap = _anchored_map()
+    p0 = smap.position.astype(np.float64).copy()
+    anchor = np.repeat(np.arange(N_KF), FRAMES_PER_KF * SURFELS_PER_FRAME)
+    np.testing.assert_array_equal(anchors.surfel_anchors(smap), anchor)
+    # keyframes 0-2 barely move (2 mm), 3-5 move 5 cm and turn 0.5 deg
+    kf1 = np.array(graph.poses)
+    small = se3.make_T(np.eye(3), [0.002, 0.0, 0.0])
+    large = se3.make_T(se3.so3_exp([0.0, 0.0, np.radians(0.5)]), [0.0, 0.05, 0.0])
+    kf1[:3] = small @ kf1[:3]
+    kf1[3:] = large @ kf1[3:]
+    moves = anchors.keyframe_moves_m(kf1)
+    np.testing.assert_allclose(moves[:3], 0.002, atol=1e-9)
+    assert np.all(moves[3:] > 0.05 + np.radians(0.5) * SURFEL_REACH_M * 0.99)
+    C1 = anchors.corrections(kf1)
+    T_cam = anchors.correct(kf1, smap, min_move_m=0.01)
+    moved_rows = anchor >= 3
+    np.testing.assert_allclose(smap.position[moved_rows], _moved(p0, C1, anchor)[moved_rows], atol=2e-5)
+    np.testing.assert_array_equal(smap.position[~moved_rows], p0[~moved_rows].astype(np.float32))
+    # the unmoved keyframes keep their dense poses (their correction pending), the moved ones take the graph's
+    np.testing.assert_allclose(anchors.kf_dense.poses[:3], np.array(graph.poses)[:3], atol=0)
+    np.testing.assert_allclose(anchors.kf_dense.poses[3:], kf1[3:], atol=1e-12)
+    np.testing.assert_allclose(T_cam, kf1[5] @ anchors.T_kf_cam[-1], atol=1e-9)
+    # the final correction (full) puts every surfel at its keyframe's final pose, moved before or not
+    kf2 = se3.make_T(se3.so3_exp([0.01, 0.0, 0.0]), [0.0, 0.0, 0.03])[None] @ kf1
+    C_total = kf2 @ se3.invert(np.array(graph.poses))
+    anchors.correct(kf2, smap)
+    np.testing.assert_allclose(smap.position, _moved(p0, C_total, anchor), atol=5e-5)
+    np.testing.assert_allclose(anchors.kf_dense.poses, kf2, atol=1e-12)
+    assert anchors.map_corrections == 2
+
