@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from benchmarks.common import print_rows
 from surfelslam.geometry.camera import backproject
 from surfelslam.geometry.se3 import make_T, so3_exp
 from surfelslam.mapping import FusionConfig, SurfelMap, fuse, render
@@ -105,9 +106,7 @@ def main() -> None:
     rows = run(ap.parse_args().quick)
     cols = ["resolution", "frames", "render_ms", "fuse_ms", "render_first_ms", "render_last_ms", "fuse_first_ms",
             "fuse_last_ms", "map_surfels", "candidates_last"]
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(f"{r[c]:.1f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+    print_rows(rows, cols)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from benchmarks.common import REDKITCHEN, median_ms
+from benchmarks.common import REDKITCHEN, median_ms, print_rows
 from surfelslam.kernels import hamming
 from surfelslam.tracking.features import FeatureConfig, estimate_motion, extract, match
 from surfelslam.types import Intrinsics, RGBDFrame
@@ -97,10 +97,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     rows = run(ap.parse_args().quick)
-    cols = list(rows[0])
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(f"{r[c]:.1f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+    print_rows(rows, nd=1)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from benchmarks.common import median_ms
+from benchmarks.common import median_ms, print_rows
 from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
 
 PER_KEYFRAME = 300  # descriptors per keyframe (RetrievalConfig.max_descriptors_per_keyframe)
@@ -63,10 +63,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     rows = run(ap.parse_args().quick)
-    cols = list(rows[0])
-    print(" | ".join(cols))
-    for r in rows:
-        print(" | ".join(f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+    print_rows(rows, nd=2)
 
 
 if __name__ == "__main__":

@@ -113,6 +113,15 @@ def table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def print_rows(rows: list[dict], cols: list[str] | None = None, nd: int = 1) -> None:
+    """Print ``rows`` (dicts) as ``|``-separated lines under a header of ``cols`` (default: the first row's keys);
+    floats with ``nd`` decimals (the standalone benchmarks' console output)."""
+    cols = list(rows[0]) if cols is None else cols
+    print(" | ".join(cols))
+    for r in rows:
+        print(" | ".join(f"{r[c]:.{nd}f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+
+
 def child_env() -> dict[str, str]:
     """The environment of a child ``python -m surfelslam``: this process's, with the ``surfelslam`` package this
     process imported first on ``PYTHONPATH`` (a worktree's ``src``, not whatever the interpreter has installed)."""
