@@ -23,10 +23,10 @@ from surfelslam.backend.sparse_slam.config import (
 from surfelslam.backend.sparse_slam.depth_odometry import register_depth
 from surfelslam.backend.sparse_slam.graph import KeyframeGraph
 from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
+from surfelslam.backend.sparse_slam.reference_match import pnp_match, tracked_match
 from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, SparseFrameResult, SparseSlamResult
-from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize, transform_points
+from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize
 from surfelslam.tracking.features import Features, MotionResult, estimate_motion, extract
-from surfelslam.tracking.features.keyframe_track import track_keyframe
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
@@ -284,10 +284,13 @@ class SparseSlam:
     def becomes_keyframe(self, T_world_cam: np.ndarray) -> bool:
         """Whether a frame posed at ``T_world_cam`` by another tracker, processed next, becomes a keyframe (its
         features can then be extracted ahead). State is unchanged."""
-        if not self._kfs:
-            return True
-        return (motion_norm(invert(self._kf_poses[self._ref_kf]) @ T_world_cam) >= self.cfg.keyframe_threshold
-                and self._frames_since_kf + 1 >= self.cfg.keyframe_min_gap_frames)
+        return not self._kfs or self._is_keyframe(invert(self._kf_poses[self._ref_kf]) @ T_world_cam,
+                                                  self._frames_since_kf + 1)
+
+    def _is_keyframe(self, T_kf_cam: np.ndarray, frames_since_kf: int) -> bool:
+        """The keyframe rule: far enough from the reference keyframe, and not too soon after it."""
+        return (motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
+                and frames_since_kf >= self.cfg.keyframe_min_gap_frames)
 
     def _keyframe_or_record(self, frame: RGBDFrame, feats: Features | None, T_world_cam: np.ndarray,
                             T_kf_cam: np.ndarray, information: np.ndarray | None = None,
@@ -298,8 +301,7 @@ class SparseSlam:
         self._n_failures = 0
         self._lost = []
         self._frames_since_kf += 1
-        is_kf = (motion_norm(T_kf_cam) >= self.cfg.keyframe_threshold
-                 and self._frames_since_kf >= self.cfg.keyframe_min_gap_frames)
+        is_kf = self._is_keyframe(T_kf_cam, self._frames_since_kf)
         if is_kf:
             feats = self.features(frame) if feats is None else feats
             self._add_keyframe(frame, feats, T_world_cam, self._ref_kf, T_kf_cam, information, pyramid)
@@ -439,13 +441,8 @@ class SparseSlam:
         if not self._kfs:
             return None
         kf = self._ref_kf
-        T_world_kf = self._kf_poses[kf]
-        tracked = track_keyframe(self._kfs[kf].features, grey, invert(T_world_cam_pred) @ T_world_kf, self.intr,
-                                 self.cfg.features)
-        if tracked is None:
-            return None
-        return KeyframeMatch(T_world_kf @ invert(tracked.T_cur_ref), kf,
-                             transform_points(T_world_kf, tracked.points_ref), tracked.uv_cur)
+        return tracked_match(kf, self._kf_poses[kf], self._kfs[kf].features, grey, T_world_cam_pred, self.intr,
+                             self.cfg.features)
 
     def match_reference_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
                                  feats: Features | None = None, coarse: bool = False) -> KeyframeMatch | None:
@@ -464,17 +461,8 @@ class SparseSlam:
             return None
         feats = self.features(frame) if feats is None else feats
         kf = self._ref_kf
-        T_world_kf = self._kf_poses[kf]
-        init = None if T_world_cam_pred is None else invert(T_world_cam_pred) @ T_world_kf
-        ref = self._kfs[kf].features
-        fcfg = self._coarse_features if coarse else self.cfg.features
-        res = estimate_motion(ref, feats, self.intr, fcfg, init)
-        if not res.ok or res.uv_cur is None:
-            return None
-        inl = res.inlier_mask
-        pts_kf = ref.points_cam[res.pairs[inl, 0]].astype(np.float64)
-        return KeyframeMatch(T_world_kf @ invert(res.T_cur_ref), kf, transform_points(T_world_kf, pts_kf),
-                             res.uv_cur[inl].astype(np.float64))
+        return pnp_match(kf, self._kf_poses[kf], self._kfs[kf].features, feats, T_world_cam_pred, self.intr,
+                         self._coarse_features if coarse else self.cfg.features)
 
     # --- results -------------------------------------------------------------------------------------
 
