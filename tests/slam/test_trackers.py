@@ -272,6 +272,7 @@ def test_hybrid_adds_depth_only_nearby_edges_where_features_cannot_verify():
     est_off, res_off, _ = _run("hybrid", frames, off)
     assert res.metrics["depth_only_edges"] >= 20 and res.metrics["edges_refined_trusted"], res.metrics
     assert res_off.metrics["depth_only_edges"] == 0
+    assert res.metrics["graph_batch_fallbacks"] == 0  # a well-posed graph: isam2 alone solves it
     assert ate_m(est, gt) < 0.7 * ate_m(est_off, gt), (ate_m(est, gt), ate_m(est_off, gt))
     # only where the verification lacked matches (texture), not where PnP had matches but too few inliers: with
     # the bound at 5 matches most of these pairs (5-30 matches) are left to the odometry

@@ -73,7 +73,8 @@ class KeyframeGraph:
                 "edges_dense_refined": self.n_dense_refined,
                 "edges_dense_rejected": self.n_dense_rejected,
                 "depth_only_edges": self.n_depth_only_edges,
-                "edges_weak_shaped": self.n_weak_shaped}
+                "edges_weak_shaped": self.n_weak_shaped,
+                "graph_batch_fallbacks": self._graph.n_batch_fallbacks}
 
     @property
     def poses(self) -> np.ndarray:
