@@ -259,7 +259,8 @@ def quat_xyzw_to_rotation(q: np.ndarray) -> np.ndarray:
     """Quaternion(s) ``(..., 4)`` in ``(qx, qy, qz, qw)`` order -> rotation(s) ``(..., 3, 3)``.
 
     Quaternions are normalised first, so slightly non-unit file values are accepted; a zero one is refused
-    (ConfigValueError, a ValueError as scipy's). The numbers are scipy's ``Rotation.from_quat(q).as_matrix()``'s, bit for bit.
+    (ConfigValueError, a ValueError as scipy's). The numbers are scipy's ``Rotation.from_quat(q).as_matrix()``'s,
+    bit for bit.
     """
     q = np.asarray(q, dtype=np.float64)
     flat = q.reshape(-1, 4)
