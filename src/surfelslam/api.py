@@ -230,9 +230,10 @@ def run_sequence(seq: RGBDSequence, out_dir: str | Path, cfg: SlamConfig, tracke
 
 @contextmanager
 def preloading(figures: bool | Collection[str], on_progress: Callable[[int, Any], None] | None):
-    """An ``on_progress`` callback (calling ``on_progress``) that, once the first frame is done, imports the figures'
-    modules in a background thread (:func:`~surfelslam.viz.run_report.preload_figure_modules`): the import overlaps
-    the tracking instead of adding to the run's end. The thread is joined on leaving."""
+    """An ``on_progress`` callback (calling ``on_progress``) that, once the first frame is done, imports the report's
+    modules (evo, matplotlib, the figures') in a background thread
+    (:func:`~surfelslam.viz.run_report.preload_figure_modules`): the import overlaps the tracking instead of adding to
+    the run's end. The thread is joined on leaving."""
     thread = threading.Thread(target=preload_figure_modules, args=(figures,), name="surfelslam-preload")
 
     def on_slot(done: int, res: FrameResult | None) -> None:

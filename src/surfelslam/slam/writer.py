@@ -70,7 +70,8 @@ def now_text() -> str:
 
 
 class _Background:
-    """``fn(*args)`` in a daemon thread; :meth:`join` waits for it and raises its error, if it failed."""
+    """``fn(*args)`` in a daemon thread; :meth:`join` waits for it and raises its error, if it failed (unless
+    ``raise_error`` is False)."""
 
     def __init__(self, fn: Callable[..., None], *args) -> None:
         self._error: BaseException | None = None
@@ -84,9 +85,9 @@ class _Background:
         self._thread = threading.Thread(target=run, name="surfelslam-write-map", daemon=True)
         self._thread.start()
 
-    def join(self) -> None:
+    def join(self, raise_error: bool = True) -> None:
         self._thread.join()
-        if self._error is not None:
+        if raise_error and self._error is not None:
             raise self._error
 
 
@@ -150,8 +151,10 @@ class RunWriter:
             if self.report is not None:
                 written = read_tum(path) if len(outcome.trajectory) else outcome.trajectory
                 self.report(RunRecord(self.stage, outcome, metrics, written, ground_truth))
-        finally:
-            maps.join()
+        except BaseException:
+            maps.join(raise_error=False)  # the report's error (or Ctrl-C) is the one the caller gets
+            raise
+        maps.join()
         metrics.update(complete=True, started=self.started, finished=now_text(), **self._overhead(outcome))
         write_text_atomic(self.stage / COMPLETE_MARKER, json.dumps(metrics, indent=2, default=json_default) + "\n")
         return metrics

@@ -49,8 +49,7 @@ def run_report(figures: bool | Collection[str] = True) -> RunReport:
         drawn = wanted if len(record.trajectory) else frozenset()
 
         def evaluation_and_its_figures() -> None:
-            for job in trajectory_figure_jobs(record, drawn, evaluate_run(record)):
-                job()
+            run_concurrently(trajectory_figure_jobs(record, drawn, evaluate_run(record)))
 
         # the map figures do not need the evaluation: they are drawn while it runs
         run_concurrently([evaluation_and_its_figures, *map_figure_jobs(record, drawn)])
