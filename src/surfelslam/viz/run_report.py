@@ -47,12 +47,10 @@ def run_report(figures: bool | Collection[str] = True) -> RunReport:
         from surfelslam.eval.run_eval import evaluate_run
 
         drawn = wanted if len(record.trajectory) else frozenset()
-
-        def evaluation_and_its_figures() -> None:
-            run_concurrently(trajectory_figure_jobs(record, drawn, evaluate_run(record)))
-
-        # the map figures do not need the evaluation: they are drawn while it runs
-        run_concurrently([evaluation_and_its_figures, *map_figure_jobs(record, drawn)])
+        # the evaluation first, alone: its thousands of small numpy calls each release the GIL, and beside the figure
+        # threads each would wait for it again (several times its own time); then every figure side by side
+        ate = evaluate_run(record)
+        run_concurrently(trajectory_figure_jobs(record, drawn, ate) + map_figure_jobs(record, drawn))
 
     return report
 
