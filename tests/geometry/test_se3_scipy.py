@@ -1,6 +1,6 @@
-"""The rotation conversions of :mod:`surfelslam.geometry.se3` are numpy ports of scipy's ``Rotation`` (not imported by
-the library: it costs a run's start-up about 0.25 s); here they are checked against scipy, bit for bit, on random
-rotations and on the edge cases: angles near 0, at the log's series bound, near and at pi, ties between the
+"""The rotation conversions of :mod:`surfelslam.geometry.se3` are numpy ports of scipy's ``Rotation`` (which the
+library does not import: a run's start-up needs no scipy.spatial); here they are checked against scipy, bit for bit,
+on random rotations and on the edge cases: angles near 0, at the log's series bound, near and at pi, ties between the
 diagonal and the trace, drifted and visibly non-orthogonal matrices, scaled quaternions."""
 
 import numpy as np

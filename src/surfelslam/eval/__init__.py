@@ -1,7 +1,8 @@
 """Trajectory evaluation (ATE, RPE) with evo.
 
 The names are imported on first use (PEP 562): :mod:`surfelslam.eval.metrics` imports evo and scipy.spatial (about
-0.3 s), which a run needs only at its end, and :mod:`surfelslam.eval.protocol`'s defaults must not pull them in.
+0.05 s of CPU once scipy.linalg is loaded), which a run needs only at its end, and :mod:`surfelslam.eval.protocol`'s
+defaults must not pull them in.
 """
 
 import importlib

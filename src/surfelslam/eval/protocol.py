@@ -1,6 +1,6 @@
 """The evaluation protocol's numbers that callers need without the evaluation itself.
 
-:mod:`surfelslam.eval.metrics` imports evo (and with it scipy.spatial: about 0.3 s); a run's start-up needs only these
+:mod:`surfelslam.eval.metrics` imports evo (and with it scipy.spatial: about 0.05 s); a run's start-up needs only these
 defaults, and evo at its end.
 """
 
