@@ -30,8 +30,7 @@ from surfelslam.config import dumps_toml, from_dict, load_toml
 from surfelslam.datasets.base import DatasetOptions, RGBDSequence
 from surfelslam.datasets.registry import open_sequence as _open_sequence
 from surfelslam.errors import ConfigError, FrameError
-from surfelslam.eval.metrics import DEFAULT_MAX_DIFF_S
-from surfelslam.eval.metrics import evaluate as _evaluate
+from surfelslam.eval.protocol import DEFAULT_MAX_DIFF_S
 from surfelslam.io.trajectory import read_tum
 from surfelslam.slam import FrameResult, SlamConfig, SlamResult, Tracker
 from surfelslam.slam.colour_check import colour_is_registered
@@ -231,9 +230,10 @@ def run_sequence(seq: RGBDSequence, out_dir: str | Path, cfg: SlamConfig, tracke
 
 @contextmanager
 def preloading(figures: bool | Collection[str], on_progress: Callable[[int, Any], None] | None):
-    """An ``on_progress`` callback (calling ``on_progress``) that, once the first frame is done, imports the figures'
-    modules in a background thread (:func:`~surfelslam.viz.run_report.preload_figure_modules`): the import overlaps
-    the tracking instead of adding to the run's end. The thread is joined on leaving."""
+    """An ``on_progress`` callback (calling ``on_progress``) that, once the first frame is done, imports the report's
+    modules (evo, matplotlib, the figures') in a background thread
+    (:func:`~surfelslam.viz.run_report.preload_figure_modules`): the import overlaps the tracking instead of adding to
+    the run's end. The thread is joined on leaving."""
     thread = threading.Thread(target=preload_figure_modules, args=(figures,), name="surfelslam-preload")
 
     def on_slot(done: int, res: FrameResult | None) -> None:
@@ -268,26 +268,32 @@ def run_folder(source: str | Path, out_dir: str | Path, cfg: SlamConfig, *, pose
     ``mesh`` / ``rerun`` also write ``mesh.ply`` (TSDF, default settings, the run's depth range) / ``run.rrd`` into
     the staging folder before the hand-over, so that an interrupted run leaves neither half written.
     ``viewer(seq)``: the live viewer's ``on_frame`` callback for the opened sequence (``None``: none). Everything is
-    checked before the run starts."""
-    from surfelslam.datasets.realsense import open_realsense
-    from surfelslam.mapping.mesh import MeshConfig
-    from surfelslam.slam.map_file import read_map_file
-    from surfelslam.slam.run_mesh import mesh_run
-    from surfelslam.viz.rerun_export import require_rerun
-    from surfelslam.viz.run_export import export_run
-
+    checked before the run starts. The modules of the options not taken (the mesh's TSDF, Rerun, the camera) are not
+    imported: a run's start does not pay for them."""
     check_map_options(cfg.tracker, map_dir, localize_only, poses)  # before reading a large map
-    prior = None if map_dir is None else read_map_file(map_dir)
+    prior = None if map_dir is None else load_map(map_dir)
     if rerun:
+        from surfelslam.viz.rerun_export import require_rerun
+
         require_rerun()  # before the run, not after it
-    seq = _open_sequence(source, cfg.dataset) if record is None else open_realsense(cfg.dataset, record, path=source)
+    if record is None:
+        seq = _open_sequence(source, cfg.dataset)
+    else:
+        from surfelslam.datasets.realsense import open_realsense
+
+        seq = open_realsense(cfg.dataset, record, path=source)
     made = FolderRun({})
 
     def before_commit(stage: Path) -> None:
         if mesh:
+            from surfelslam.mapping.mesh import MeshConfig
+            from surfelslam.slam.run_mesh import mesh_run
+
             made.mesh = mesh_run(stage, MeshConfig(), sequence=Path(str(seq.root)),
                                  progress=tsdf_bar if kwargs.get("progress", True) else None, run_depth_range=True)
         if rerun:
+            from surfelslam.viz.run_export import export_run
+
             made.export = export_run(stage, seq=seq)
 
     try:
@@ -367,6 +373,8 @@ def evaluate(estimate: Trajectory | str | Path, ground_truth: Trajectory | str |
     Returns plain numbers: ``ate_rmse_m``, ``ate_mean_m``, ``ate_max_m``, ``rpe_trans_rmse_m_per_frame``, ...
     (:func:`surfelslam.eval.metrics.evaluate`). ``max_diff_s``: the timestamp association bound.
     """
+    from surfelslam.eval.metrics import evaluate as evaluate_trajectories  # evo: imported when first needed
+
     est = estimate if isinstance(estimate, Trajectory) else read_tum(estimate)
     gt = ground_truth if isinstance(ground_truth, Trajectory) else read_tum(ground_truth)
-    return _evaluate(est, gt, max_diff_s)
+    return evaluate_trajectories(est, gt, max_diff_s)

@@ -40,10 +40,10 @@ from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 
 from surfelslam.errors import EvaluationError, GroundTruthError
+from surfelslam.eval.protocol import DEFAULT_MAX_DIFF_S
 from surfelslam.types import Trajectory
 
 MIN_ASSOCIATED_POSES = 3  # fewer pairs cannot constrain an SE(3) alignment
-DEFAULT_MAX_DIFF_S = 0.02  # TUM association window: 20 ms
 DEFAULT_REL_DELTA_TOL = 0.1  # evo's default relative tolerance for non-frame RPE deltas
 #: Positions closer than this to their mean (m) count as one point when explaining a failed alignment.
 STILL_SPREAD_M = 1e-9

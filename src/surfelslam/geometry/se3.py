@@ -10,10 +10,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from surfelslam.errors import ConfigValueError
 
 _SMALL_ANGLE_RAD = 1e-8  # below this angle, series expansions replace the closed forms
 _LOG_SERIES_RAD = 1e-3  # below this angle the log's scale angle / sin(angle / 2) is its series (as scipy)
+#: A stack's rotation whose ``R R^T`` differs from ``I`` by more than ``atol + rtol |I|`` (numpy's ``isclose``, as
+#: scipy's ``Rotation.from_matrix``) is first replaced by its nearest rotation (SVD); the others are taken as they are.
+_ORTHO_ATOL = 1e-12
+_ORTHO_RTOL = 1e-5
 
 
 def skew(w: np.ndarray) -> np.ndarray:
@@ -99,13 +104,90 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation(s) ``(..., 3, 3)`` -> axis-angle(s) ``(..., 3)``, robust near 0 and pi.
 
-    One matrix goes through :func:`_so3_log_one` (the trackers call this per frame and per edge: scipy's
-    ``Rotation`` costs about 0.1 ms a call in object overhead); stacks go through scipy.
+    One matrix goes through :func:`_so3_log_one` (the trackers call this per frame and per edge); a stack through
+    :func:`_quaternions` and the same angle formula: scipy's ``Rotation.from_matrix(R).as_rotvec()`` in numpy
+    (a run's start-up does not import scipy.spatial for it).
     """
     R = np.asarray(R, dtype=np.float64)
     if R.shape == (3, 3):
         return _so3_log_one(R)
-    return Rotation.from_matrix(R).as_rotvec()
+    q = _quaternions(R.reshape(-1, 3, 3))
+    # the canonical cover (scipy's): w > 0, or w = 0 and the first non-zero of x, y, z positive
+    x, y, z, w = q.T
+    flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
+    q[flip] = -q[flip]
+    v_norm = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2])
+    # libm's atan2 and sin, one value at a time: numpy's vectorised ones may differ in the last bit from the scalar
+    # path's (math), and a stack must give what its matrices give one by one
+    scale = np.array([_log_scale(2.0 * math.atan2(n, qw)) for n, qw in zip(v_norm.tolist(), q[:, 3].tolist(),
+                                                                          strict=True)])
+    return (q[:, :3] * scale.reshape(-1, 1)).reshape(R.shape[:-2] + (3,))
+
+
+def _log_scale(angle: float) -> float:
+    """``angle / sin(angle / 2)``: the factor from a unit quaternion's vector part to its axis-angle (series below
+    :data:`_LOG_SERIES_RAD`)."""
+    if angle <= _LOG_SERIES_RAD:
+        a2 = angle * angle
+        return 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0
+    return angle / math.sin(angle / 2.0)
+
+
+def _quaternions(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(N, 4)`` (``x, y, z, w``; either sign) of rotations ``(N, 3, 3)``: scipy's
+    ``Rotation.from_matrix`` (numbers bit for bit, checks as its): a matrix with a non-positive determinant is
+    refused (ConfigValueError, a ValueError as scipy's), one visibly off a rotation (:func:`_is_rotation`) is
+    projected onto SO(3) by SVD, then :func:`_markley` gives the quaternion."""
+    R = np.array(R, dtype=np.float64)
+    if len(R) == 1 and _is_rotation(R[0]):  # one pose per frame (the streamed trajectory): scalars are quicker
+        return np.array([_markley(*R[0].ravel().tolist())])
+    if len(R) == 0:
+        return np.zeros((0, 4))
+    det = np.linalg.det(R)
+    if np.any(det <= 0):
+        bad = int(np.flatnonzero(det <= 0)[0])
+        raise ConfigValueError(f"rotation {bad} has a non-positive determinant ({det[bad]:g}): not a rotation")
+    gram = R @ np.swapaxes(R, 1, 2)
+    eye = np.eye(3)
+    off = ~np.all(np.abs(gram - eye) <= _ORTHO_ATOL + _ORTHO_RTOL * eye, axis=(1, 2))
+    if off.any():
+        U, _, Vt = np.linalg.svd(R[off])
+        R[off] = U @ Vt
+    return np.array([_markley(*r) for r in R.reshape(-1, 9).tolist()])
+
+
+def _is_rotation(R: np.ndarray) -> bool:
+    """Whether ``R`` ``(3, 3)`` has a positive determinant and ``R R^T`` within :data:`_ORTHO_ATOL` /
+    :data:`_ORTHO_RTOL` of ``I`` (then :func:`_quaternions` takes it as it is)."""
+    rows = R.tolist()
+    (a, b, c), (d, e, f), (g, h, i) = rows
+    if not a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0:
+        return False
+    for k in range(3):
+        for m in range(k, 3):
+            dot = rows[k][0] * rows[m][0] + rows[k][1] * rows[m][1] + rows[k][2] * rows[m][2]
+            if not abs(dot - (k == m)) <= _ORTHO_ATOL + _ORTHO_RTOL * (k == m):
+                return False
+    return True
+
+
+def _markley(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float,
+             r22: float) -> tuple[float, float, float, float]:
+    """Markley's unit quaternion ``(x, y, z, w)`` of a rotation given row by row, as scipy computes it: from the
+    largest of the diagonal entries and the trace (the first on ties), the others from the (anti)symmetric parts."""
+    d = (r00, r11, r22, r00 + r11 + r22)
+    choice = max(range(4), key=d.__getitem__)  # the first of equal maxima, as numpy's argmax
+    if choice == 0:
+        q = (1.0 - d[3] + 2.0 * r00, r10 + r01, r20 + r02, r21 - r12)
+    elif choice == 1:
+        q = (r01 + r10, 1.0 - d[3] + 2.0 * r11, r21 + r12, r02 - r20)
+    elif choice == 2:
+        q = (r02 + r20, r12 + r21, 1.0 - d[3] + 2.0 * r22, r10 - r01)
+    else:
+        q = (r21 - r12, r02 - r20, r10 - r01, 1.0 + d[3])
+    x, y, z, w = q
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / n, y / n, z / n, w / n
 
 
 def _so3_log_one(R: np.ndarray) -> np.ndarray:
@@ -125,12 +207,7 @@ def _so3_log_one(R: np.ndarray) -> np.ndarray:
     if w < 0.0:
         n = -n
     x, y, z, w = x / n, y / n, z / n, w / n
-    angle = 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), w)
-    if angle <= _LOG_SERIES_RAD:
-        a2 = angle * angle
-        scale = 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0
-    else:
-        scale = angle / math.sin(angle / 2.0)
+    scale = _log_scale(2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), w))
     return np.array([scale * x, scale * y, scale * z])
 
 
@@ -173,7 +250,7 @@ def small_angle_update(xi: np.ndarray) -> np.ndarray:
 def rotation_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
     """Rotation(s) ``(..., 3, 3)`` -> unit quaternion(s) ``(..., 4)`` in ``(qx, qy, qz, qw)`` order, qw >= 0."""
     R = np.asarray(R, dtype=np.float64)
-    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    q = _quaternions(R.reshape(-1, 3, 3))
     q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
     return q.reshape(R.shape[:-2] + (4,))
 
@@ -181,10 +258,23 @@ def rotation_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
 def quat_xyzw_to_rotation(q: np.ndarray) -> np.ndarray:
     """Quaternion(s) ``(..., 4)`` in ``(qx, qy, qz, qw)`` order -> rotation(s) ``(..., 3, 3)``.
 
-    Quaternions are normalised first, so slightly non-unit file values are accepted.
+    Quaternions are normalised first, so slightly non-unit file values are accepted; a zero one is refused
+    (ConfigValueError, a ValueError as scipy's). The numbers are scipy's ``Rotation.from_quat(q).as_matrix()``'s,
+    bit for bit.
     """
     q = np.asarray(q, dtype=np.float64)
-    R = Rotation.from_quat(q.reshape(-1, 4)).as_matrix()
+    flat = q.reshape(-1, 4)
+    x, y, z, w = flat.T
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    if np.any(norm == 0):
+        raise ConfigValueError("a quaternion of zero norm is not a rotation")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    R = np.empty((len(flat), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
     return R.reshape(q.shape[:-1] + (3, 3))
 
 

@@ -10,13 +10,15 @@ two give the same files.
 
 The report (evaluation against the ground truth, figures) lives above this layer: the caller passes it in as a
 :data:`RunReport` (:func:`surfelslam.viz.run_report.run_report` is the standard one), and the writer calls it once
-every other output is in the staging folder, before ``metrics.json`` is written.
+the trajectory files are in the staging folder, while the map files are written in a background thread, before
+``metrics.json`` is written.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
@@ -65,6 +67,28 @@ RunReport = Callable[[RunRecord], None]
 def now_text() -> str:
     """The local time, ISO 8601 to the second (the metrics' ``started`` / ``finished``)."""
     return datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+class _Background:
+    """``fn(*args)`` in a daemon thread; :meth:`join` waits for it and raises its error, if it failed (unless
+    ``raise_error`` is False)."""
+
+    def __init__(self, fn: Callable[..., None], *args) -> None:
+        self._error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                fn(*args)
+            except BaseException as exc:  # noqa: BLE001 - raised again by join, in the caller's thread
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, name="surfelslam-write-map", daemon=True)
+        self._thread.start()
+
+    def join(self, raise_error: bool = True) -> None:
+        self._thread.join()
+        if raise_error and self._error is not None:
+            raise self._error
 
 
 class RunWriter:
@@ -121,11 +145,16 @@ class RunWriter:
                     out.append(float(t), T)
         self._write_pose_files(outcome)
         metrics = dict(outcome.metrics)
-        outcome.result.write_map(self.stage / MAP_PLY_FILE)
-        self._write_saved_map(outcome, metrics.get("sequence") or "")
-        if self.report is not None:
-            written = read_tum(path) if len(outcome.trajectory) else outcome.trajectory
-            self.report(RunRecord(self.stage, outcome, metrics, written, ground_truth))
+        # the map files (numpy copies and file writes: mostly outside the GIL) are written while the report runs
+        maps = _Background(self._write_maps, outcome, metrics.get("sequence") or "")
+        try:
+            if self.report is not None:
+                written = read_tum(path) if len(outcome.trajectory) else outcome.trajectory
+                self.report(RunRecord(self.stage, outcome, metrics, written, ground_truth))
+        except BaseException:
+            maps.join(raise_error=False)  # the report's error (or Ctrl-C) is the one the caller gets
+            raise
+        maps.join()
         metrics.update(complete=True, started=self.started, finished=now_text(), **self._overhead(outcome))
         write_text_atomic(self.stage / COMPLETE_MARKER, json.dumps(metrics, indent=2, default=json_default) + "\n")
         return metrics
@@ -157,6 +186,11 @@ class RunWriter:
             return 0
         poses.close()
         return poses.lines
+
+    def _write_maps(self, outcome: RunOutcome, sequence: str) -> None:
+        """``map.ply`` and ``map.npz``."""
+        outcome.result.write_map(self.stage / MAP_PLY_FILE)
+        self._write_saved_map(outcome, sequence)
 
     def _write_saved_map(self, outcome: RunOutcome, sequence: str) -> None:
         """``map.npz`` (:mod:`surfelslam.slam.map_file`) when the tracker saved a map."""

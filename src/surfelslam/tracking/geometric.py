@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from surfelslam.config import Config, check, fmt_value, setting
 from surfelslam.geometry import se3
@@ -141,6 +140,8 @@ def fpfh(points: np.ndarray, normals: np.ndarray, radius_m: float, bins: int,
     width = N_ANGLES * bins
     if n_pts < 2:
         return np.zeros((0, width), np.float32), np.zeros(0, np.int64)
+    from scipy.spatial import cKDTree  # here: scipy.spatial costs a run's start-up ~0.04 s, used only when lost
+
     p = np.ascontiguousarray(points, np.float64)
     n = np.ascontiguousarray(normals, np.float64)
     pairs = cKDTree(p).query_pairs(radius_m, output_type="ndarray").reshape(-1, 2).astype(np.int64)

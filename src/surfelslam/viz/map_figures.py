@@ -26,8 +26,12 @@ from surfelslam.viz import style
 from surfelslam.viz.save import new_figure, save_figure, write_png
 
 COLOUR_MODES = ("normal", "confidence", "time", "rgb")
-IMAGE_SIZE_PX = (800, 600)  # (width, height) of one rendered panel
 FIGURE_SIZE_PX = (1600, 1200)
+#: the 2x2 panels' placement in the figure (matplotlib's subplot parameters, fractions of the figure)
+PANEL_LAYOUT = {"left": 0.01, "right": 0.93, "bottom": 0.02, "top": 0.92, "wspace": 0.12, "hspace": 0.1}
+#: (width, height) of one rendered panel: 4:3 at the height a panel of the 1600x1200 figure has (1080 px for two
+#: panels and a tenth of one between them), so that it is drawn pixel for pixel, without resampling
+IMAGE_SIZE_PX = (686, 514)
 BACKGROUND = 1.0  # white
 _FULL_SCALE = 255  # an 8-bit channel's value for 1.0
 AMBIENT = 0.45  # Lambert shading: brightness of a surfel lit edge-on
@@ -276,11 +280,11 @@ def pixel_shade(index: np.ndarray, depth: np.ndarray, shade: np.ndarray) -> np.n
 
 
 def compose(index: np.ndarray, brightness: np.ndarray, colours: np.ndarray) -> np.ndarray:
-    """``(H, W, 3)`` uint8 image: surfel colours ``(N, 3)`` in [0, 1] times :func:`pixel_shade`, white background
-    (8 bits, as the PNG has them: matplotlib draws it without a float conversion of every pixel)."""
-    img = np.full((*index.shape, 3), round(BACKGROUND * _FULL_SCALE), np.uint8)
+    """``(H, W, 4)`` uint8 RGBA image, opaque: surfel colours ``(N, 3)`` in [0, 1] times :func:`pixel_shade`, white
+    background (8 bits with alpha, as matplotlib draws images: it takes it without a conversion of every pixel)."""
+    img = np.full((*index.shape, 4), round(BACKGROUND * _FULL_SCALE), np.uint8)
     hit = index >= 0
-    img[hit] = (colours[index[hit]] * (brightness[hit, None] * _FULL_SCALE) + 0.5).astype(np.uint8)
+    img[hit, :3] = (colours[index[hit]] * (brightness[hit, None] * _FULL_SCALE) + 0.5).astype(np.uint8)
     return img
 
 
@@ -316,7 +320,7 @@ def map_figure(cam: ViewCamera, position: np.ndarray, normal: np.ndarray, colour
     index, depth, shade = render(cam, position, normal, radius)
     brightness = pixel_shade(index, depth, shade)
     fig = new_figure((FIGURE_SIZE_PX[0] / style.DPI, FIGURE_SIZE_PX[1] / style.DPI))
-    fig.subplots_adjust(left=0.01, right=0.93, bottom=0.02, top=0.92, wspace=0.12, hspace=0.1)
+    fig.subplots_adjust(**PANEL_LAYOUT)
     fig.suptitle(title, fontsize=style.TITLE_FONTSIZE + 1)
     traj_px = None
     if cam.px_per_m is not None and trajectory_T_world_cam is not None and len(trajectory_T_world_cam):
@@ -324,7 +328,8 @@ def map_figure(cam: ViewCamera, position: np.ndarray, normal: np.ndarray, colour
     for k, mode in enumerate(COLOUR_MODES):
         ax = fig.add_subplot(2, 2, k + 1)
         colours, sm, note = point_colours(mode, normal, confidence, first_seen, colour)
-        ax.imshow(compose(index, brightness, colours), interpolation="antialiased")
+        # rendered at the panel's size: nearest-pixel drawing (antialiasing would filter every pixel for nothing)
+        ax.imshow(compose(index, brightness, colours), interpolation="nearest")
         panel_title = f"{_TITLES[mode].split(' (')[0]} ({note})" if note else _TITLES[mode]
         ax.set_title(panel_title, fontsize=style.TITLE_FONTSIZE)
         ax.set_xticks([])

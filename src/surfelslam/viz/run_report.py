@@ -2,17 +2,26 @@
 
 :func:`run_report` is what ``surfelslam run`` and :meth:`surfelslam.SlamRun.save` pass to the run writer
 (:class:`~surfelslam.slam.writer.RunWriter`): the writer lives below this layer and calls the report back.
+
+The evaluation's and the figures' modules (evo, matplotlib) are imported when the report runs, or ahead of it by
+:func:`preload_figure_modules` in a background thread while the run tracks, never when this module is imported: a
+run's start does not pay for them. The figures are drawn concurrently, one thread per figure file
+(:func:`run_concurrently`): each is its own matplotlib ``Figure`` on its own Agg canvas (no pyplot state), and
+their numpy, numba and PNG work runs outside the GIL.
 """
 
 from __future__ import annotations
 
 import functools
+import threading
 from collections.abc import Callable, Collection
+from typing import TYPE_CHECKING
 
 from surfelslam.errors import ConfigError
-from surfelslam.eval.metrics import ate
-from surfelslam.eval.run_eval import evaluate_run
 from surfelslam.slam.writer import RunRecord, RunReport
+
+if TYPE_CHECKING:
+    from surfelslam.eval.metrics import AteResult
 
 #: The PNGs a run writes: the trajectory and its ATE errors (with ground truth), the map's two views.
 RUN_FIGURES = frozenset({"trajectory", "ate_errors", "map_camera", "map_top"})
@@ -30,23 +39,53 @@ def figures_wanted(figures: bool | Collection[str]) -> frozenset[str]:
 
 
 def run_report(figures: bool | Collection[str] = True) -> RunReport:
-    """The report step: evaluation against the ground truth (when known), then the ``figures`` wanted."""
+    """The report step: evaluation against the ground truth (when known) and the ``figures`` wanted (drawn
+    concurrently, :func:`run_concurrently`)."""
     wanted = figures_wanted(figures)
 
     def report(record: RunRecord) -> None:
-        evaluate_run(record)
-        if wanted and len(record.trajectory):
-            write_trajectory_figures(record, wanted)
-            for job in map_figure_jobs(record, wanted):
-                job()
+        from surfelslam.eval.run_eval import evaluate_run
+
+        drawn = wanted if len(record.trajectory) else frozenset()
+        # the evaluation first, alone: its thousands of small numpy calls each release the GIL, and beside the figure
+        # threads each would wait for it again (several times its own time); then every figure side by side
+        ate = evaluate_run(record)
+        run_concurrently(trajectory_figure_jobs(record, drawn, ate) + map_figure_jobs(record, drawn))
 
     return report
 
 
+def run_concurrently(jobs: list[Callable[[], object]]) -> None:
+    """Run ``jobs``: the first in the calling thread, each other in a thread of its own; returns once all are done,
+    raising the first job's error (in ``jobs`` order) if any failed. The threads are daemons: an interrupted
+    caller does not wait for them (each figure is written to a temp file, then renamed)."""
+    errors: list[BaseException | None] = [None] * len(jobs)
+
+    def run(k: int) -> None:
+        try:
+            jobs[k]()
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller below
+            errors[k] = exc
+
+    threads = [threading.Thread(target=run, args=(k,), name=f"surfelslam-figure-{k}", daemon=True)
+               for k in range(1, len(jobs))]
+    for t in threads:
+        t.start()
+    if jobs:
+        run(0)
+    for t in threads:
+        t.join()
+    failed = next((e for e in errors if e is not None), None)
+    if failed is not None:
+        raise failed
+
+
 def preload_figure_modules(figures: bool | Collection[str] = True) -> None:
-    """Import the modules the ``figures`` need (matplotlib and the plotting modules) and warm the map figures'
-    first use (:func:`~surfelslam.viz.map_figures.warm_up_map_figures`) ahead of time: about a second of a run's
-    end; a run calls it in a background thread while it tracks."""
+    """Import the modules the report needs (evo for the evaluation; matplotlib and the plotting modules for the
+    ``figures``) and warm the map figures' first use (:func:`~surfelslam.viz.map_figures.warm_up_map_figures`) ahead
+    of time: about a second of a run's end; a run calls it in a background thread while it tracks."""
+    import surfelslam.eval.metrics  # noqa: F401
+
     wanted = figures_wanted(figures)
     if wanted & {"map_camera", "map_top"}:
         from surfelslam.viz.map_figures import warm_up_map_figures
@@ -56,18 +95,23 @@ def preload_figure_modules(figures: bool | Collection[str] = True) -> None:
         import surfelslam.viz.trajectory_plots  # noqa: F401
 
 
-def write_trajectory_figures(record: RunRecord, wanted: frozenset[str]) -> None:
-    """``trajectory.png`` and ``ate_errors.png`` where ``wanted`` and the run has an evaluation."""
-    out_dir, metrics, result, est = record.folder, record.metrics, record.outcome.result, record.trajectory
-    if "eval" in metrics and wanted & {"trajectory", "ate_errors"}:
-        from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory
+def trajectory_figure_jobs(record: RunRecord, wanted: frozenset[str], ate: AteResult | None,
+                           ) -> list[Callable[[], object]]:
+    """One job per trajectory figure ``wanted`` (``trajectory.png``, ``ate_errors.png``), drawn from the run's
+    evaluation ``ate`` (:func:`~surfelslam.eval.run_eval.evaluate_run`'s); none without one."""
+    if ate is None or not wanted & {"trajectory", "ate_errors"}:
+        return []
+    from surfelslam.viz.trajectory_plots import plot_errors, plot_trajectory
 
-        a = ate(est, record.ground_truth)
-        if "trajectory" in wanted:
-            plot_trajectory(out_dir / "trajectory.png", a.est_aligned, a.gt,
-                            title=f"{metrics['tracker']}: ATE RMSE {a.rmse_m * 100:.2f} cm", loops=result.loop_stamps)
-        if "ate_errors" in wanted:
-            plot_errors(out_dir / "ate_errors.png", a)
+    out_dir = record.folder
+    jobs: list[Callable[[], object]] = []
+    if "trajectory" in wanted:
+        jobs.append(functools.partial(plot_trajectory, out_dir / "trajectory.png", ate.est_aligned, ate.gt,
+                                      title=f"{record.metrics['tracker']}: ATE RMSE {ate.rmse_m * 100:.2f} cm",
+                                      loops=record.outcome.result.loop_stamps))
+    if "ate_errors" in wanted:
+        jobs.append(functools.partial(plot_errors, out_dir / "ate_errors.png", ate))
+    return jobs
 
 
 def map_figure_jobs(record: RunRecord, wanted: frozenset[str]) -> list[Callable[[], object]]:

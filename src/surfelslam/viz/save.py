@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import BinaryIO
 
+import cv2
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from PIL import Image
 
 from surfelslam.io.atomic import atomic_open
 from surfelslam.viz import style
@@ -27,13 +27,18 @@ def write_png(fig: Figure, fh: BinaryIO) -> None:
     """Render ``fig`` at :data:`style.DPI <surfelslam.viz.style.DPI>` and write it as PNG to ``fh``.
 
     An opaque figure (every figure of ours: white background) is written as RGB, not RGBA: the same pixels, a
-    quarter less to compress (a 1600x1200 map figure encodes in about 0.07 s less)."""
+    quarter less to compress (a 1600x1200 map figure encodes in about 0.07 s less). OpenCV encodes it: unlike
+    Pillow's PNG writer it releases the GIL, so that figures drawn in threads side by side encode in parallel."""
     canvas = fig.canvas if isinstance(fig.canvas, FigureCanvasAgg) else FigureCanvasAgg(fig)
     fig.set_dpi(style.DPI)
     canvas.draw()
     rgba = np.asarray(canvas.buffer_rgba())  # (H, W, 4) uint8
-    pixels = np.ascontiguousarray(rgba[..., :3]) if (rgba[..., 3] == _OPAQUE).all() else rgba
-    Image.fromarray(pixels).save(fh, format="png", compress_level=style.PNG_COMPRESS_LEVEL)
+    opaque = bool((rgba[..., 3] == _OPAQUE).all())
+    pixels = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGR if opaque else cv2.COLOR_RGBA2BGRA)  # OpenCV's channel order
+    ok, png = cv2.imencode(".png", pixels, [cv2.IMWRITE_PNG_COMPRESSION, style.PNG_COMPRESS_LEVEL])
+    if not ok:
+        raise ValueError(f"OpenCV could not encode a {pixels.shape} figure as PNG")
+    fh.write(png.tobytes())
 
 
 def save_figure(fig: Figure, path: str | Path) -> Path:
