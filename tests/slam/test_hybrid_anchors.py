@@ -122,3 +122,28 @@ def test_trajectory_spreads_the_change_between_keyframes_over_the_frames_between
     # the dense keyframe poses themselves: every frame where it was tracked
     np.testing.assert_allclose(anchors.trajectory(kf).T_world_cam, np.array([
         kf[a] @ anchors.T_kf_cam[i] for i, a in enumerate(anchors.anchor)]), atol=1e-12)
+
+
+def test_the_last_frame_promoted_to_keyframe_anchors_itself_and_takes_the_change_before_it() -> None:
+    """The last frame promoted to a keyframe at the end: it anchors itself at its dense pose, the trajectory at the
+    dense poses is unchanged, and a graph change of it reaches the frames before it in proportion to their time."""
+    graph = _Graph()
+    anchors = KeyframeAnchors(graph)
+    step = se3.make_T(np.eye(3), [0.02, 0.0, 0.0])
+    T = np.eye(4)
+    for i in range(5):
+        if i == 0:
+            graph.poses.append(T.copy())
+            anchors.add_keyframe(T)
+        anchors.record(i, 0.1 * i, T, fused=True)
+        T = T @ step
+    before = anchors.trajectory().T_world_cam
+    anchors.promote_last()
+    graph.poses.append(anchors.kf_dense.poses[-1].copy())
+    assert anchors.anchor == [0, 0, 0, 0, 1] and len(anchors) == 2
+    np.testing.assert_allclose(anchors.kf_dense.poses[1], before[4], atol=1e-12)
+    np.testing.assert_allclose(anchors.trajectory().T_world_cam, before, atol=1e-12)
+    kf_new = np.array(graph.poses)
+    kf_new[1] = se3.make_T(np.eye(3), [0.0, 0.004, 0.0]) @ kf_new[1]  # the graph moves the last frame 4 mm along y
+    moved = anchors.trajectory(kf_new).T_world_cam[:, 1, 3] - before[:, 1, 3]
+    np.testing.assert_allclose(moved, [0.0, 0.001, 0.002, 0.003, 0.004], atol=1e-12)

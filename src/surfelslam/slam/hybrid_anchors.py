@@ -57,6 +57,15 @@ class KeyframeAnchors:
         self.kf_slot.append(len(self.stamps))
         self.kf_dense.append(T_world_kf)
 
+    def promote_last(self) -> None:
+        """The last recorded frame became a keyframe (:meth:`SparseSlam.promote_last_frame`): it anchors itself."""
+        T_world_kf = self.kf_dense.poses[self.anchor[-1]] @ self.T_kf_cam[-1]
+        self.kf_step.append(self.T_kf_cam[-1])
+        self.kf_slot.append(len(self.stamps) - 1)
+        self.kf_dense.append(T_world_kf)
+        self.anchor[-1] = len(self.kf_dense) - 1
+        self.T_kf_cam[-1] = np.eye(4)
+
     def record(self, frame_index: int, timestamp: float, T_world_cam: np.ndarray, fused: bool) -> None:
         """A processed frame at ``T_world_cam`` (dense frame), anchored to the back end's last keyframe."""
         anchor = self.sparse.n_keyframes - 1
