@@ -118,7 +118,7 @@ def test_the_hybrids_back_end_profile():
     assert sp.graph.edge_information == "isotropic" and sp.features_reference_width_px == 0
     assert sp.features.depth_edge_rel == 0.0
     assert sp.features.guided_radius_px == pytest.approx(262.5 * np.tan(np.radians(2.6)))  # 2.6 deg: 11.9 px
-    assert sp.graph.odometry_information == pytest.approx(1e6)
+    assert sp.graph.odometry_information == pytest.approx(0.003 ** -2)  # 3 mm, the refined loop edges' floor
     assert sp.graph.robust_scale_sigma == pytest.approx(0.03 * np.sqrt(100.0))
     assert sp.features.n_features == cfg.sparse.features.n_features  # the rest is [sparse]'s
     assert hybrid_sparse_config(cfg, -262.5) == sp  # a negative focal length (flipped y) gives the same radius

@@ -319,6 +319,23 @@ def test_posed_frames_are_extracted_only_when_they_become_keyframes(loop_frames)
     np.testing.assert_allclose(slam.keyframe_poses(), poses[kf_frames], atol=1e-9)
 
 
+def test_the_last_placed_frame_can_become_a_keyframe_at_its_pose(loop_frames) -> None:
+    """Before finish, the last posed frame (not a keyframe) becomes one: a keyframe more, at the frame's pose, with the
+    odometry edge from the previous keyframe; the trajectory is unchanged, and a keyframe is not promoted again."""
+    poses, frames = loop_frames
+    slam = SparseSlam(ROOM_INTR, replace(NO_LOOP_CFG, keyframe_threshold=0.5), T_world_first=poses[0])
+    out = [slam.process(f, T_world_cam_dense=T) for f, T in zip(frames[:12], poses[:12], strict=True)]
+    assert not out[-1].is_keyframe
+    n_kf, before = slam.n_keyframes, slam.trajectory().T_world_cam
+    assert slam.promote_last_frame(frames[11])
+    assert slam.n_keyframes == n_kf + 1 and slam.keyframe_frame_indices()[-1] == 11
+    np.testing.assert_allclose(slam.keyframe_poses()[-1], poses[11], atol=1e-9)
+    np.testing.assert_allclose(slam.trajectory().T_world_cam, before, atol=1e-9)
+    assert not slam.promote_last_frame(frames[11])
+    res = slam.finish()
+    np.testing.assert_allclose(res.keyframe_poses[-1], poses[11], atol=1e-6)  # the odometry edge holds it there
+
+
 def test_keyframe_clouds_can_be_left_out(loop_frames) -> None:
     """A caller with its own map (the hybrid's surfels) leaves the keyframe clouds out: the poses are the same, the
     sparse map is empty; by default the map holds the keyframes' points."""

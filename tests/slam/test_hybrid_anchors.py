@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from surfelslam.geometry import se3
 from surfelslam.mapping.surfel_map import SurfelMap
@@ -84,3 +85,65 @@ def test_partial_correction_moves_only_the_keyframes_that_move_and_the_final_one
     np.testing.assert_allclose(anchors.kf_dense.poses, kf2, atol=1e-12)
     assert anchors.map_corrections == 2
 
+
+
+def test_trajectory_spreads_the_change_between_keyframes_over_the_frames_between_them() -> None:
+    """Keyframes 0, 1, 2 at frames 0, 4, 8 (0.1 s apart) on a straight dense path; the graph moves keyframe 1 by 4 mm
+    and turns it 0.4 deg beyond its dense step from keyframe 0 and leaves keyframe 2's step from 1 as it was: the frame
+    a quarter of the way to keyframe 1 takes a quarter of that change, keyframe 1's own frame all of it, and the frames
+    after keyframe 1 (and the last keyframe) move rigidly with their anchor."""
+    graph = _Graph()
+    anchors = KeyframeAnchors(graph)
+    step = se3.make_T(se3.so3_exp([0.0, 0.02, 0.0]), [0.01, 0.0, 0.0])  # dense motion per frame
+    T = np.eye(4)
+    for i in range(11):
+        if i % 4 == 0:
+            graph.poses.append(T.copy())
+            anchors.add_keyframe(T)
+        anchors.record(i, 0.1 * i, T, fused=True)
+        T = T @ step
+    kf = np.array(graph.poses)
+    change = se3.make_T(se3.so3_exp([0.0, 0.0, np.radians(0.4)]), [0.004, 0.0, 0.0])
+    kf_new = kf.copy()
+    kf_new[1] = kf[1] @ change
+    kf_new[2] = kf_new[1] @ se3.invert(kf[1]) @ kf[2]  # keyframe 2's dense step from 1 kept
+    traj = anchors.trajectory(kf_new).T_world_cam
+    W = se3.invert(kf[0]) @ kf_new[1] @ se3.invert(kf[1])  # the change, in keyframe 0's frame
+    W_quarter = se3.make_T(se3.so3_exp(0.25 * se3.so3_log(W[:3, :3])), 0.25 * W[:3, 3])
+    np.testing.assert_allclose(traj[0], kf_new[0], atol=1e-12)
+    np.testing.assert_allclose(traj[1], kf_new[0] @ W_quarter @ step, atol=1e-12)
+    np.testing.assert_allclose(traj[4], kf_new[1], atol=1e-12)
+    # a quarter of the 0.4 deg turn, as the frame is a quarter of the time to keyframe 1
+    assert se3.rotation_angle_deg((se3.invert(kf_new[0]) @ traj[1] @ se3.invert(step))[:3, :3]) \
+        == pytest.approx(0.1, abs=1e-9)
+    for i in (5, 6, 7, 8, 9, 10):  # keyframe 1 -> 2 unchanged, and after the last keyframe: rigid
+        anchor = 1 if i < 8 else 2
+        np.testing.assert_allclose(traj[i], kf_new[anchor] @ anchors.T_kf_cam[i], atol=1e-12)
+    # the dense keyframe poses themselves: every frame where it was tracked
+    np.testing.assert_allclose(anchors.trajectory(kf).T_world_cam, np.array([
+        kf[a] @ anchors.T_kf_cam[i] for i, a in enumerate(anchors.anchor)]), atol=1e-12)
+
+
+def test_the_last_frame_promoted_to_keyframe_anchors_itself_and_takes_the_change_before_it() -> None:
+    """The last frame promoted to a keyframe at the end: it anchors itself at its dense pose, the trajectory at the
+    dense poses is unchanged, and a graph change of it reaches the frames before it in proportion to their time."""
+    graph = _Graph()
+    anchors = KeyframeAnchors(graph)
+    step = se3.make_T(np.eye(3), [0.02, 0.0, 0.0])
+    T = np.eye(4)
+    for i in range(5):
+        if i == 0:
+            graph.poses.append(T.copy())
+            anchors.add_keyframe(T)
+        anchors.record(i, 0.1 * i, T, fused=True)
+        T = T @ step
+    before = anchors.trajectory().T_world_cam
+    anchors.promote_last()
+    graph.poses.append(anchors.kf_dense.poses[-1].copy())
+    assert anchors.anchor == [0, 0, 0, 0, 1] and len(anchors) == 2
+    np.testing.assert_allclose(anchors.kf_dense.poses[1], before[4], atol=1e-12)
+    np.testing.assert_allclose(anchors.trajectory().T_world_cam, before, atol=1e-12)
+    kf_new = np.array(graph.poses)
+    kf_new[1] = se3.make_T(np.eye(3), [0.0, 0.004, 0.0]) @ kf_new[1]  # the graph moves the last frame 4 mm along y
+    moved = anchors.trajectory(kf_new).T_world_cam[:, 1, 3] - before[:, 1, 3]
+    np.testing.assert_allclose(moved, [0.0, 0.001, 0.002, 0.003, 0.004], atol=1e-12)

@@ -126,7 +126,9 @@ def test_default_is_the_hybrid_with_its_own_keyframe_spacing():
                     "changed": replace(cfg, sparse=replace(cfg.sparse, keyframe_threshold=0.05,
                                                            keyframe_min_gap_frames=1))}.items():
         kf_frames[name] = _run(cfg.tracker, frames[:14], c)[2].sparse.keyframe_frame_indices()
-    gaps = np.diff(kf_frames["default"])
+    # the last frame (13) becomes a keyframe at the end, whatever the gap
+    assert all(k[-1] == 13 for k in kf_frames.values()), kf_frames
+    gaps = np.diff(kf_frames["default"][:-1])
     # measured on these 14 frames: keyframes every 3 frames by default (5), every 2 without the gap (7), almost every
     # frame at 0.05 (12)
     assert len(kf_frames["default"]) >= 5 and gap == 3 and gaps.min() == gap, kf_frames

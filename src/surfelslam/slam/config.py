@@ -147,8 +147,11 @@ def _hybrid_loop_icp() -> DenseEdgeConfig:
     """The hybrid's keyframe-edge ICP: without the feature refinement before it (``pnp_refinement`` off), which
     costs about 40 % of the loop-check time for little gain once ICP refines the edge; an edge's information lowered
     along the directions its depth leaves weak (``weak_direction_ratio`` 100), so that edges between views of a
-    ceiling and a wall do not pull the trajectory along the planes' intersection."""
-    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0)
+    ceiling and a wall do not pull the trajectory along the planes' intersection; the PnP inliers weighing as much as
+    a point-to-plane pair each (``feature_weight`` 1): at 0.1 keyframe-to-keyframe ICP slid millimetres along the
+    direction of motion where the depth constrains it weakly, and those biased edges, not the odometry, held the
+    fast-motion keyframes 3x farther from the truth than the orb tracker's."""
+    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0, feature_weight=1.0)
 
 
 def _frame_to_model_icp() -> ICPConfig:
@@ -255,7 +258,7 @@ class HybridConfig(Config):
                               "[sparse.features] depth_edge_rel is the orb's",
         "guided_match_deg": "the hybrid's is a constant (2.6 deg, GUIDED_MATCH_DEG in "
                             "surfelslam/slam/hybrid_profile.py); [sparse.features] guided_radius_px is the orb's",
-        "dense_odometry_sigma_m": "the hybrid's is a constant (0.001 m, DENSE_ODOMETRY_SIGMA_M in "
+        "dense_odometry_sigma_m": "the hybrid's is a constant (0.003 m, DENSE_ODOMETRY_SIGMA_M in "
                                   "surfelslam/slam/hybrid_profile.py); [sparse.graph] odometry_information is the "
                                   "orb's",
         "loop_robust_scale_m": "the hybrid's is a constant (0.03 m, LOOP_ROBUST_SCALE_M in "
@@ -263,9 +266,8 @@ class HybridConfig(Config):
 
 
 def _orb_loop_icp() -> DenseEdgeConfig:
-    """The orb tracker's keyframe ICP: the hybrid's, with the PnP inliers weighing 3x more (``feature_weight`` 0.3:
-    the features are its odometry's main measurement) and no depth-only nearby edges (its odometry is keyframe ICP
-    already)."""
+    """The orb tracker's keyframe ICP: the PnP refinement before it, the PnP inliers at ``feature_weight`` 0.3, no
+    weak-direction shaping, and no depth-only nearby edges (its odometry is keyframe ICP already)."""
     return DenseEdgeConfig(feature_weight=0.3, depth_only_nearby=False)
 
 

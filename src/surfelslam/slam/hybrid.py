@@ -32,9 +32,11 @@ Hybrid SLAM (:class:`HybridSlam`, tracker ``hybrid``) is dense SLAM with the spa
    would move by more than ``hybrid.live_correction_min_m`` (re-posing the live map for centimetre
    corrections smears it), and then only the keyframes (with their surfels) that move by more than
    ``hybrid.live_correction_keyframe_min_m``, so the cost follows what moves, not the map; the rest wait for
-   a later correction or ``finish``, which moves every surfel to its keyframe's final correction. The
-   written trajectory is every frame's
-   ``T_kf_graph(final) T_kf_cam``.
+   a later correction or ``finish``, which moves every surfel to its keyframe's final correction. At
+   ``finish`` the last frame, if placed and not a keyframe, becomes one (its loop checks correct the frames after
+   the last keyframe too). The written trajectory is every frame's ``T_kf_graph(final) T_kf_cam`` with the
+   graph's change of the next keyframe relative to its own shared in proportion to time
+   (:meth:`KeyframeAnchors.trajectory`).
 
 The parts are components the tracker holds: the dense front end (:mod:`.frontend`), the sparse back end, the
 PnP-guided localisation (:mod:`.hybrid_localise`) and the keyframe anchors with their corrections
@@ -112,6 +114,7 @@ class HybridSlam:
         self._keyframe_feats: Future | None = None  # the features of a frame about to become a keyframe
         self._stamp_of_frame: dict[int, float] = {}
         self._feats: Features | None = None  # the current frame's ORB features (extracted at most once)
+        self._last_placed: RGBDFrame | None = None  # the last frame, if the back end placed it (not a keyframe)
         self._final_correction_m: float | None = None
         self._loop_correction_skipped = 0
 
@@ -283,6 +286,7 @@ class HybridSlam:
             t.lap("sparse")
             if sr.is_keyframe:
                 self.anchors.add_keyframe(T_new)
+        self._last_placed = frame if sr is not None and not sr.is_keyframe else None
         self._keyframe_feats = None
         self.anchors.record(frame.index, frame.timestamp, T_new, tracked)
         self.front.state.T_world_cam = T_new
@@ -330,6 +334,11 @@ class HybridSlam:
     def finish(self) -> SlamResult:
         """End of the run: the final loop correction, the map, the corrected trajectory and the counts."""
         self._worker.shutdown(wait=True)
+        # the frames after the last keyframe are corrected too when the last one becomes a keyframe
+        if self.cfg.hybrid.loop_correction and self._last_placed is not None \
+                and self.sparse.promote_last_frame(self._last_placed):
+            self.anchors.promote_last()
+        self._last_placed = None
         res = self.sparse.finish()
         kf_final = self._final_keyframes(res.keyframe_poses)
         corrected = self.cfg.hybrid.loop_correction and self.anchors.map_corrections > 0

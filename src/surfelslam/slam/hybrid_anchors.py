@@ -4,11 +4,17 @@ Each frame is anchored to the last keyframe when it was processed: its pose is k
 keyframe's pose in the dense frame (``T_kf_dense``, the ICP pose it was created with); each surfel is anchored to the
 anchor of the frame that created it (``first_seen`` -> anchor, a sorted frame-index table). A keyframe's correction
 is ``C_k = T_kf_graph inv(T_kf_dense)`` (see :mod:`surfelslam.slam.hybrid` for when corrections are applied).
+
+The written trajectory does not move a frame rigidly with its anchor: the graph also changes each keyframe's pose
+relative to the next one (the dense odometry between them drifts), so a frame between keyframes ``k`` and ``k + 1``
+takes the fraction of that change its time spent since ``k`` (:meth:`KeyframeAnchors.trajectory`); else the frames
+just before ``k + 1`` would keep the whole drift that the graph removed from ``k + 1``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.geometry import se3
@@ -29,6 +35,10 @@ class KeyframeAnchors:
     def __init__(self, sparse: SparseSlam):
         self.sparse = sparse
         self.kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
+        # per keyframe: its pose relative to the previous keyframe's in the dense frame when it was added (the
+        # odometry edge the graph got; identity for the first), and the slot of its own frame in the records
+        self.kf_step: list[np.ndarray] = []
+        self.kf_slot: list[int] = []
         self.stamps: list[float] = []
         self.anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
         self.T_kf_cam: list[np.ndarray] = []
@@ -41,8 +51,20 @@ class KeyframeAnchors:
         return len(self.kf_dense)
 
     def add_keyframe(self, T_world_kf: np.ndarray) -> None:
-        """A new keyframe at ``T_world_kf`` ``(4, 4)`` in the dense frame."""
+        """A new keyframe at ``T_world_kf`` ``(4, 4)`` in the dense frame (its own frame is recorded next)."""
+        prev = self.kf_dense.poses[-1] if len(self.kf_dense) else np.asarray(T_world_kf)
+        self.kf_step.append(se3.invert(prev) @ T_world_kf)
+        self.kf_slot.append(len(self.stamps))
         self.kf_dense.append(T_world_kf)
+
+    def promote_last(self) -> None:
+        """The last recorded frame became a keyframe (:meth:`SparseSlam.promote_last_frame`): it anchors itself."""
+        T_world_kf = self.kf_dense.poses[self.anchor[-1]] @ self.T_kf_cam[-1]
+        self.kf_step.append(self.T_kf_cam[-1])
+        self.kf_slot.append(len(self.stamps) - 1)
+        self.kf_dense.append(T_world_kf)
+        self.anchor[-1] = len(self.kf_dense) - 1
+        self.T_kf_cam[-1] = np.eye(4)
 
     def record(self, frame_index: int, timestamp: float, T_world_cam: np.ndarray, fused: bool) -> None:
         """A processed frame at ``T_world_cam`` (dense frame), anchored to the back end's last keyframe."""
@@ -101,10 +123,47 @@ class KeyframeAnchors:
         return np.asarray(self.fused_anchor, np.int64)[row][first_seen]
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
-        """Every frame's pose ``T_world_kf T_kf_cam`` with ``kf_poses`` ``(K, 4, 4)`` (default: the graph's)."""
+        """Every frame's pose with the keyframe poses ``kf_poses`` ``(K, 4, 4)`` (default: the graph's):
+        ``T_world_kf W_k(a) T_kf_cam`` for a frame anchored to keyframe ``k``, where ``W_k = inv(T_world_kf)
+        T_world_kf+1 inv(step_k+1)`` is how the poses change keyframe ``k + 1`` relative to ``k`` beyond the dense
+        step between them, and ``W_k(a)`` its fraction ``a`` (rotation angle and translation scaled by ``a``), ``a``
+        the frame's time from keyframe ``k``'s over the time to ``k + 1``'s (0 after the last keyframe)."""
         kf = self.sparse.keyframe_poses() if kf_poses is None else kf_poses
-        T = kf[np.asarray(self.anchor)] @ np.asarray(self.T_kf_cam)
-        return Trajectory(np.asarray(self.stamps), T)
+        anchor = np.asarray(self.anchor, np.int64)
+        T_kf_cam = np.asarray(self.T_kf_cam).reshape(-1, 4, 4)
+        stamps = np.asarray(self.stamps, np.float64)
+        W = self._next_keyframe_changes(kf)
+        frac = self._fractions(stamps, anchor, len(W))
+        Wa = np.tile(np.eye(4), (len(anchor), 1, 1))
+        part = np.flatnonzero(frac > 0)
+        if len(part):
+            a, k = frac[part], anchor[part]
+            Wa[part, :3, :3] = Rotation.from_rotvec(a[:, None] * se3.so3_log(W[k, :3, :3])).as_matrix()
+            Wa[part, :3, 3] = a[:, None] * W[k, :3, 3]
+        return Trajectory(stamps, kf[anchor] @ Wa @ T_kf_cam)
+
+    def _next_keyframe_changes(self, kf: np.ndarray) -> np.ndarray:
+        """``(K - 1, 4, 4)`` ``W_k = inv(kf_k) kf_k+1 inv(step_k+1)`` for the keyframe poses ``kf`` ``(K, 4, 4)``
+        (identity where ``kf`` keeps the dense step)."""
+        if len(kf) < 2:
+            return np.zeros((0, 4, 4))
+        steps = np.asarray(self.kf_step[1:len(kf)])
+        return se3.invert(kf[:-1]) @ kf[1:] @ se3.invert(steps)
+
+    def _fractions(self, stamps: np.ndarray, anchor: np.ndarray, n_changes: int) -> np.ndarray:
+        """``(N,)`` each record's fraction of the way (in time) from its anchor keyframe's frame to the next
+        keyframe's (0 without a recorded next keyframe, or when their times do not increase)."""
+        frac = np.zeros(len(anchor))
+        slots = np.asarray(self.kf_slot, np.int64)
+        has_next = anchor < min(n_changes, int(np.count_nonzero(slots < len(stamps))) - 1)
+        if not has_next.any():
+            return frac
+        k = anchor[has_next]
+        t0, t1 = stamps[slots[k]], stamps[slots[k + 1]]
+        span = t1 - t0
+        ok = span > 0
+        frac[np.flatnonzero(has_next)[ok]] = np.clip((stamps[has_next][ok] - t0[ok]) / span[ok], 0.0, 1.0)
+        return frac
 
     def correction_m(self, kf_new: np.ndarray) -> float:
         """How far (m) the final graph poses ``kf_new`` move the farthest keyframe from its current pose, the first

@@ -37,8 +37,11 @@ DEPTH_EDGE_REL = 0.0
 #: deg: the per-frame PnP match seeks each keyframe keypoint within this angle of where the motion prediction puts it
 #: (pixels = focal length x tan: 12 px at 320x240); brute force when that finds too few
 GUIDED_MATCH_DEG = 2.6
-#: m and rad: pose-graph sigma of the odometry edges between keyframes (dense poses, far more precise than PnP)
-DENSE_ODOMETRY_SIGMA_M = 0.001
+#: m and rad: pose-graph sigma of the odometry edges between keyframes (dense poses), that of the refined loop edges'
+#: floor (``[hybrid.loop_icp] sigma_m``): frame-to-model tracking drifts with a bias along the motion (about 0.5 % of
+#: the keyframe step on fast synthetic motion), so 1 mm against their 3 mm kept that drift where the refined edges
+#: measured it; PnP loop edges (10 cm) stay far looser
+DENSE_ODOMETRY_SIGMA_M = 0.003
 #: m: scale of the Cauchy kernel on the loop edges (PnP loop edges centimetres off are mostly wrong)
 LOOP_ROBUST_SCALE_M = 0.03
 

@@ -281,6 +281,18 @@ class SparseSlam:
         loops_added, self._unreported_loops = self._unreported_loops, 0
         return SparseFrameResult(T_world_cam.copy(), is_kf, True, None, -1, loops_added)
 
+    def promote_last_frame(self, frame: RGBDFrame, feats: Features | None = None) -> bool:
+        """Before :meth:`finish`: the last processed frame (``frame``, placed against the reference keyframe) becomes a
+        keyframe at its pose, so the graph corrects the frames after the last keyframe too. Returns whether it did."""
+        if not self._timestamps or self._frame_kf[-1] != self._ref_kf or self._kfs[-1].frame_index == frame.index:
+            return False
+        ref, T_kf_cam = self._frame_kf.pop(), self._T_kf_cam.pop()
+        self._timestamps.pop()
+        self._add_keyframe(frame, self.features(frame) if feats is None else feats,
+                           self._kf_poses[ref] @ T_kf_cam, ref, T_kf_cam)
+        self._record(frame.timestamp, self.n_keyframes - 1, np.eye(4), None)
+        return True
+
     def becomes_keyframe(self, T_world_cam: np.ndarray) -> bool:
         """Whether a frame posed at ``T_world_cam`` by another tracker, processed next, becomes a keyframe (its
         features can then be extracted ahead). State is unchanged."""
