@@ -71,6 +71,31 @@ def test_a_pnp_edge_is_refined_to_dense_precision(room_pair):
         assert dt < 1.5e-3 and dr < 0.05, (dt, dr)
 
 
+def test_an_edge_from_an_odometry_close_start_is_refined_at_the_finest_level_alone(room_pair, monkeypatch):
+    """``finest_only`` (a nearby pair from its odometry, a few mm off): one pyramid level is registered instead of
+    three, and the edge comes out within a millimetre of the truth and of the whole pyramid's edge."""
+    from surfelslam.backend import dense_edges
+
+    d_ref, d_cur, T_true = room_pair
+    ref = _refiner()
+    ref.add_keyframe(0, d_ref)
+    ref.add_keyframe(1, d_cur)
+    T_odometry = se3.exp(np.array([0.002, -0.002, 0.001, 0.002, -0.002, 0.002])) @ T_true
+    pts, uv = _keypoints(d_ref, T_true, 200, seed=1)
+    levels = []
+    real_icp = dense_edges.icp
+    monkeypatch.setattr(dense_edges, "icp", lambda *a, **k: levels.append(k["cfg"].levels) or real_icp(*a, **k))
+    full = ref.refine(0, 1, T_odometry, pts, uv)
+    finest = ref.refine(0, 1, T_odometry, pts, uv, finest_only=True)
+    assert levels == [EDGE_ICP.levels, 1]
+    assert full is not None and finest is not None
+    dt, dr = se3.pose_error(finest.T_cur_ref, full.T_cur_ref)
+    assert dt < 1e-3 and dr < 0.02, (dt, dr)  # the finest level's own minimum, a fraction of a mm away
+    assert se3.pose_error(T_odometry, T_true)[0] > 3e-3
+    dt, dr = se3.pose_error(finest.T_cur_ref, T_true)
+    assert dt < 1e-3 and dr < 0.02, (dt, dr)
+
+
 def test_feature_terms_hold_what_a_plane_leaves_free():
     """One textured plane leaves 3 DoF free: geometry alone is degenerate (edge dropped). 150 PnP inliers as
     reprojection terms at the default weight still leave the joint system ill-conditioned (condition number

@@ -147,8 +147,9 @@ def _hybrid_loop_icp() -> DenseEdgeConfig:
     """The hybrid's keyframe-edge ICP: without the feature refinement before it (``pnp_refinement`` off), which
     costs about 40 % of the loop-check time for little gain once ICP refines the edge; an edge's information lowered
     along the directions its depth leaves weak (``weak_direction_ratio`` 100), so that edges between views of a
-    ceiling and a wall do not pull the trajectory along the planes' intersection."""
-    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0)
+    ceiling and a wall do not pull the trajectory along the planes' intersection; nearby pairs checked from the dense
+    odometry's relative pose (``odometry_nearby``: no RANSAC, finest ICP level only)."""
+    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0, odometry_nearby=True)
 
 
 def _frame_to_model_icp() -> ICPConfig:

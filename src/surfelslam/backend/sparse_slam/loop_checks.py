@@ -19,6 +19,10 @@ from surfelslam.tracking.features import FeatureConfig, Features
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics
 
+#: fraction: with ``DenseEdgeConfig.odometry_nearby``, a nearby pair's odometry stands for PnP-RANSAC when it
+#: reprojects at least this share of the guided matches (a wrong pose explains few; RANSAC decides then)
+ODOMETRY_MIN_INLIER_FRACTION = 0.5
+
 
 class LoopChecker:
     """Verifies the loop candidates of new keyframes and keeps the retrieval index.
@@ -116,21 +120,22 @@ class LoopChecker:
         if pyramid is not None and self._refiner is not None:
             self._refiner.adopt(kf_id, pyramid)
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self._loop_cfg):
-            guided = cand.source == "nearby" or self._loop_cfg.guided_older
-            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if guided else None
+            nearby = cand.source == "nearby"
+            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if nearby or self._loop_cfg.guided_older else None
+            from_odometry = nearby and self._refiner is not None and self._refiner.cfg.odometry_nearby
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg,
-                              prior)
+                              prior, ODOMETRY_MIN_INLIER_FRACTION if from_odometry else 0.0)
             refined = None
             if res.ok and self._refiner is not None:
                 inl = res.pairs[res.inlier_mask]
                 uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
                 refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
-                                               self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
-            elif (not res.ok and cand.source == "nearby" and self._refiner is not None
-                  and self._refiner.cfg.depth_only_nearby
+                                               self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv,
+                                               finest_only=from_odometry)
+            elif (not res.ok and nearby and self._refiner is not None and self._refiner.cfg.depth_only_nearby
                   and res.n_good < self._refiner.cfg.depth_only_max_matches):
                 # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
-                refined = self._refiner.refine(cand.kf_id, kf_id, prior)
+                refined = self._refiner.refine(cand.kf_id, kf_id, prior, finest_only=from_odometry)
                 if refined is not None:
                     checked.append(LoopCheck(cand, res, refined, depth_only=True))
                 continue
