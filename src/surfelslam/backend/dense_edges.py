@@ -114,9 +114,9 @@ class DenseEdgeConfig(Config):
                                               "(texture too poor to verify)")
     odometry_nearby: bool = setting(
         False, doc="a nearby keyframe pair is checked from the odometry's relative pose (good to a few mm): its "
-                   "guided matches that this pose reprojects stand for PnP-RANSAC when they are most of them, and "
-                   "its ICP runs at the finest level only; about a third less loop-check time (off: RANSAC and every "
-                   "level, as for older keyframes)")
+                   "guided matches that this pose reprojects stand for PnP-RANSAC when they are at least half of "
+                   "them, and its ICP runs at the finest level only; about a fifth less loop-check time (off: "
+                   "RANSAC and every level, as for older keyframes)")
 
     _spread_window = ordered("min_spread_edges", "spread_window_edges", strict=False)
 
