@@ -134,8 +134,9 @@ class LoopChecker:
                                                finest_only=from_odometry)
             elif (not res.ok and nearby and self._refiner is not None and self._refiner.cfg.depth_only_nearby
                   and res.n_good < self._refiner.cfg.depth_only_max_matches):
-                # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
-                refined = self._refiner.refine(cand.kf_id, kf_id, prior, finest_only=from_odometry)
+                # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's), over every
+                # level (without feature terms the finest level alone converges worse on plain walls)
+                refined = self._refiner.refine(cand.kf_id, kf_id, prior)
                 if refined is not None:
                     checked.append(LoopCheck(cand, res, refined, depth_only=True))
                 continue
