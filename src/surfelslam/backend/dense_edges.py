@@ -113,10 +113,9 @@ class DenseEdgeConfig(Config):
                                           doc="... only where the PnP verification had fewer good matches than this "
                                               "(texture too poor to verify)")
     odometry_nearby: bool = setting(
-        False, doc="a nearby keyframe pair is checked from the odometry's relative pose (good to a few mm): its "
-                   "guided matches that this pose reprojects stand for PnP-RANSAC when they are at least half of "
-                   "them, and its ICP runs at the finest level only; about a fifth less loop-check time (off: "
-                   "RANSAC and every level, as for older keyframes)")
+        False, doc="nearby keyframe pairs are checked from the odometry's relative pose (good to a few mm): the "
+                   "guided matches it reprojects stand for PnP-RANSAC when they are at least half, and a verified "
+                   "pair's ICP runs at the finest level only (a fifth less loop-check time); off: as older pairs")
 
     _spread_window = ordered("min_spread_edges", "spread_window_edges", strict=False)
 
