@@ -48,6 +48,11 @@ class LoopConfig(Config):
         True, doc="older candidates (retrieved, random) are matched near where the graph's current estimate of the "
                   "pair projects the keypoints, as nearby ones are (brute force when that finds too few): a loop the "
                   "graph already closed is verified at a fraction of the cost")
+    closed_retrieved: int | None = setting(
+        None, unit="candidates", ge=0, le=1000,
+        doc="once this many retrieved candidates of a keyframe are verified where the graph already put them (the "
+            "loop is closed there), its other retrieved ones are skipped; 0: all verified; none: the running "
+            "tracker's own (orb 0, hybrid 2)")
     retrieval: RetrievalConfig = setting(default_factory=RetrievalConfig, doc="descriptor-voting parameters")
     consistency: LoopConsistencyConfig = setting(
         default_factory=LoopConsistencyConfig,
