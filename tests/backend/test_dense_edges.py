@@ -71,6 +71,31 @@ def test_a_pnp_edge_is_refined_to_dense_precision(room_pair):
         assert dt < 1.5e-3 and dr < 0.05, (dt, dr)
 
 
+def test_an_edge_from_an_odometry_close_start_is_refined_at_the_finest_level_alone(room_pair, monkeypatch):
+    """``finest_only`` (a nearby pair from its odometry, a few mm off): one pyramid level is registered instead of
+    three, and the edge comes out within a millimetre of the truth and of the whole pyramid's edge."""
+    from surfelslam.backend import dense_edges
+
+    d_ref, d_cur, T_true = room_pair
+    ref = _refiner()
+    ref.add_keyframe(0, d_ref)
+    ref.add_keyframe(1, d_cur)
+    T_odometry = se3.exp(np.array([0.002, -0.002, 0.001, 0.002, -0.002, 0.002])) @ T_true
+    pts, uv = _keypoints(d_ref, T_true, 200, seed=1)
+    levels = []
+    real_icp = dense_edges.icp
+    monkeypatch.setattr(dense_edges, "icp", lambda *a, **k: levels.append(k["cfg"].levels) or real_icp(*a, **k))
+    full = ref.refine(0, 1, T_odometry, pts, uv)
+    finest = ref.refine(0, 1, T_odometry, pts, uv, finest_only=True)
+    assert levels == [EDGE_ICP.levels, 1]
+    assert full is not None and finest is not None
+    dt, dr = se3.pose_error(finest.T_cur_ref, full.T_cur_ref)
+    assert dt < 1e-3 and dr < 0.02, (dt, dr)  # the finest level's own minimum, a fraction of a mm away
+    assert se3.pose_error(T_odometry, T_true)[0] > 3e-3
+    dt, dr = se3.pose_error(finest.T_cur_ref, T_true)
+    assert dt < 1e-3 and dr < 0.02, (dt, dr)
+
+
 def test_feature_terms_hold_what_a_plane_leaves_free():
     """One textured plane leaves 3 DoF free: geometry alone is degenerate (edge dropped). 150 PnP inliers as
     reprojection terms at the default weight still leave the joint system ill-conditioned (condition number
@@ -325,3 +350,37 @@ def test_loop_checks_leave_the_pnp_refinement_to_the_edge_icp_when_asked(pnp_ref
     assert (check.result.information is not None) == pnp_refinement
     dt, dr = se3.pose_error(check.refined.T_cur_ref, se3.invert(poses[2]) @ poses[0])
     assert dt < 1e-3 and dr < 0.05, (dt, dr)
+
+
+@pytest.mark.parametrize(("closed_retrieved", "graph_off_m", "n_retrieved_checked"),
+                         [(0, 0.0, 3), (1, 0.0, 1), (1, 0.03, 3)])
+def test_retrieved_candidates_stop_once_the_loop_is_closed(closed_retrieved, graph_off_m, n_retrieved_checked):
+    """``loop.closed_retrieved``: once that many retrieved keyframes are verified within 1 cm / 1 deg of where the
+    graph puts them, the keyframe's other retrieved candidates are skipped; where the graph is 3 cm off (the loop not
+    closed yet) every one is verified."""
+    from surfelslam.backend.keyframes import Keyframe
+    from surfelslam.backend.loops import LoopConfig
+    from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
+    from surfelslam.tracking.features import FeatureConfig, extract
+
+    from helpers import ROOM_INTR, look_pose, render_room
+
+    poses = np.stack([look_pose(np.array([0.01 * k, 0.0, -0.3]), 0.01 * k) for k in range(5)])
+    feat_cfg = FeatureConfig(n_features=500)
+    refiner = DenseEdgeRefiner(ROOM_INTR, PreprocessConfig(), DenseEdgeConfig())
+    kfs = []
+    for k, T in enumerate(poses):
+        rgb, depth = render_room(T, ROOM_INTR)
+        refiner.add_keyframe(k, depth)
+        kfs.append(Keyframe(k, k, k / 30, extract(rgb, depth, ROOM_INTR, feat_cfg), np.zeros((0, 3), np.float32),
+                            np.zeros((0, 3), np.uint8)))
+    cfg = LoopConfig(n_nearby=0, n_random=0, n_retrieved=3, closed_retrieved=closed_retrieved,
+                     retrieval=replace(LoopConfig().retrieval, min_votes=1))
+    checker = LoopChecker(ROOM_INTR, feat_cfg, cfg, refiner, kfs)
+    for k in range(4):
+        checker.add_to_index(kfs[k].features)
+    graph = poses.copy()
+    graph[:4, 0, 3] += graph_off_m
+    _, checks = checker.check(4, kfs[4].features, graph)
+    assert [c.candidate.source for c in checks] == ["retrieved"] * n_retrieved_checked
+    assert all(c.result.ok and c.refined is not None for c in checks)

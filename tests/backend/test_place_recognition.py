@@ -138,3 +138,25 @@ def test_bucket_bound_silences_descriptors_of_crowded_buckets() -> None:
     assert votes[0] == 200  # 5 bits against 40: every descriptor passes the ratio test
     # with at most one row per bucket, those sharing a bucket with their look-alike are silenced, the others vote
     assert 20 < votes[1] < 180
+
+
+def test_the_exact_search_over_the_word_major_copy_equals_the_reference() -> None:
+    """Below the hashing threshold the index searches its word-major copy of the rows (grown over two doublings
+    here): the reference's nearest, second-nearest and first-nearest index, ties and prefixes included; 0 or 1
+    rows give the no-match values."""
+    rng = np.random.default_rng(3)
+    kfs = [rng.integers(0, 256, (1500, 32), dtype=np.uint8) for _ in range(8)]  # 12000 rows: capacity 4096 -> 16384
+    kfs[5][7] = kfs[2][40]  # a tie: the first row wins
+    q = np.concatenate([rng.integers(0, 256, (50, 32), dtype=np.uint8), kfs[2][40:41], _noisy(kfs[6][:20], 5, rng)])
+    idx = DescriptorIndex()
+    for d in kfs:
+        idx.add(d)
+    assert not idx.hashed
+    db = np.concatenate(kfs)
+    for end in (len(db), 4500, 1, 0):
+        got = idx._nearest_two(q, end)
+        want = hamming.nearest_two_ref(q, db[:end])
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)
+    assert idx._nearest_two(q, len(db))[2][50] == 2 * 1500 + 40  # not 5 * 1500 + 7
+    np.testing.assert_array_equal(idx._nearest_two(q, len(db))[2][51:], 6 * 1500 + np.arange(20))

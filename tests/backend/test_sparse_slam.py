@@ -377,6 +377,37 @@ def test_nearby_pairs_are_matched_near_the_graphs_prediction(loop_frames, monkey
         assert guided == expect
 
 
+def test_a_nearby_pair_is_verified_by_its_odometry_without_ransac(loop_frames, monkeypatch) -> None:
+    """``prior_min_inlier_fraction``: the guided matches that a trusted prior (a nearby pair's odometry) reprojects
+    are the inliers and RANSAC does not run; the pose is that prior refined on them, as precise as RANSAC's. A prior
+    30 cm off explains too few: RANSAC runs and verifies the true pose."""
+    from surfelslam.backend import loops
+    from surfelslam.geometry.se3 import invert, make_T, so3_exp
+    from surfelslam.tracking.features import extract, motion
+
+    poses, frames = loop_frames
+    cfg = FeatureConfig(n_features=400, guided_radius_px=8.0)
+    ref, cur = (extract(frames[k].rgb, frames[k].depth_m, ROOM_INTR, cfg) for k in (0, 2))
+    T_true = invert(poses[2]) @ poses[0]
+    ransac = []
+    real_ransac = motion.pnp_ransac
+    monkeypatch.setattr(motion, "pnp_ransac", lambda *a, **k: ransac.append(1) or real_ransac(*a, **k))
+    by_ransac = loops.verify_edge(ref, cur, ROOM_INTR, cfg, LoopConfig(), T_true)
+    assert len(ransac) == 1
+    ransac.clear()
+    T_odometry = make_T(so3_exp(np.array([0.0, 0.002, 0.0])), np.array([0.002, 0.0, 0.0])) @ T_true  # 2 mm, 0.1 deg
+    by_prior = loops.verify_edge(ref, cur, ROOM_INTR, cfg, LoopConfig(), T_odometry, prior_min_inlier_fraction=0.5)
+    assert ransac == [] and by_prior.ok
+    assert by_prior.n_inliers >= 0.5 * by_prior.n_good and by_prior.n_inliers >= 0.9 * by_ransac.n_inliers
+    assert by_prior.inlier_mask.sum() == by_prior.n_inliers
+    assert pose_error(by_prior.T_cur_ref, by_ransac.T_cur_ref)[0] < 3e-4  # the same pose (both 2.4 mm off)
+    dt_prior, dr_prior = pose_error(by_prior.T_cur_ref, T_true)
+    assert dt_prior < 5e-3 and dr_prior < 0.1, (dt_prior, dr_prior)
+    off = make_T(np.eye(3), np.array([0.3, 0.0, 0.0])) @ T_true
+    res = loops.verify_edge(ref, cur, ROOM_INTR, cfg, LoopConfig(), off, prior_min_inlier_fraction=0.5)
+    assert len(ransac) >= 1 and res.ok and pose_error(res.T_cur_ref, T_true)[0] < 0.01
+
+
 def _same_loops_as_inline(runs, poses, frames) -> None:
     _, _, inline = _run(replace(LOOP_CFG, background_loop_checks=False), poses, frames)
     assert len(inline.loops_found) > 10
@@ -420,9 +451,9 @@ def test_older_candidates_are_matched_near_the_graphs_estimate_when_asked(loop_f
         candidates.extend(out)
         return out
 
-    def verify_seen(ref, cur, intr, feat_cfg, cfg, prior=None):
+    def verify_seen(ref, cur, intr, feat_cfg, cfg, prior=None, *more):
         priors.append(prior)
-        return real_verify(ref, cur, intr, feat_cfg, cfg, prior)
+        return real_verify(ref, cur, intr, feat_cfg, cfg, prior, *more)
 
     monkeypatch.setattr(loop_checks, "loop_candidates", candidates_seen)
     monkeypatch.setattr(loop_checks, "verify_edge", verify_seen)

@@ -112,6 +112,10 @@ class DenseEdgeConfig(Config):
     depth_only_max_matches: int = setting(100, unit="matches", ge=0, le=1_000_000,
                                           doc="... only where the PnP verification had fewer good matches than this "
                                               "(texture too poor to verify)")
+    odometry_nearby: bool = setting(
+        False, doc="nearby keyframe pairs are checked from the odometry's relative pose (good to a few mm): the "
+                   "guided matches it reprojects stand for PnP-RANSAC when they are at least half, and a verified "
+                   "pair's ICP runs at the finest level only (a fifth less loop-check time); off: as older pairs")
 
     _spread_window = ordered("min_spread_edges", "spread_window_edges", strict=False)
 
@@ -178,6 +182,7 @@ class DenseEdgeRefiner:
         self._intr_store = pyramid_intrinsics(intr, self._level + 1)[-1]
         levels = min(icp_cfg.levels, level_for_width(self._intr_store.width, MIN_LEVEL_WIDTH_PX) + 1)
         self._icp_cfg = replace(icp_cfg, levels=levels)
+        self._icp_cfg_finest = replace(icp_cfg, levels=1)  # from a start already in the finest level's basin
         self._pre_cfg_store = replace(pre_cfg, pyramid_levels=levels)
         self._depth_unit_m = pre_cfg.max_depth_m / np.iinfo(np.uint16).max
         self._depth: dict[int, np.ndarray] = {}  # kf_id -> (h, w) uint16 depth in units of _depth_unit_m
@@ -304,14 +309,15 @@ class DenseEdgeRefiner:
         return pyr
 
     def refine(self, ref_id: int, cur_id: int, T_cur_ref: np.ndarray, points_ref: np.ndarray | None = None,
-               uv_cur: np.ndarray | None = None) -> RefinedEdge | None:
+               uv_cur: np.ndarray | None = None, finest_only: bool = False) -> RefinedEdge | None:
         """ICP of keyframe ``cur_id`` against ``ref_id`` from the PnP edge ``T_cur_ref`` ``(4, 4)`` (maps ref
         points into cur), jointly with the PnP inliers ``points_ref`` ``(M, 3)`` (ref camera, m) observed at
         ``uv_cur`` ``(M, 2)`` (pixels of the cur image, the camera given at construction); returns the refined
-        edge, or ``None`` when the check fails."""
+        edge, or ``None`` when the check fails. ``finest_only``: ``T_cur_ref`` is within a few mm (a nearby pair's
+        odometry, :attr:`DenseEdgeConfig.odometry_nearby`): the ICP skips the coarser levels."""
         c = self.cfg
         res = self._register(ref_id, self._pyramid(cur_id), T_cur_ref, points_ref, uv_cur, c.max_shift_m,
-                             c.max_shift_deg)
+                             c.max_shift_deg, self._icp_cfg_finest if finest_only else self._icp_cfg)
         if res is None:
             return None
         shape = None
@@ -330,13 +336,15 @@ class DenseEdgeRefiner:
         return None if res is None else se3.orthonormalize(se3.invert(res.T_target_source))
 
     def _register(self, ref_id: int, source: FramePyramid, T_cur_ref: np.ndarray, points_ref: np.ndarray | None,
-                  uv_cur: np.ndarray | None, max_shift_m: float, max_shift_deg: float) -> ICPResult | None:
-        """The ICP of :meth:`refine_frame`, or ``None`` when it fails its checks."""
+                  uv_cur: np.ndarray | None, max_shift_m: float, max_shift_deg: float,
+                  icp_cfg: ICPConfig | None = None) -> ICPResult | None:
+        """The ICP of :meth:`refine_frame` (with ``icp_cfg``, default the refiner's), or ``None`` when it fails its
+        checks."""
         target = self._pyramid(ref_id)
         T_cur_ref = np.asarray(T_cur_ref, np.float64)
         T_init = se3.invert(T_cur_ref)  # T_ref_cur = T_target_source
         term = self._feature_term(T_cur_ref, points_ref, uv_cur)
-        res = icp(source, target, T_init=T_init, cfg=self._icp_cfg, reprojection=term)
+        res = icp(source, target, T_init=T_init, cfg=icp_cfg or self._icp_cfg, reprojection=term)
         if icp_failure(res) is not None or res.degenerate:
             return None
         dt_m, dr_deg = se3.pose_error(res.T_target_source, T_init)

@@ -48,6 +48,11 @@ class LoopConfig(Config):
         True, doc="older candidates (retrieved, random) are matched near where the graph's current estimate of the "
                   "pair projects the keypoints, as nearby ones are (brute force when that finds too few): a loop the "
                   "graph already closed is verified at a fraction of the cost")
+    closed_retrieved: int | None = setting(
+        None, unit="candidates", ge=0, le=1000,
+        doc="once this many retrieved candidates of a keyframe are verified where the graph already put them (the "
+            "loop is closed there), its other retrieved ones are skipped; 0: all verified; none: the running "
+            "tracker's own (orb 0, hybrid 2)")
     retrieval: RetrievalConfig = setting(default_factory=RetrievalConfig, doc="descriptor-voting parameters")
     consistency: LoopConsistencyConfig = setting(
         default_factory=LoopConsistencyConfig,
@@ -110,7 +115,7 @@ def _loop_features(feat_cfg: FeatureConfig, cfg: LoopConfig) -> FeatureConfig:
 
 def verify_edge(
     ref: Features, cur: Features, intr: Intrinsics, feat_cfg: FeatureConfig, cfg: LoopConfig,
-    T_prior_cur_ref: np.ndarray | None = None,
+    T_prior_cur_ref: np.ndarray | None = None, prior_min_inlier_fraction: float = 0.0,
 ) -> MotionResult:
     """PnP between two keyframes with the loop bounds; ``ok`` only if the inlier rules pass too.
 
@@ -118,10 +123,13 @@ def verify_edge(
     ``T_prior_cur_ref``: ``(4, 4)`` the graph's estimate of that pose (for a nearby pair the odometry's, good to
     a few pixels; for an older one good where the graph already closed the loop): the matches are then searched near
     where it projects the keypoints (``guided_radius_px``; brute force when that finds too few, see
+    :func:`estimate_motion`). ``prior_min_inlier_fraction`` > 0: that estimate is trusted (a nearby pair's
+    odometry) and stands for PnP-RANSAC when it explains this fraction of the guided matches (see
     :func:`estimate_motion`).
     """
     res = estimate_motion(ref, cur, intr, _loop_features(feat_cfg, cfg), T_init_cur_ref=T_prior_cur_ref,
-                          min_consistent=cfg.min_consistent_matches)
+                          min_consistent=cfg.min_consistent_matches,
+                          prior_min_inlier_fraction=prior_min_inlier_fraction)
     if res.ok and (
         res.n_inliers < cfg.min_loop_inliers or res.n_inliers < cfg.min_loop_inlier_ratio * res.n_good
     ):

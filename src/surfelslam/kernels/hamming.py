@@ -99,6 +99,49 @@ def nearest_two(query, train, best_d, second_d, best_idx):
 
 
 @njit(cache=True, nogil=True)
+def _search_columns(query, train_columns, m, best_d, second_d, best_idx, col_idx, columns):
+    """:func:`_search` of ORB descriptors (4 words) against a train set stored word-major: ``train_columns``
+    ``(4, >= m)`` uint64, column ``j < m`` holding train row ``j``. Each word's loop then reads contiguous memory,
+    which LLVM vectorises: about half the time of the row-major search, with the same results."""
+    col_d = np.full(m if columns else 0, NO_MATCH, np.int64)
+    d = np.empty(m, np.int64)
+    if columns:
+        for j in range(m):
+            col_idx[j] = -1
+    t0, t1, t2, t3 = train_columns[0], train_columns[1], train_columns[2], train_columns[3]
+    for i in range(query.shape[0]):
+        q0, q1, q2, q3 = query[i, 0], query[i, 1], query[i, 2], query[i, 3]
+        for j in range(m):
+            d[j] = (int(_popcount64(q0 ^ t0[j])) + int(_popcount64(q1 ^ t1[j])) + int(_popcount64(q2 ^ t2[j]))
+                    + int(_popcount64(q3 ^ t3[j])))
+        b1 = NO_MATCH
+        b2 = NO_MATCH
+        bi = -1
+        for j in range(m):  # the scan of _search
+            dj = d[j]
+            if dj < b2:
+                if dj < b1:
+                    b2 = b1
+                    b1 = dj
+                    bi = j
+                else:
+                    b2 = dj
+            if columns and dj < col_d[j]:
+                col_d[j] = dj
+                col_idx[j] = i
+        best_d[i] = b1
+        second_d[i] = b2
+        best_idx[i] = bi
+
+
+@njit(cache=True, nogil=True)
+def nearest_two_columns(query, train_columns, m, best_d, second_d, best_idx):
+    """:func:`nearest_two` of ORB descriptors (``query`` ``(N, 4)`` uint64) against the first ``m`` columns of a
+    word-major train set ``(4, >= m)`` (see :func:`_search_columns`): what a growing database keeps."""
+    _search_columns(query, train_columns, m, best_d, second_d, best_idx, np.empty(0, np.int64), False)
+
+
+@njit(cache=True, nogil=True)
 def nearest_two_mutual(query, train, best_d, second_d, best_idx, col_idx):
     """:func:`nearest_two` plus, in the same pass, each train row's nearest query row (for a cross-check).
 
@@ -219,6 +262,18 @@ def nearest_two_words(query_words: np.ndarray, train_words: np.ndarray) -> tuple
     return best_d, second_d, best_idx
 
 
+def nearest_two_columns_words(query_words: np.ndarray, train_columns: np.ndarray, m: int):
+    """:func:`nearest_two_columns` on ``(N, 4)`` query words and ``(4, >= m)`` train columns ->
+    ``(best_d, second_d, best_idx)``, each ``(N,)``."""
+    if query_words.shape[1] != _ORB_WORDS or train_columns.shape[0] != _ORB_WORDS or train_columns.shape[1] < m:
+        raise ValueError(f"need (N, {_ORB_WORDS}) query words and ({_ORB_WORDS}, >= {m}) train columns, got "
+                         f"{query_words.shape} and {train_columns.shape}")
+    n = len(query_words)
+    best_d, second_d, best_idx = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    nearest_two_columns(query_words, train_columns, int(m), best_d, second_d, best_idx)
+    return best_d, second_d, best_idx
+
+
 def nearest_two_mutual_words(query_words: np.ndarray, train_words: np.ndarray):
     """:func:`nearest_two_mutual` on word arrays -> ``(best_d, second_d, best_idx, col_idx)``."""
     n, m = len(query_words), len(train_words)
@@ -226,7 +281,10 @@ def nearest_two_mutual_words(query_words: np.ndarray, train_words: np.ndarray):
     second_d = np.empty(n, np.int64)
     best_idx = np.empty(n, np.int64)
     col_idx = np.empty(m, np.int64)
-    nearest_two_mutual(query_words, train_words, best_d, second_d, best_idx, col_idx)
+    if query_words.shape[1] == _ORB_WORDS and train_words.shape[1] == _ORB_WORDS:
+        _search_columns(query_words, np.ascontiguousarray(train_words.T), m, best_d, second_d, best_idx, col_idx, True)
+    else:
+        nearest_two_mutual(query_words, train_words, best_d, second_d, best_idx, col_idx)
     return best_d, second_d, best_idx, col_idx
 
 

@@ -150,8 +150,9 @@ def _hybrid_loop_icp() -> DenseEdgeConfig:
     ceiling and a wall do not pull the trajectory along the planes' intersection; the PnP inliers weighing as much as
     a point-to-plane pair each (``feature_weight`` 1): at 0.1 keyframe-to-keyframe ICP slid millimetres along the
     direction of motion where the depth constrains it weakly, and those biased edges, not the odometry, held the
-    fast-motion keyframes 3x farther from the truth than the orb tracker's."""
-    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0, feature_weight=1.0)
+    fast-motion keyframes 3x farther from the truth than the orb tracker's; nearby pairs checked from the dense
+    odometry's relative pose (``odometry_nearby``: no RANSAC, finest ICP level only)."""
+    return DenseEdgeConfig(pnp_refinement=False, weak_direction_ratio=100.0, feature_weight=1.0, odometry_nearby=True)
 
 
 def _frame_to_model_icp() -> ICPConfig:

@@ -105,6 +105,7 @@ class SparseProfile:
     keyframe_min_gap_frames: int  # frames: at most one keyframe every this many
     loop_nearby: int  # keyframes: [sparse.loop] n_nearby
     loop_random: int  # keyframes: [sparse.loop] n_random
+    loop_closed_retrieved: int = 0  # candidates: [sparse.loop] closed_retrieved
 
 
 #: the back end's own profile (the orb tracker's, and a :class:`SparseSlam` built without one): every keyframe that
@@ -121,7 +122,9 @@ def with_profile(cfg: SparseSlamConfig, profile: SparseProfile) -> SparseSlamCon
         keyframe_min_gap_frames=(profile.keyframe_min_gap_frames if cfg.keyframe_min_gap_frames is None
                                  else cfg.keyframe_min_gap_frames),
         loop=replace(loop, n_nearby=profile.loop_nearby if loop.n_nearby is None else loop.n_nearby,
-                     n_random=profile.loop_random if loop.n_random is None else loop.n_random))
+                     n_random=profile.loop_random if loop.n_random is None else loop.n_random,
+                     closed_retrieved=(profile.loop_closed_retrieved if loop.closed_retrieved is None
+                                       else loop.closed_retrieved)))
 
 
 def features_for_width(cfg: SparseSlamConfig, width_px: int) -> SparseSlamConfig:

@@ -14,10 +14,18 @@ from surfelslam.backend.keyframes import Keyframe
 from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
 from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
 from surfelslam.backend.sparse_slam.results import LoopCheck
-from surfelslam.geometry.se3 import invert
+from surfelslam.geometry.se3 import invert, pose_error
 from surfelslam.tracking.features import FeatureConfig, Features
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics
+
+#: fraction: with ``DenseEdgeConfig.odometry_nearby``, a nearby pair's odometry stands for PnP-RANSAC when it
+#: reprojects at least this share of the guided matches (a wrong pose explains few; RANSAC decides then)
+ODOMETRY_MIN_INLIER_FRACTION = 0.5
+#: m and deg: a refined edge to a retrieved keyframe this close to the graph's estimate of the pair is a loop the graph
+#: has already closed (``LoopConfig.closed_retrieved``); well above a refined edge's error, well below a drift's
+CLOSED_LOOP_SHIFT_M = 0.01
+CLOSED_LOOP_SHIFT_DEG = 1.0
 
 
 class LoopChecker:
@@ -115,25 +123,40 @@ class LoopChecker:
         checked = []
         if pyramid is not None and self._refiner is not None:
             self._refiner.adopt(kf_id, pyramid)
+        n_closed = 0  # retrieved candidates verified where the graph already put them
+        max_closed = self._loop_cfg.closed_retrieved or 0  # none (no tracker profile): all verified
         for cand in loop_candidates(kf_id, q, self._index, self._rng, self._loop_cfg):
-            guided = cand.source == "nearby" or self._loop_cfg.guided_older
-            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if guided else None
+            if cand.source == "retrieved" and 0 < max_closed <= n_closed:
+                continue  # the loop is closed here: its other retrieved keyframes would add little
+            nearby = cand.source == "nearby"
+            prior = invert(poses[kf_id]) @ poses[cand.kf_id] if nearby or self._loop_cfg.guided_older else None
+            from_odometry = nearby and self._refiner is not None and self._refiner.cfg.odometry_nearby
             res = verify_edge(self._kfs[cand.kf_id].features, feats, self._intr, self._features_cfg, self._loop_cfg,
-                              prior)
+                              prior, ODOMETRY_MIN_INLIER_FRACTION if from_odometry else 0.0)
             refined = None
             if res.ok and self._refiner is not None:
                 inl = res.pairs[res.inlier_mask]
                 uv = None if res.uv_cur is None else res.uv_cur[res.inlier_mask]
                 refined = self._refiner.refine(cand.kf_id, kf_id, res.T_cur_ref,
-                                               self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv)
-            elif (not res.ok and cand.source == "nearby" and self._refiner is not None
-                  and self._refiner.cfg.depth_only_nearby
+                                               self._kfs[cand.kf_id].features.points_cam[inl[:, 0]], uv,
+                                               finest_only=from_odometry)
+            elif (not res.ok and nearby and self._refiner is not None and self._refiner.cfg.depth_only_nearby
                   and res.n_good < self._refiner.cfg.depth_only_max_matches):
-                # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's)
+                # texture too poor to verify: the depth alone, from the graph's estimate (the odometry's), over every
+                # level (without feature terms the finest level alone converges worse on plain walls)
                 refined = self._refiner.refine(cand.kf_id, kf_id, prior)
                 if refined is not None:
                     checked.append(LoopCheck(cand, res, refined, depth_only=True))
                 continue
+            if cand.source == "retrieved" and refined is not None and prior is not None:
+                n_closed += _agrees(refined.T_cur_ref, prior)
             checked.append(LoopCheck(cand, res, refined, res.ok and self._refiner is not None and refined is None))
         self._index.add(q)
         return kf_id, checked
+
+
+def _agrees(T_edge_cur_ref: np.ndarray, T_graph_cur_ref: np.ndarray) -> bool:
+    """Whether a refined edge ``(4, 4)`` is within :data:`CLOSED_LOOP_SHIFT_M` / :data:`CLOSED_LOOP_SHIFT_DEG` of the
+    graph's estimate ``(4, 4)`` of the same pair."""
+    dt_m, dr_deg = pose_error(T_edge_cur_ref, T_graph_cur_ref)
+    return dt_m < CLOSED_LOOP_SHIFT_M and dr_deg < CLOSED_LOOP_SHIFT_DEG

@@ -216,6 +216,7 @@ def estimate_motion(
     cfg: FeatureConfig,
     T_init_cur_ref: np.ndarray | None = None,
     min_consistent: int = 0,
+    prior_min_inlier_fraction: float = 0.0,
 ) -> MotionResult:
     """Relative pose ``T_cur_ref`` by PnP-RANSAC: 3D from the reference depth, 2D from the current image.
 
@@ -228,6 +229,10 @@ def estimate_motion(
             the ``consensus_*`` tolerances) of at least this many, else ``too_few_consistent``. Two views that do
             not overlap still give a hundred or more good matches, and RANSAC then runs all its iterations in
             vain; loop and relocalisation checks use it (``LoopConfig.min_consistent_matches``).
+        prior_min_inlier_fraction: when positive, a guess trusted to be right (a keyframe pair's odometry): the
+            guided matches that reproject within ``reprojection_error_px`` under it are the inliers, and the guess
+            refined on them is the pose, without the consistency test and RANSAC, if they are at least
+            ``min_inliers`` and this fraction of the good matches (else as without it).
 
     With ``cfg.guided_radius_px`` and a guess, the matches are searched near where the guess projects the
     reference keypoints; when that gives fewer than ``cfg.guided_min_matches`` good matches or PnP inliers, or
@@ -238,10 +243,50 @@ def estimate_motion(
     """
     guided = _guided_match(ref, cur, intr, cfg, T_init_cur_ref)
     if guided is not None:
-        res = _motion_from_matches(guided, ref, cur, intr, cfg, T_init_cur_ref, min_consistent)
+        res = None
+        if prior_min_inlier_fraction > 0:
+            res = _motion_from_prior(guided, ref, cur, intr, cfg, T_init_cur_ref, prior_min_inlier_fraction)
+        if res is None:
+            res = _motion_from_matches(guided, ref, cur, intr, cfg, T_init_cur_ref, min_consistent)
         if res.ok and res.n_inliers >= cfg.guided_min_matches:
             return res
     return _motion_from_matches(match(ref, cur, cfg), ref, cur, intr, cfg, T_init_cur_ref, min_consistent)
+
+
+def _motion_from_prior(m: MatchResult, ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureConfig,
+                       T_prior_cur_ref: np.ndarray, min_fraction: float) -> MotionResult | None:
+    """:func:`estimate_motion` from the guided matches ``m`` and the trusted guess ``T_prior_cur_ref`` (see its
+    ``prior_min_inlier_fraction``), or ``None`` when the guess explains too few of them."""
+    pairs = m.pairs[ref.valid[m.pairs[:, 0]]] if m.n_good else m.pairs
+    n_good = len(pairs)
+    if n_good < max(cfg.min_good_matches, 4):
+        return None
+    obj = ref.points_cam[pairs[:, 0]].astype(np.float64)
+    uv_cur = track_subpixel(ref, cur, pairs, cfg)
+    rvec, tvec = _initial_vectors(T_prior_cur_ref)
+    mask = _reprojection_inliers(obj, uv_cur, intr, rvec, tvec, cfg)
+    n_in = int(mask.sum())
+    if n_in < max(cfg.min_inliers, 4) or n_in < min_fraction * n_good:
+        return None
+    return _accepted(m.n_raw, ref, cur, intr, cfg, pairs, obj, uv_cur, mask, rvec, tvec)
+
+
+def _accepted(n_raw: int, ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureConfig, pairs: np.ndarray,
+              obj: np.ndarray, uv_cur: np.ndarray, mask: np.ndarray, rvec: np.ndarray,
+              tvec: np.ndarray) -> MotionResult:
+    """The result of a pose ``(rvec, tvec)`` with the inliers ``mask`` among ``pairs``: refined
+    (:func:`_refined_pose`), then the finiteness and motion-norm rules."""
+    K, sign = _cv_camera(intr)
+    img = _image_points_cv(uv_cur, intr, sign)
+    T, rvec, tvec, information, n_final = _refined_pose(ref, cur, obj, img, uv_cur, mask, rvec, tvec, K, sign, intr,
+                                                        cfg)
+    res = MotionResult(T, True, None, n_raw, len(pairs), int(mask.sum()), rvec, tvec, mask, pairs, uv_cur,
+                       information, n_final)
+    if not np.all(np.isfinite(T)):
+        res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
+    elif motion_norm(T) > cfg.max_motion_norm:
+        res.ok, res.reason = False, "motion_too_large"
+    return res
 
 
 def _motion_from_matches(m: MatchResult, ref: Features, cur: Features, intr: Intrinsics, cfg: FeatureConfig,
@@ -272,15 +317,7 @@ def _motion_from_matches(m: MatchResult, ref: Features, cur: Features, intr: Int
         res.n_inliers = int(mask.sum())
         res.inlier_mask = mask
         return res
-    T, rvec, tvec, information, n_final = _refined_pose(ref, cur, obj, img, uv_cur, mask, rvec, tvec, K, sign, intr,
-                                                        cfg)
-    res = MotionResult(T, True, None, m.n_raw, n_good, int(mask.sum()), rvec, tvec, mask, pairs, uv_cur, information,
-                       n_final)
-    if not np.all(np.isfinite(T)):
-        res.ok, res.reason, res.T_cur_ref = False, "pnp_failed", np.eye(4)
-    elif motion_norm(T) > cfg.max_motion_norm:
-        res.ok, res.reason = False, "motion_too_large"
-    return res
+    return _accepted(m.n_raw, ref, cur, intr, cfg, pairs, obj, uv_cur, mask, rvec, tvec)
 
 
 def feature_guess(
