@@ -33,6 +33,8 @@ from surfelslam.types import Intrinsics, RGBDFrame
 IMPLAUSIBLE = "relocalisation_implausible"
 #: failure of an ICP pose that disagrees with the PnP pose
 DISAGREES = "disagrees_with_pnp"
+#: failure of an ICP pose that moved the motion prediction farther than the camera could (MotionModel.jumped)
+JUMPED = "implausible_correction"
 
 
 @dataclass
@@ -168,6 +170,8 @@ class HybridLocaliser:
                 loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, T_init_rel)
             loc.from_prev = True
             t.lap("icp")
+            if loc.failure is None and self.front.motion.jumped(loc.res, frame.time_s):
+                loc.failure = JUMPED
         bad = loc.res is None or loc.failure is not None or loc.res.degenerate
         if match is None and h.pnp_retry and bad:
             match = self.pnp_match(frame, T_pred)
@@ -196,7 +200,7 @@ class HybridLocaliser:
         if f2 is None and (not r2.degenerate or not first_ok):
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, None, T2, False
             self.counts["pnp_guesses_tracked"] += 1
-        elif not first_ok:
+        elif not first_ok and loc.failure != JUMPED:  # a jump with no better pose from PnP stays one (held)
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, f2, T2, False
 
     def pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:
