@@ -195,7 +195,8 @@ class HybridLocaliser:
         self.counts["pnp_guesses_tried"] += 1
         r2, f2, T2 = self.icp_from(loc.guess, np.eye(4), match)
         t.lap("icp")
-        if f2 is None and self.cfg.hybrid.pnp_check and self.disagrees(T2, match):
+        # after a jump the PnP pose is the evidence: ICP from it must agree with it
+        if f2 is None and (self.cfg.hybrid.pnp_check or loc.failure == JUMPED) and self.disagrees(T2, match):
             f2 = DISAGREES
         if f2 is None and (not r2.degenerate or not first_ok):
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, None, T2, False
