@@ -182,6 +182,9 @@ def test_a_correction_beyond_a_change_of_velocity_is_a_jump_and_holds_are_capped
     def res(m, deg=0.0):
         return SimpleNamespace(motion_m=m, motion_deg=deg)
 
+    assert not motion.jumped(res(0.5), one)  # an identity velocity (none measured yet) bounds nothing
+    motion.state.velocity = se3.make_T(np.eye(3), [0.0, 0.0, 0.04])  # walking, 4 cm per frame
+
     assert not motion.jumped(res(bound_m - 1e-3), one) and motion.jumped(res(bound_m + 1e-3), one)
     assert motion.jumped(res(0.0, 2.0 + 180.0 / 30 + 0.1), one) and not motion.jumped(res(0.0, 7.9), one)
     assert not motion.jumped(res(0.17), 10.0 + 5 / 30)  # 17 cm over 5 frames is a walk's change of pace

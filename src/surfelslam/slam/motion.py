@@ -145,8 +145,11 @@ class MotionModel:
         prediction by more than a camera's change of velocity allows since the last registered or held frame
         (``tracking.max_velocity_change_m_s`` / ``max_rate_change_deg_s``, plus :data:`CORRECTION_SLACK_M` /
         :data:`CORRECTION_SLACK_DEG`): ICP slid along directions the view hardly constrains, though its system
-        looked well conditioned."""
+        looked well conditioned. An identity velocity is no measurement (the first frame, after a reset or a
+        relocalisation): then nothing is a jump."""
         tc = self.cfg
+        if np.array_equal(self.state.velocity, np.eye(4)):
+            return False
         dt_s = max(time_s - self.state.t_last_posed_s, 0.0)
         return (res.motion_m > CORRECTION_SLACK_M + tc.max_velocity_change_m_s * dt_s
                 or res.motion_deg > CORRECTION_SLACK_DEG + tc.max_rate_change_deg_s * dt_s)
