@@ -102,10 +102,9 @@ class TrackingConfig(Config):
     relocalise_slack_deg: float = setting(10.0, unit="deg", ge=0, le=180, doc="slack added to the rotation bound")
     max_velocity_change_m_s: float = setting(
         1.0, unit="m/s", gt=0, le=1000, allow_inf=True,
-        doc="hybrid: a registration that moves the constant-velocity prediction farther than this change of velocity "
-            "allows in the time since the last registered frame (plus a 2 cm slack) is not trusted (ICP slid along "
-            "weakly constrained geometry, e.g. floor, ceiling and side walls in a doorway): unless the features' "
-            "pose confirms another, the frame is held at the prediction, not fused (status held); inf = off")
+        doc="hybrid: a registration correcting the constant-velocity prediction by more than this change of "
+            "velocity allows since the last posed frame (plus 2 cm) is a slide, not a motion: unless PnP confirms "
+            "it, the frame is held at the prediction, not fused; inf = off")
     max_rate_change_deg_s: float = setting(180.0, unit="deg/s", gt=0, le=100_000, allow_inf=True,
                                            doc="the same bound on the rotation (plus a 2 deg slack)")
     max_held_frames: int = setting(
