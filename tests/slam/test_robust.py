@@ -225,3 +225,22 @@ def test_a_registration_that_jumps_off_the_prediction_is_held_not_fused():
     assert se3.pose_error(held.trajectory.T_world_cam[30], gt[30])[0] < 0.01
     assert se3.pose_error(jumped.trajectory.T_world_cam[30], gt[30])[0] > 0.1
     assert ate_m(held.trajectory.T_world_cam, gt) < 0.01
+
+
+def test_a_features_pose_near_the_prediction_bridges_without_a_relocalisation():
+    """A frame the map refuses is bridged at a PnP pose within the jump bound of the prediction (no failure counted,
+    capped by max_held_frames); a PnP pose 30 cm off, or any with no measured velocity, is not."""
+    from surfelslam.slam.frame import FrameStatus
+
+    motion = _motion(SlamConfig())
+    motion.mark_tracked(np.eye(4), 10.0, FrameStatus.TRACKED)
+    T_pred = se3.make_T(np.eye(3), [0.0, 0.0, 0.04])
+    near = se3.make_T(np.eye(3), [0.01, 0.0, 0.05])
+    far = se3.make_T(np.eye(3), [0.3, 0.0, 0.04])
+    one = 10.0 + 1 / 30
+    assert not motion.bridge_holds(T_pred, near, one)  # identity velocity: nothing to hold to
+    motion.state.velocity = T_pred
+    assert motion.bridge_holds(T_pred, near, one) and not motion.bridge_holds(T_pred, far, one)
+    for k in range(motion.cfg.max_held_frames):
+        motion.mark_held(one + k / 30)
+    assert not motion.bridge_holds(T_pred, near, one + motion.cfg.max_held_frames / 30)

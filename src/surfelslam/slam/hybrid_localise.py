@@ -48,6 +48,7 @@ class Localised:
     guess: np.ndarray | None = None
     from_prev: bool = False
     relocalised: bool = False  # the result comes from a relocalisation (after too many failures)
+    guess_trusted: bool = False  # the guess is a PnP pose with hybrid.pnp_trust_min_inliers inliers
 
 
 def joint_term_weight(h: HybridConfig, finest_robust_scale_m: float, depth_noise_m: float) -> float:
@@ -177,6 +178,7 @@ class HybridLocaliser:
             match = self.pnp_match(frame, T_pred)
             t.lap("pnp")
         loc.guess = None if match is None else match.T_world_cam
+        loc.guess_trusted = match is not None and self.trusted(match)
         first_ok = loc.res is not None and loc.failure is None
         if first_ok and loc.guess is not None and h.pnp_check and self.disagrees(loc.T_new, match):
             first_ok = False

@@ -147,12 +147,25 @@ class MotionModel:
         :data:`CORRECTION_SLACK_DEG`): ICP slid along directions the view hardly constrains, though its system
         looked well conditioned. An identity velocity is no measurement (the first frame, after a reset or a
         relocalisation): then nothing is a jump."""
-        tc = self.cfg
         if np.array_equal(self.state.velocity, np.eye(4)):
             return False
+        return self._beyond_reach(res.motion_m, res.motion_deg, time_s)
+
+    def _beyond_reach(self, d_m: float, d_deg: float, time_s: float) -> bool:
+        """Whether a correction of ``d_m`` / ``d_deg`` to the prediction at ``time_s`` exceeds the change of velocity
+        a camera makes since the last posed frame (see :meth:`jumped`)."""
+        tc = self.cfg
         dt_s = max(time_s - self.state.t_last_posed_s, 0.0)
-        return (res.motion_m > CORRECTION_SLACK_M + tc.max_velocity_change_m_s * dt_s
-                or res.motion_deg > CORRECTION_SLACK_DEG + tc.max_rate_change_deg_s * dt_s)
+        return (d_m > CORRECTION_SLACK_M + tc.max_velocity_change_m_s * dt_s
+                or d_deg > CORRECTION_SLACK_DEG + tc.max_rate_change_deg_s * dt_s)
+
+    def bridge_holds(self, T_pred: np.ndarray, T_bridge: np.ndarray, time_s: float) -> bool:
+        """Whether a frame the map could not register may be posed at the features' pose ``T_bridge`` without starting
+        a relocalisation: it is within reach of the prediction ``T_pred`` (:meth:`jumped`'s bound; a measured
+        velocity) and fewer than ``tracking.max_held_frames`` frames were held in a row."""
+        if np.array_equal(self.state.velocity, np.eye(4)) or not self.may_hold():
+            return False
+        return not self._beyond_reach(*se3.pose_error(T_bridge, T_pred), time_s)
 
     def may_hold(self) -> bool:
         """Whether one more frame may be held at the prediction (``tracking.max_held_frames`` in a row)."""
