@@ -93,9 +93,9 @@ class TrackingConfig(Config):
             "velocity moves only this fraction of the way to the frame's step: there the step is the prediction "
             "plus what the coarser levels did (1 = the whole step)")
     relocalise_max_speed_m_s: float = setting(
-        1.0, unit="m/s", gt=0, le=1000, allow_inf=True,
+        2.0, unit="m/s", gt=0, le=1000, allow_inf=True,
         doc="a relocalised pose farther from the last tracked pose than this speed allows in the time since it "
-            "(plus relocalise_slack_m) is refused: a wrong match, not a camera motion")
+            "(plus relocalise_slack_m) is refused: a wrong match, not a camera motion (a brisk walk is 1.3 m/s)")
     relocalise_max_rate_deg_s: float = setting(120.0, unit="deg/s", gt=0, le=100_000, allow_inf=True,
                                                doc="the same bound on the rotation (plus relocalise_slack_deg)")
     relocalise_slack_m: float = setting(0.1, unit="m", ge=0, le=100, doc="slack added to the translation bound")
