@@ -7,8 +7,8 @@ from surfelslam.slam.segments import segments_report, tracking_segments
 
 
 def _frames(codes: str, reason: str = "degenerate"):
-    """One frame per character: t tracked, w weak, l lost, b bridged, r relocalised."""
-    status = {"t": S.TRACKED, "w": S.WEAK, "l": S.LOST, "b": S.BRIDGED, "r": S.RELOCALISED}
+    """One frame per character: t tracked, w weak, h held, l lost, b bridged, r relocalised."""
+    status = {"t": S.TRACKED, "w": S.WEAK, "h": S.HELD, "l": S.LOST, "b": S.BRIDGED, "r": S.RELOCALISED}
     return [(i, i / 30.0, status[c], None if c in "tr" else reason) for i, c in enumerate(codes)]
 
 
@@ -32,3 +32,10 @@ def test_a_weak_stretch_that_turns_lost_is_two_segments_and_a_clean_run_has_none
     assert segments_report(segs)["lost_at_end"] is False
     assert segments_report(tracking_segments(_frames("ttttr"))) == {
         "tracking_segments": [], "lost_segments": 0, "weak_segments": 0, "lost_at_end": False}
+
+
+def test_held_frames_are_weak_stretches_not_lost_ones():
+    segs = tracking_segments(_frames("tthhhtwhlt", "implausible_correction"))
+    assert [(s.kind, s.first_frame, s.last_frame, s.frames, s.recovery) for s in segs] == [
+        ("weak", 2, 4, 3, "tracking resumed"), ("weak", 6, 7, 2, "then lost"), ("lost", 8, 8, 1, "tracking resumed")]
+    assert segments_report(segs)["lost_segments"] == 1

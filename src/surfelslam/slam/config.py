@@ -93,13 +93,24 @@ class TrackingConfig(Config):
             "velocity moves only this fraction of the way to the frame's step: there the step is the prediction "
             "plus what the coarser levels did (1 = the whole step)")
     relocalise_max_speed_m_s: float = setting(
-        1.0, unit="m/s", gt=0, le=1000, allow_inf=True,
+        2.0, unit="m/s", gt=0, le=1000, allow_inf=True,
         doc="a relocalised pose farther from the last tracked pose than this speed allows in the time since it "
-            "(plus relocalise_slack_m) is refused: a wrong match, not a camera motion")
+            "(plus relocalise_slack_m) is refused: a wrong match, not a camera motion (a brisk walk is 1.3 m/s)")
     relocalise_max_rate_deg_s: float = setting(120.0, unit="deg/s", gt=0, le=100_000, allow_inf=True,
                                                doc="the same bound on the rotation (plus relocalise_slack_deg)")
     relocalise_slack_m: float = setting(0.1, unit="m", ge=0, le=100, doc="slack added to the translation bound")
     relocalise_slack_deg: float = setting(10.0, unit="deg", ge=0, le=180, doc="slack added to the rotation bound")
+    max_velocity_change_m_s: float = setting(
+        1.0, unit="m/s", gt=0, le=1000, allow_inf=True,
+        doc="hybrid: a registration correcting the constant-velocity prediction by more than this change of "
+            "velocity allows since the last posed frame (plus 2 cm) is a slide, not a motion: unless PnP confirms "
+            "it, the frame is held at the prediction, not fused; inf = off")
+    max_rate_change_deg_s: float = setting(180.0, unit="deg/s", gt=0, le=100_000, allow_inf=True,
+                                           doc="the same bound on the rotation (plus a 2 deg slack)")
+    max_held_frames: int = setting(
+        10, unit="frames", ge=0, le=1_000_000,
+        doc="frames held at the prediction in a row at most; a further untrusted registration is a failure (then "
+            "relocalisation); 0 = such frames are failures at once")
 
 
 @dataclass(frozen=True)

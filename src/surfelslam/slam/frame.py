@@ -36,6 +36,8 @@ class FrameStatus(StrEnum):
     TRACKED = "tracked"  # registered to the map (or the keyframes) and fused
     WEAK = "weak"  # registered along the directions the view constrains, the prediction along the others; fused
     RELOCALISED = "relocalised"  # registered after a loss, from a verified relocalisation guess; fused
+    HELD = "held"  # the registration jumped implausibly from the motion prediction: the pose is the prediction; not
+    # fused (a short weak stretch, e.g. a doorway whose view constrains little)
     BRIDGED = "bridged"  # not registered: the pose comes from the features (PnP) alone; not fused
     LOST = "lost"  # not registered: the pose is the motion prediction; not fused
 

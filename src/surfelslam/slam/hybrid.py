@@ -66,7 +66,7 @@ from surfelslam.slam.frame import (
 )
 from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.hybrid_anchors import KeyframeAnchors
-from surfelslam.slam.hybrid_localise import HybridLocaliser, Localised
+from surfelslam.slam.hybrid_localise import JUMPED, HybridLocaliser, Localised
 from surfelslam.slam.hybrid_profile import LOOP_ROBUST_SCALE_M, hybrid_sparse_config
 from surfelslam.slam.motion import step_and_pose
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
@@ -244,11 +244,22 @@ class HybridSlam:
 
     def _fuse_or_count(self, frame: RGBDFrame, loc: Localised, T_prev: np.ndarray, T_pred: np.ndarray,
                        t: StageTimer) -> tuple[bool, np.ndarray, str | None, FrameStatus]:
-        """A tracked frame updates the velocity and is fused; a failed one is counted and posed at the PnP guess
+        """A tracked frame updates the velocity and is fused; one whose registration jumped is held at the prediction,
+        one the map refuses but a trusted PnP pose near the prediction places is bridged there, neither counted as a
+        failure (``tracking.max_held_frames`` in a row at most); a failed one is counted and posed at the PnP guess
         (bridged) or the prediction (lost). Returns ``(tracked, T_world_cam, failure, status)``."""
         front = self.front
         res, failure, T_new = loc.res, loc.failure, loc.T_new
         tracked = res is not None and failure is None
+        if failure == JUMPED and front.motion.may_hold():  # ICP slid off: held at the prediction, velocity kept
+            front.motion.mark_held(frame.time_s)
+            return False, T_pred, failure, FrameStatus.HELD
+        if (failure is not None and loc.guess_trusted and not loc.relocalised
+                and front.motion.bridge_holds(T_pred, loc.guess, frame.time_s)):
+            # the map disagrees but the features agree with the prediction: bridged, the velocity kept, no
+            # relocalisation started (it would drop the reference keyframe's PnP for a search of all keyframes)
+            front.motion.mark_held(frame.time_s)
+            return False, loc.guess, failure, FrameStatus.BRIDGED
         if tracked:
             status = (FrameStatus.RELOCALISED if loc.relocalised else
                       FrameStatus.WEAK if res.degenerate else FrameStatus.TRACKED)
@@ -361,7 +372,7 @@ class HybridSlam:
                 "shape_relocalisations_tried": s.relocalisations["tried"],
                 "shape_relocalisations": s.relocalisations["tracked"],
                 "relocalisations_refused": s.relocalisations["refused_implausible"],
-                "weak_frames": s.weak_frames,
+                "weak_frames": s.weak_frames, "held_frames": s.held_frames,
                 "depth_noise_m": float(np.median(noise)) if noise else None,
                 # recovered frames by either route, the key every tracker reports
                 "relocalisations": counts["relocalisations_tracked"] + s.relocalisations["tracked"],

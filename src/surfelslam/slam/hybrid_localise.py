@@ -33,6 +33,8 @@ from surfelslam.types import Intrinsics, RGBDFrame
 IMPLAUSIBLE = "relocalisation_implausible"
 #: failure of an ICP pose that disagrees with the PnP pose
 DISAGREES = "disagrees_with_pnp"
+#: failure of an ICP pose that moved the motion prediction farther than the camera could (MotionModel.jumped)
+JUMPED = "implausible_correction"
 
 
 @dataclass
@@ -46,6 +48,7 @@ class Localised:
     guess: np.ndarray | None = None
     from_prev: bool = False
     relocalised: bool = False  # the result comes from a relocalisation (after too many failures)
+    guess_trusted: bool = False  # the guess is a PnP pose with hybrid.pnp_trust_min_inliers inliers
 
 
 def joint_term_weight(h: HybridConfig, finest_robust_scale_m: float, depth_noise_m: float) -> float:
@@ -168,11 +171,14 @@ class HybridLocaliser:
                 loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, T_init_rel)
             loc.from_prev = True
             t.lap("icp")
+            if loc.failure is None and self.front.motion.jumped(loc.res, frame.time_s):
+                loc.failure = JUMPED
         bad = loc.res is None or loc.failure is not None or loc.res.degenerate
         if match is None and h.pnp_retry and bad:
             match = self.pnp_match(frame, T_pred)
             t.lap("pnp")
         loc.guess = None if match is None else match.T_world_cam
+        loc.guess_trusted = match is not None and self.trusted(match)
         first_ok = loc.res is not None and loc.failure is None
         if first_ok and loc.guess is not None and h.pnp_check and self.disagrees(loc.T_new, match):
             first_ok = False
@@ -191,12 +197,13 @@ class HybridLocaliser:
         self.counts["pnp_guesses_tried"] += 1
         r2, f2, T2 = self.icp_from(loc.guess, np.eye(4), match)
         t.lap("icp")
-        if f2 is None and self.cfg.hybrid.pnp_check and self.disagrees(T2, match):
+        # after a jump the PnP pose is the evidence: ICP from it must agree with it
+        if f2 is None and (self.cfg.hybrid.pnp_check or loc.failure == JUMPED) and self.disagrees(T2, match):
             f2 = DISAGREES
         if f2 is None and (not r2.degenerate or not first_ok):
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, None, T2, False
             self.counts["pnp_guesses_tracked"] += 1
-        elif not first_ok:
+        elif not first_ok and loc.failure != JUMPED:  # a jump with no better pose from PnP stays one (held)
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, f2, T2, False
 
     def pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:

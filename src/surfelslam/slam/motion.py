@@ -16,6 +16,11 @@ from surfelslam.slam.config import TrackingConfig
 from surfelslam.slam.frame import FrameStatus
 from surfelslam.tracking.icp import ICPConfig, ICPResult, weak_projector
 
+#: ICP's own correction of a good prediction stays below this (m; at most 1.4 cm on the synthetic and TUM test rows)
+CORRECTION_SLACK_M = 0.02
+#: the same for the rotation (deg; TUM at 3x speed: up to 3.5 deg)
+CORRECTION_SLACK_DEG = 2.0
+
 
 def _identity() -> np.ndarray:
     return np.eye(4)
@@ -33,6 +38,8 @@ class TrackingState:
         v_tracked: the last fully tracked step (a weak frame's velocity fades from it); ``t_v_tracked_s`` its time.
         failures / failures_in_a_row / failure_reasons: frames not registered (all, the current streak, per reason).
         weak_frames: frames registered with weak directions held at the prediction.
+        held_frames / held_in_a_row: frames posed at the prediction because their registration jumped implausibly
+            (all, the current streak); ``t_last_posed_s``: time of the last registered or held frame.
         relocalisations: shape relocalisations ``tried``, ``tracked`` and ``refused_implausible``.
     """
 
@@ -46,6 +53,9 @@ class TrackingState:
     failures_in_a_row: int = 0
     failure_reasons: dict[str, int] = field(default_factory=dict)
     weak_frames: int = 0
+    held_frames: int = 0
+    held_in_a_row: int = 0
+    t_last_posed_s: float = 0.0
     relocalisations: dict[str, int] = field(
         default_factory=lambda: {"tried": 0, "tracked": 0, "refused_implausible": 0})
 
@@ -110,6 +120,8 @@ class MotionModel:
         s.T_world_last_tracked = T_world_cam.copy()
         s.t_last_tracked_s = time_s
         s.failures_in_a_row = 0
+        s.held_in_a_row = 0
+        s.t_last_posed_s = time_s
         if status is FrameStatus.WEAK:
             s.weak_frames += 1
 
@@ -120,12 +132,52 @@ class MotionModel:
         s = self.state
         s.failures += 1
         s.failures_in_a_row += 1
+        s.held_in_a_row = 0
         s.failure_reasons[reason] = s.failure_reasons.get(reason, 0) + 1
         if s.failures_in_a_row >= self.cfg.max_failures_in_a_row_before_reset_velocity:
             if forget_tracked_step:
                 s.velocity = s.v_tracked = np.eye(4)
             else:
                 s.velocity = np.eye(4)
+
+    def jumped(self, res: ICPResult, time_s: float) -> bool:
+        """Whether ``res``, a registration from the constant-velocity prediction at time ``time_s``, corrected the
+        prediction by more than a camera's change of velocity allows since the last registered or held frame
+        (``tracking.max_velocity_change_m_s`` / ``max_rate_change_deg_s``, plus :data:`CORRECTION_SLACK_M` /
+        :data:`CORRECTION_SLACK_DEG`): ICP slid along directions the view hardly constrains, though its system
+        looked well conditioned. An identity velocity is no measurement (the first frame, after a reset or a
+        relocalisation): then nothing is a jump."""
+        if np.array_equal(self.state.velocity, np.eye(4)):
+            return False
+        return self._beyond_reach(res.motion_m, res.motion_deg, time_s)
+
+    def _beyond_reach(self, d_m: float, d_deg: float, time_s: float) -> bool:
+        """Whether a correction of ``d_m`` / ``d_deg`` to the prediction at ``time_s`` exceeds the change of velocity
+        a camera makes since the last posed frame (see :meth:`jumped`)."""
+        tc = self.cfg
+        dt_s = max(time_s - self.state.t_last_posed_s, 0.0)
+        return (d_m > CORRECTION_SLACK_M + tc.max_velocity_change_m_s * dt_s
+                or d_deg > CORRECTION_SLACK_DEG + tc.max_rate_change_deg_s * dt_s)
+
+    def bridge_holds(self, T_pred: np.ndarray, T_bridge: np.ndarray, time_s: float) -> bool:
+        """Whether a frame the map could not register may be posed at the features' pose ``T_bridge`` without starting
+        a relocalisation: it is within reach of the prediction ``T_pred`` (:meth:`jumped`'s bound; a measured
+        velocity) and fewer than ``tracking.max_held_frames`` frames were held in a row."""
+        if np.array_equal(self.state.velocity, np.eye(4)) or not self.may_hold():
+            return False
+        return not self._beyond_reach(*se3.pose_error(T_bridge, T_pred), time_s)
+
+    def may_hold(self) -> bool:
+        """Whether one more frame may be held at the prediction (``tracking.max_held_frames`` in a row)."""
+        return self.state.held_in_a_row < self.cfg.max_held_frames
+
+    def mark_held(self, time_s: float) -> None:
+        """Bookkeeping of a frame held at the prediction at time ``time_s``: the velocity and the last registered pose
+        stay (the next prediction goes on from the held one)."""
+        s = self.state
+        s.held_frames += 1
+        s.held_in_a_row += 1
+        s.t_last_posed_s = time_s
 
     def count_not_localised(self, reason: str) -> None:
         """A frame not localised in a loaded map yet: a failure, not a streak (there is no motion to reset)."""

@@ -3,7 +3,8 @@
 A run reports every such stretch (first and last frame, what went wrong, how it ended) in ``metrics.json`` and on
 the console, so that a trajectory with a bad stretch never looks like a clean one. Frames are
 :class:`~surfelslam.slam.frame.FrameStatus` values: ``weak`` frames (registered along the constrained directions
-only) form ``weak`` segments; ``lost`` and ``bridged`` frames (not registered) form ``lost`` segments.
+only) and ``held`` frames (posed at the motion prediction, their registration refused as a jump) form ``weak``
+segments; ``lost`` and ``bridged`` frames (not registered) form ``lost`` segments.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from dataclasses import asdict, dataclass
 
 from surfelslam.slam.frame import FrameStatus
 
-_KIND = {FrameStatus.WEAK: "weak", FrameStatus.LOST: "lost", FrameStatus.BRIDGED: "lost"}
+_KIND = {FrameStatus.WEAK: "weak", FrameStatus.HELD: "weak", FrameStatus.LOST: "lost",
+         FrameStatus.BRIDGED: "lost"}
 
 
 @dataclass
