@@ -38,6 +38,16 @@ def test_quaternions_equal_scipy_bit_for_bit():
         np.testing.assert_array_equal(se3.rotation_to_quat_xyzw(R[k]), expected[k])
 
 
+def test_so3_exp_of_a_stack_equals_scipy_and_the_single_rodrigues():
+    rng = np.random.default_rng(5)
+    omega = np.concatenate([rng.normal(size=(500, 3)), rng.normal(size=(50, 3)) * 1e-7, np.zeros((1, 3)),
+                            [[np.pi, 0.0, 0.0], [0.0, 1e-3, 0.0]]])
+    R = se3.so3_exp_many(omega)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(omega).as_matrix(), atol=2e-15)
+    np.testing.assert_allclose(R[:3], [se3.so3_exp(w) for w in omega[:3]], atol=2e-15)
+    assert se3.so3_exp_many(np.zeros((0, 3))).shape == (0, 3, 3)
+
+
 def test_so3_log_of_a_stack_equals_scipy_bit_for_bit():
     R = _rotations()
     np.testing.assert_array_equal(se3.so3_log(R), Rotation.from_matrix(R).as_rotvec())

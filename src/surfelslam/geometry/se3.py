@@ -101,6 +101,20 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) / theta * W + (1 - np.cos(theta)) / theta**2 * W @ W
 
 
+def so3_exp_many(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues for many: axis-angles ``(N, 3)`` -> rotations ``(N, 3, 3)`` (Taylor terms below the small angle)."""
+    omega = np.asarray(omega, dtype=np.float64).reshape(-1, 3)
+    theta = np.linalg.norm(omega, axis=1)
+    small = theta < _SMALL_ANGLE_RAD
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    W = np.zeros((len(omega), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -omega[:, 2], omega[:, 1], -omega[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = omega[:, 2], -omega[:, 1], omega[:, 0]
+    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+
+
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation(s) ``(..., 3, 3)`` -> axis-angle(s) ``(..., 3)``, robust near 0 and pi.
 

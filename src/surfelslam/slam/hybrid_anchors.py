@@ -14,7 +14,6 @@ just before ``k + 1`` would keep the whole drift that the graph removed from ``k
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.geometry import se3
@@ -138,7 +137,7 @@ class KeyframeAnchors:
         part = np.flatnonzero(frac > 0)
         if len(part):
             a, k = frac[part], anchor[part]
-            Wa[part, :3, :3] = Rotation.from_rotvec(a[:, None] * se3.so3_log(W[k, :3, :3])).as_matrix()
+            Wa[part, :3, :3] = se3.so3_exp_many(a[:, None] * se3.so3_log(W[k, :3, :3]))
             Wa[part, :3, 3] = a[:, None] * W[k, :3, 3]
         return Trajectory(stamps, kf[anchor] @ Wa @ T_kf_cam)
 
