@@ -66,24 +66,29 @@ def _search(query, train, best_d, second_d, best_idx, col_idx, columns):
             col_idx[j] = -1
     for i in range(query.shape[0]):
         _distances(query, i, train, d)
-        b1 = NO_MATCH
-        b2 = NO_MATCH
-        bi = -1
-        for j in range(m):
-            dj = d[j]
-            if dj < b2:  # rarely true: one well-predicted branch for most rows
-                if dj < b1:
-                    b2 = b1
-                    b1 = dj
-                    bi = j
-                else:
-                    b2 = dj
-            if columns and dj < col_d[j]:
-                col_d[j] = dj
-                col_idx[j] = i
-        best_d[i] = b1
-        second_d[i] = b2
-        best_idx[i] = bi
+        best_d[i], second_d[i], best_idx[i] = _scan(d, m, i, columns, col_d, col_idx)
+
+
+@njit(cache=True, nogil=True)
+def _scan(d, m, i, columns, col_d, col_idx):
+    """The two smallest of the distances ``d[:m]`` of query row ``i`` and the first index of the smallest; with
+    ``columns``, each train row's nearest query row so far (``col_d``, ``col_idx``) takes row ``i`` where nearer."""
+    b1 = NO_MATCH
+    b2 = NO_MATCH
+    bi = -1
+    for j in range(m):
+        dj = d[j]
+        if dj < b2:  # rarely true: one well-predicted branch for most rows
+            if dj < b1:
+                b2 = b1
+                b1 = dj
+                bi = j
+            else:
+                b2 = dj
+        if columns and dj < col_d[j]:
+            col_d[j] = dj
+            col_idx[j] = i
+    return b1, b2, bi
 
 
 @njit(cache=True, nogil=True)
@@ -114,24 +119,7 @@ def _search_columns(query, train_columns, m, best_d, second_d, best_idx, col_idx
         for j in range(m):
             d[j] = (int(_popcount64(q0 ^ t0[j])) + int(_popcount64(q1 ^ t1[j])) + int(_popcount64(q2 ^ t2[j]))
                     + int(_popcount64(q3 ^ t3[j])))
-        b1 = NO_MATCH
-        b2 = NO_MATCH
-        bi = -1
-        for j in range(m):  # the scan of _search
-            dj = d[j]
-            if dj < b2:
-                if dj < b1:
-                    b2 = b1
-                    b1 = dj
-                    bi = j
-                else:
-                    b2 = dj
-            if columns and dj < col_d[j]:
-                col_d[j] = dj
-                col_idx[j] = i
-        best_d[i] = b1
-        second_d[i] = b2
-        best_idx[i] = bi
+        best_d[i], second_d[i], best_idx[i] = _scan(d, m, i, columns, col_d, col_idx)
 
 
 @njit(cache=True, nogil=True)
