@@ -76,6 +76,18 @@ class KeyframeGraph:
                 "edges_weak_shaped": self.n_weak_shaped,
                 "graph_batch_fallbacks": self._graph.n_batch_fallbacks}
 
+    def dense_edge_stats(self) -> dict[str, float | bool | None]:
+        """The refined edges' gate by their ``metrics.json`` names: ``edge_sigma_m`` (the sigma, m and rad, new
+        refined edges get now), ``edge_spread_m`` (their robust spread against the odometry), whether they are
+        trusted, and the robust spreads of their rotation (rad) and translation (m) residuals at the last
+        optimisation of their graph; ``None`` without an edge refiner or before enough edges."""
+        ref = self._refiner
+        return {"edge_sigma_m": None if ref is None else ref.edge_sigma(),
+                "edge_spread_m": None if ref is None else ref.spread(),
+                "edges_refined_trusted": None if ref is None else self.refined_trusted,
+                "edge_residual_rad": self.refined_residual_rad,
+                "edge_residual_m": self.refined_residual_m}
+
     @property
     def poses(self) -> np.ndarray:
         """``(K, 4, 4)`` current estimates ``T_world_kf`` (a view: writes go to the graph's pose store)."""

@@ -116,16 +116,8 @@ class SparseSlam:
         return None if self._refiner is None else self._graph.refined_trusted
 
     def dense_edge_stats(self) -> dict[str, float | bool | None]:
-        """The refined edges' gate by their ``metrics.json`` names: ``edge_sigma_m`` (the sigma, m and rad, new
-        refined edges get now), ``edge_spread_m`` (their robust spread against the odometry), whether they are
-        trusted, and the robust spreads of their rotation (rad) and translation (m) residuals at the last
-        optimisation of their graph; ``None`` without an edge refiner or before enough edges."""
-        ref = self._refiner
-        return {"edge_sigma_m": None if ref is None else ref.edge_sigma(),
-                "edge_spread_m": None if ref is None else ref.spread(),
-                "edges_refined_trusted": self.dense_edges_trusted,
-                "edge_residual_rad": self._graph.refined_residual_rad,
-                "edge_residual_m": self._graph.refined_residual_m}
+        """The refined edges' gate by their ``metrics.json`` names (:meth:`KeyframeGraph.dense_edge_stats`)."""
+        return self._graph.dense_edge_stats()
 
     @property
     def loops_found(self) -> list[tuple[int, int, int]]:
@@ -136,11 +128,6 @@ class SparseSlam:
     def loops_accepted(self) -> list[tuple[int, int, int]]:
         """The subset of :attr:`loops_found` that became graph edges."""
         return self._graph.loops_accepted
-
-    @property
-    def n_nearby_edges(self) -> int:
-        """Accepted edges to nearby keyframes."""
-        return self._graph.n_nearby_edges
 
     @property
     def edge_counts(self) -> dict[str, int]:
@@ -503,7 +490,7 @@ class SparseSlam:
             keyframe_poses=self.keyframe_poses(),
             loops_found=list(self.loops_found),
             loops_accepted=list(self.loops_accepted),
-            n_nearby_edges=self.n_nearby_edges,
+            n_nearby_edges=self._graph.n_nearby_edges,
             rejected=dict(self.rejected),
             map_xyz=xyz,
             map_rgb=rgb,
