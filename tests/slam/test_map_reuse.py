@@ -16,9 +16,12 @@ import pytest
 from typer.testing import CliRunner
 
 import surfelslam as ss
+from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.cli import app
 from surfelslam.errors import ConfigError, MapFileError
 from surfelslam.geometry.se3 import invert
+from surfelslam.settings import from_dict
+from surfelslam.slam import SlamConfig, build_slam
 from surfelslam.slam.map_file import read_map_file, write_map_file
 from surfelslam.slam.saved_map import MAP_VERSION, to_arrays
 from surfelslam.synth import make_scene, make_trajectory
@@ -196,3 +199,21 @@ def test_the_map_file_is_written_atomically_and_reads_back_whole(tmp_path, first
     assert sorted(p.name for p in tmp_path.iterdir()) == ["copy.npz"]  # no temp file left
     back = read_map_file(tmp_path / "copy.npz")
     assert np.array_equal(back.keyframes.features[1].points_cam, kf.features[1].points_cam, equal_nan=True)
+
+
+def test_the_hybrid_saves_back_end_keyframes_and_extracts_orb_once_per_keyframe(monkeypatch):
+    """The hybrid's saved keyframes are frames its back end made keyframes of (their ORB features are extracted anyway),
+    and ORB runs on no other frame: once per back-end keyframe (the saved map's own spacing would cost extra
+    extractions, a third more on a slow room sequence)."""
+
+    extracted: list[int] = []
+    extract = SparseSlam.features
+    monkeypatch.setattr(SparseSlam, "features", lambda self, frame: extracted.append(frame.index) or extract(self, frame))
+    slam = build_slam(INTR, from_dict(SlamConfig, CFG), "hybrid")
+    for f in _sequence()[0]:
+        slam.process(f)
+    saved = slam.finish().saved_map.keyframes
+    back_end = slam.sparse.keyframe_frame_indices().tolist()
+    assert len(back_end) >= 4 and 2 <= len(saved) < len(back_end)
+    assert set(saved.frame_index.tolist()) <= set(back_end)
+    assert sorted(extracted) == back_end  # each back-end keyframe once, nothing else

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,8 @@ from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, make_frame, noise_config
 from surfelslam.tracking.features import FeatureConfig, extract, to_grey
-from surfelslam.tracking.features.keyframe_track import MAX_TRACKED_POINTS, track_keyframe
+from surfelslam.tracking.features import keyframe_track
+from surfelslam.tracking.features.keyframe_track import MAX_TRACKED_POINTS, KeyframePoints, track_keyframe
 
 INTR = default_intrinsics(320, 240)
 
@@ -59,3 +62,23 @@ def test_a_prediction_looking_away_finds_nothing(pair) -> None:
     ref, cur, T_true = pair
     away = make_T(so3_exp([0.0, np.pi, 0.0]), [0.0, 0.0, 0.0]) @ T_true
     assert track_keyframe(ref, to_grey(cur.rgb), away, INTR, FeatureConfig()) is None
+
+
+def test_the_keyframe_points_are_selected_once_and_follow_the_keyframe(pair, monkeypatch):
+    """Kept between frames (:class:`KeyframePoints`), the keyframe's points are selected once and track exactly as
+    points selected afresh; another keyframe gets its own selection."""
+    ref, cur, T_true = pair
+    cfg, grey = FeatureConfig(), to_grey(cur.rgb)
+    fresh = track_keyframe(ref, grey, T_true, INTR, cfg)
+    calls = []
+    select = keyframe_track._selected
+    monkeypatch.setattr(keyframe_track, "_selected", lambda *a: calls.append(1) or select(*a))
+    kept = KeyframePoints()
+    for _ in range(3):
+        again = track_keyframe(ref, grey, T_true, INTR, cfg, kept)
+        assert np.array_equal(again.T_cur_ref, fresh.T_cur_ref) and np.array_equal(again.uv_cur, fresh.uv_cur)
+    assert len(calls) == 1
+    other = replace(ref, valid=ref.valid & (np.arange(len(ref)) % 2 == 0))  # another keyframe: half the points
+    P, uv = kept.of(other, grey.shape, cfg)
+    assert len(calls) == 2 and len(P) == len(uv) <= other.valid.sum() < ref.valid.sum()
+    assert np.all(np.isin(uv, other.keypoints_uv[other.valid]).all(axis=1))

@@ -130,7 +130,8 @@ class MapReuseConfig(Config):
     keyframe_motion: float = setting(
         0.15, unit="m + rad", gt=0, le=100,
         doc="a tracked frame this far (motion norm) from the last saved keyframe becomes one: its ORB features and "
-            "depth are saved for relocalisation")
+            "depth are saved for relocalisation (hybrid: the first such frame its back end makes a keyframe, whose "
+            "features are extracted anyway)")
     keyframe_depth_max_width_px: int = setting(
         160, unit="px", ge=1, le=65536,
         doc="a saved keyframe's depth is block-subsampled to at most this width (2x2 steps)")

@@ -49,14 +49,14 @@ class DenseFrontEnd:
     ``colour_registered``: the sequence's colour and depth pixels see the same rays (``tracking.photometric``).
     ``colour_camera``: the sequence's separate colour camera, if known. ``features_of``: the ORB features of a frame
     for the saved map and the map localisation (default: extracted by the mapper); ``features_later``: a future of
-    them for the saved map (see :class:`FusingMapper`). ``tracker_name``: written into
+    them for the saved map, or ``None`` (see :class:`FusingMapper`). ``tracker_name``: written into
     the saved map.
     """
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, colour_registered: bool = True,
                  colour_camera: ColourCamera | None = None,
                  features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = "",
-                 features_later: Callable[[RGBDFrame], Future] | None = None):
+                 features_later: Callable[[RGBDFrame], Future | None] | None = None):
         self.intr = intr
         self.cfg = cfg
         self.photometric = cfg.icp.photometric_weight > 0 and colour_switch(cfg.tracking.photometric,

@@ -183,13 +183,14 @@ class HybridSlam:
             self._feats = self.sparse.features(frame)
         return self._feats
 
-    def _features_later(self, frame: RGBDFrame) -> Future:
-        """A future of the current frame's ORB features for the saved map: the prepared ones, the ones a new
-        keyframe is having extracted, else extracted on the worker thread."""
-        if self._feats is None and self._keyframe_feats is None:
-            self._keyframe_feats = self._worker.submit(self.sparse.features, frame)
+    def _features_later(self, frame: RGBDFrame) -> Future | None:
+        """A future of the current frame's ORB features for the saved map: the ones a new keyframe of the back end is
+        having extracted, else the prepared or extracted ones; ``None`` when the frame has none (it is then not saved:
+        the saved keyframes are frames whose features the back end extracts anyway)."""
         if self._keyframe_feats is not None:
             return self._keyframe_feats
+        if self._feats is None:
+            return None
         done: Future = Future()
         done.set_result(self._feats)
         return done
@@ -234,6 +235,8 @@ class HybridSlam:
             return front.not_localised(frame, t)
         status = front.first_status()
         front.motion.mark_tracked(T_new, frame.time_s, status)
+        if self._feats is None:  # the first keyframe's features, extracted while fusing (the saved map's first too)
+            self._keyframe_feats = self._worker.submit(self.sparse.features, frame)
         front.fuse(frame, T_new)
         t.lap("fuse")
         self._after_tracking(frame, T_new, True, t)

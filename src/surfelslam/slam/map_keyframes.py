@@ -66,7 +66,8 @@ class KeyframeRecorder:
         keyframe_motion: motion norm (m + rad) from the last keyframe that makes a new one.
         depth_step: subsampling step of the saved depth.
         features_of: the frame's ORB features (the tracker's own when it has them, else extracted), or a future of
-            them (extracted on another thread; awaited when the keyframes are read).
+            them (extracted on another thread; awaited when the keyframes are read), or ``None``: the frame has none at
+            hand and is not recorded (a later frame far enough from the last keyframe is).
         prior: keyframes of a loaded map, kept first (a run that continues a map); this run's are session
             ``prior.session.max() + 1``.
     """
@@ -92,14 +93,16 @@ class KeyframeRecorder:
 
     def observe(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> bool:
         """A fused frame at ``T_world_cam`` ``(4, 4)``: record it when it is far enough from the last keyframe of
-        this session; returns whether it did."""
+        this session and its features are given (not ``None``); returns whether it did."""
         if self._poses and motion_norm(invert(self._poses[-1]) @ T_world_cam) < self.keyframe_motion:
+            return False
+        feats = self._features_of(frame)
+        if feats is None:
             return False
         s = self.depth_step
         self._poses.append(np.asarray(T_world_cam, np.float64).copy())
         self._frames.append(int(frame.index))
         self._stamps.append(float(frame.timestamp))
-        feats = self._features_of(frame)
         self._features.append(feats if isinstance(feats, Future) else slim_features(feats))
         self._depth.append(np.ascontiguousarray(frame.depth_m[::s, ::s], np.float32))
         return True

@@ -45,14 +45,15 @@ class FusingMapper:
         features_of: the ORB features of a frame that becomes a saved keyframe (a holder with features of its own
             passes its own; default: extracted here).
         features_later: a future of those features, for the saved keyframes only (a holder with a worker thread
-            passes it; default: ``features_of``).
+            passes it; default: ``features_of``), or ``None`` when the frame has none at hand: it is then not saved,
+            a later frame is (:meth:`KeyframeRecorder.observe`).
         tracker_name: the tracker's name, written into the saved map.
     """
 
     def __init__(self, intr: Intrinsics, cfg: SlamConfig, min_levels: int = 1, track_level: int | None = None,
                  colour_camera: ColourCamera | None = None,
                  features_of: Callable[[RGBDFrame], Features] | None = None, tracker_name: str = "",
-                 features_later: Callable[[RGBDFrame], Future] | None = None):
+                 features_later: Callable[[RGBDFrame], Future | None] | None = None):
         apply_compute(cfg.compute)
         self.intr = intr
         self.cfg = cfg

@@ -9,7 +9,7 @@ import numpy as np
 from surfelslam.backend.sparse_slam.results import KeyframeMatch
 from surfelslam.geometry.se3 import invert, transform_points
 from surfelslam.tracking.features import FeatureConfig, Features, estimate_motion
-from surfelslam.tracking.features.keyframe_track import track_keyframe
+from surfelslam.tracking.features.keyframe_track import KeyframePoints, track_keyframe
 from surfelslam.types import Intrinsics
 
 
@@ -34,9 +34,10 @@ def pnp_match(kf: int, T_world_kf: np.ndarray, ref: Features, feats: Features, T
 
 
 def tracked_match(kf: int, T_world_kf: np.ndarray, ref: Features, grey: np.ndarray, T_world_cam_pred: np.ndarray,
-                  intr: Intrinsics, cfg: FeatureConfig) -> KeyframeMatch | None:
+                  intr: Intrinsics, cfg: FeatureConfig, points: KeyframePoints | None = None) -> KeyframeMatch | None:
     """Keyframe ``kf``'s points (``ref``) tracked into the frame ``grey (H, W)`` from the prediction
-    (:func:`~surfelslam.tracking.features.keyframe_track.track_keyframe`); ``None`` when too few are found."""
-    tracked = track_keyframe(ref, grey, invert(T_world_cam_pred) @ T_world_kf, intr, cfg)
+    (:func:`~surfelslam.tracking.features.keyframe_track.track_keyframe`; ``points``: the keyframe's selected points
+    kept between frames); ``None`` when too few are found."""
+    tracked = track_keyframe(ref, grey, invert(T_world_cam_pred) @ T_world_kf, intr, cfg, points)
     return None if tracked is None else match_in_world(kf, T_world_kf, tracked.T_cur_ref, tracked.points_ref,
                                                        tracked.uv_cur)

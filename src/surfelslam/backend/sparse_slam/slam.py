@@ -27,6 +27,7 @@ from surfelslam.backend.sparse_slam.reference_match import pnp_match, tracked_ma
 from surfelslam.backend.sparse_slam.results import KeyframeMatch, LoopCheck, SparseFrameResult, SparseSlamResult
 from surfelslam.geometry.se3 import invert, motion_norm, orthonormalize
 from surfelslam.tracking.features import Features, MotionResult, estimate_motion, extract
+from surfelslam.tracking.features.keyframe_track import KeyframePoints
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics, RGBDFrame, Trajectory
@@ -95,6 +96,7 @@ class SparseSlam:
                                     pnp_nearby)
         self._loops = LoopChecker(intr, self.cfg.features, self.cfg.loop, self._refiner, self._kfs)
         self._ref_kf = -1
+        self._ref_points = KeyframePoints()  # the reference keyframe's points tracked into each frame
         # per processed frame: timestamp, reference keyframe, pose relative to it
         self._timestamps: list[float] = []
         self._frame_kf: list[int] = []
@@ -441,7 +443,7 @@ class SparseSlam:
             return None
         kf = self._ref_kf
         return tracked_match(kf, self._kf_poses[kf], self._kfs[kf].features, grey, T_world_cam_pred, self.intr,
-                             self.cfg.features)
+                             self.cfg.features, self._ref_points)
 
     def match_reference_keyframe(self, frame: RGBDFrame, T_world_cam_pred: np.ndarray | None = None,
                                  feats: Features | None = None, coarse: bool = False) -> KeyframeMatch | None:

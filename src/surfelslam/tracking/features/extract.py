@@ -64,7 +64,7 @@ def to_grey(rgb: np.ndarray) -> np.ndarray:
 
 
 def bucket_keypoints(
-    uv: np.ndarray, response: np.ndarray, shape: tuple[int, int], cfg: FeatureConfig
+    uv: np.ndarray, response: np.ndarray, shape: tuple[int, int], cfg: FeatureConfig, n_keep: int | None = None
 ) -> np.ndarray:
     """Indices of the keypoints kept by grid bucketing (strongest first within each cell).
 
@@ -72,13 +72,15 @@ def bucket_keypoints(
         uv: ``(N, 2)`` pixel coordinates.
         response: ``(N,)`` detector responses.
         shape: image ``(H, W)``.
+        n_keep: how many to keep (default ``cfg.n_features``); the grid is ``cfg``'s.
 
     Returns:
-        ``(K,)`` int64 indices into ``uv``, ascending, ``K <= n_features``. Cells with fewer
+        ``(K,)`` int64 indices into ``uv``, ascending, ``K <= n_keep``. Cells with fewer
         keypoints than their quota leave room that is refilled with the best remaining keypoints.
     """
     n = len(uv)
-    if n <= cfg.n_features:
+    n_keep = cfg.n_features if n_keep is None else n_keep
+    if n <= n_keep:
         return np.arange(n, dtype=np.int64)
     h, w = shape
     cu = np.clip((uv[:, 0] * cfg.grid_cols / w).astype(np.int64), 0, cfg.grid_cols - 1)
@@ -90,10 +92,10 @@ def bucket_keypoints(
     first = np.searchsorted(cell_sorted, cell_sorted, side="left")
     rank = np.empty(n, dtype=np.int64)
     rank[order] = np.arange(n) - first
-    quota = int(np.ceil(cfg.n_features / (cfg.grid_cols * cfg.grid_rows)))
+    quota = int(np.ceil(n_keep / (cfg.grid_cols * cfg.grid_rows)))
     # global order: by rank within the cell first, then by response -> fill evenly, then the strongest
     global_order = np.lexsort((np.arange(n), -response, np.minimum(rank, quota)))
-    keep = global_order[: cfg.n_features]
+    keep = global_order[:n_keep]
     return np.sort(keep)
 
 

@@ -11,7 +11,7 @@ badly are dropped and the pose refined again).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -95,22 +95,38 @@ def _selected(ref: Features, shape: tuple[int, int], cfg: FeatureConfig) -> np.n
     idx = np.flatnonzero(ref.valid)
     if len(idx) <= MAX_TRACKED_POINTS:
         return idx
-    return idx[bucket_keypoints(ref.keypoints_uv[idx], ref.response[idx], shape,
-                                replace(cfg, n_features=MAX_TRACKED_POINTS))]
+    return idx[bucket_keypoints(ref.keypoints_uv[idx], ref.response[idx], shape, cfg, n_keep=MAX_TRACKED_POINTS)]
+
+
+class KeyframePoints:
+    """The points of a keyframe that :func:`track_keyframe` follows, selected once per keyframe (not once per frame:
+    the reference keyframe stays the same over many frames). Holds the last keyframe's selection; a call for another
+    keyframe, image size or config replaces it (so the result never depends on what was asked before)."""
+
+    def __init__(self) -> None:
+        self._last: tuple | None = None  # (ref, shape, cfg, points (M, 3) float64, pixels (M, 2) float64)
+
+    def of(self, ref: Features, shape: tuple[int, int], cfg: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+        """``(points (M, 3), pixels (M, 2))`` float64 of ``ref``'s selected keypoints (:func:`_selected`)."""
+        last = self._last  # one read: another thread may replace it meanwhile
+        if last is None or last[0] is not ref or last[1] != shape or last[2] is not cfg:
+            idx = _selected(ref, shape, cfg)
+            last = (ref, shape, cfg, ref.points_cam[idx].astype(np.float64), ref.keypoints_uv[idx].astype(np.float64))
+            self._last = last
+        return last[3], last[4]
 
 
 def track_keyframe(ref: Features, grey_cur: np.ndarray, T_cur_ref_pred: np.ndarray, intr: Intrinsics,
-                   cfg: FeatureConfig) -> TrackedKeyframe | None:
+                   cfg: FeatureConfig, points: KeyframePoints | None = None) -> TrackedKeyframe | None:
     """The keyframe ``ref``'s keypoints with depth found in the frame ``grey_cur (H, W)`` uint8 (see the module).
 
-    ``T_cur_ref_pred``: ``(4, 4)`` predicted pose of the frame relative to the keyframe. Returns ``None`` when fewer
+    ``T_cur_ref_pred``: ``(4, 4)`` predicted pose of the frame relative to the keyframe. ``points``: where the
+    keyframe's selected points are kept between calls (default: selected in this call). Returns ``None`` when fewer
     than ``cfg.min_inliers`` points are found.
     """
     if ref.grey is None or ref.grey.shape != grey_cur.shape or not ref.valid.any():
         return None
-    idx = _selected(ref, grey_cur.shape, cfg)
-    P = ref.points_cam[idx].astype(np.float64)
-    uv_ref = ref.keypoints_uv[idx].astype(np.float64)
+    P, uv_ref = (KeyframePoints() if points is None else points).of(ref, grey_cur.shape, cfg)
     T = np.asarray(T_cur_ref_pred, np.float64)
     u, v, z = project(P @ T[:3, :3].T + T[:3, 3], intr)
     h, w = grey_cur.shape
