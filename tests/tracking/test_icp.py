@@ -412,3 +412,56 @@ def test_geometric_noise_measures_the_depth_noise(renders):
 
     exact, n2, n4 = noise_m(0.0), noise_m(0.002), noise_m(0.004)
     assert exact < 0.5 * n2 and 1.6 < n4 / n2 < 2.4, (exact, n2, n4)
+
+
+# ---------------------------------------------------------------------------------------------
+# overlap: the view beyond the model (a room first seen through a doorway)
+# ---------------------------------------------------------------------------------------------
+def _unmapped_beyond(pyr, keep_cols: float):
+    """A copy of ``pyr`` holding only its left ``keep_cols`` share of columns (the rest: no model there)."""
+    from surfelslam.tracking.preprocess import FramePyramid, PyramidLevel
+
+    levels = []
+    for lv in pyr.levels:
+        v, n = lv.vertex.copy(), lv.normal.copy()
+        c = int(keep_cols * v.shape[1])
+        v[:, c:] = 0
+        n[:, c:] = 0
+        levels.append(PyramidLevel(v, n, lv.intrinsics))
+    return FramePyramid(levels)
+
+
+def test_overlap_counts_the_source_points_landing_on_the_model(pair_pyramids):
+    src, tgt = pair_pyramids
+    part = _unmapped_beyond(tgt, 0.3)
+    i = tgt[0].intrinsics
+    T = MOTIONS[4]
+    stats = np.zeros(kicp.N_STATS)
+    kicp.accumulate_normal_equations(src[0].vertex, src[0].normal, part[0].vertex, part[0].normal, T,
+                                     i.fx, i.fy, i.cx, i.cy, 0.05, np.cos(np.radians(30.0)), kicp.ROBUST_HUBER, 0.01,
+                                     stats, 1, 0.0)
+    # the reference: valid source points whose projection lands on a valid target pixel
+    P0 = src[0].vertex.reshape(-1, 3).astype(np.float64)
+    ok = (P0[:, 2] > 0) & np.any(src[0].normal.reshape(-1, 3) != 0, axis=1)
+    P = P0[ok] @ T[:3, :3].T + T[:3, 3]
+    u = np.floor(i.fx * P[:, 0] / P[:, 2] + i.cx + 0.5).astype(int)
+    v = np.floor(i.fy * P[:, 1] / P[:, 2] + i.cy + 0.5).astype(int)
+    inside = (P[:, 2] > 0) & (u >= 0) & (u < i.width) & (v >= 0) & (v < i.height)
+    lands = inside.copy()
+    lands[inside] = part[0].vertex[v[inside], u[inside], 2] > 0
+    assert stats[32] == lands.sum() and 0.2 * stats[31] < stats[32] < 0.45 * stats[31]
+    assert stats[29] <= stats[32]
+
+
+def test_a_view_mostly_beyond_the_model_fails_on_the_fraction_but_keeps_its_overlap(pair_pyramids):
+    """The inlier fraction of all valid source points falls below ``min_inlier_fraction`` when most of the view lies
+    where the model holds nothing; the inliers' share of the overlap stays high and the constrained directions are
+    still registered, which is what the trackers' front end (DenseFrontEnd._sees_unmapped_space) accepts."""
+    src, tgt = pair_pyramids
+    part = _unmapped_beyond(tgt, 0.2)
+    T0 = MOTIONS[4] @ motion((0, 0, 1), 0.5, (0, 0, 1), 0.01)
+    res = icp(src, part, T_init=T0, cfg=ICPConfig())
+    assert res.status == "too_few_inliers" and res.inlier_fraction < 0.25
+    assert res.levels[-1].overlap_inlier_fraction > 0.8
+    err = se3.invert(MOTIONS[4]) @ res.T_target_source
+    assert abs(err[2, 3]) < 0.003  # the 1 cm start error along the depth, which the strip constrains, is removed

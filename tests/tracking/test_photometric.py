@@ -49,7 +49,7 @@ def test_photometric_kernel_matches_numerical_reference(fy):
     T = se3.exp(np.array([0.01, -0.02, 0.005, 0.01, 0.005, -0.01]))
     for stride in (1, 2):
         out = np.zeros(kicp.N_STATS)
-        out[28:] = [1.0, 2.0, 3.0, 4.0]  # the geometric counters must stay untouched
+        out[28:] = [1.0, 2.0, 3.0, 4.0, 5.0]  # the geometric counters must stay untouched
         aux = np.zeros(kph.N_AUX)
         kph.accumulate_photometric(X, src_int, tgt_vertex, igg, T, fx, fy, cx, cy, 0.1, 0.02, 2.0, 0.7, 0.01, out, aux,
                                    stride)
@@ -63,7 +63,7 @@ def test_photometric_kernel_matches_numerical_reference(fy):
         np.testing.assert_allclose(Hk, H, rtol=1e-7, atol=1e-7 * np.abs(H).max())
         np.testing.assert_allclose(gk, g, rtol=1e-7, atol=1e-7 * np.abs(g).max())
         assert out[27] == pytest.approx(0.7 * float(np.sum(h * e * e)), rel=1e-9)
-        assert list(out[28:]) == [1.0, 2.0, 3.0, 4.0]
+        assert list(out[28:]) == [1.0, 2.0, 3.0, 4.0, 5.0]
         assert aux[2] == len(e) and aux[0] == pytest.approx(h.sum())
         assert aux[1] / aux[0] == pytest.approx(float(np.sum(h * (e * 0.02 + 0.01)) / h.sum()), rel=1e-6)
 

@@ -22,6 +22,8 @@ Layout of the accumulated vector (``N_STATS`` float64 values):
     [27]    sum w_i b_i^2          [28] sum b_i^2 (unweighted)
     [29]    inlier count           [30] sum of inlier source depths p_z (m)
     [31]    number of valid source points (z > 0 and normal != 0)
+    [32]    of those, the points that land on a valid target pixel (the overlap with the model: the others see
+            space the target does not hold, e.g. a room seen for the first time through a doorway)
 
 Determinism: source rows are split into ``N_CHUNKS`` fixed chunks (independent of the thread count);
 each chunk accumulates its own partial sums in row-major pixel order and the chunks are added in
@@ -40,7 +42,7 @@ N_CHUNKS = 8
 # Only fused multiply-add contraction: no reassociation, so the per-chunk summation order (and the
 # result) stays fixed; results differ from the numpy references by float rounding only.
 _FASTMATH = {"contract"}
-N_STATS = 32
+N_STATS = 33
 
 ROBUST_NONE = 0
 ROBUST_HUBER = 1
@@ -93,7 +95,7 @@ def _normal_equations_chunk(src_vertex, src_normal, tgt_vertex, tgt_normal, T, f
     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
     s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
     s21 = s22 = s23 = s24 = s25 = s26 = 0.0
-    s27 = s28 = s29 = s30 = s31 = 0.0
+    s27 = s28 = s29 = s30 = s31 = s32 = 0.0
     row0 = (c * H) // N_CHUNKS
     row1 = ((c + 1) * H) // N_CHUNKS
     for v in range(row0, row1):
@@ -126,6 +128,7 @@ def _normal_equations_chunk(src_vertex, src_normal, tgt_vertex, tgt_normal, T, f
             qz = np.float64(tgt_vertex[vi, ui, 2])
             if qz <= 0.0:
                 continue
+            s32 += 1.0
             dx = px - tgt_vertex[vi, ui, 0]
             dy = py - tgt_vertex[vi, ui, 1]
             dz = pz - qz
@@ -217,6 +220,7 @@ def _normal_equations_chunk(src_vertex, src_normal, tgt_vertex, tgt_normal, T, f
     pc[29] = s29
     pc[30] = s30
     pc[31] = s31
+    pc[32] = s32
 
 
 @dual_njit(fastmath=_FASTMATH, error_model="numpy")

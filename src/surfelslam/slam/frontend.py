@@ -173,6 +173,8 @@ class DenseFrontEnd:
         updated where the view constrains them instead of freezing until the view improves.
         """
         failure = icp_failure(res)
+        if failure == ICPStatus.TOO_FEW_INLIERS and self._sees_unmapped_space(res):
+            return None
         if failure != ICPStatus.DEGENERATE or not self.cfg.tracking.fuse_weak_frames:
             return failure
         icfg = self.cfg.icp
@@ -181,6 +183,16 @@ class DenseFrontEnd:
                   and res.inlier_fraction >= icfg.min_inlier_fraction
                   and res.motion_m <= icfg.max_translation_m and res.motion_deg <= icfg.max_rotation_deg)
         return None if usable else failure
+
+    def _sees_unmapped_space(self, res: ICPResult) -> bool:
+        """Whether ``res`` failed on its inlier fraction only because much of the view lies outside the map (a room
+        seen for the first time through a doorway): the finest level kept its inlier count, and the inliers are
+        ``icp.min_inlier_fraction`` of the source points that land on the rendered model. Such a frame is tracked and
+        fused, so the map grows into the new space; refusing it would leave the map, and every later frame, short."""
+        fine = res.levels[-1]
+        return (fine.stop not in (ICPStatus.TOO_FEW_INLIERS, ICPStatus.SOLVER) and not res.degenerate
+                and fine.overlap_inlier_fraction >= self.cfg.icp.min_inlier_fraction
+                and res.motion_m <= self.cfg.icp.max_translation_m and res.motion_deg <= self.cfg.icp.max_rotation_deg)
 
     def relocalise_shape(self, T_world_render: np.ndarray | None = None,
                          time_s: float | None = None) -> tuple[ICPResult, np.ndarray] | None:

@@ -62,7 +62,9 @@ class ICPConfig(Config):
     min_inliers: int = setting(500, unit="pairs", ge=0, le=10_000_000,
                                doc="inliers needed at the finest level (coarser levels: this / 4^level, at least 6)")
     min_inlier_fraction: float = setting(0.25, unit="fraction", ge=0, le=1,
-                                         doc="inliers / valid source points needed at the finest level")
+                                         doc="inliers / valid source points needed at the finest level (frame "
+                                             "tracking: of the points landing on the map, the rest of the view "
+                                             "being space the map does not hold yet)")
     max_condition_number: float = setting(
         1e4, ge=1, allow_inf=True,
         doc="a finest-level normal matrix (rotation scaled by the mean depth) with a larger eigenvalue ratio marks "
@@ -174,6 +176,9 @@ class LevelInfo:
     # robust RMS of the point-to-plane residuals alone (m; in the level's depth-normalised units, Huber-weighted),
     # before any feature or photometric term: the depth data's own noise at the last linearisation
     geometric_noise_m: float = 0.0
+    # inliers / the source points that land on a valid target pixel (1 when none does): the inliers' share of the
+    # overlap with the target, blind to the part of the view the target does not hold
+    overlap_inlier_fraction: float = 1.0
 
 
 @dataclass
@@ -386,7 +391,7 @@ def _register_level(src, tgt, lvl: int, T: np.ndarray, cfg: ICPConfig, stats: np
     n_in = int(stats[29])
     return T, LevelInfo(lvl, its, n_in, n_in / max(stats[31], 1.0),
                         float(np.sqrt(stats[28] / max(stats[29], 1.0))), upd, stop, frozen,
-                        float(np.sqrt(geo_sse / max(geo_n, 1.0))))
+                        float(np.sqrt(geo_sse / max(geo_n, 1.0))), n_in / max(stats[32], 1.0))
 
 
 def _solve_step(stats: np.ndarray, T: np.ndarray, method: str) -> tuple[np.ndarray, float] | None:
