@@ -37,6 +37,9 @@ class LoopConsistencyConfig(Config):
                                           doc="odometry rotation drift per square root of metres travelled")
     drift_rad_per_sqrt_rad: float = setting(0.02, unit="rad/sqrt(rad)", ge=0, le=100,
                                             doc="odometry rotation drift per square root of radians turned")
+    graph_gate: bool = setting(True, doc="also gate far loop edges against the graph of the edges accepted so far "
+                                         "(:mod:`surfelslam.backend.edge_graph_gate`): once loops are closed on the "
+                                         "way it is much tighter than the odometry chain; an edge must pass both")
     edge_sigma_m: float = setting(0.01, unit="m", gt=0, le=100,
                                   doc="floor of the edge's own translation sigma (added to its estimated covariance)")
     edge_sigma_rad: float = setting(0.01, unit="rad", gt=0, le=100, doc="the same on the rotation")
@@ -80,6 +83,28 @@ class OdometryChain:
         self._parent.append(parent)
         self._step_var.append(np.array([var_rot] * 3 + [var_t] * 3))
 
+    def parent(self, kf: int) -> int:
+        """The keyframe that ``kf`` hangs from (-1: a root)."""
+        return self._parent[kf]
+
+    def step_covariance(self, kf: int) -> np.ndarray:
+        """``(6, 6)`` drift covariance of the odometry step into ``kf`` (right perturbation, ``(omega, v)``)."""
+        return np.diag(self._step_var[kf])
+
+    def path_variance(self, path: list[int]) -> float:
+        """Total drift variance (sum of the covariance traces) of the odometry steps into the keyframes of ``path``
+        (see :meth:`path`)."""
+        return float(sum(np.sum(self._step_var[k]) for k in path))
+
+    def edge_covariance(self, information: np.ndarray | None) -> np.ndarray:
+        """``(6, 6)`` covariance of an edge with ``information`` (``None``: the sigma floors alone)."""
+        c = self.cfg
+        cov = np.diag([c.edge_sigma_rad ** 2] * 3 + [c.edge_sigma_m ** 2] * 3)
+        if information is not None:
+            info = 0.5 * (np.asarray(information, np.float64) + np.asarray(information, np.float64).T)
+            cov += np.linalg.pinv(info, hermitian=True)
+        return cov
+
     def mark_unknown(self, kf: int) -> None:
         """The step into keyframe ``kf`` is unknown (it starts a segment after a loss): edges across it are not
         tested."""
@@ -119,11 +144,7 @@ class OdometryChain:
         p = self.path(i, j)
         if p is None:
             return None
-        c = self.cfg
-        cov = self.covariance(i, j, p) + np.diag([c.edge_sigma_rad ** 2] * 3 + [c.edge_sigma_m ** 2] * 3)
-        if information is not None:
-            info = 0.5 * (np.asarray(information, np.float64) + np.asarray(information, np.float64).T)
-            cov += np.linalg.pinv(info, hermitian=True)
+        cov = self.covariance(i, j, p) + self.edge_covariance(information)
         r = log(invert(np.asarray(T_i_j, np.float64)) @ self.relative(i, j))
         return float(r @ np.linalg.solve(cov, r))
 

@@ -8,11 +8,16 @@ from dataclasses import replace
 import numpy as np
 
 from surfelslam.backend.dense_edges import DenseEdgeRefiner, RefinedEdge
+from surfelslam.backend.edge_graph_gate import EdgeGraph
 from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
 from surfelslam.backend.sparse_slam.results import LoopCheck
 from surfelslam.geometry.se3 import invert, orthonormalize
 from surfelslam.types import PoseArray
+
+# the graph gate searches paths up to the odometry chain's variance times this (the chain is such a path: the margin
+# only absorbs rounding, so that a graph of odometry edges alone finds the chain itself)
+_LIMIT_MARGIN = 1.000001
 
 
 class KeyframeGraph:
@@ -20,7 +25,8 @@ class KeyframeGraph:
 
     With an edge refiner a second graph holds the refined edges (the first the PnP ones); each optimisation checks the
     refined edges' consistency there and takes its poses from the trusted graph. A verified edge that disagrees with
-    the odometry chain between its keyframes (:mod:`~surfelslam.backend.loop_consistency`) enters neither graph.
+    the odometry chain between its keyframes (:mod:`~surfelslam.backend.loop_consistency`) enters neither graph; nor
+    does a far one that disagrees with the graph of the edges accepted so far (:mod:`~surfelslam.backend.edge_graph_gate`).
 
     Args:
         cfg: pose-graph weights and solver (both graphs).
@@ -42,6 +48,8 @@ class KeyframeGraph:
         self._pose_buf = PoseArray()  # current estimates T_world_kf
         # T_world_kf chained from odometry edges alone (never optimised), and the gate against it
         self._chain = OdometryChain(consistency or LoopConsistencyConfig())
+        # the accepted edges as measured (refined where refined), the graph gate of far edges against them
+        self._edge_graph = EdgeGraph()
         self.refined_trusted = False  # until enough refined edges show they are consistent (DenseEdgeRefiner.trusted)
         self.refined_residual_rad: float | None = None
         self.refined_residual_m: float | None = None
@@ -54,10 +62,12 @@ class KeyframeGraph:
         self.n_dense_rejected = 0  # PnP-verified edges the dense check dropped
         self.n_depth_only_edges = 0  # nearby edges from depth alone where PnP could not verify (refined graph only)
         self.n_segments_merged = 0  # segments moved onto the older map by a loop edge
-        self.n_loops_rejected_inconsistent = 0  # verified far edges the odometry-chain gate rejected
+        self.n_loops_rejected_inconsistent = 0  # verified far edges a gate (odometry chain or graph) rejected
+        self.n_loops_rejected_graph = 0  # ... of them, those the odometry chain passed and the graph gate rejected
         self.n_nearby_rejected_inconsistent = 0  # ... nearby ones (``gate_nearby``)
         self.n_nearby_pnp_left_out = 0  # verified nearby PnP edges kept out of the PnP graph (``pnp_nearby`` off)
         self.gate_d2: list[tuple[int, int, float]] = []  # (kf_old, kf_new, squared distance) of every gated edge
+        self.gate_d2_graph: list[tuple[int, int, float]] = []  # the same for the graph gate
 
     @property
     def gate_threshold(self) -> float:
@@ -67,6 +77,7 @@ class KeyframeGraph:
     def edge_counts(self) -> dict[str, int]:
         """The edge and segment counters, by their ``metrics.json`` names."""
         return {"loops_rejected_inconsistent": self.n_loops_rejected_inconsistent,
+                "loops_rejected_graph": self.n_loops_rejected_graph,
                 "nearby_rejected_inconsistent": self.n_nearby_rejected_inconsistent,
                 "nearby_pnp_left_out": self.n_nearby_pnp_left_out,
                 "segments_merged": self.n_segments_merged,
@@ -105,6 +116,9 @@ class KeyframeGraph:
             self._graph_refined.add_node(T_world_kf)
         self._pose_buf.append(T_world_kf)
         self._chain.add(T_world_kf, prev_kf, T_prev_new)
+        self._edge_graph.add_node()
+        if prev_kf is not None and T_prev_new is not None:
+            self._edge_graph.add_edge(prev_kf, kf_id, T_prev_new, self._chain.step_covariance(kf_id))
         return kf_id
 
     def start_segment(self, kf_id: int) -> None:
@@ -112,6 +126,7 @@ class KeyframeGraph:
         keyframe to one before it moves the segment onto the older map (:meth:`merge_segment`)."""
         self._open_bridges.append(kf_id)
         self._chain.mark_unknown(kf_id)
+        self._edge_graph.remove_edge(self._chain.parent(kf_id), kf_id)
 
     def apply_loop_checks(self, kf_id: int, checked: list[LoopCheck], min_inliers: int) -> int:
         """Add the verified edges of keyframe ``kf_id``; optimise when one reaches an older (non-nearby) keyframe or
@@ -192,12 +207,28 @@ class KeyframeGraph:
         d2 = self._chain.mahalanobis2(i, j, invert(res.T_cur_ref), res.information)
         if d2 is not None:
             self.gate_d2.append((i, j, d2))
-        if self._chain.consistent(d2):
+        if self._chain.consistent(d2) and not (far and c.graph_gate and not self._graph_consistent(i, j, res)):
             return True
         if far:
             self.n_loops_rejected_inconsistent += 1
         else:
             self.n_nearby_rejected_inconsistent += 1
+        return False
+
+    def _graph_consistent(self, i: int, j: int, res) -> bool:
+        """Whether the PnP edge ``res`` from keyframe ``i`` to ``j`` passes the gate against the accepted edges' graph
+        (a path no cheaper than the odometry chain's is not searched: the chain has judged it; counts the
+        rejections)."""
+        path = self._chain.path(i, j)
+        limit = np.inf if path is None else self._chain.path_variance(path) * _LIMIT_MARGIN
+        d2 = self._edge_graph.mahalanobis2(i, j, invert(res.T_cur_ref), self._chain.edge_covariance(res.information),
+                                           limit)
+        if d2 is None:
+            return True
+        self.gate_d2_graph.append((i, j, d2))
+        if self._chain.consistent(d2):
+            return True
+        self.n_loops_rejected_graph += 1
         return False
 
     def optimise(self, full: bool = False) -> None:
@@ -219,6 +250,8 @@ class KeyframeGraph:
         trusted now got an edge."""
         if pnp is not None:
             self._graph.add_edge(pnp)
+        if not dense_rejected:
+            self._add_to_edge_graph(pnp, refined)
         if self._graph_refined is None:
             return True
         if dense_rejected:
@@ -229,6 +262,16 @@ class KeyframeGraph:
         self.n_weak_shaped += refined.information_shape is not None
         self._graph_refined.add_edge(replace(refined, information=self._refiner.edge_sigma() ** -2))
         return True
+
+    def _add_to_edge_graph(self, pnp: PoseEdge | None, refined: PoseEdge | None) -> None:
+        """An accepted loop or nearby edge into the graph gate's graph: its refined version where there is one (the
+        dense check's measurement, with the refined edges' sigma), else the PnP one (its information); both with the
+        sigma floors. Odometry edges are there already (:meth:`add_node`), with the chain's drift model."""
+        if refined is not None:
+            cov = self._chain.edge_covariance(None) + np.eye(6) * self._refiner.edge_sigma() ** 2
+            self._edge_graph.add_edge(refined.i, refined.j, refined.T_i_j, cov)
+        elif pnp is not None and pnp.kind != "odometry":
+            self._edge_graph.add_edge(pnp.i, pnp.j, pnp.T_i_j, self._chain.edge_covariance(pnp.information_matrix))
 
     def merge_segment(self, i: int, j: int, T_i_j: np.ndarray) -> None:
         """An edge ``i -> j`` from the newest segment (keyframe ``j``) to a keyframe ``i`` before it: move the

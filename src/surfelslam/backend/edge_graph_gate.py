@@ -1,0 +1,123 @@
+"""Chi-square gate of a far keyframe edge against the graph of the edges accepted so far (false-loop-closure guard).
+
+The odometry chain (:mod:`surfelslam.backend.loop_consistency`) judges an edge ``i -> j`` by the odometry alone; over
+a long path its random-walk drift model allows metres of error, so a look-alike place metres off can pass it. Once
+loops have been closed on the way, the accepted edges (odometry, loop and nearby ones) join ``i`` and ``j`` by a much
+shorter chain of measurements. This gate finds the path of least total variance between the two keyframes through
+the accepted edges (Dijkstra on each edge's covariance trace, searching no further than the odometry chain's own
+cost), composes the measured relative poses along it with their covariances (propagated by the adjoints, as the
+chain does), and applies the same chi-square test. After a long excursion with no loop on the way, the path is the
+odometry chain itself and the gate is as wide as the chain's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from surfelslam.geometry.se3 import adjoint, invert, log
+
+# Dijkstra weight (m^2 + rad^2) added to every edge: scipy drops zero-weight entries of a sparse graph, and a still
+# camera's odometry step has zero drift variance
+_MIN_WEIGHT = 1e-12
+
+
+class EdgeGraph:
+    """Keyframes joined by the accepted edges, each a measured ``T_a_b`` with its ``(6, 6)`` covariance (right
+    perturbation at ``b``, ``(omega, v)``); between two keyframes only the edge of least variance is kept."""
+
+    def __init__(self) -> None:
+        self._n = 0
+        self._index: dict[tuple[int, int], int] = {}  # (a, b), a < b -> row of the arrays below
+        self._ends = np.zeros((0, 2), np.int64)  # (a, b) per row (rows beyond len(_index): free)
+        self._w = np.zeros(0)  # Dijkstra weight (covariance trace) per row; inf: removed
+        self._T: list[np.ndarray] = []  # measured T_a_b per row
+        self._cov: list[np.ndarray] = []  # its (6, 6) covariance (right perturbation at b)
+        self._csr = None  # the weights as a sparse matrix, rebuilt after a change
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add_node(self) -> int:
+        """Add a keyframe; returns its id."""
+        self._n += 1
+        return self._n - 1
+
+    def add_edge(self, i: int, j: int, T_i_j: np.ndarray, cov: np.ndarray) -> None:
+        """Add the measured ``T_i_j`` ``(4, 4)`` with its ``(6, 6)`` covariance (kept if the pair has none, or a
+        larger one)."""
+        T_i_j, cov = np.asarray(T_i_j, np.float64), np.asarray(cov, np.float64)
+        if i > j:  # store as (min, max): the inverse, its perturbation moved to the other end by the adjoint
+            A = adjoint(T_i_j)
+            i, j, T_i_j, cov = j, i, invert(T_i_j), A @ cov @ A.T
+        w = float(np.trace(cov)) + _MIN_WEIGHT
+        row = self._index.get((i, j))
+        if row is None:
+            row = self._index[(i, j)] = len(self._T)
+            if row == len(self._w):  # grow the arrays by doubling
+                self._ends = np.concatenate([self._ends, np.zeros((max(row, 1), 2), np.int64)])
+                self._w = np.concatenate([self._w, np.full(max(row, 1), np.inf)])
+            self._ends[row] = i, j
+            self._T.append(T_i_j.copy())
+            self._cov.append(cov.copy())
+        elif w < self._w[row]:
+            self._T[row], self._cov[row] = T_i_j.copy(), cov.copy()
+        else:
+            return
+        self._w[row] = w
+        self._csr = None
+
+    def remove_edge(self, i: int, j: int) -> None:
+        """Drop the edge between ``i`` and ``j`` (if any)."""
+        row = self._index.pop((min(i, j), max(i, j)), None)
+        if row is not None:
+            self._w[row] = np.inf  # the row stays, unused
+            self._csr = None
+
+    def _weights(self):
+        if self._csr is None:
+            live = np.isfinite(self._w)
+            e = self._ends[live]
+            self._csr = coo_matrix((self._w[live], (e[:, 0], e[:, 1])), shape=(self._n, self._n)).tocsr()
+        return self._csr
+
+    def path(self, i: int, j: int, limit: float = np.inf) -> list[int] | None:
+        """Keyframes ``[i, ..., j]`` on the path of least total variance (``None``: none cheaper than ``limit``)."""
+        if i == j:
+            return [i]
+        _, pred = dijkstra(self._weights(), directed=False, indices=i, return_predecessors=True, limit=limit)
+        if pred[j] < 0:
+            return None
+        out = [j]
+        while out[-1] != i:
+            out.append(int(pred[out[-1]]))
+        return out[::-1]
+
+    def relative(self, path: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """``T_i_j`` ``(4, 4)`` composed of the measured edges along ``path`` (``[i, ..., j]``) and its ``(6, 6)``
+        covariance (right perturbation at ``j``)."""
+        P = [np.eye(4)]  # poses of the path's keyframes in the frame of i
+        ends, covs = [], []  # per edge: the index in path of its stored end b, its covariance there
+        for m, (a, b) in enumerate(zip(path[:-1], path[1:])):
+            row = self._index[(min(a, b), max(a, b))]
+            T, cov = self._T[row], self._cov[row]
+            P.append(P[-1] @ (T if a < b else invert(T)))
+            ends.append(m + 1 if a < b else m)
+            covs.append(cov)
+        if not covs:
+            return np.eye(4), np.zeros((6, 6))
+        P = np.stack(P)
+        A = adjoint(invert(P[-1])[None] @ P[np.array(ends)])  # T_j_b: moves each edge's perturbation to j
+        return P[-1], np.einsum("nab,nbc,ndc->ad", A, np.stack(covs), A)
+
+    def mahalanobis2(self, i: int, j: int, T_i_j: np.ndarray, cov_edge: np.ndarray,
+                     limit: float = np.inf) -> float | None:
+        """Squared Mahalanobis distance of the edge ``T_i_j`` ``(4, 4)`` with covariance ``cov_edge`` ``(6, 6)``
+        from the path of least variance through the graph (``None``: no path cheaper than ``limit``)."""
+        p = self.path(i, j, limit)
+        if p is None:
+            return None
+        T_path, cov = self.relative(p)
+        r = log(invert(np.asarray(T_i_j, np.float64)) @ T_path)
+        return float(r @ np.linalg.solve(cov + cov_edge, r))
