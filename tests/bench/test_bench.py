@@ -31,6 +31,9 @@ TINY = run_all.Plan(
 
 # whole sequences through trackers or commands; the tests share a module fixture, so they run on one worker
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("bench")]
+# make test-all: the tiny plan's whole bench (about 30 s of one worker, a tenth of the suite's CPU); `make test` keeps
+# the tests of the bench's parts below, which need no run of the plan
+HEAVY_PLAN = pytest.mark.heavy
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +49,7 @@ def bench(tmp_path_factory) -> tuple[dict, Path]:
     return res, out
 
 
+@HEAVY_PLAN
 def test_json_sections(bench) -> None:
     res, out = bench
     on_disk = json.loads((out / "latest.json").read_text())
@@ -72,6 +76,7 @@ def test_json_sections(bench) -> None:
         assert r["loop_ms"] >= r["icp_ms"]
 
 
+@HEAVY_PLAN
 def test_sustained(bench) -> None:
     res, out = bench
     s = res["sustained"]
@@ -85,6 +90,7 @@ def test_sustained(bench) -> None:
     assert (out / s["plot"]).is_file() and (out / s["plot"]).stat().st_size > 10_000
 
 
+@HEAVY_PLAN
 def test_accuracy_and_notes(bench) -> None:
     res, _ = bench
     rows = {(r["sequence"], r["resolution"], r["tracker"]): r for r in res["accuracy"] if not r.get("from")}
@@ -119,6 +125,7 @@ def test_accuracy_and_notes(bench) -> None:
     assert res["open3d"] == {"available": False, "reason": "disabled (--no-open3d)", "rows": []}
 
 
+@HEAVY_PLAN
 def test_markdown(bench) -> None:
     res, out = bench
     md = (out / "latest.md").read_text()
@@ -141,6 +148,7 @@ def test_markdown(bench) -> None:
             assert len({ln.count("|") for ln in lines}) == 1, block
 
 
+@HEAVY_PLAN
 def test_docs_page_is_the_markdown_under_its_header(bench, tmp_path) -> None:
     res, _ = bench
     page = tmp_path / "benchmarks.md"
