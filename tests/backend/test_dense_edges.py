@@ -322,26 +322,37 @@ def test_weak_direction_shape_lowers_only_the_direction_icp_leaves_free():
     assert weak_direction_shape(box, d, T, weak_ratio=100.0, floor=1e-4) is None
 
 
-@pytest.mark.parametrize("pnp_refinement", [True, False])
-def test_loop_checks_leave_the_pnp_refinement_to_the_edge_icp_when_asked(pnp_refinement):
-    """With ``pnp_refinement`` off a verified keyframe edge skips the feature refinement (no RGB-D information is
-    computed) and its ICP alone refines it, to the same precision."""
+
+def _room_keyframes(poses, feat_cfg, refiner) -> list:
+    """Keyframes (ORB features, no map points) of the synthetic room rendered at ``poses`` ``(K, 4, 4)``, their depth
+    added to ``refiner``."""
     from surfelslam.backend.keyframes import Keyframe
-    from surfelslam.backend.loops import LoopConfig
-    from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
-    from surfelslam.tracking.features import FeatureConfig, extract
+    from surfelslam.tracking.features import extract
 
-    from helpers import ROOM_INTR, look_pose, render_room
+    from helpers import ROOM_INTR, render_room
 
-    poses = np.stack([look_pose(np.array([0.04 * k, 0.0, -0.3]), 0.06 * k) for k in range(3)])
-    feat_cfg = FeatureConfig(n_features=500)
-    refiner = DenseEdgeRefiner(ROOM_INTR, PreprocessConfig(), DenseEdgeConfig(pnp_refinement=pnp_refinement))
     kfs = []
     for k, T in enumerate(poses):
         rgb, depth = render_room(T, ROOM_INTR)
         refiner.add_keyframe(k, depth)
         kfs.append(Keyframe(k, k, k / 30, extract(rgb, depth, ROOM_INTR, feat_cfg), np.zeros((0, 3), np.float32),
                             np.zeros((0, 3), np.uint8)))
+    return kfs
+
+@pytest.mark.parametrize("pnp_refinement", [True, False])
+def test_loop_checks_leave_the_pnp_refinement_to_the_edge_icp_when_asked(pnp_refinement):
+    """With ``pnp_refinement`` off a verified keyframe edge skips the feature refinement (no RGB-D information is
+    computed) and its ICP alone refines it, to the same precision."""
+    from surfelslam.backend.loops import LoopConfig
+    from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
+    from surfelslam.tracking.features import FeatureConfig
+
+    from helpers import ROOM_INTR, look_pose
+
+    poses = np.stack([look_pose(np.array([0.04 * k, 0.0, -0.3]), 0.06 * k) for k in range(3)])
+    feat_cfg = FeatureConfig(n_features=500)
+    refiner = DenseEdgeRefiner(ROOM_INTR, PreprocessConfig(), DenseEdgeConfig(pnp_refinement=pnp_refinement))
+    kfs = _room_keyframes(poses, feat_cfg, refiner)
     checker = LoopChecker(ROOM_INTR, feat_cfg, LoopConfig(n_nearby=1, n_random=0, n_retrieved=0), refiner, kfs)
     kf_id, checks = checker.check(2, kfs[2].features, poses)
     assert kf_id == 2 and [c.candidate.kf_id for c in checks] == [0]
@@ -358,22 +369,16 @@ def test_retrieved_candidates_stop_once_the_loop_is_closed(closed_retrieved, gra
     """``loop.closed_retrieved``: once that many retrieved keyframes are verified within 1 cm / 1 deg of where the
     graph puts them, the keyframe's other retrieved candidates are skipped; where the graph is 3 cm off (the loop not
     closed yet) every one is verified."""
-    from surfelslam.backend.keyframes import Keyframe
     from surfelslam.backend.loops import LoopConfig
     from surfelslam.backend.sparse_slam.loop_checks import LoopChecker
-    from surfelslam.tracking.features import FeatureConfig, extract
+    from surfelslam.tracking.features import FeatureConfig
 
-    from helpers import ROOM_INTR, look_pose, render_room
+    from helpers import ROOM_INTR, look_pose
 
     poses = np.stack([look_pose(np.array([0.01 * k, 0.0, -0.3]), 0.01 * k) for k in range(5)])
     feat_cfg = FeatureConfig(n_features=500)
     refiner = DenseEdgeRefiner(ROOM_INTR, PreprocessConfig(), DenseEdgeConfig())
-    kfs = []
-    for k, T in enumerate(poses):
-        rgb, depth = render_room(T, ROOM_INTR)
-        refiner.add_keyframe(k, depth)
-        kfs.append(Keyframe(k, k, k / 30, extract(rgb, depth, ROOM_INTR, feat_cfg), np.zeros((0, 3), np.float32),
-                            np.zeros((0, 3), np.uint8)))
+    kfs = _room_keyframes(poses, feat_cfg, refiner)
     cfg = LoopConfig(n_nearby=0, n_random=0, n_retrieved=3, closed_retrieved=closed_retrieved,
                      retrieval=replace(LoopConfig().retrieval, min_votes=1))
     checker = LoopChecker(ROOM_INTR, feat_cfg, cfg, refiner, kfs)

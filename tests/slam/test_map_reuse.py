@@ -208,7 +208,8 @@ def test_the_hybrid_saves_back_end_keyframes_and_extracts_orb_once_per_keyframe(
 
     extracted: list[int] = []
     extract = SparseSlam.features
-    monkeypatch.setattr(SparseSlam, "features", lambda self, frame: extracted.append(frame.index) or extract(self, frame))
+    monkeypatch.setattr(SparseSlam, "features",
+                        lambda self, frame: extracted.append(frame.index) or extract(self, frame))
     slam = build_slam(INTR, from_dict(SlamConfig, CFG), "hybrid")
     for f in _sequence()[0]:
         slam.process(f)

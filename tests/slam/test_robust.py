@@ -170,9 +170,8 @@ def test_a_correction_beyond_a_change_of_velocity_is_a_jump_and_holds_are_capped
     time since the last posed frame, plus the slack: 0.02 + 1.0 / 30 m after one frame at 30 Hz."""
     from types import SimpleNamespace
 
-    from surfelslam.slam.motion import CORRECTION_SLACK_M
-
     from surfelslam.slam.frame import FrameStatus
+    from surfelslam.slam.motion import CORRECTION_SLACK_M
 
     motion = _motion(SlamConfig())
     motion.mark_tracked(np.eye(4), 10.0, FrameStatus.TRACKED)

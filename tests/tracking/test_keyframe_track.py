@@ -13,8 +13,7 @@ from surfelslam.synth.render import render
 from surfelslam.synth.scenes import make_scene
 from surfelslam.synth.trajectories import make_trajectory
 from surfelslam.synth.writer import default_intrinsics, make_frame, noise_config
-from surfelslam.tracking.features import FeatureConfig, extract, to_grey
-from surfelslam.tracking.features import keyframe_track
+from surfelslam.tracking.features import FeatureConfig, extract, keyframe_track, to_grey
 from surfelslam.tracking.features.keyframe_track import MAX_TRACKED_POINTS, KeyframePoints, track_keyframe
 
 INTR = default_intrinsics(320, 240)

@@ -99,7 +99,7 @@ class EdgeGraph:
         covariance (right perturbation at ``j``)."""
         P = [np.eye(4)]  # poses of the path's keyframes in the frame of i
         ends, covs = [], []  # per edge: the index in path of its stored end b, its covariance there
-        for m, (a, b) in enumerate(zip(path[:-1], path[1:])):
+        for m, (a, b) in enumerate(zip(path[:-1], path[1:], strict=True)):
             row = self._index[(min(a, b), max(a, b))]
             T, cov = self._T[row], self._cov[row]
             P.append(P[-1] @ (T if a < b else invert(T)))

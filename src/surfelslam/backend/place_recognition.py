@@ -6,7 +6,8 @@ distance bound casts one vote for the keyframe that owns the nearest descriptor.
 (ties: lower id first).
 
 The nearest descriptors are searched by brute force (exact, :mod:`surfelslam.kernels.hamming`, over a word-major copy
-of the database: half the time of the row-major search) while the database is small (``exact_below_descriptors``), beyond that in a locality-sensitive hash index that every descriptor enters
+of the database: half the time of the row-major search) while the database is small (``exact_below_descriptors``),
+beyond that in a locality-sensitive hash index that every descriptor enters
 when it is added (bit sampling, :mod:`surfelslam.kernels.hamming_hash`): a query then compares each descriptor with
 the few rows that share one of its hash keys instead of every keyframe's, and the keys gain a bit each time the
 database doubles (the tables are rebuilt, O(1) per row on average), so its cost stays nearly flat as a floor-sized

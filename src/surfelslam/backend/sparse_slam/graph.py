@@ -26,7 +26,8 @@ class KeyframeGraph:
     With an edge refiner a second graph holds the refined edges (the first the PnP ones); each optimisation checks the
     refined edges' consistency there and takes its poses from the trusted graph. A verified edge that disagrees with
     the odometry chain between its keyframes (:mod:`~surfelslam.backend.loop_consistency`) enters neither graph; nor
-    does a far one that disagrees with the graph of the edges accepted so far (:mod:`~surfelslam.backend.edge_graph_gate`).
+    does a far one that disagrees with the graph of the edges accepted so far
+    (:mod:`~surfelslam.backend.edge_graph_gate`).
 
     Args:
         cfg: pose-graph weights and solver (both graphs).
