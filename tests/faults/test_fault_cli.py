@@ -171,6 +171,8 @@ def test_ctrl_c_inside_a_command(restore_sigint):
 SIGINT_SELF = "import os, signal; os.kill(os.getpid(), signal.SIGINT)"
 #: Seconds into a run with an empty kernel cache: past the imports, inside the JIT compilation (about a minute).
 WARM_UP_SIGINT_AFTER_S = 4.0
+#: Seconds of work after a callback dropped the Ctrl-C (as a compilation going on): well past its re-delivery.
+WORK_AFTER_THE_CALLBACK_S = 1.0
 
 
 @pytest.mark.parametrize("where, patch", [
@@ -215,6 +217,19 @@ WARM_UP_SIGINT_AFTER_S = 4.0
         def opening(*a, **k):
             ctypes.CFUNCTYPE(None)(callback)()
             raise RuntimeError("no compiled object yet")
+        ds.open_sequence = opening"""),
+    # as llvmlite's object-cache callback when the compilation does not depend on it: the interrupt is dropped
+    # inside the callback and the work goes on; it must still stop
+    ("a callback, and the work goes on", f"""
+        import ctypes, time
+        import surfelslam.datasets as ds
+        real = ds.open_sequence
+        def callback():
+            {SIGINT_SELF}
+        def opening(*a, **k):
+            ctypes.CFUNCTYPE(None)(callback)()
+            time.sleep({WORK_AFTER_THE_CALLBACK_S})
+            return real(*a, **k)
         ds.open_sequence = opening"""),
 ])
 def test_ctrl_c_at_start_up_and_later(synth_seq, where, patch):

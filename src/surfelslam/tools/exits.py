@@ -7,9 +7,12 @@ line's start-up stays fast.
 
 from __future__ import annotations
 
+import _thread
 import os
 import signal
 import sys
+import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -58,9 +61,37 @@ def interrupt_requested() -> bool:
     return _interrupt_requested
 
 
+#: Seconds before a dropped Ctrl-C is delivered again: long enough for the callback or destructor that dropped it to
+#: return to its caller (raised any sooner, it lands in that same callback and is dropped again).
+REDELIVER_AFTER_S = 0.05
+_redelivering = threading.Lock()
+
+
+def _redeliver_interrupt() -> None:
+    """Raise a dropped Ctrl-C again in the main thread, from a short-lived thread, unless it was reported by then
+    (the handler is then :func:`_exit_now`) or a re-delivery is already on its way."""
+    if not _redelivering.acquire(blocking=False):
+        return
+
+    def later() -> None:
+        time.sleep(REDELIVER_AFTER_S)
+        try:
+            if signal.getsignal(signal.SIGINT) is _raise_interrupt:
+                _thread.interrupt_main(signal.SIGINT)
+        finally:
+            _redelivering.release()
+
+    threading.Thread(target=later, name="surfelslam-redeliver-ctrl-c", daemon=True).start()
+
+
 def _quiet_unraisable(previous: Callable[[Any], object]) -> Callable[[Any], None]:
     def hook(unraisable) -> None:
-        if _interrupt_requested or isinstance(unraisable.exc_value, KeyboardInterrupt):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            # Python could not raise it (a callback, a destructor) and the work may go on regardless (llvmlite's
+            # object-cache callback): deliver it again, to be raised at the next point that can, until reported
+            _redeliver_interrupt()
+            return
+        if _interrupt_requested:
             return
         previous(unraisable)
 
@@ -72,7 +103,8 @@ def catch_interrupts() -> None:
     Python cannot raise them are dropped. During the JIT warm-up a Ctrl-C can land in an llvmlite callback (printed
     as "Exception ignored", then the compilation fails with a RuntimeError) or in a constructor (its object's
     ``__del__`` fails when freed, after the "interrupted" line); the user pressed Ctrl-C and sees only
-    "interrupted" (:func:`run_cli` and the commands report any error after a Ctrl-C as the interruption)."""
+    "interrupted" (:func:`run_cli` and the commands report any error after a Ctrl-C as the interruption). A Ctrl-C
+    Python could only drop is delivered again, so the work stops even where the failed callback did not matter."""
     try:
         signal.signal(signal.SIGINT, _raise_interrupt)
     except (ValueError, OSError):  # not the main thread
