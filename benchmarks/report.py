@@ -130,8 +130,18 @@ def to_markdown(res: dict) -> str:
     for key, module in (("viewer", bench_viewer), ("mesh", bench_mesh), ("robustness", bench_robustness),
                         ("scale", bench_scale)):
         if res.get(key):
-            md += module.section_markdown(res[key]) + _measured_apart(res[key], meta, key)
+            md += _standalone_markdown(key, module, res[key]) + _measured_apart(res[key], meta, key)
     return "\n".join(md + _footer(res))
+
+
+def _standalone_markdown(key: str, module, part: dict) -> list[str]:
+    """A section's tables; a section kept from older results (``--sections`` splices new ones in) whose fields
+    predate its current table says so in one line instead of failing the whole page."""
+    try:
+        return module.section_markdown(part)
+    except KeyError as exc:
+        return [f"### {key}", "", f"(results from an older bench, without the field {exc.args[0]!r} this table "
+                f"now shows; run `make bench` to refresh this section)", ""]
 
 
 def _footer(res: dict) -> list[str]:

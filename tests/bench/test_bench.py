@@ -394,3 +394,20 @@ def test_scale_section_spliced_into_the_last_results(tmp_path) -> None:
     assert (out / s["plot"]).is_file()
     md = (out / "latest.md").read_text()
     assert "### Scale: a multi-room floor, 45 synthetic frames at 80x60" in md and "| hybrid | 45 |" in md
+
+
+def test_a_kept_section_older_than_its_table_is_one_line_not_a_failed_page() -> None:
+    """``--sections scale`` splices new results into an older ``latest.json``: a kept section whose rows lack a
+    field its table now reads (here the mesh rows' topology counts) becomes one line saying so; the rest renders."""
+    old_mesh = {"rows": [{"method": "surfelslam TSDF", "poses": "ground truth", "accuracy_mean_m": 0.001}]}
+    res = {"meta": {"date": "2000-01-01", "mode": "full", "python": "3", "numba": "0", "open3d": None,
+                    "git": {"commit": "abc", "src_modified": False}, "parallel_kernels": False,
+                    "section_seconds": {},
+                    "machine": {"cpu": "cpu X", "cores": 2, "arch": "x", "os": "y", "load_average_at_start": 0.1}},
+           "jit": None, "stages": [], "icp": [], "sustained": None, "accuracy": [], "not_tracked": [],
+           "open3d": None, "skipped": [], "errors": [], "mesh": old_mesh}
+    md = run_all.to_markdown(res)
+    note = [ln for ln in md.splitlines() if ln.startswith("(results from an older bench")]
+    assert note == ["(results from an older bench, without the field 'resolution' this table now shows; run "
+                    "`make bench` to refresh this section)"], md
+    assert "### mesh" in md and "Machine: " in md
