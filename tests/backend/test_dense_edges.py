@@ -230,6 +230,20 @@ def test_edges_whose_graph_leaves_large_residuals_are_not_trusted(sigma_rad, sig
     assert r == pytest.approx((sigma_rad, sigma_m), rel=0.25)
     assert ref.trusted(r) == trusted
     assert ref.residual_spread(odo + loops[:9], P) is None and not ref.trusted(None)
+    # the same edges in a pose graph, which stacks its loop edges as they come: the same spreads, to the last bit
+    from surfelslam.backend.pose_graph import PoseGraph
+
+    graph = PoseGraph()
+    for T in P:
+        graph.add_node(T)
+    for e in [*odo[:15], *loops[:9]]:
+        graph.add_edge(e)
+    assert ref.loop_residual_spread(*graph.loop_edges(), P) is None
+    for e in [*odo[15:], *loops[9:]]:
+        graph.add_edge(e)
+    T_ij, i, j = graph.loop_edges()
+    assert len(T_ij) == 60 and i.tolist() == [e.i for e in loops] and j.tolist() == [e.j for e in loops]
+    assert ref.loop_residual_spread(T_ij, i, j, P) == r
 
 
 def test_config_errors_name_the_field():

@@ -58,7 +58,7 @@ def test_a_look_alike_metres_off_passes_the_chain_but_not_the_graph(graph_gate):
     g = _graph(gt, cfg, lap + 12)
     # the first loop after the long excursion: no shorter path than the chain, judged by it alone
     assert g.apply_loop_checks(lap + 5, [_check(5, _true(gt, 5, lap + 5))], min_inliers=30) == 1
-    assert g.gate_d2_graph == [] or g.gate_d2_graph[0][2] == pytest.approx(g.gate_d2[0][2], rel=1e-6)
+    assert len(g.gate_d2_graph) == 0 or g.gate_d2_graph[0][2] == pytest.approx(g.gate_d2[0][2], rel=1e-6)
     look_alike = _check(10, _true(gt, 10, lap + 10, offset_m=1.5))
     n = g.apply_loop_checks(lap + 10, [look_alike], min_inliers=30)
     d2_chain = g.gate_d2[-1][2]
@@ -118,3 +118,60 @@ def _moved(T_i_j: np.ndarray, cov_j: np.ndarray) -> np.ndarray:
 
     A = adjoint(T_i_j)
     return A @ cov_j @ A.T
+
+
+def test_the_incremental_search_finds_scipys_path_on_a_growing_graph():
+    """The linked adjacency lists, kept edge by edge (odometry chain, nearby and far loop edges, a better edge
+    replacing a pair's, removed edges), give the path ``scipy.sparse.csgraph.dijkstra`` gives on a matrix rebuilt
+    from the same edges, with and without a limit, for every queried pair."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    rng = np.random.default_rng(3)
+    g, weights, n_checked, n_none = EdgeGraph(), {}, 0, 0
+    cov = lambda: np.diag(rng.uniform(1e-6, 1e-4, 6))  # noqa: E731
+    for k in range(300):
+        g.add_node()
+        new = [(k - 1, k)] if k else []
+        new += [(int(rng.integers(max(0, k - 6), k)), k)] if k > 1 else []
+        new += [(k, int(rng.integers(0, k)))] if k > 10 and rng.random() < 0.1 else []  # far, stored reversed
+        for a, b in new:
+            c = cov()
+            g.add_edge(a, b, exp(rng.normal(0, 0.1, 6)), c)
+            key = (min(a, b), max(a, b))
+            weights[key] = min(weights.get(key, np.inf), float(np.trace(c)) + 1e-12)
+        if k > 10 and rng.random() < 0.05:
+            a, b = k - 1 - int(rng.integers(0, 3)), k
+            g.remove_edge(a, b)
+            weights.pop((min(a, b), max(a, b)), None)
+        if k % 10 or k < 20:
+            continue
+        e = np.array(list(weights), np.int64)
+        W = coo_matrix((list(weights.values()), (e[:, 0], e[:, 1])), shape=(k + 1, k + 1)).tocsr()
+        for _ in range(10):
+            i, j = (int(x) for x in rng.choice(k + 1, 2, replace=False))
+            limit = np.inf if rng.random() < 0.5 else float(rng.uniform(0, 2e-4 * abs(i - j)))
+            _, pred = dijkstra(W, directed=False, indices=i, return_predecessors=True, limit=limit)
+            ref = None if pred[j] < 0 else [j]
+            while ref is not None and ref[-1] != i:
+                ref.append(int(pred[ref[-1]]))
+            assert g.path(i, j, limit) == (None if ref is None else ref[::-1])
+            n_checked, n_none = n_checked + 1, n_none + (ref is None)
+    assert n_checked == 280 and 20 < n_none < 200  # both outcomes exercised
+
+
+def test_the_warm_up_compiles_the_search_the_gate_calls():
+    """The warm-up's call of the path search has the argument types of :meth:`EdgeGraph.path`: the gate's first
+    search compiles nothing more (a short warm-up run closes no far loop)."""
+    from surfelslam.kernels.graph_search import shortest_path
+    from surfelslam.slam.warmup import _graph_gate_extras
+
+    _graph_gate_extras()
+    compiled = set(shortest_path.signatures)
+    g = EdgeGraph()
+    for _ in range(3):
+        g.add_node()
+    g.add_edge(0, 1, np.eye(4), np.eye(6))
+    g.add_edge(2, 1, np.eye(4), np.eye(6))
+    assert g.path(0, 2) == [0, 1, 2] and g.path(0, 2, limit=np.float64(1.0)) is None
+    assert set(shortest_path.signatures) == compiled

@@ -201,3 +201,29 @@ def test_nearby_pnp_edges_stay_out_of_the_pnp_graph_when_switched_off():
     g.apply_loop_checks(n - 1, [_check(n - 3, invert(gt[n - 3]) @ gt[n - 1], "nearby")], min_inliers=30)
     assert g.n_segments_merged == 1 and g.n_nearby_pnp_left_out == 0
     assert np.abs(g.poses[n - 1][:3, 3] - gt[n - 1][:3, 3]).max() < 1e-6
+
+
+def test_path_variance_is_the_step_by_step_sum_and_gate_distances_keep_the_newest(monkeypatch):
+    """The chain's path variance (the graph gate's search limit) is, to the last bit, the sum of the steps' variances
+    added one at a time in path order; the gated distances (diagnostics) keep only the newest ``GATE_D2_KEPT``."""
+    from surfelslam.backend.sparse_slam import graph as graph_module
+
+    gt = _square(n_side=60, side_m=12.0)  # 240 keyframes
+    chain = OdometryChain(LoopConsistencyConfig())
+    chain.add(gt[0], None, None)
+    for k, T in enumerate(_odometry(gt)):
+        chain.add(chain.poses[k] @ T, k, T)
+    for i, j in [(0, 239), (3, 200), (100, 101), (5, 5), (150, 17)]:
+        path = chain.path(i, j)
+        expected = 0
+        for k in path:
+            expected += np.sum(chain.step_covariance(k).diagonal())
+        assert chain.path_variance(path) == float(expected)
+    assert chain.path_variance(chain.path(0, 239)) > 0.0 and chain.path_variance([]) == 0.0
+
+    monkeypatch.setattr(graph_module, "GATE_D2_KEPT", 2)
+    gt = _square()
+    n = len(gt)
+    gated = _graph(gt, LoopConsistencyConfig())
+    assert gated.apply_loop_checks(n - 1, [_check(0, invert(gt[0]) @ gt[n - 1]), *_wrong_edges(gt)], 30) == 1
+    assert [d2 > gated.gate_threshold for _, _, d2 in gated.gate_d2] == [True, True]  # the last two of four

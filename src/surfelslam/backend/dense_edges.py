@@ -238,10 +238,17 @@ class DenseEdgeRefiner:
         loops = [e for e in edges if e.kind == "loop"]
         if len(loops) < self.cfg.min_spread_edges:
             return None
+        return self.loop_residual_spread(np.stack([e.T_i_j for e in loops]),
+                                         np.fromiter((e.i for e in loops), np.intp, len(loops)),
+                                         np.fromiter((e.j for e in loops), np.intp, len(loops)), poses_world_kf)
+
+    def loop_residual_spread(self, T_ij: np.ndarray, i: np.ndarray, j: np.ndarray,
+                             poses_world_kf: np.ndarray) -> tuple[float, float] | None:
+        """:meth:`residual_spread` of the refined edges given stacked (:meth:`PoseGraph.loop_edges`): ``T_i_j``
+        ``(L, 4, 4)``, ``i`` and ``j`` ``(L,)``; no pass over every edge object on each optimisation."""
+        if len(T_ij) < self.cfg.min_spread_edges:
+            return None
         P = np.asarray(poses_world_kf, np.float64)
-        T_ij = np.stack([e.T_i_j for e in loops])
-        i = np.fromiter((e.i for e in loops), np.intp, len(loops))
-        j = np.fromiter((e.j for e in loops), np.intp, len(loops))
         # each residual T_i_j^-1 T_world_i^-1 T_world_j, as one batch: rotation (K, 3) and translation (K, 3)
         Rt_ij = np.swapaxes(T_ij[:, :3, :3], 1, 2)
         Rt_i = np.swapaxes(P[i, :3, :3], 1, 2)

@@ -13,19 +13,22 @@ odometry chain itself and the gate is as wide as the chain's.
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from surfelslam.geometry.se3 import adjoint, invert, log
+from surfelslam.kernels.graph_search import NO_NODE, shortest_path
 
-# Dijkstra weight (m^2 + rad^2) added to every edge: scipy drops zero-weight entries of a sparse graph, and a still
-# camera's odometry step has zero drift variance
+# Dijkstra weight (m^2 + rad^2) added to every edge: a still camera's odometry step has zero drift variance (kept from
+# the scipy search, which dropped zero-weight entries of its sparse matrix: the same costs, the same paths)
 _MIN_WEIGHT = 1e-12
+_INITIAL_NODES = 64  # the node array's first capacity (doubled when full)
 
 
 class EdgeGraph:
     """Keyframes joined by the accepted edges, each a measured ``T_a_b`` with its ``(6, 6)`` covariance (right
-    perturbation at ``b``, ``(omega, v)``); between two keyframes only the edge of least variance is kept."""
+    perturbation at ``b``, ``(omega, v)``); between two keyframes only the edge of least variance is kept.
+
+    The edges are kept as linked adjacency lists (:mod:`surfelslam.kernels.graph_search`): adding one is O(1), and a
+    path search visits only the keyframes nearer (in variance) than its end, whatever the graph's size."""
 
     def __init__(self) -> None:
         self._n = 0
@@ -34,13 +37,17 @@ class EdgeGraph:
         self._w = np.zeros(0)  # Dijkstra weight (covariance trace) per row; inf: removed
         self._T: list[np.ndarray] = []  # measured T_a_b per row
         self._cov: list[np.ndarray] = []  # its (6, 6) covariance (right perturbation at b)
-        self._csr = None  # the weights as a sparse matrix, rebuilt after a change
+        self._head = np.full(_INITIAL_NODES, NO_NODE, np.int64)  # per keyframe: newest half-edge leaving it
+        self._next_half = np.full(0, NO_NODE, np.int64)  # per half-edge (2 row: leaving a,
+        # 2 row + 1: leaving b): the next (older) half-edge leaving the same keyframe
 
     def __len__(self) -> int:
         return self._n
 
     def add_node(self) -> int:
         """Add a keyframe; returns its id."""
+        if self._n == len(self._head):
+            self._head = np.concatenate([self._head, np.full(self._n, NO_NODE, np.int64)])
         self._n += 1
         return self._n - 1
 
@@ -58,7 +65,11 @@ class EdgeGraph:
             if row == len(self._w):  # grow the arrays by doubling
                 self._ends = np.concatenate([self._ends, np.zeros((max(row, 1), 2), np.int64)])
                 self._w = np.concatenate([self._w, np.full(max(row, 1), np.inf)])
+                self._next_half = np.concatenate([self._next_half, np.full(2 * max(row, 1), NO_NODE, np.int64)])
             self._ends[row] = i, j
+            for half, node in ((2 * row, i), (2 * row + 1, j)):  # each end's list gets the half-edge leaving it
+                self._next_half[half] = self._head[node]
+                self._head[node] = half
             self._T.append(T_i_j.copy())
             self._cov.append(cov.copy())
         elif w < self._w[row]:
@@ -66,28 +77,20 @@ class EdgeGraph:
         else:
             return
         self._w[row] = w
-        self._csr = None
 
     def remove_edge(self, i: int, j: int) -> None:
         """Drop the edge between ``i`` and ``j`` (if any)."""
         row = self._index.pop((min(i, j), max(i, j)), None)
         if row is not None:
-            self._w[row] = np.inf  # the row stays, unused
-            self._csr = None
-
-    def _weights(self):
-        if self._csr is None:
-            live = np.isfinite(self._w)
-            e = self._ends[live]
-            self._csr = coo_matrix((self._w[live], (e[:, 0], e[:, 1])), shape=(self._n, self._n)).tocsr()
-        return self._csr
+            self._w[row] = np.inf  # the row stays, unused (its half-edges stay in the lists, never taken)
 
     def path(self, i: int, j: int, limit: float = np.inf) -> list[int] | None:
         """Keyframes ``[i, ..., j]`` on the path of least total variance (``None``: none cheaper than ``limit``)."""
         if i == j:
             return [i]
-        _, pred = dijkstra(self._weights(), directed=False, indices=i, return_predecessors=True, limit=limit)
-        if pred[j] < 0:
+        pred = np.empty(self._n, np.int64)
+        if not np.isfinite(shortest_path(self._head[: self._n], self._next_half, self._ends, self._w, i, j,
+                                         float(limit), pred)):
             return None
         out = [j]
         while out[-1] != i:

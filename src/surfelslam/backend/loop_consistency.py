@@ -17,6 +17,7 @@ from scipy.special import gammaincinv
 
 from surfelslam.config import Config, setting
 from surfelslam.geometry.se3 import adjoint, invert, log, rotation_angle_deg
+from surfelslam.types import PoseArray
 
 
 @dataclass(frozen=True)
@@ -59,8 +60,12 @@ class OdometryChain:
         # scipy.stats (half a second of every command's start)
         self.threshold = float(2.0 * gammaincinv(3.0, cfg.quantile))
         self.poses: list[np.ndarray] = []  # T_world_kf from odometry alone
+        self._pose_stack = PoseArray()  # the same, stacked (a path's poses are gathered, not stacked from the list)
         self._parent: list[int] = []  # -1: a root (the first keyframe, or one placed without odometry)
-        self._step_var: list[np.ndarray] = []  # (6,) drift variance of the step from the parent, (omega, v)
+        # per keyframe (rows grown by doubling): (6,) drift variance of the step from the parent, (omega, v), and
+        # its sum
+        self._step_var = np.zeros((0, 6))
+        self._step_trace = np.zeros(0)
         self._unknown: set[int] = set()  # keyframes whose step from the parent is unknown (a new segment)
 
     def __len__(self) -> int:
@@ -71,8 +76,9 @@ class OdometryChain:
         c = self.cfg
         if parent is None or T_parent_kf is None:
             self.poses.append(np.asarray(T_world_kf, np.float64).copy())
+            self._pose_stack.append(self.poses[-1])
             self._parent.append(-1)
-            self._step_var.append(np.zeros(6))
+            self._append_step(np.zeros(6))
             return
         T = np.asarray(T_parent_kf, np.float64)
         dist_m = float(np.linalg.norm(T[:3, 3]))
@@ -80,8 +86,18 @@ class OdometryChain:
         var_rot = c.drift_rad_per_sqrt_m ** 2 * dist_m + c.drift_rad_per_sqrt_rad ** 2 * angle_rad
         var_t = c.drift_m_per_sqrt_m ** 2 * dist_m
         self.poses.append(self.poses[parent] @ T)
+        self._pose_stack.append(self.poses[-1])
         self._parent.append(parent)
-        self._step_var.append(np.array([var_rot] * 3 + [var_t] * 3))
+        self._append_step(np.array([var_rot] * 3 + [var_t] * 3))
+
+    def _append_step(self, var: np.ndarray) -> None:
+        """Record the ``(6,)`` drift variance of the newest keyframe's step (and its sum)."""
+        k = len(self._parent) - 1
+        if k == len(self._step_trace):
+            self._step_var = np.concatenate([self._step_var, np.zeros((max(k, 1), 6))])
+            self._step_trace = np.concatenate([self._step_trace, np.zeros(max(k, 1))])
+        self._step_var[k] = var
+        self._step_trace[k] = np.sum(var)
 
     def parent(self, kf: int) -> int:
         """The keyframe that ``kf`` hangs from (-1: a root)."""
@@ -94,7 +110,9 @@ class OdometryChain:
     def path_variance(self, path: list[int]) -> float:
         """Total drift variance (sum of the covariance traces) of the odometry steps into the keyframes of ``path``
         (see :meth:`path`)."""
-        return float(sum(np.sum(self._step_var[k]) for k in path))
+        # summed in path order, one addition at a time (np.cumsum, not np.sum's pairwise sum): the limit the graph gate
+        # searches under stays what it was when each step's variance was summed in a Python loop
+        return float(np.cumsum(self._step_trace[np.asarray(path, np.intp)])[-1]) if path else 0.0
 
     def edge_covariance(self, information: np.ndarray | None) -> np.ndarray:
         """``(6, 6)`` covariance of an edge with ``information`` (``None``: the sigma floors alone)."""
@@ -133,9 +151,10 @@ class OdometryChain:
         """``(6, 6)`` covariance of the odometry's ``T_i_j`` (right perturbation, ``(omega, v)``) over ``path``."""
         if not path:
             return np.zeros((6, 6))
-        T_j_c = invert(self.poses[j])[None] @ np.stack([self.poses[k] for k in path])
+        rows = np.asarray(path, np.intp)
+        T_j_c = invert(self.poses[j])[None] @ self._pose_stack.poses[rows]
         A = adjoint(T_j_c)
-        var = np.stack([self._step_var[k] for k in path])
+        var = self._step_var[rows]
         return np.einsum("nab,nb,ncb->ac", A, var, A)
 
     def mahalanobis2(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray | None) -> float | None:

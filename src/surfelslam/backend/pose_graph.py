@@ -22,6 +22,7 @@ import gtsam
 import numpy as np
 
 from surfelslam.config import Config, setting
+from surfelslam.types import PoseArray
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
 EDGE_INFORMATION_MODES = ("isotropic", "estimated")
@@ -153,6 +154,9 @@ class PoseGraph:
         self._values = gtsam.Values()
         self._n = 0
         self.edges: list[PoseEdge] = []
+        # the loop edges among them, stacked as they come: T_i_j, and (i, j) in rows grown by doubling
+        self._loop_T = PoseArray()
+        self._loop_ij = np.zeros((0, 2), np.intp)
         # isam2: the smoother, and what it has not been given yet (None: rebuild it from the whole graph)
         self._isam: gtsam.ISAM2 | None = None
         self._new_factors = gtsam.NonlinearFactorGraph()
@@ -180,6 +184,18 @@ class PoseGraph:
             raise ValueError(f"edge ({edge.i}, {edge.j}) needs two distinct existing nodes (have {self._n})")
         self._add_factor(gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j), _noise(edge, self.cfg)))
         self.edges.append(edge)
+        if edge.kind == "loop":
+            n = len(self._loop_T)
+            if n == len(self._loop_ij):
+                self._loop_ij = np.concatenate([self._loop_ij, np.zeros((max(n, 1), 2), np.intp)])
+            self._loop_T.append(edge.T_i_j)
+            self._loop_ij[n] = edge.i, edge.j
+
+    def loop_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The loop edges so far, in the order they came: ``T_i_j`` ``(L, 4, 4)`` float64, ``i`` and ``j`` ``(L,)``
+        (views: valid until the next edge)."""
+        n = len(self._loop_T)
+        return self._loop_T.poses, self._loop_ij[:n, 0], self._loop_ij[:n, 1]
 
     def _add_factor(self, factor) -> None:
         self._graph.add(factor)

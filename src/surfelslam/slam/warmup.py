@@ -81,6 +81,17 @@ def warm_up_run(cfg: SlamConfig, tracker: str) -> None:
     for frame in _run_frames(_RUN_FRAMES_BY_TRACKER.get(tracker, _RUN_FRAMES)):
         slam.process(frame)
     slam.finish()
+    _graph_gate_extras()  # a short run closes no far loop: the graph gate's search is compiled apart
+
+
+def _graph_gate_extras() -> None:
+    """The graph gate's path search (:mod:`surfelslam.kernels.graph_search`) on two keyframes and one edge, with
+    the argument types :class:`~surfelslam.backend.edge_graph_gate.EdgeGraph` passes."""
+    from surfelslam.kernels.graph_search import NO_NODE, shortest_path
+
+    pred = np.empty(2, np.int64)
+    shortest_path(np.array([0, 1], np.int64), np.full(2, NO_NODE, np.int64), np.array([[0, 1]], np.int64),
+                  np.ones(1), 0, 1, float(np.inf), pred)
 
 
 def _dense_tracker(tracker) -> None:
@@ -202,6 +213,7 @@ def _sparse_part() -> None:
     orb.finish()
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
     _feature_extras(intr, pre.process(frames[0].depth_m))  # last: the dense part has cached the ICP kernels by now
+    _graph_gate_extras()
 
 
 def _parallel_part() -> None:

@@ -3,6 +3,7 @@ edges and its trust gate, and the rigid move that joins a new segment to the old
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -18,6 +19,8 @@ from surfelslam.types import PoseArray
 # the graph gate searches paths up to the odometry chain's variance times this (the chain is such a path: the margin
 # only absorbs rounding, so that a graph of odometry edges alone finds the chain itself)
 _LIMIT_MARGIN = 1.000001
+# gated edges whose distances (gate_d2, gate_d2_graph: diagnostics) are kept, the newest: bounded memory on a long run
+GATE_D2_KEPT = 10_000
 
 
 class KeyframeGraph:
@@ -67,8 +70,9 @@ class KeyframeGraph:
         self.n_loops_rejected_graph = 0  # ... of them, those the odometry chain passed and the graph gate rejected
         self.n_nearby_rejected_inconsistent = 0  # ... nearby ones (``gate_nearby``)
         self.n_nearby_pnp_left_out = 0  # verified nearby PnP edges kept out of the PnP graph (``pnp_nearby`` off)
-        self.gate_d2: list[tuple[int, int, float]] = []  # (kf_old, kf_new, squared distance) of every gated edge
-        self.gate_d2_graph: list[tuple[int, int, float]] = []  # the same for the graph gate
+        # (kf_old, kf_new, squared distance) of the last GATE_D2_KEPT gated edges, and the same for the graph gate
+        self.gate_d2: deque[tuple[int, int, float]] = deque(maxlen=GATE_D2_KEPT)
+        self.gate_d2_graph: deque[tuple[int, int, float]] = deque(maxlen=GATE_D2_KEPT)
 
     @property
     def gate_threshold(self) -> float:
@@ -239,7 +243,7 @@ class KeyframeGraph:
             self.poses[:] = self._graph.optimise(full)
             return
         poses = self._graph_refined.optimise(full)
-        spread = self._refiner.residual_spread(self._graph_refined.edges, poses)
+        spread = self._refiner.loop_residual_spread(*self._graph_refined.loop_edges(), poses)
         self.refined_residual_rad, self.refined_residual_m = (None, None) if spread is None else spread
         self.refined_trusted = self._refiner.trusted(spread)
         self.poses[:] = poses if self.refined_trusted else self._graph.optimise(full)
