@@ -10,6 +10,8 @@ import tomllib
 import numpy as np
 import pytest
 
+from surfelslam.backend.loops import LoopConfig, loop_candidates
+from surfelslam.backend.place_recognition import DescriptorIndex
 from surfelslam.backend.sparse_slam import BACK_END_PROFILE, with_profile
 from surfelslam.errors import ConfigError
 from surfelslam.settings import (
@@ -111,10 +113,11 @@ def test_the_hybrids_back_end_profile():
     cfg = SlamConfig()
     assert cfg.sparse.keyframe_threshold is None and cfg.sparse.loop.n_nearby is None  # unset: per tracker
     sp = hybrid_sparse_config(cfg, 262.5)
-    assert (sp.keyframe_threshold, sp.keyframe_min_gap_frames) == (0.1, 3)
-    assert (sp.loop.n_nearby, sp.loop.n_random) == (3, 1)
+    assert (sp.keyframe_threshold, sp.keyframe_min_gap_frames) == (0.12, 3)
+    assert (sp.loop.n_nearby, sp.loop.n_random, sp.loop.n_retrieved) == (3, 0, 2)
     orb = with_profile(cfg.sparse, BACK_END_PROFILE)
     assert (orb.keyframe_threshold, orb.keyframe_min_gap_frames, orb.loop.n_nearby, orb.loop.n_random) == (0.1, 1, 5, 5)
+    assert orb.loop.n_retrieved == 3
     assert sp.graph.edge_information == "isotropic" and sp.features_reference_width_px == 0
     assert sp.features.depth_edge_rel == 0.0
     assert sp.features.guided_radius_px == pytest.approx(262.5 * np.tan(np.radians(2.6)))  # 2.6 deg: 11.9 px
@@ -122,6 +125,30 @@ def test_the_hybrids_back_end_profile():
     assert sp.graph.robust_scale_sigma == pytest.approx(0.03 * np.sqrt(100.0))
     assert sp.features.n_features == cfg.sparse.features.n_features  # the rest is [sparse]'s
     assert hybrid_sparse_config(cfg, -262.5) == sp  # a negative focal length (flipped y) gives the same radius
+
+
+def test_the_loop_candidates_each_tracker_checks():
+    """The candidates of keyframe 20 (19 has the odometry edge; 16 older ones, all in the index): the hybrid checks
+    its 3 nearby keyframes and at most 2 retrieved ones, none drawn at random; the orb tracker 5 nearby, at most 3
+    retrieved and 5 random; a set n_retrieved is the running tracker's either way."""
+    rng_desc = np.random.default_rng(3)
+    index = DescriptorIndex(LoopConfig().retrieval)
+    descs = [rng_desc.integers(0, 256, (200, 32), dtype=np.uint8) for _ in range(20)]
+    for d in descs:
+        index.add(d)
+    query = np.concatenate([descs[k][:100] for k in (2, 5, 8)])  # shares descriptors with keyframes 2, 5 and 8
+
+    def sources(sparse_cfg):
+        cands = loop_candidates(20, query, index, np.random.default_rng(0), sparse_cfg.loop)
+        return {s: sorted(c.kf_id for c in cands if c.source == s) for s in ("nearby", "retrieved", "random")}
+
+    hybrid = sources(hybrid_sparse_config(SlamConfig(), 262.5))
+    assert hybrid["nearby"] == [16, 17, 18] and len(hybrid["retrieved"]) == 2 and hybrid["random"] == []
+    assert set(hybrid["retrieved"]) <= {2, 5, 8}
+    orb = sources(with_profile(SlamConfig().sparse, BACK_END_PROFILE))
+    assert orb["nearby"] == [14, 15, 16, 17, 18] and orb["retrieved"] == [2, 5, 8] and len(orb["random"]) == 5
+    set3 = from_dict(SlamConfig, {"sparse": {"loop": {"n_retrieved": 3}}})
+    assert sources(hybrid_sparse_config(set3, 262.5))["retrieved"] == [2, 5, 8]
 
 
 def test_a_set_sparse_key_applies_to_the_running_tracker_and_the_constants_stay():

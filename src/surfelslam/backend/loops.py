@@ -25,10 +25,12 @@ class LoopConfig(Config):
     n_random: int | None = setting(
         None, unit="keyframes", ge=0, le=1000, user=True,
         doc="keyframes drawn uniformly (seeded) among the older ones; none: the running tracker's own (orb 5, "
-            "hybrid 1)")
+            "hybrid 0)")
     seed: int = setting(0, ge=0, le=2**63 - 1, doc="seed of the random draws")
-    n_retrieved: int = setting(3, unit="keyframes", ge=0, le=1000,
-                               doc="older keyframes proposed by descriptor voting")
+    n_retrieved: int | None = setting(
+        None, unit="keyframes", ge=0, le=1000,
+        doc="older keyframes proposed by descriptor voting (also the candidates of a relocalisation); none: the "
+            "running tracker's own (orb 3, hybrid 2)")
     max_norm_loop: float = setting(2.0, unit="m + rad", gt=0, le=100, doc="loop edges may span up to this motion "
                                    "norm")
     min_loop_inliers: int = setting(30, unit="inliers", ge=0, le=1_000_000,

@@ -184,7 +184,7 @@ JOINT_WEIGHT_UNITS = ("robust_scale", "depth_noise")  # hybrid.joint_weight_unit
 
 #: what an older run's config.toml also needs: it holds the orb tracker's [sparse] keyframe and loop values
 _OLD_RUN_CONFIG = ("in an older run's config.toml delete its [sparse] keyframe_threshold, [sparse.loop] n_nearby, "
-                   "n_random too")
+                   "n_random, n_retrieved too")
 
 
 @dataclass(frozen=True)
@@ -254,13 +254,13 @@ class HybridConfig(Config):
     # the former copies of [sparse] keys (issue 67): the hybrid's values are its profile (slam/hybrid_profile.py)
     REMOVED_KEYS: ClassVar[dict[str, str]] = {
         "relocalise_after_failures": "one setting for every tracker: [tracking] relocalise_after_failures",
-        "keyframe_threshold": "set [sparse] keyframe_threshold (unset: the running tracker's own, the hybrid's 0.1); "
-                              + _OLD_RUN_CONFIG,
+        "keyframe_threshold": "set [sparse] keyframe_threshold (unset: the running tracker's own, the hybrid's "
+                              "0.12); " + _OLD_RUN_CONFIG,
         "keyframe_min_gap_frames": "set [sparse] keyframe_min_gap_frames (unset: the running tracker's own, the "
                                    "hybrid's 3); " + _OLD_RUN_CONFIG,
         "loop_nearby": "set [sparse.loop] n_nearby (unset: the running tracker's own, the hybrid's 3); "
                        + _OLD_RUN_CONFIG,
-        "loop_random": "set [sparse.loop] n_random (unset: the running tracker's own, the hybrid's 1); "
+        "loop_random": "set [sparse.loop] n_random (unset: the running tracker's own, the hybrid's 0); "
                        + _OLD_RUN_CONFIG,
         "graph_edge_information": "the hybrid's is a constant (isotropic, EDGE_INFORMATION in "
                                   "surfelslam/slam/hybrid_profile.py); [sparse.graph] edge_information is the orb's",

@@ -4,8 +4,9 @@ orb tracker, each in one place.
 Two kinds (decided for issue 67, when the ``[hybrid]`` copies of ``[sparse]`` keys were removed):
 
 - the keyframe spacing and loop candidates (:data:`HYBRID_PROFILE`) are user choices: ``[sparse]``
-  ``keyframe_threshold``, ``keyframe_min_gap_frames`` and ``[sparse.loop]`` ``n_nearby``, ``n_random`` are unset by
-  default, so each tracker runs with its own values, and a config that sets one sets it for the tracker it runs
+  ``keyframe_threshold``, ``keyframe_min_gap_frames`` and ``[sparse.loop]`` ``n_nearby``, ``n_random``,
+  ``n_retrieved`` are unset by default, so each tracker runs with its own values, and a config that sets one sets it
+  for the tracker it runs
   (a config file runs one tracker: the orb tracker is changed only when it runs with that file);
 - the rest are constants of the hybrid's design (below): the hybrid applies them over ``[sparse]`` whatever it
   holds, and the ``[sparse]`` keys they replace (``graph.edge_information``, ``features_reference_width_px``,
@@ -21,12 +22,16 @@ from surfelslam.backend.sparse_slam import SparseProfile, SparseSlamConfig, with
 from surfelslam.settings import from_dict
 from surfelslam.slam.config import SlamConfig
 
-#: keyframes every 0.1 m + rad but at most one every 3 frames (at 0.2 the keyframe edges spread more, fail the trust
-#: gate and leave the odometry uncorrected; the gap lets the loop-check thread keep up under fast motion); 3 nearby
-#: and 1 random loop candidates per new keyframe; where the graph has closed the loop, 2 retrieved candidates verified
-#: per keyframe (a quarter less loop-check time on a revisit; 1 lost 8 % ATE on the slow synthetic orbit)
-HYBRID_PROFILE = SparseProfile(keyframe_threshold=0.1, keyframe_min_gap_frames=3, loop_nearby=3, loop_random=1,
-                               loop_closed_retrieved=2)
+#: keyframes every 0.12 m + rad but at most one every 3 frames (at 0.2 the keyframe edges spread more, fail the trust
+#: gate and leave the odometry uncorrected; at 0.13 fr3/teddy lost 12 %; 0.12 makes 15 % fewer keyframes on hand-held
+#: motion, each costing ORB and loop checks; the gap lets the loop-check thread keep up under fast motion); 3 nearby,
+#: 2 retrieved and no random loop candidates per new keyframe (the random draws were most of the rejected checks:
+#: with 0.12, 40 % fewer loop checks on the slow synthetic room, ATE within 2 % or better on the four synthetic rows
+#: and teddy's 27 % better; 2 nearby lost 10 % on the hand-held row, a gap of 5 frames 19 % on the fast one); where the
+#: graph has closed the loop, 2 retrieved candidates verified per keyframe (a quarter less loop-check time on a
+#: revisit; 1 lost 8 % ATE on the slow synthetic orbit)
+HYBRID_PROFILE = SparseProfile(keyframe_threshold=0.12, keyframe_min_gap_frames=3, loop_nearby=3, loop_random=0,
+                               loop_closed_retrieved=2, loop_retrieved=2)
 #: pose-graph edge weighting: its dense odometry edges carry no estimated information, and PnP Hessians must not
 #: outweigh them
 EDGE_INFORMATION = "isotropic"

@@ -44,7 +44,7 @@ class SparseSlamConfig(Config):
     keyframe_threshold: float | None = setting(
         None, unit="m + rad", gt=0, le=100, user=True,
         doc="motion norm from the reference keyframe that makes a new keyframe; none: the running tracker's own "
-            "(orb 0.1, hybrid 0.1: its back-end profile)")
+            "(orb 0.1, hybrid 0.12: its back-end profile)")
     keyframe_min_gap_frames: int | None = setting(
         None, unit="frames", ge=1, le=1_000_000,
         doc="a frame becomes a keyframe only this many placed frames after the reference keyframe at the earliest "
@@ -106,11 +106,13 @@ class SparseProfile:
     loop_nearby: int  # keyframes: [sparse.loop] n_nearby
     loop_random: int  # keyframes: [sparse.loop] n_random
     loop_closed_retrieved: int = 0  # candidates: [sparse.loop] closed_retrieved
+    loop_retrieved: int = 3  # keyframes: [sparse.loop] n_retrieved
 
 
 #: the back end's own profile (the orb tracker's, and a :class:`SparseSlam` built without one): every keyframe that
-#: moved 0.1 m + rad, 5 nearby + 5 random loop candidates (the loop checks run in the background)
-BACK_END_PROFILE = SparseProfile(keyframe_threshold=0.1, keyframe_min_gap_frames=1, loop_nearby=5, loop_random=5)
+#: moved 0.1 m + rad, 5 nearby + 3 retrieved + 5 random loop candidates (the loop checks run in the background)
+BACK_END_PROFILE = SparseProfile(keyframe_threshold=0.1, keyframe_min_gap_frames=1, loop_nearby=5, loop_random=5,
+                                 loop_retrieved=3)
 
 
 def with_profile(cfg: SparseSlamConfig, profile: SparseProfile) -> SparseSlamConfig:
@@ -123,6 +125,7 @@ def with_profile(cfg: SparseSlamConfig, profile: SparseProfile) -> SparseSlamCon
                                  else cfg.keyframe_min_gap_frames),
         loop=replace(loop, n_nearby=profile.loop_nearby if loop.n_nearby is None else loop.n_nearby,
                      n_random=profile.loop_random if loop.n_random is None else loop.n_random,
+                     n_retrieved=profile.loop_retrieved if loop.n_retrieved is None else loop.n_retrieved,
                      closed_retrieved=(profile.loop_closed_retrieved if loop.closed_retrieved is None
                                        else loop.closed_retrieved)))
 
