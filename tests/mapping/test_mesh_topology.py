@@ -97,6 +97,9 @@ def test_marching_cubes_of_any_field_is_edge_manifold_and_oriented(seed):
     assert r["duplicated_triangles"] == r["duplicated_vertices"] == r["degenerate_triangles"] == 0
     assert r["non_manifold_edges"] == 0 and r["misoriented_edges"] == 0
     assert r["unreferenced_vertices"] == 0
+    # each triangle joins points on the edges of one cube (vertex indices = block start + index within the block)
+    tri = raw.vertices[raw.faces]
+    assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() <= np.sqrt(3) * vol.voxel_m + 1e-6
     # borders only where the volume ends: every vertex of a border edge lies on the volume's outer faces
     mesh = vol.extract_mesh(min_component=0)
     r = topology_report(mesh.vertices, mesh.faces)
