@@ -5,9 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from surfelslam.kernels import mesh_topology as kmt
 from surfelslam.kernels import tsdf as kt
 from surfelslam.mapping.mesh import TsdfVolume, compact
-from surfelslam.mapping.mesh_topology import clean_faces, topology_report
+from surfelslam.mapping.mesh_topology import (
+    MAX_FAN_ROUNDS,
+    clean_faces,
+    clean_faces_reference,
+    topology_report,
+)
 
 # a unit square of two triangles, counter-clockwise seen from +z
 SQUARE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
@@ -91,6 +97,9 @@ def test_marching_cubes_of_any_field_is_edge_manifold_and_oriented(seed):
     assert r["duplicated_triangles"] == r["duplicated_vertices"] == r["degenerate_triangles"] == 0
     assert r["non_manifold_edges"] == 0 and r["misoriented_edges"] == 0
     assert r["unreferenced_vertices"] == 0
+    # each triangle joins points on the edges of one cube (vertex indices = block start + index within the block)
+    tri = raw.vertices[raw.faces]
+    assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() <= np.sqrt(3) * vol.voxel_m + 1e-6
     # borders only where the volume ends: every vertex of a border edge lies on the volume's outer faces
     mesh = vol.extract_mesh(min_component=0)
     r = topology_report(mesh.vertices, mesh.faces)
@@ -122,3 +131,69 @@ def test_a_truncation_jump_is_no_surface(step, surface):
     assert (mesh.n_faces > 0) == surface
     if surface:
         np.testing.assert_allclose(mesh.vertices[:, 0], 0.075, atol=1e-6)  # halfway between x = 7 and 8 voxels
+
+
+# ------------------------------------------------------------------------------------------ kernels vs reference
+def _grid_mesh(n: int, rng):
+    """A bumpy ``n`` x ``n`` height field of ``2 (n - 1)^2`` triangles (one piece, edge- and vertex-manifold)."""
+    y, x = np.mgrid[0:n, 0:n]
+    v = np.c_[x.reshape(-1), y.reshape(-1), rng.uniform(0, 0.3, n * n)].astype(np.float32)
+    i = (y[:-1, :-1] * n + x[:-1, :-1]).reshape(-1)
+    f = np.vstack([np.c_[i, i + 1, i + n + 1], np.c_[i, i + n + 1, i + n]]).astype(np.int32)
+    return v, f
+
+
+def _random_soup(rng, n: int, n_random: int):
+    """A height field of ``n`` x ``n`` vertices on two levels (collinear triples: zero-area triangles) and
+    ``n_random`` random triangles over its vertices: shared edges of 3+ triangles, both orientations, repeated
+    vertices, duplicated triangles, touching fans."""
+    v, f = _grid_mesh(n, rng)
+    v[:, 2] = rng.integers(0, 2, len(v)) * 0.5
+    return v, np.vstack([f, rng.integers(0, len(v), (n_random, 3))]).astype(np.int32)
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("min_component", [0, 2, 5])
+def test_clean_kernels_match_the_reference_on_random_soups(seed, min_component):
+    rng = np.random.default_rng(seed)
+    v, f = _random_soup(rng, 8 + 2 * seed, 20 + 20 * seed)
+    keep = clean_faces(v, f, min_component)
+    np.testing.assert_array_equal(keep, clean_faces_reference(v, f, min_component))
+    assert len(f) // 4 < keep.sum() < len(f)  # the soup has defects to remove and much to keep
+
+
+def test_clean_kernels_match_the_reference_on_a_grid_with_planted_defects():
+    rng = np.random.default_rng(3)
+    v, f = _grid_mesh(30, rng)
+    assert clean_faces(v, f, 0).all()  # nothing to remove
+    fins = np.c_[f[:40, :2], rng.integers(0, len(v), 40)]  # third triangles on existing edges
+    flipped = f[40:60, ::-1]  # duplicated triangles, opposite orientation
+    touching = np.c_[f[100:130, 0], rng.integers(0, len(v), (30, 2))]  # fans touching at one vertex
+    island = np.array([[0, 31, 62], [0, 62, 93]]) + 400  # a separate small piece
+    degenerate = np.c_[f[200:210, 0], f[200:210, 0], f[200:210, 1]]
+    faces = np.vstack([f, fins, flipped, touching, island, degenerate]).astype(np.int32)
+    for mc in (0, 100):
+        keep = clean_faces(v, faces, mc)
+        np.testing.assert_array_equal(keep, clean_faces_reference(v, faces, mc))
+        assert topology_report(v, faces[keep])["non_manifold_vertices"] == 0
+        assert not keep[-10:].any()  # the degenerate ones are gone
+    assert keep[: len(f)].sum() > 0.9 * len(f)  # most of the grid stays
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64])
+def test_clean_kernels_with_either_index_width(dtype):
+    """The work arrays are int32 below 2^31 half-edges, int64 above: both give the reference's mask."""
+    rng = np.random.default_rng(11)
+    v, f = _random_soup(rng, 16, 100)
+    keep = np.ones(len(f), bool)
+    kmt.nondegenerate(v, f, keep)
+    offsets, halfedges = np.empty(len(v) + 1, np.int64), np.empty(3 * len(f), dtype)
+    kmt.edge_buckets(f, len(v), offsets, halfedges)
+    parent = np.empty(3 * len(f), dtype)
+    fans, best, best_size = np.empty(len(v), np.int32), np.empty(len(v), dtype), np.empty(len(v), dtype)
+    rounds = 0
+    while kmt.drop_extra_fans(f, keep, offsets, halfedges, parent, fans, best, best_size) and rounds < MAX_FAN_ROUNDS:
+        rounds += 1
+    kmt.drop_small_pieces(f, keep, offsets, halfedges, parent[: len(f)], 3)
+    np.testing.assert_array_equal(keep, clean_faces_reference(v, f, 3))
+    assert rounds >= 1 and len(f) // 4 < keep.sum() < len(f)

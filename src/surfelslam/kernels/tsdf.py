@@ -505,7 +505,7 @@ def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_w
                 w1 *= s
             for c in range(3):
                 rgb[n, c] = np.uint8(min(w0 * colour[b, k, c] + w1 * colour[nb, nk, c] + 0.5, 255.0))
-            vid[b, k, a] = n
+            vid[b, k, a] = n - start[b]
             n += 1
 
 
@@ -514,7 +514,8 @@ def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, 
                   rgb):
     """Write the vertices counted by :func:`count_vertices` from ``start[b]`` on: position (linear interpolation of
     the zero crossing), normal (interpolated TSDF gradient, unit length, towards the free side), colour
-    (interpolated between the ends that have one); and their indices into ``vid[b, k, axis]`` (-1 elsewhere)."""
+    (interpolated between the ends that have one); and their indices within the block into ``vid[b, k, axis]``
+    (int16: a block owns at most 3 x 512 vertices; -1 elsewhere)."""
     for b in prange(coords.shape[0]):
         _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts,
                              normals, rgb, np.int64(b))
@@ -564,8 +565,8 @@ def count_triangles(nbr, tsdf, weight, min_weight, tri_count, counts):
 
 
 @njit(cache=True, nogil=True)
-def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start,
-                          faces, b):
+def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid,
+                          vstart, start, faces, b):
     """Item ``b`` of :func:`fill_triangles`'s parallel loop, a function of its own: numba's parallel pass then
     handles a loop of one call (see ``icp._normal_equations_chunk``)."""
     n = start[b]
@@ -581,13 +582,15 @@ def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, e
                 e = tri_table[case, 3 * t + m]
                 c = edge_corner[e]
                 nb, nk = _voxel(nbr, b, i + (c & 1), j + ((c >> 1) & 1), l + (c >> 2))
-                faces[n, m] = vid[nb, nk, edge_axis[e]]
+                faces[n, m] = vstart[nb] + vid[nb, nk, edge_axis[e]]
             n += 1
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_triangles(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start, faces):
-    """Write the triangles counted by :func:`count_triangles` (vertex indices from ``vid``) from ``start[b]`` on."""
+def fill_triangles(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, vstart, start,
+                   faces):
+    """Write the triangles counted by :func:`count_triangles` from ``start[b]`` on; vertex indices ``vstart[b]``
+    (block ``b``'s first vertex, as :func:`fill_vertices` was given) + ``vid`` (the index within the block)."""
     for b in prange(start.shape[0]):
-        _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, start,
-                              faces, np.int64(b))
+        _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid,
+                              vstart, start, faces, np.int64(b))

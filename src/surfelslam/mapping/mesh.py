@@ -29,9 +29,9 @@ from surfelslam.types import Intrinsics
 
 METHODS = ("tsdf", "poisson")
 #: bytes per voxel: tsdf float32, weight float32, frame count uint16, colour 3 x uint16, colour weight uint16 (+ the
-#: extraction's vertex index table, 3 x int32, while a mesh is extracted)
+#: extraction's vertex index table, 3 x int16 (indices within the block), while a mesh is extracted)
 BYTES_PER_VOXEL = 4 + 4 + 2 + 6 + 2
-EXTRACT_BYTES_PER_VOXEL = 12
+EXTRACT_BYTES_PER_VOXEL = 6
 #: blocks allocated up front (the arrays double when full)
 INITIAL_BLOCKS = 4096
 #: the far end (m) of a Kinect-class sensor's valid range: `surfelslam mesh` fuses every depth up to it (the noise
@@ -246,19 +246,19 @@ class TsdfVolume:
         nbr = kt.neighbour_table(coords, n, self.keys, self.vals)
         counts = np.zeros(n, np.int64)
         kt.count_vertices(nbr, tsdf, seen, min_weight, counts)
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        vstart = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
         n_v = int(counts.sum())
-        vid = np.empty((n, kt.BLOCK_VOXELS, 3), np.int32)
+        vid = np.empty((n, kt.BLOCK_VOXELS, 3), np.int16)
         verts = np.empty((n_v, 3), np.float32)
         normals = np.empty((n_v, 3), np.float32)
         rgb = np.empty((n_v, 3), np.uint8)
-        kt.fill_vertices(nbr, coords, tsdf, seen, colour, colour_weight, min_weight, self.voxel_m, start, vid, verts,
+        kt.fill_vertices(nbr, coords, tsdf, seen, colour, colour_weight, min_weight, self.voxel_m, vstart, vid, verts,
                          normals, rgb)
         kt.count_triangles(nbr, tsdf, seen, min_weight, kt.TRI_COUNT, counts)
         start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
         faces = np.empty((int(counts.sum()), 3), np.int32)
         kt.fill_triangles(nbr, tsdf, seen, min_weight, kt.TRI_TABLE, kt.TRI_COUNT, kt.EDGE_CORNER, kt.EDGE_AXIS,
-                          vid, start, faces)
+                          vid, vstart, start, faces)
         return Mesh(verts, normals, rgb, faces)
 
     def dense_grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
