@@ -83,9 +83,9 @@ def test_a_zero_quaternion_is_refused():
 
 def test_stack_kernels_equal_the_scalar_helpers_bit_for_bit():
     """The compiled loops of the stack path (Markley's quaternion and the log's angle scale,
-    :mod:`surfelslam.kernels.so3`) give, to the last bit, what the scalar helpers give one matrix at a time (ties,
-    near 0, the series bound, near pi, drifted matrices): the stack path's numbers did not change when compiled."""
-    from surfelslam.kernels import so3 as kso3
+    :mod:`surfelslam.geometry.so3_kernels`) give, to the last bit, what the scalar helpers give one matrix at a
+    time (ties, near 0, the series bound, near pi, drifted matrices): the stack path's numbers did not change."""
+    from surfelslam.geometry import so3_kernels as kso3
 
     R = _rotations()
     R = R[np.linalg.det(R) > 0]

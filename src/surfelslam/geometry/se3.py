@@ -133,7 +133,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     v_norm = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2])
     # libm's atan2 and sin, one value at a time: numpy's vectorised ones may differ in the last bit from the scalar
     # path's (math), and a stack must give what its matrices give one by one
-    from surfelslam.kernels import so3 as so3_kernels  # here: importing se3 does not import numba (the CLI sets
+    from surfelslam.geometry import so3_kernels  # here: importing se3 does not import numba (the CLI sets
     # numba's cache folder first)
 
     scale = so3_kernels.log_scales(v_norm, np.ascontiguousarray(q[:, 3]), _LOG_SERIES_RAD)
@@ -169,7 +169,7 @@ def _quaternions(R: np.ndarray) -> np.ndarray:
     if off.any():
         U, _, Vt = np.linalg.svd(R[off])
         R[off] = U @ Vt
-    from surfelslam.kernels import so3 as so3_kernels  # here, as in so3_log
+    from surfelslam.geometry import so3_kernels  # here, as in so3_log
 
     return so3_kernels.markley_many(np.ascontiguousarray(R.reshape(-1, 9)))
 
