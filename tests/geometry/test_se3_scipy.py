@@ -3,6 +3,8 @@ library does not import: a run's start-up needs no scipy.spatial); here they are
 on random rotations and on the edge cases: angles near 0, at the log's series bound, near and at pi, ties between the
 diagonal and the trace, drifted and visibly non-orthogonal matrices, scaled quaternions."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -77,3 +79,23 @@ def test_a_reflection_or_a_singular_matrix_is_refused(R):
 def test_a_zero_quaternion_is_refused():
     with pytest.raises(ValueError, match="zero norm"):
         se3.quat_xyzw_to_rotation(np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]]))
+
+
+def test_stack_kernels_equal_the_scalar_helpers_bit_for_bit():
+    """The compiled loops of the stack path (Markley's quaternion and the log's angle scale,
+    :mod:`surfelslam.geometry.so3_kernels`) give, to the last bit, what the scalar helpers give one matrix at a
+    time (ties, near 0, the series bound, near pi, drifted matrices): the stack path's numbers did not change."""
+    from surfelslam.geometry import so3_kernels as kso3
+
+    R = _rotations()
+    R = R[np.linalg.det(R) > 0]
+    q = kso3.markley_many(np.ascontiguousarray(R.reshape(-1, 9)))
+    expected = np.array([se3._markley(*r) for r in R.reshape(-1, 9).tolist()])
+    np.testing.assert_array_equal(q.view(np.int64), expected.view(np.int64))
+    v_norm = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2])
+    w = np.abs(q[:, 3])
+    scale = kso3.log_scales(v_norm, w, se3._LOG_SERIES_RAD)
+    angles = [2.0 * math.atan2(n, c) for n, c in zip(v_norm.tolist(), w.tolist(), strict=True)]
+    expected = np.array([se3._log_scale(a) for a in angles])
+    np.testing.assert_array_equal(scale.view(np.int64), expected.view(np.int64))
+    assert sum(a <= se3._LOG_SERIES_RAD for a in angles) > 10  # the series branch was taken too

@@ -370,3 +370,21 @@ def test_transform_groups_matches_its_reference():
     np.testing.assert_array_equal(m.position[keep], pos0[keep])
     with pytest.raises(ValueError, match="groups"):
         m.transform_groups(R, t, np.array([5]), np.array([0]))
+
+
+def test_rows_off_block_matches_its_reference_to_the_row():
+    """The one-pass kernel that finds the surfels a correction moved out of their block returns exactly the rows of the
+    numpy reference (float32 product, floor, int32), also for positions on block faces, negative ones and rows in
+    no particular order; an empty ``rows`` gives none."""
+    rng = np.random.default_rng(7)
+    m = _random_map(5000, seed=7, cfg=MapConfig(initial_capacity=8, block_size_m=0.3))
+    pos = m._position
+    pos[:500] = np.round(pos[:500] / 0.3) * np.float32(0.3)  # on (or a rounding away from) the block faces
+    pos[500:1000] *= -1.0
+    rows = rng.permutation(5000)[:3500].astype(np.int64)
+    inv = np.float32(m._inv_block)
+    got = ks.rows_off_block(pos, rows, m._block_id, m._block_ijk, inv)
+    ref = ks.rows_off_block_ref(pos, rows, m._block_id, m._block_ijk, m._inv_block)
+    assert 300 <= len(ref) < len(rows) // 2  # the negated rows left their blocks, most others did not
+    np.testing.assert_array_equal(got, ref)
+    assert len(ks.rows_off_block(pos, rows[:0], m._block_id, m._block_ijk, inv)) == 0

@@ -133,8 +133,10 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     v_norm = np.sqrt(q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2])
     # libm's atan2 and sin, one value at a time: numpy's vectorised ones may differ in the last bit from the scalar
     # path's (math), and a stack must give what its matrices give one by one
-    scale = np.array([_log_scale(2.0 * math.atan2(n, qw)) for n, qw in zip(v_norm.tolist(), q[:, 3].tolist(),
-                                                                          strict=True)])
+    from surfelslam.geometry import so3_kernels  # here: importing se3 does not import numba (the CLI sets
+    # numba's cache folder first)
+
+    scale = so3_kernels.log_scales(v_norm, np.ascontiguousarray(q[:, 3]), _LOG_SERIES_RAD)
     return (q[:, :3] * scale.reshape(-1, 1)).reshape(R.shape[:-2] + (3,))
 
 
@@ -167,7 +169,9 @@ def _quaternions(R: np.ndarray) -> np.ndarray:
     if off.any():
         U, _, Vt = np.linalg.svd(R[off])
         R[off] = U @ Vt
-    return np.array([_markley(*r) for r in R.reshape(-1, 9).tolist()])
+    from surfelslam.geometry import so3_kernels  # here, as in so3_log
+
+    return so3_kernels.markley_many(np.ascontiguousarray(R.reshape(-1, 9)))
 
 
 def _is_rotation(R: np.ndarray) -> bool:

@@ -143,6 +143,31 @@ def transform_rows(position, normal, rows, group, R, t):
             normal[i, r] = R[g, r, 0] * n0 + R[g, r, 1] * n1 + R[g, r, 2] * n2
 
 
+@njit(cache=True, nogil=True)
+def rows_off_block(position, rows, block_id, block_ijk, inv_block):
+    """Which of ``rows`` ``(m,)`` lie outside their culling block: ``(k,)`` int64 positions ``j`` into ``rows``
+    (ascending) where ``floor(position[rows[j]] * inv_block)`` differs from ``block_ijk[block_id[rows[j]]]``
+    (``position`` float32 ``(cap, 3)``, ``inv_block`` float32: the product rounds to float32 like numpy's). One
+    pass, no ``(m, 3)`` temporaries: a map correction moves millions of surfels, most within their block."""
+    out = np.empty(rows.shape[0], np.int64)
+    k = 0
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        b = block_id[i]
+        for r in range(3):
+            if np.int32(np.floor(position[i, r] * inv_block)) != block_ijk[b, r]:
+                out[k] = j
+                k += 1
+                break
+    return out[:k]
+
+
+def rows_off_block_ref(position, rows, block_id, block_ijk, inv_block):
+    """Numpy reference of :func:`rows_off_block`."""
+    ijk = np.floor(position[rows] * inv_block).astype(np.int32)
+    return np.flatnonzero(np.any(ijk != block_ijk[block_id[rows]], axis=1))
+
+
 def transform_rows_ref(position, normal, rows, group, R, t):
     """Reference of :func:`transform_rows` (returns the moved rows' positions and normals)."""
     return (np.einsum("nij,nj->ni", R[group], position[rows]) + t[group],

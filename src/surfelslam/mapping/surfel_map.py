@@ -310,9 +310,9 @@ class SurfelMap:
         ks.transform_rows(self._position, self._normal, rows, group, np.ascontiguousarray(R, np.float32),
                           np.ascontiguousarray(t, np.float32))
         # only the surfels that left their block need a new one (a correction moves most by less than a block)
-        ijk = np.floor(self._position[rows] * self._inv_block).astype(np.int32)
-        left = np.flatnonzero(np.any(ijk != self._block_ijk[self._block_id[rows]], axis=1))
-        self._block_id[rows[left]] = self._block_ids(self._position[rows[left]])
+        left = rows[ks.rows_off_block(self._position, rows, self._block_id, self._block_ijk,
+                                      np.float32(self._inv_block))]
+        self._block_id[left] = self._block_ids(self._position[left])
         self.rebuild_index()
 
     # ------------------------------------------------------------------ block index
