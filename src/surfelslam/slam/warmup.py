@@ -97,8 +97,8 @@ def _graph_gate_extras() -> None:
 
 def _long_run_extras() -> None:
     """Kernels the full-length warm-up run reaches and the hybrid's short one does not: retrieval over the place
-    index's word columns and the map correction's per-group surfel transform (argument types as their callers
-    pass them; the values are arbitrary)."""
+    index's word columns, the map correction's per-group surfel transform and its block test (argument types as
+    their callers pass them; the values are arbitrary)."""
     from surfelslam.kernels import hamming
     from surfelslam.kernels import surfels as ks
 
@@ -108,6 +108,7 @@ def _long_run_extras() -> None:
     rows = np.arange(2, dtype=np.int64)
     ks.transform_rows(xyz, xyz.copy(), rows, np.zeros(2, np.int64), np.eye(3, dtype=np.float32)[None].copy(),
                       np.zeros((1, 3), np.float32))
+    ks.rows_off_block(xyz, rows, np.zeros(2, np.int32), np.zeros((1, 3), np.int32), np.float32(4.0))
 
 
 def _dense_tracker(tracker) -> None:
