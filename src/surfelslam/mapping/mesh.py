@@ -222,13 +222,18 @@ class TsdfVolume:
         return n_vis
 
     # -------------------------------------------------------------------------------------------- extraction
-    def extract_mesh(self, min_weight: float | None = None, min_component: int | None = None) -> Mesh:
+    def extract_mesh(self, min_weight: float | None = None, min_component: int | None = None,
+                     release: bool = False) -> Mesh:
         """Marching cubes over the cubes whose 8 corners were observed in at least ``min_weight`` frames, then the
         clean-up of :func:`~surfelslam.mapping.mesh_topology.clean_faces` (pieces under ``min_component``
-        triangles removed). ``None``: the volume's settings."""
+        triangles removed). ``None``: the volume's settings. ``release``: the volume's storage (up to
+        ``max_memory_mb``) is freed before the clean-up, leaving it empty: the peak of meshing a large volume."""
         min_weight = self.min_weight if min_weight is None else float(min_weight)
         min_component = self.min_component if min_component is None else int(min_component)
         raw = self.marching_cubes(min_weight)
+        if release:
+            self.n_blocks = 0
+            self._alloc(1)
         return compact(raw, clean_faces(raw.vertices, raw.faces, min_component))
 
     def marching_cubes(self, min_weight: float = 1.0) -> Mesh:

@@ -43,8 +43,7 @@ class MeshResult:
 
 def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: ProgressWrap | None,
                run_depth_range: bool) -> tuple[Mesh, MeshResult]:
-    from surfelslam.mapping.mesh import TsdfVolume, compact
-    from surfelslam.mapping.mesh_topology import clean_faces
+    from surfelslam.mapping.mesh import TsdfVolume
     from surfelslam.slam.mapper import frame_colour_at_depth
 
     run = open_run(run_dir)
@@ -70,12 +69,9 @@ def _tsdf_mesh(run_dir: Path, cfg: MeshConfig, sequence: Path | None, progress: 
             continue
         rgb = frame_colour_at_depth(frame, seq.intrinsics, colour_cam, run_cfg.colour_registration)
         vol.integrate(frame.depth_m, rgb, seq.intrinsics, T[i])
-    raw = vol.marching_cubes(cfg.min_weight)
-    frames, tsdf_mb = vol.frames, vol.memory_mb(vol.n_blocks)
-    del vol  # the TSDF (up to max_memory_mb) is not needed by the clean-up: the same as vol.extract_mesh, less memory
-    mesh = compact(raw, clean_faces(raw.vertices, raw.faces, cfg.min_component))
-    del raw
-    result = MeshResult(Path(), "tsdf", mesh.n_vertices, mesh.n_faces, frames, skipped, tsdf_mb,
+    tsdf_mb = vol.memory_mb(vol.n_blocks)
+    mesh = vol.extract_mesh(cfg.min_weight, release=True)
+    result = MeshResult(Path(), "tsdf", mesh.n_vertices, mesh.n_faces, vol.frames, skipped, tsdf_mb,
                         time.perf_counter() - t0)
     if skipped:
         result.notes.append(f"{skipped} unreadable frames left out")
