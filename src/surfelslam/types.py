@@ -193,27 +193,63 @@ class Trajectory:
         return Trajectory(self.timestamps[mask_or_index], self.T_world_cam[mask_or_index])
 
 
-class PoseArray:
-    """A growing stack of poses ``(K, 4, 4)`` float64: preallocated, grown by doubling (appending never copies the
-    whole stack per call, only when the capacity doubles)."""
+class GrowingRows:
+    """Rows of one shape and dtype appended one at a time ``(N, *row_shape)``: preallocated and grown by doubling, so
+    an append copies the whole array only when the capacity doubles (never per call). Rows not yet appended hold
+    ``fill``, so a kernel may be given the whole buffer (:attr:`buffer`) where unused rows must read as empty."""
 
-    def __init__(self, capacity: int = 16) -> None:
-        self._buf = np.zeros((max(int(capacity), 1), 4, 4))
+    def __init__(self, row_shape: tuple[int, ...] = (), dtype=np.float64, fill=0, capacity: int = 16) -> None:
+        self._fill = fill
+        self._buf = np.full((max(int(capacity), 1), *row_shape), fill, dtype)
         self._n = 0
 
     def __len__(self) -> int:
         return self._n
 
     @property
+    def rows(self) -> np.ndarray:
+        """``(N, *row_shape)`` view of the appended rows (writes go to the array)."""
+        return self._buf[: self._n]
+
+    @property
+    def buffer(self) -> np.ndarray:
+        """``(capacity, *row_shape)`` view of the whole buffer, unused rows at ``fill`` (valid until the next
+        append)."""
+        return self._buf
+
+    @property
+    def capacity(self) -> int:
+        return len(self._buf)
+
+    def append(self, row) -> int:
+        """Append one row (copied); returns its index."""
+        if self._n == len(self._buf):
+            buf = np.full((2 * len(self._buf), *self._buf.shape[1:]), self._fill, self._buf.dtype)
+            buf[: self._n] = self._buf[: self._n]
+            self._buf = buf
+        self._buf[self._n] = row
+        self._n += 1
+        return self._n - 1
+
+
+class PoseArray:
+    """A growing stack of poses ``(K, 4, 4)`` float64 (:class:`GrowingRows` of 4x4 rows)."""
+
+    def __init__(self, capacity: int = 16) -> None:
+        self._rows = GrowingRows((4, 4), np.float64, 0.0, capacity)
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    @property
     def poses(self) -> np.ndarray:
         """``(K, 4, 4)`` view of the stored poses (writes go to the stack)."""
-        return self._buf[: self._n]
+        return self._rows.rows
+
+    @property
+    def capacity(self) -> int:
+        return self._rows.capacity
 
     def append(self, T: np.ndarray) -> None:
         """Append one ``(4, 4)`` pose (copied)."""
-        if self._n == len(self._buf):
-            buf = np.zeros((2 * len(self._buf), 4, 4))
-            buf[: self._n] = self._buf[: self._n]
-            self._buf = buf
-        self._buf[self._n] = T
-        self._n += 1
+        self._rows.append(T)

@@ -116,7 +116,7 @@ def test_the_gate_follows_the_chi_square_law_of_the_drift_model():
     ref.add(gt[0], None, None)
     for k, T in enumerate(steps):
         ref.add(ref.poses[k] @ T, k, T)
-    sd = np.sqrt(np.stack(ref._step_var[1:]))
+    sd = np.sqrt(np.stack([np.diag(ref.step_covariance(k)) for k in range(1, len(ref))]))
     rng = np.random.default_rng(0)
     i, j = 1, len(gt) - 2
     d2 = []

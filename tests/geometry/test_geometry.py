@@ -135,6 +135,24 @@ def test_appender_refuses_a_non_rigid_pose_and_keeps_earlier_lines(tmp_path):
     assert len(back) == 1 and np.allclose(back.T_world_cam[0], good, atol=1e-8)
 
 
+def test_growing_rows_keep_their_rows_dtype_and_fill():
+    from surfelslam.types import GrowingRows
+
+    rows = GrowingRows((2,), np.int64, fill=-1, capacity=2)
+    assert rows.rows.shape == (0, 2) and rows.rows.dtype == np.int64
+    for k in range(5):
+        assert rows.append((k, 10 * k)) == k
+    np.testing.assert_array_equal(rows.rows, [[k, 10 * k] for k in range(5)])
+    assert rows.capacity == 8 and len(rows) == 5  # 2 -> 4 -> 8
+    np.testing.assert_array_equal(rows.buffer[5:], -1)  # rows not appended yet read as the fill, after growing too
+    rows.rows[1, 0] = 7  # a view
+    assert rows.rows[1, 0] == 7
+    scalars = GrowingRows((), np.float64, np.inf, capacity=1)
+    scalars.append(2.5)
+    scalars.append(3.5)
+    assert scalars.rows.tolist() == [2.5, 3.5] and scalars.capacity == 2
+
+
 def test_pose_array_grows_by_doubling_and_keeps_its_poses():
     from surfelslam.types import PoseArray
 
@@ -146,6 +164,6 @@ def test_pose_array_grows_by_doubling_and_keeps_its_poses():
         arr.append(T)
         assert len(arr) == i + 1
     np.testing.assert_array_equal(arr.poses, np.stack(poses))
-    assert len(arr._buf) == 64  # 4 -> 8 -> 16 -> 32 -> 64: doubled, never grown per append
+    assert arr.capacity == 64  # 4 -> 8 -> 16 -> 32 -> 64: doubled, never grown per append
     arr.poses[3] = np.eye(4)  # a view: writes land in the stack
     np.testing.assert_array_equal(arr.poses[3], np.eye(4))

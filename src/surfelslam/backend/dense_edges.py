@@ -10,12 +10,13 @@ more than a gate away from the PnP pose).
 The trust gate (``max_trusted_residual_rad``): keyframe-to-keyframe ICP inherits the low-frequency distortion of
 raw depth, which frame-to-model tracking averages out, and trusted biased edges make the trajectory worse than the
 dense odometry alone. So the refined edges get a pose graph of their own (with the odometry), and at every
-optimisation the robust spread of their rotation residuals at its optimum (:meth:`DenseEdgeRefiner.residual_spread`)
-says whether they are consistent with one another: unbiased edges are, biased ones spread more. The translation
-residuals are tested too (``max_trusted_residual_m``): edges biased along an axis their ICP barely constrains (a
-corridor's) agree in rotation but not along that axis. Above the gate the poses come from the graph of the PnP
-edges (those the ICP rejected included), as without refinement. Known limit: on orbits mildly distorted depth can
-stay under the gate (docs/trackers.md). Measurements: ``benchmarks/bench_hybrid.py``.
+optimisation the robust spread of their rotation residuals at its optimum
+(:meth:`DenseEdgeRefiner.loop_residual_spread`) says whether they are consistent with one another: unbiased edges
+are, biased ones spread more. The translation residuals are tested too (``max_trusted_residual_m``): edges biased
+along an axis their ICP barely constrains (a corridor's) agree in rotation but not along that axis. Above the gate
+the poses come from the graph of the PnP edges (those the ICP rejected included), as without refinement. Known
+limit: on orbits mildly distorted depth can stay under the gate (docs/trackers.md). Measurements:
+``benchmarks/bench_hybrid.py``.
 
 Keyframe depth is kept at a reduced size (``max_width_px``, 2x2 block averages) as 16-bit integers (steps of
 ``max_depth_m / 65535``). The pyramids of the last few keyframes used are cached (the nearby keyframes are checked
@@ -231,21 +232,11 @@ class DenseEdgeRefiner:
             return None
         return float(np.median(np.fromiter(self._spread, float))) / _MAD_TO_SIGMA
 
-    def residual_spread(self, edges: list, poses_world_kf: np.ndarray) -> tuple[float, float] | None:
-        """Robust spreads ``(rad, m)`` of the rotation and translation residuals of the refined edges among
-        ``edges`` (pose-graph edges of kind ``"loop"``) at the poses ``(K, 4, 4)`` their graph was optimised to;
-        ``None`` with fewer than ``min_spread_edges`` of them."""
-        loops = [e for e in edges if e.kind == "loop"]
-        if len(loops) < self.cfg.min_spread_edges:
-            return None
-        return self.loop_residual_spread(np.stack([e.T_i_j for e in loops]),
-                                         np.fromiter((e.i for e in loops), np.intp, len(loops)),
-                                         np.fromiter((e.j for e in loops), np.intp, len(loops)), poses_world_kf)
-
     def loop_residual_spread(self, T_ij: np.ndarray, i: np.ndarray, j: np.ndarray,
                              poses_world_kf: np.ndarray) -> tuple[float, float] | None:
-        """:meth:`residual_spread` of the refined edges given stacked (:meth:`PoseGraph.loop_edges`): ``T_i_j``
-        ``(L, 4, 4)``, ``i`` and ``j`` ``(L,)``; no pass over every edge object on each optimisation."""
+        """Robust spreads ``(rad, m)`` of the rotation and translation residuals of the refined loop edges, stacked
+        as :meth:`PoseGraph.loop_edges` keeps them (``T_i_j`` ``(L, 4, 4)``, ``i`` and ``j`` ``(L,)``), at the poses
+        ``(K, 4, 4)`` their graph was optimised to; ``None`` with fewer than ``min_spread_edges`` of them."""
         if len(T_ij) < self.cfg.min_spread_edges:
             return None
         P = np.asarray(poses_world_kf, np.float64)
@@ -258,7 +249,7 @@ class DenseEdgeRefiner:
         return (float(np.median(np.abs(rot))) / _MAD_TO_SIGMA, float(np.median(np.abs(trans))) / _MAD_TO_SIGMA)
 
     def trusted(self, spread: tuple[float, float] | None) -> bool:
-        """Whether refined edges whose graph leaves the residual ``spread`` ``(rad, m)`` (:meth:`residual_spread`)
+        """Whether refined edges whose graph leaves the residual ``spread`` ``(rad, m)`` (:meth:`loop_residual_spread`)
         are trusted (``None``, too few edges to tell: not trusted)."""
         return (spread is not None and spread[0] <= self.cfg.max_trusted_residual_rad
                 and spread[1] <= self.cfg.max_trusted_residual_m)

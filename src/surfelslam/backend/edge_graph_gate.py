@@ -16,6 +16,7 @@ import numpy as np
 
 from surfelslam.geometry.se3 import adjoint, invert, log
 from surfelslam.kernels.graph_search import NO_NODE, shortest_path
+from surfelslam.types import GrowingRows
 
 # Dijkstra weight (m^2 + rad^2) added to every edge: a still camera's odometry step has zero drift variance (kept from
 # the scipy search, which dropped zero-weight entries of its sparse matrix: the same costs, the same paths)
@@ -31,25 +32,22 @@ class EdgeGraph:
     path search visits only the keyframes nearer (in variance) than its end, whatever the graph's size."""
 
     def __init__(self) -> None:
-        self._n = 0
         self._index: dict[tuple[int, int], int] = {}  # (a, b), a < b -> row of the arrays below
-        self._ends = np.zeros((0, 2), np.int64)  # (a, b) per row (rows beyond len(_index): free)
-        self._w = np.zeros(0)  # Dijkstra weight (covariance trace) per row; inf: removed
+        self._ends = GrowingRows((2,), np.int64)  # (a, b) per row
+        self._w = GrowingRows((), np.float64, np.inf)  # Dijkstra weight (covariance trace) per row; inf: removed
         self._T: list[np.ndarray] = []  # measured T_a_b per row
         self._cov: list[np.ndarray] = []  # its (6, 6) covariance (right perturbation at b)
-        self._head = np.full(_INITIAL_NODES, NO_NODE, np.int64)  # per keyframe: newest half-edge leaving it
-        self._next_half = np.full(0, NO_NODE, np.int64)  # per half-edge (2 row: leaving a,
-        # 2 row + 1: leaving b): the next (older) half-edge leaving the same keyframe
+        self._head = GrowingRows((), np.int64, NO_NODE, _INITIAL_NODES)  # per keyframe: newest half-edge leaving it
+        # per row, its two half-edges (half 2 row: leaving a, 2 row + 1: leaving b): the next (older) half-edge
+        # leaving the same keyframe
+        self._next_half = GrowingRows((2,), np.int64, NO_NODE)
 
     def __len__(self) -> int:
-        return self._n
+        return len(self._head)
 
     def add_node(self) -> int:
         """Add a keyframe; returns its id."""
-        if self._n == len(self._head):
-            self._head = np.concatenate([self._head, np.full(self._n, NO_NODE, np.int64)])
-        self._n += 1
-        return self._n - 1
+        return self._head.append(NO_NODE)
 
     def add_edge(self, i: int, j: int, T_i_j: np.ndarray, cov: np.ndarray) -> None:
         """Add the measured ``T_i_j`` ``(4, 4)`` with its ``(6, 6)`` covariance (kept if the pair has none, or a
@@ -61,36 +59,32 @@ class EdgeGraph:
         w = float(np.trace(cov)) + _MIN_WEIGHT
         row = self._index.get((i, j))
         if row is None:
-            row = self._index[(i, j)] = len(self._T)
-            if row == len(self._w):  # grow the arrays by doubling
-                self._ends = np.concatenate([self._ends, np.zeros((max(row, 1), 2), np.int64)])
-                self._w = np.concatenate([self._w, np.full(max(row, 1), np.inf)])
-                self._next_half = np.concatenate([self._next_half, np.full(2 * max(row, 1), NO_NODE, np.int64)])
-            self._ends[row] = i, j
-            for half, node in ((2 * row, i), (2 * row + 1, j)):  # each end's list gets the half-edge leaving it
-                self._next_half[half] = self._head[node]
-                self._head[node] = half
+            row = self._index[(i, j)] = self._ends.append((i, j))
+            self._w.append(w)
+            self._next_half.append((NO_NODE, NO_NODE))
+            head, next_half = self._head.rows, self._next_half.rows
+            for end, node in enumerate((i, j)):  # each end's list gets the half-edge leaving it
+                next_half[row, end] = head[node]
+                head[node] = 2 * row + end
             self._T.append(T_i_j.copy())
             self._cov.append(cov.copy())
-        elif w < self._w[row]:
+        elif w < self._w.rows[row]:
             self._T[row], self._cov[row] = T_i_j.copy(), cov.copy()
-        else:
-            return
-        self._w[row] = w
+            self._w.rows[row] = w
 
     def remove_edge(self, i: int, j: int) -> None:
         """Drop the edge between ``i`` and ``j`` (if any)."""
         row = self._index.pop((min(i, j), max(i, j)), None)
         if row is not None:
-            self._w[row] = np.inf  # the row stays, unused (its half-edges stay in the lists, never taken)
+            self._w.rows[row] = np.inf  # the row stays, unused (its half-edges stay in the lists, never taken)
 
     def path(self, i: int, j: int, limit: float = np.inf) -> list[int] | None:
         """Keyframes ``[i, ..., j]`` on the path of least total variance (``None``: none cheaper than ``limit``)."""
         if i == j:
             return [i]
-        pred = np.empty(self._n, np.int64)
-        if not np.isfinite(shortest_path(self._head[: self._n], self._next_half, self._ends, self._w, i, j,
-                                         float(limit), pred)):
+        pred = np.empty(len(self._head), np.int64)
+        if not np.isfinite(shortest_path(self._head.rows, self._next_half.rows.reshape(-1), self._ends.rows,
+                                         self._w.rows, i, j, float(limit), pred)):
             return None
         out = [j]
         while out[-1] != i:

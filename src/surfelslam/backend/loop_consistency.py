@@ -17,7 +17,7 @@ from scipy.special import gammaincinv
 
 from surfelslam.config import Config, setting
 from surfelslam.geometry.se3 import adjoint, invert, log, rotation_angle_deg
-from surfelslam.types import PoseArray
+from surfelslam.types import GrowingRows, PoseArray
 
 
 @dataclass(frozen=True)
@@ -59,24 +59,26 @@ class OdometryChain:
         # the chi-square quantile with 6 dof, 2 P^-1(3, q): scipy.stats' chi2.ppf to the last bit, without importing
         # scipy.stats (half a second of every command's start)
         self.threshold = float(2.0 * gammaincinv(3.0, cfg.quantile))
-        self.poses: list[np.ndarray] = []  # T_world_kf from odometry alone
-        self._pose_stack = PoseArray()  # the same, stacked (a path's poses are gathered, not stacked from the list)
+        self._poses = PoseArray()  # T_world_kf from odometry alone
         self._parent: list[int] = []  # -1: a root (the first keyframe, or one placed without odometry)
-        # per keyframe (rows grown by doubling): (6,) drift variance of the step from the parent, (omega, v), and
-        # its sum
-        self._step_var = np.zeros((0, 6))
-        self._step_trace = np.zeros(0)
+        # per keyframe: (6,) drift variance of the step from the parent, (omega, v), and its sum
+        self._step_var = GrowingRows((6,))
+        self._step_trace = GrowingRows()
         self._unknown: set[int] = set()  # keyframes whose step from the parent is unknown (a new segment)
 
     def __len__(self) -> int:
-        return len(self.poses)
+        return len(self._poses)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(K, 4, 4)`` T_world_kf of every keyframe from odometry alone (a view: valid until the next keyframe)."""
+        return self._poses.poses
 
     def add(self, T_world_kf: np.ndarray, parent: int | None, T_parent_kf: np.ndarray | None) -> None:
         """Append a keyframe reached from ``parent`` by ``T_parent_kf`` (``None``: a root at ``T_world_kf``)."""
         c = self.cfg
         if parent is None or T_parent_kf is None:
-            self.poses.append(np.asarray(T_world_kf, np.float64).copy())
-            self._pose_stack.append(self.poses[-1])
+            self._poses.append(np.asarray(T_world_kf, np.float64))
             self._parent.append(-1)
             self._append_step(np.zeros(6))
             return
@@ -85,19 +87,14 @@ class OdometryChain:
         angle_rad = float(np.radians(rotation_angle_deg(T[:3, :3])))
         var_rot = c.drift_rad_per_sqrt_m ** 2 * dist_m + c.drift_rad_per_sqrt_rad ** 2 * angle_rad
         var_t = c.drift_m_per_sqrt_m ** 2 * dist_m
-        self.poses.append(self.poses[parent] @ T)
-        self._pose_stack.append(self.poses[-1])
+        self._poses.append(self.poses[parent] @ T)
         self._parent.append(parent)
         self._append_step(np.array([var_rot] * 3 + [var_t] * 3))
 
     def _append_step(self, var: np.ndarray) -> None:
         """Record the ``(6,)`` drift variance of the newest keyframe's step (and its sum)."""
-        k = len(self._parent) - 1
-        if k == len(self._step_trace):
-            self._step_var = np.concatenate([self._step_var, np.zeros((max(k, 1), 6))])
-            self._step_trace = np.concatenate([self._step_trace, np.zeros(max(k, 1))])
-        self._step_var[k] = var
-        self._step_trace[k] = np.sum(var)
+        self._step_var.append(var)
+        self._step_trace.append(np.sum(var))
 
     def parent(self, kf: int) -> int:
         """The keyframe that ``kf`` hangs from (-1: a root)."""
@@ -105,14 +102,14 @@ class OdometryChain:
 
     def step_covariance(self, kf: int) -> np.ndarray:
         """``(6, 6)`` drift covariance of the odometry step into ``kf`` (right perturbation, ``(omega, v)``)."""
-        return np.diag(self._step_var[kf])
+        return np.diag(self._step_var.rows[kf])
 
     def path_variance(self, path: list[int]) -> float:
         """Total drift variance (sum of the covariance traces) of the odometry steps into the keyframes of ``path``
         (see :meth:`path`)."""
         # summed in path order, one addition at a time (np.cumsum, not np.sum's pairwise sum): the limit the graph gate
         # searches under stays what it was when each step's variance was summed in a Python loop
-        return float(np.cumsum(self._step_trace[np.asarray(path, np.intp)])[-1]) if path else 0.0
+        return float(np.cumsum(self._step_trace.rows[np.asarray(path, np.intp)])[-1]) if path else 0.0
 
     def edge_covariance(self, information: np.ndarray | None) -> np.ndarray:
         """``(6, 6)`` covariance of an edge with ``information`` (``None``: the sigma floors alone)."""
@@ -152,9 +149,9 @@ class OdometryChain:
         if not path:
             return np.zeros((6, 6))
         rows = np.asarray(path, np.intp)
-        T_j_c = invert(self.poses[j])[None] @ self._pose_stack.poses[rows]
+        T_j_c = invert(self.poses[j])[None] @ self.poses[rows]
         A = adjoint(T_j_c)
-        var = self._step_var[rows]
+        var = self._step_var.rows[rows]
         return np.einsum("nab,nb,ncb->ac", A, var, A)
 
     def mahalanobis2(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray | None) -> float | None:

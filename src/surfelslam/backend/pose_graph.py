@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 
 from surfelslam.config import Config, setting
-from surfelslam.types import PoseArray
+from surfelslam.types import GrowingRows, PoseArray
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
 EDGE_INFORMATION_MODES = ("isotropic", "estimated")
@@ -154,9 +154,9 @@ class PoseGraph:
         self._values = gtsam.Values()
         self._n = 0
         self.edges: list[PoseEdge] = []
-        # the loop edges among them, stacked as they come: T_i_j, and (i, j) in rows grown by doubling
+        # the loop edges among them, stacked as they come: T_i_j, and (i, j)
         self._loop_T = PoseArray()
-        self._loop_ij = np.zeros((0, 2), np.intp)
+        self._loop_ij = GrowingRows((2,), np.intp)
         # isam2: the smoother, and what it has not been given yet (None: rebuild it from the whole graph)
         self._isam: gtsam.ISAM2 | None = None
         self._new_factors = gtsam.NonlinearFactorGraph()
@@ -185,17 +185,14 @@ class PoseGraph:
         self._add_factor(gtsam.BetweenFactorPose3(edge.i, edge.j, _pose3(edge.T_i_j), _noise(edge, self.cfg)))
         self.edges.append(edge)
         if edge.kind == "loop":
-            n = len(self._loop_T)
-            if n == len(self._loop_ij):
-                self._loop_ij = np.concatenate([self._loop_ij, np.zeros((max(n, 1), 2), np.intp)])
             self._loop_T.append(edge.T_i_j)
-            self._loop_ij[n] = edge.i, edge.j
+            self._loop_ij.append((edge.i, edge.j))
 
     def loop_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The loop edges so far, in the order they came: ``T_i_j`` ``(L, 4, 4)`` float64, ``i`` and ``j`` ``(L,)``
         (views: valid until the next edge)."""
-        n = len(self._loop_T)
-        return self._loop_T.poses, self._loop_ij[:n, 0], self._loop_ij[:n, 1]
+        ij = self._loop_ij.rows
+        return self._loop_T.poses, ij[:, 0], ij[:, 1]
 
     def _add_factor(self, factor) -> None:
         self._graph.add(factor)

@@ -212,7 +212,10 @@ class KeyframeGraph:
         d2 = self._chain.mahalanobis2(i, j, invert(res.T_cur_ref), res.information)
         if d2 is not None:
             self.gate_d2.append((i, j, d2))
-        if self._chain.consistent(d2) and not (far and c.graph_gate and not self._graph_consistent(i, j, res)):
+        passed = self._chain.consistent(d2)
+        if passed and far and c.graph_gate:  # a far edge must also agree with the accepted edges' graph
+            passed = self._graph_consistent(i, j, res)
+        if passed:
             return True
         if far:
             self.n_loops_rejected_inconsistent += 1
