@@ -382,12 +382,12 @@ def test_scale_section_spliced_into_the_last_results(tmp_path) -> None:
     assert res["errors"] == [], res["errors"]
     s = res["scale"]
     assert (s["frames"], s["resolution"], s["open3d"]) == (45, "80x60", None) and s["path_m"] > 1.0
-    assert [r["tracker"] for r in s["rows"]] == ["hybrid", "dense"]
+    assert [r["tracker"] for r in s["rows"]] == ["hybrid", "dense", "hybrid, odometry only"]
     for r in s["rows"]:
         assert r["frames"] == 45 and r["fps"] > 0 and r["wall_s"] > r["startup_s"] > 0 and r["peak_mb"] > 50
         assert r["worst_1m_drift_cm"] >= 0 and r["surfels"] > 0 and r["map_points_measured"] > 0
-        assert 0 <= r["map_accuracy_median_mm"] <= r["map_accuracy_p90_mm"] and r["window"] == 15
-        assert r["map_ply_mb"] > 0 and r["last_over_first"] > 0
+        assert 0 <= r["map_accuracy_median_mm"] <= r["map_accuracy_p90_mm"] and r["map_ply_mb"] > 0
+    assert all(r["window"] == 15 and r["last_over_first"] > 0 for r in s["rows"][:2])
     assert s["rows"][0]["loops_found"] >= s["rows"][0]["loops_accepted"] >= 0
     mesh = s["outputs"][0]
     assert mesh["what"].startswith("surfelslam mesh") and mesh["returncode"] == 0 and mesh["size_mb"] > 0

@@ -130,3 +130,18 @@ def test_scale_markdown_has_one_cell_per_header() -> None:
         lines = [ln for ln in block.splitlines() if ln.startswith("|")]
         if lines:
             assert len({ln.count("|") for ln in lines}) == 1, block
+
+
+def test_the_verdict_weighs_the_default_against_its_own_odometry() -> None:
+    """Issue 68's ATE condition: at most half the default's odometry-only ATE (the row run without corrections)."""
+    def verdict(ate_cm: float, odometry_cm: float | None) -> str:
+        rows = [{"tracker": "hybrid", "fps": 31.0, "ate_cm": ate_cm, "lost_segments": 0},
+                {"tracker": "dense", "fps": 35.0}]
+        if odometry_cm is not None:
+            rows.append({"tracker": bench_scale.ODOMETRY_ONLY_LABEL, "ate_cm": odometry_cm})
+        return "".join(bench_scale._verdict({"rows": rows, "frames": 5000, "flat_max_ratio": 1.3}))
+
+    assert "ATE <= 0.5x its odometry-only ATE (0.40) yes" in verdict(1.2, 3.0)
+    assert "ATE <= 0.5x its odometry-only ATE (0.60) **NO**" in verdict(1.8, 3.0)
+    assert "odometry-only" not in verdict(1.8, None)  # no such row (an older page): no check
+    assert ">= 0.75x dense's FPS (0.89) yes" in verdict(1.2, 3.0)
