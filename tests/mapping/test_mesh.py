@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from surfelslam.errors import InputError
+from surfelslam.errors import ConfigError, InputError
 from surfelslam.eval.mesh_quality import distance_to_mesh, sample_surface
 from surfelslam.io.ply import read_mesh_ply, write_mesh_ply
 from surfelslam.kernels import tsdf as kt
@@ -171,6 +171,34 @@ def test_volume_grows_and_refuses_past_its_memory_limit():
     with pytest.raises(Exception, match="max_memory_mb") as err:
         limited.integrate(_raycast(T), rgb, INTR, T)
     assert "--voxel" in str(err.value)
+
+
+def test_released_extraction_gives_the_same_mesh_and_leaves_the_volume_whole():
+    """``extract_mesh(release=True)`` (surfelslam mesh: the fusion arrays freed before marching cubes, the rest
+    after) gives the mesh to the last bit, and leaves an empty volume that fuses again, also when it fails."""
+    T = _views()[0]
+    rgb = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
+
+    def fused() -> TsdfVolume:
+        vol = TsdfVolume(VOXEL, 4 * VOXEL, max_depth_m=3.0)
+        vol.integrate(_raycast(T), rgb, INTR, T)
+        return vol
+
+    kept, vol = fused().extract_mesh(), fused()
+    released = vol.extract_mesh(release=True)
+    for a, b in zip((kept.vertices, kept.normals, kept.colours, kept.faces),
+                    (released.vertices, released.normals, released.colours, released.faces), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert kept.n_faces > 1000 and vol.n_blocks == 0 and vol.extract_mesh().n_faces == 0
+    vol.integrate(_raycast(T), rgb, INTR, T)
+    np.testing.assert_array_equal(vol.extract_mesh().faces, kept.faces)
+    vol.max_memory_mb = 1e-3  # the extraction's own arrays are refused
+    with pytest.raises(ConfigError, match="extracting the mesh needs"):
+        vol.extract_mesh(release=True)
+    assert vol.n_blocks == 0
+    vol.max_memory_mb = 4096.0
+    vol.integrate(_raycast(T), rgb, INTR, T)
+    np.testing.assert_array_equal(vol.extract_mesh().faces, kept.faces)
 
 
 def test_mesh_config_bounds():

@@ -23,8 +23,9 @@ table's topology with ambiguous faces split so that inside corners are separated
 lies in a cube face, so the surface is edge-manifold and consistently oriented), over every cube whose 8 corners
 were observed (``count >= min_weight``: the extraction kernels take the count array as their ``weight``) and whose
 values do not jump across 0 by more than :data:`MAX_CROSSING_JUMP` (the edge of a truncation band). Vertices
-are shared: the vertex on the edge from voxel ``v`` along axis ``a`` is owned by ``v`` (``vid[b, k, a]``), so the
-mesh is welded. Normals: the TSDF gradient (central differences) interpolated along the edge; colours interpolated
+are shared: the vertex on the edge from voxel ``v`` along axis ``a`` is owned by ``v`` (key ``3 v + a`` within its
+block; a block's vertices are written in key order, so a triangle finds it by a binary search), so the mesh is
+welded. Normals: the TSDF gradient (central differences) interpolated along the edge; colours interpolated
 likewise. Two passes each (count, prefix sum, fill) so that the parallel kernels write disjoint slices and the
 output order is fixed.
 
@@ -456,7 +457,7 @@ def count_vertices(nbr, tsdf, weight, min_weight, counts):
 
 
 @njit(cache=True, nogil=True)
-def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts,
+def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vkey, verts,
                          normals, rgb, b):
     """Item ``b`` of :func:`fill_vertices`'s parallel loop, a function of its own: numba's parallel pass then
     handles a loop of one call (see ``icp._normal_equations_chunk``)."""
@@ -465,8 +466,6 @@ def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_w
     oy = coords[b, 1] * BLOCK
     oz = coords[b, 2] * BLOCK
     for k in range(BLOCK_VOXELS):
-        for a in range(3):
-            vid[b, k, a] = -1
         if weight[b, k] < min_weight:
             continue
         i, j, l = k & 7, (k >> 3) & 7, k >> 6
@@ -505,20 +504,34 @@ def _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_w
                 w1 *= s
             for c in range(3):
                 rgb[n, c] = np.uint8(min(w0 * colour[b, k, c] + w1 * colour[nb, nk, c] + 0.5, 255.0))
-            vid[b, k, a] = n - start[b]
+            vkey[n] = 3 * k + a
             n += 1
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts, normals,
-                  rgb):
+def fill_vertices(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vkey, verts,
+                  normals, rgb):
     """Write the vertices counted by :func:`count_vertices` from ``start[b]`` on: position (linear interpolation of
     the zero crossing), normal (interpolated TSDF gradient, unit length, towards the free side), colour
-    (interpolated between the ends that have one); and their indices within the block into ``vid[b, k, axis]``
-    (int16: a block owns at most 3 x 512 vertices; -1 elsewhere)."""
+    (interpolated between the ends that have one); and each one's key within its block into ``vkey`` ``(V,)`` int16
+    (``3 voxel + axis`` < 3 x 512; increasing within a block). No per-voxel table: 2 bytes per vertex instead of 3 x
+    2 bytes per voxel of every block."""
     for b in prange(coords.shape[0]):
-        _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vid, verts,
-                             normals, rgb, np.int64(b))
+        _fill_vertices_block(nbr, coords, tsdf, weight, colour, colour_weight, min_weight, voxel_m, start, vkey,
+                             verts, normals, rgb, np.int64(b))
+
+
+@njit(cache=True, nogil=True)
+def _vertex_index(vkey, lo, hi, key):
+    """Index of ``key`` among ``vkey[lo:hi]`` (increasing; the key is there: a cube's crossing edge has its
+    vertex)."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if vkey[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @njit(cache=True, nogil=True)
@@ -565,7 +578,7 @@ def count_triangles(nbr, tsdf, weight, min_weight, tri_count, counts):
 
 
 @njit(cache=True, nogil=True)
-def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid,
+def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vkey,
                           vstart, start, faces, b):
     """Item ``b`` of :func:`fill_triangles`'s parallel loop, a function of its own: numba's parallel pass then
     handles a loop of one call (see ``icp._normal_equations_chunk``)."""
@@ -582,15 +595,15 @@ def _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, e
                 e = tri_table[case, 3 * t + m]
                 c = edge_corner[e]
                 nb, nk = _voxel(nbr, b, i + (c & 1), j + ((c >> 1) & 1), l + (c >> 2))
-                faces[n, m] = vstart[nb] + vid[nb, nk, edge_axis[e]]
+                faces[n, m] = _vertex_index(vkey, vstart[nb], vstart[nb + 1], 3 * nk + edge_axis[e])
             n += 1
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_triangles(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid, vstart, start,
+def fill_triangles(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vkey, vstart, start,
                    faces):
-    """Write the triangles counted by :func:`count_triangles` from ``start[b]`` on; vertex indices ``vstart[b]``
-    (block ``b``'s first vertex, as :func:`fill_vertices` was given) + ``vid`` (the index within the block)."""
+    """Write the triangles counted by :func:`count_triangles` from ``start[b]`` on, their vertices found by key in
+    :func:`fill_vertices`'s ``vkey``: block ``b``'s vertices are ``vstart[b]`` to ``vstart[b + 1]`` (``(B + 1,)``)."""
     for b in prange(start.shape[0]):
-        _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vid,
+        _fill_triangles_block(nbr, tsdf, weight, min_weight, tri_table, tri_count, edge_corner, edge_axis, vkey,
                               vstart, start, faces, np.int64(b))

@@ -28,10 +28,12 @@ from surfelslam.mapping.mesh_topology import clean_faces
 from surfelslam.types import Intrinsics
 
 METHODS = ("tsdf", "poisson")
-#: bytes per voxel: tsdf float32, weight float32, frame count uint16, colour 3 x uint16, colour weight uint16 (+ the
-#: extraction's vertex index table, 3 x int16 (indices within the block), while a mesh is extracted)
+#: bytes per voxel: tsdf float32, weight float32, frame count uint16, colour 3 x uint16, colour weight uint16
 BYTES_PER_VOXEL = 4 + 4 + 2 + 6 + 2
-EXTRACT_BYTES_PER_VOXEL = 6
+#: the extraction's bytes per vertex (position and normal 3 x float32, colour 3 x uint8, key in its block int16) and
+#: per triangle (3 x int32), held beside the TSDF while a mesh is extracted
+EXTRACT_BYTES_PER_VERTEX = 12 + 12 + 3 + 2
+EXTRACT_BYTES_PER_FACE = 12
 #: blocks allocated up front (the arrays double when full)
 INITIAL_BLOCKS = 4096
 #: the far end (m) of a Kinect-class sensor's valid range: `surfelslam mesh` fuses every depth up to it (the noise
@@ -121,6 +123,9 @@ class Mesh:
 class TsdfVolume:
     """A sparse TSDF of ``voxel_m`` voxels (module docstring). Poses are ``T_world_cam`` (camera to world)."""
 
+    #: the per-block arrays (those :meth:`_grow` copies)
+    _PER_BLOCK = ("coords", "tsdf", "weight", "count", "colour", "colour_weight", "stamps")
+
     def __init__(self, voxel_m: float, trunc_m: float, min_depth_m: float = 0.1,
                  max_depth_m: float = SENSOR_MAX_DEPTH_M, max_weight: float = 1e4, max_memory_mb: float = 4096.0,
                  initial_blocks: int = INITIAL_BLOCKS, min_weight: float = 1.0,
@@ -171,13 +176,9 @@ class TsdfVolume:
         self.colour_weight = np.zeros((capacity, kt.BLOCK_VOXELS), np.uint16)
         self.stamps = np.zeros(capacity, np.int64)
         self.visible = np.zeros(capacity, np.int64)
-        slots = 1 << int(2 * capacity - 1).bit_length()  # a power of two (the hash masks), at least 2 x capacity
+        slots = _hash_slots(capacity)
         self.keys = np.full(slots, kt.EMPTY, np.int64)
         self.vals = np.zeros(slots, np.int64)
-
-    def _arrays(self) -> tuple[np.ndarray, ...]:
-        """The per-block arrays (those :meth:`_grow` copies)."""
-        return self.coords, self.tsdf, self.weight, self.count, self.colour, self.colour_weight, self.stamps
 
     def _grow(self) -> None:
         n = self.n_blocks
@@ -189,10 +190,18 @@ class TsdfVolume:
                     f"the TSDF needs more than max_memory_mb = {self.max_memory_mb:g} MiB ({n:,} blocks of 8^3 voxels "
                     f"of {self.voxel_m * 100:g} cm after {self.frames} frames): use a coarser --voxel, a smaller "
                     "--max-depth, or raise [mesh] max_memory_mb")
-        old = self._arrays()
-        self._alloc(new_cap)
-        for dst, src in zip(self._arrays(), old, strict=True):
-            dst[:n] = src[:n]
+        # one array at a time, each old one freed once copied: the peak is the volume plus its largest array, not
+        # twice the volume
+        for name in self._PER_BLOCK:
+            old = getattr(self, name)
+            new = np.zeros((new_cap, *old.shape[1:]), old.dtype)
+            new[:n] = old[:n]
+            setattr(self, name, new)
+            del old, new
+        self.visible = np.zeros(new_cap, np.int64)
+        slots = _hash_slots(new_cap)
+        self.keys = np.full(slots, kt.EMPTY, np.int64)
+        self.vals = np.zeros(slots, np.int64)
         kt.rehash(self.coords, n, self.keys, self.vals)
 
     # -------------------------------------------------------------------------------------------- fusion
@@ -230,10 +239,15 @@ class TsdfVolume:
         ``max_memory_mb``) is freed before the clean-up, leaving it empty: the peak of meshing a large volume."""
         min_weight = self.min_weight if min_weight is None else float(min_weight)
         min_component = self.min_component if min_component is None else int(min_component)
-        raw = self.marching_cubes(min_weight)
-        if release:
-            self.n_blocks = 0
-            self._alloc(1)
+        if release:  # fusion's own arrays (the weights, the visibility lists) are not read by the extraction
+            self.weight, self.stamps, self.visible = (np.zeros((0, kt.BLOCK_VOXELS), np.float32), np.zeros(0, np.int64),
+                                                      np.zeros(0, np.int64))
+        try:
+            raw = self.marching_cubes(min_weight)
+        finally:
+            if release:  # empty and whole again, whether the extraction ended or failed
+                self.n_blocks = 0
+                self._alloc(1)
         return compact(raw, clean_faces(raw.vertices, raw.faces, min_component))
 
     def marching_cubes(self, min_weight: float = 1.0) -> Mesh:
@@ -242,28 +256,30 @@ class TsdfVolume:
         n = self.n_blocks
         if n == 0:
             return _empty_mesh()
-        extra_mb = n * kt.BLOCK_VOXELS * EXTRACT_BYTES_PER_VOXEL / 2**20
-        if self.memory_mb(n) + extra_mb > self.max_memory_mb * 1.5:
-            raise ConfigError(f"extracting the mesh needs {extra_mb:,.0f} MiB more than the TSDF's "
-                              f"{self.memory_mb(n):,.0f} MiB: use a coarser --voxel or raise [mesh] max_memory_mb")
         coords = self.coords[:n]
         tsdf, seen, colour, colour_weight = self.tsdf[:n], self.count[:n], self.colour[:n], self.colour_weight[:n]
         nbr = kt.neighbour_table(coords, n, self.keys, self.vals)
         counts = np.zeros(n, np.int64)
         kt.count_vertices(nbr, tsdf, seen, min_weight, counts)
-        vstart = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        n_v = int(counts.sum())
-        vid = np.empty((n, kt.BLOCK_VOXELS, 3), np.int16)
+        vstart = np.zeros(n + 1, np.int64)  # block b's vertices: vstart[b] to vstart[b + 1]
+        np.cumsum(counts, out=vstart[1:])
+        n_v = int(vstart[-1])
+        kt.count_triangles(nbr, tsdf, seen, min_weight, kt.TRI_COUNT, counts)
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        n_f = int(counts.sum())
+        extra_mb = (n_v * EXTRACT_BYTES_PER_VERTEX + n_f * EXTRACT_BYTES_PER_FACE) / 2**20
+        if self.memory_mb(n) + extra_mb > self.max_memory_mb * 1.5:
+            raise ConfigError(f"extracting the mesh needs {extra_mb:,.0f} MiB more than the TSDF's "
+                              f"{self.memory_mb(n):,.0f} MiB: use a coarser --voxel or raise [mesh] max_memory_mb")
+        vkey = np.empty(n_v, np.int16)
         verts = np.empty((n_v, 3), np.float32)
         normals = np.empty((n_v, 3), np.float32)
         rgb = np.empty((n_v, 3), np.uint8)
-        kt.fill_vertices(nbr, coords, tsdf, seen, colour, colour_weight, min_weight, self.voxel_m, vstart, vid, verts,
+        kt.fill_vertices(nbr, coords, tsdf, seen, colour, colour_weight, min_weight, self.voxel_m, vstart, vkey, verts,
                          normals, rgb)
-        kt.count_triangles(nbr, tsdf, seen, min_weight, kt.TRI_COUNT, counts)
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        faces = np.empty((int(counts.sum()), 3), np.int32)
+        faces = np.empty((n_f, 3), np.int32)
         kt.fill_triangles(nbr, tsdf, seen, min_weight, kt.TRI_TABLE, kt.TRI_COUNT, kt.EDGE_CORNER, kt.EDGE_AXIS,
-                          vid, vstart, start, faces)
+                          vkey, vstart, start, faces)
         return Mesh(verts, normals, rgb, faces)
 
     def dense_grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -281,6 +297,11 @@ class TsdfVolume:
             t[sl] = self.tsdf[b].reshape(8, 8, 8).transpose(2, 1, 0)
             w[sl] = self.count[b].reshape(8, 8, 8).transpose(2, 1, 0)
         return t, w, lo * kt.BLOCK
+
+
+def _hash_slots(capacity: int) -> int:
+    """The block hash's size for ``capacity`` blocks: a power of two (the hash masks), at least twice as many."""
+    return 1 << int(2 * capacity - 1).bit_length()
 
 
 def _empty_mesh() -> Mesh:
