@@ -13,7 +13,10 @@ $(PY):
 
 # --no-compile: modules are byte-compiled when first imported, not every file of every dependency up front. That needs
 # Python to keep the bytecode it compiles: an inherited PYTHONDONTWRITEBYTECODE would make every process (each test
-# worker, warm-up and command a test runs) compile every module it imports again, seconds each.
+# worker, warm-up and command a test runs) compile every module it imports again, seconds each. Commands started
+# outside make with it set are covered by `make warmup`: once the kernels are compiled, surfelslam.tools.bytecode
+# writes the bytecode of every module a `surfelslam run` imports where it is missing (about 270 in a venv uv
+# installed: a second of CPU at every command's start otherwise).
 unexport PYTHONDONTWRITEBYTECODE
 COMMA := ,
 PIP_INSTALL := $(PY) -m pip install --quiet --no-compile
@@ -57,7 +60,7 @@ test-all: $(VIZ_STAMP) warmup
 warmup: $(STAMP)
 	@$(PY) -m surfelslam.warmup dense & dense=$$!; $(PY) -m surfelslam.warmup outputs & outputs=$$!; \
 	$(PY) -m surfelslam.warmup sparse shape; sparse=$$?; wait $$dense; d=$$?; wait $$outputs; o=$$?; \
-	exit $$(( d || o || sparse ))
+	[ $$(( d || o || sparse )) = 0 ] && $(PY) -m surfelslam.tools.bytecode
 
 # The edit loop: unit tests and kernels, no whole-sequence runs (tests marked `slow` are left out).
 test-fast: $(STAMP)

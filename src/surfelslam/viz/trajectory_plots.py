@@ -59,7 +59,7 @@ def plot_trajectory(
     t0 = min(t0_candidates) if t0_candidates else 0.0
 
     fig = new_figure(style.TRAJECTORY_FIGSIZE_IN)
-    grid = fig.add_gridspec(3, 2, width_ratios=(1.1, 1.0))
+    grid = fig.add_gridspec(3, 2, width_ratios=(1.1, 1.0), **style.TRAJECTORY_LAYOUT)
     ax_top = fig.add_subplot(grid[:, 0])
     if gt is not None and len(gt):
         ax_top.plot(gt.positions[:, a], gt.positions[:, b], style.GT_LINESTYLE, color=style.GT_COLOR,
@@ -99,7 +99,6 @@ def plot_trajectory(
         else:
             ax.set_xlabel("time [s]", fontsize=style.LABEL_FONTSIZE)
     fig.suptitle(title, fontsize=style.TITLE_FONTSIZE)
-    fig.tight_layout()
     return save_figure(fig, path)
 
 
@@ -109,6 +108,7 @@ def plot_errors(
     """ATE translation error over time (with its RMSE), and the RPE translation error if given."""
     n_rows = 2 if rpe_result is not None else 1
     fig = new_figure(style.ERRORS_FIGSIZE_IN)
+    fig.subplots_adjust(**style.ERRORS_LAYOUT)
     axes = [fig.add_subplot(n_rows, 1, k + 1) for k in range(n_rows)]
     t0 = ate_result.timestamps[0] if ate_result.n_pairs else 0.0
     ax = axes[0]
@@ -131,5 +131,4 @@ def plot_errors(
         ax.tick_params(labelsize=style.LABEL_FONTSIZE)
     axes[-1].set_xlabel("time [s]", fontsize=style.LABEL_FONTSIZE)
     fig.suptitle(title or f"ATE over time ({ate_result.n_pairs} poses)", fontsize=style.TITLE_FONTSIZE)
-    fig.tight_layout()
     return save_figure(fig, path)
