@@ -11,9 +11,8 @@ before).
 
 from __future__ import annotations
 
+import compileall
 import importlib
-import importlib.util
-import py_compile
 import sys
 from collections.abc import Iterable
 from pathlib import Path
@@ -21,45 +20,19 @@ from pathlib import Path
 #: what a run imports besides its start: the report's modules (evo, matplotlib), imported while it tracks
 RUN_MODULES = ("surfelslam.tools.run", "surfelslam.api", "surfelslam.eval.metrics", "surfelslam.viz.run_report",
                "surfelslam.viz.trajectory_plots", "surfelslam.viz.map_figures")
-_PYC_HEADER_BYTES = 16  # magic number, flags, source mtime, source size (PEP 552)
-_HASH_BASED = 1  # the flags' bit of a hash-checked file
 
 
-def bytecode_is_fresh(source: Path) -> bool:
-    """Whether ``source`` has bytecode the import system takes: this Python's magic number and, for a
-    timestamp-checked file, the source's mtime and size (a hash-checked file is taken as it is)."""
-    try:
-        with open(importlib.util.cache_from_source(str(source)), "rb") as fh:
-            head = fh.read(_PYC_HEADER_BYTES)
-        st = source.stat()
-    except OSError:
-        return False
-    if len(head) < _PYC_HEADER_BYTES or head[:4] != importlib.util.MAGIC_NUMBER:
-        return False
-    if int.from_bytes(head[4:8], "little") & _HASH_BASED:
-        return True
-    mtime, size = int.from_bytes(head[8:12], "little"), int.from_bytes(head[12:16], "little")
-    return mtime == int(st.st_mtime) & 0xFFFFFFFF and size == st.st_size & 0xFFFFFFFF
-
-
-def stale_sources(modules: Iterable) -> list[Path]:
-    """The source files of ``modules`` (module objects) without fresh bytecode (:func:`bytecode_is_fresh`)."""
-    files = {Path(f) for m in modules if isinstance(f := getattr(m, "__file__", None), str) and f.endswith(".py")}
-    return sorted(f for f in files if not bytecode_is_fresh(f))
+def module_sources(modules: Iterable) -> list[Path]:
+    """The ``.py`` source files of ``modules`` (module objects; built-in and extension modules have none)."""
+    files = (getattr(m, "__file__", None) for m in modules)
+    return sorted({Path(f) for f in files if isinstance(f, str) and f.endswith(".py")})
 
 
 def write_bytecode(sources: Iterable[Path]) -> int:
-    """Byte-compile each of ``sources`` where the import system reads it; returns how many were written (a source
-    that cannot be compiled, or whose folder cannot be written, is passed over)."""
-    written = 0
-    for src in sources:
-        try:
-            py_compile.compile(str(src), cfile=importlib.util.cache_from_source(str(src)), doraise=True,
-                               invalidation_mode=py_compile.PycInvalidationMode.TIMESTAMP)
-            written += 1
-        except (OSError, py_compile.PyCompileError):
-            continue
-    return written
+    """Byte-compile each of ``sources`` where the import system reads it, unless its bytecode is fresh (the standard
+    library's :func:`compileall.compile_file`: timestamp-checked, as an import writes it); returns how many could not
+    be compiled or written (passed over: compiled when imported, as before)."""
+    return sum(not compileall.compile_file(str(src), quiet=2) for src in sources)
 
 
 def _parse_run_command() -> None:
@@ -86,14 +59,13 @@ def _load_kernels() -> None:
 def write_run_bytecode() -> int:
     """The bytecode of every module of the package and of every other module a ``surfelslam run`` imports (its
     command line's parsing, the library, the kernels' loading, the report's modules) where it is missing or stale;
-    returns how many files were written."""
+    returns how many could not be written."""
     for name in RUN_MODULES:
         importlib.import_module(name)
     _parse_run_command()
     _load_kernels()
-    package = sorted(Path(__file__).resolve().parents[1].rglob("*.py"))
-    return write_bytecode([*(f for f in package if not bytecode_is_fresh(f)),
-                           *stale_sources(list(sys.modules.values()))])
+    package = Path(__file__).resolve().parents[1].rglob("*.py")
+    return write_bytecode(sorted({*package, *module_sources(list(sys.modules.values()))}))
 
 
 if __name__ == "__main__":
