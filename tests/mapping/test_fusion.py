@@ -314,3 +314,35 @@ def test_bad_input_and_config():
         FusionConfig(weight_mode="linear")
     with pytest.raises(ConfigError, match="angle_diff_deg"):
         FusionConfig(angle_diff_deg=0)
+
+
+def test_a_planted_duplicate_layer_is_merged_into_one():
+    """Issue 68: a revisit must not leave a second layer. The +z wall of the room is planted twice, the true copy
+    and one 1 cm nearer the camera (within the duplicate gate), both with the confidence of several sightings and
+    their own ids; the nearer copy wins the rendered depth. Fusing a few noisy frames of the wall keeps one surfel
+    per pixel and the rendered depth goes back onto the wall."""
+    T = pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])  # looks at the +z wall (z = 3 m) head on
+    V, N, C, depth = room_frame(T)
+    m = SurfelMap()
+    cfg = FusionConfig(weight_mode="constant", compact_dead_fraction=0.0)
+    fuse(m, V, N, C, T, CAM_NEG, 0, cfg)
+    wall = np.abs(m.position[:, 2] - ROOM_HI[2]) < 1e-4
+    n_wall = int(wall.sum())
+    assert n_wall == int((np.abs(depth - ROOM_HI[2]) < 1e-4).sum()) > 1000  # one surfel per wall pixel
+    m.confidence[:] = 10.0  # both layers: several sightings' worth
+    m.append(m.position[wall] - [0.0, 0.0, 0.01], m.normal[wall], m.colour[wall], 10.0, m.radius[wall], 0)
+    on_wall_px = np.abs(depth - ROOM_HI[2]) < 1e-4
+    on_wall_px[:3] = on_wall_px[-3:] = False  # splats cross the border rows/columns
+    on_wall_px[:, :3] = on_wall_px[:, -3:] = False
+    before = render(m, T, CAM_NEG).depth_m[on_wall_px]
+    np.testing.assert_allclose(np.median(before), ROOM_HI[2] - 0.01, atol=1e-3)  # the planted layer is in front
+    for f in range(1, 4):
+        Vn, Nn, Cn, _ = room_frame(T, noise_m=0.001, seed=f)  # well inside the 5 mm between the layers
+        fuse(m, Vn, Nn, Cn, T, CAM_NEG, f, cfg)
+    alive = m.alive_mask()
+    near_wall = alive & (np.abs(m.position[:, 2] - ROOM_HI[2]) < 0.02)
+    assert int(near_wall.sum()) == n_wall  # one layer: as many surfels as wall pixels
+    assert np.abs(m.position[near_wall, 2] - ROOM_HI[2]).max() < 0.005  # ... on the true wall
+    after = render(m, T, CAM_NEG).depth_m[on_wall_px]
+    np.testing.assert_allclose(np.median(after), ROOM_HI[2], atol=1e-3)
+    assert np.abs(after - ROOM_HI[2]).max() < 0.005
