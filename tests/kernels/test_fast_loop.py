@@ -25,10 +25,11 @@ def test_flag_duplicates_matches_reference():
     rng = np.random.default_rng(3)
     H, W, n = 6, 7, 200
     bstart, border = _buckets(rng, H, W, n)
-    pos = rng.normal(0, 0.01, (n, 3)).astype(np.float32)
+    pos = (rng.normal(0, 0.01, (n, 3)) * [1, 1, 2.5]).astype(np.float32)  # layers a few cm apart along z
     nrm = rng.normal(0, 1, (n, 3)) + [0, 0, -4]
     nrm = (nrm / np.linalg.norm(nrm, axis=1, keepdims=True)).astype(np.float32)
     conf = rng.uniform(0, 10, n).astype(np.float32)
+    rad = rng.uniform(0.002, 0.01, n).astype(np.float32)
     assoc = np.full((H, W), kf.ASSOC_NEW, np.int32)
     for p in range(H * W):  # the most confident surfel of each bucket is the chosen one, in most pixels
         rows = border[bstart[p] : bstart[p + 1]]
@@ -36,10 +37,13 @@ def test_flag_duplicates_matches_reference():
             assoc.flat[p] = rows[np.argmax(conf[rows])]
     dead = np.zeros(n, np.uint8)
     dead[::11] = 1
-    want = kf.flag_duplicates_ref(assoc, bstart, border, pos, nrm, conf, 0.02, np.cos(np.radians(30)), dead)
+    want = kf.flag_duplicates_ref(assoc, bstart, border, pos, nrm, rad, conf, 0.02, np.cos(np.radians(30)), 0.05, dead)
     got_dead = dead.copy()
-    k = kf.flag_duplicates(assoc, bstart, border, pos, nrm, conf, 0.02, np.cos(np.radians(30)), got_dead)
+    k = kf.flag_duplicates(assoc, bstart, border, pos, nrm, rad, conf, 0.02, np.cos(np.radians(30)), 0.05, got_dead)
     assert k == len(want) > 3
+    cos30 = np.cos(np.radians(30))
+    near_only = kf.flag_duplicates_ref(assoc, bstart, border, pos, nrm, rad, conf, 0.02, cos30, 0.0, dead)
+    assert set(near_only) < set(want)  # the layers in front of the chosen surfel count too
     np.testing.assert_array_equal(np.flatnonzero(got_dead != dead), want)
     assert not np.any(got_dead[assoc[assoc >= 0]] != dead[assoc[assoc >= 0]])  # chosen surfels are kept
 

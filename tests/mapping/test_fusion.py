@@ -314,3 +314,60 @@ def test_bad_input_and_config():
         FusionConfig(weight_mode="linear")
     with pytest.raises(ConfigError, match="angle_diff_deg"):
         FusionConfig(angle_diff_deg=0)
+
+
+@pytest.mark.parametrize("offset_m", [0.01, 0.025, 0.04])
+def test_a_planted_duplicate_layer_is_merged_into_one(offset_m):
+    """Issue 68: a revisit must not leave a second layer. The +z wall of the room is planted twice, the true copy
+    and one ``offset_m`` nearer the camera (a near-copy within duplicate_dist_m, or a layer in front within
+    dist_diff_m: what a pose-graph correction can leave), both confirmed (confidence and hits of several sightings),
+    with their own ids; the nearer copy wins the rendered depth. Fusing a few noisy frames of the wall keeps one
+    surfel per wall pixel and the rendered depth goes back onto the wall."""
+    T = pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])  # looks at the +z wall (z = 3 m) head on
+    V, N, C, depth = room_frame(T)
+    m = SurfelMap()
+    cfg = FusionConfig(weight_mode="constant", compact_dead_fraction=0.0)
+    fuse(m, V, N, C, T, CAM_NEG, 0, cfg)
+    wall = np.abs(m.position[:, 2] - ROOM_HI[2]) < 1e-4
+    n_wall = int(wall.sum())
+    assert n_wall == int((np.abs(depth - ROOM_HI[2]) < 1e-4).sum()) > 1000  # one surfel per wall pixel
+    m.append(m.position[wall] - [0.0, 0.0, offset_m], m.normal[wall], m.colour[wall], 10.0, m.radius[wall], 0)
+    m.confidence[:] = 10.0
+    m.hits[:] = 10  # confirmed: the dormant rule does not remove either copy
+    on_wall_px = np.abs(depth - ROOM_HI[2]) < 1e-4
+    on_wall_px[:3] = on_wall_px[-3:] = False  # splats cross the border rows/columns
+    on_wall_px[:, :3] = on_wall_px[:, -3:] = False
+    before = render(m, T, CAM_NEG).depth_m[on_wall_px]
+    np.testing.assert_allclose(np.median(before), ROOM_HI[2] - offset_m, atol=1e-3)  # the planted layer is in front
+    for f in range(1, 4):
+        Vn, Nn, Cn, _ = room_frame(T, noise_m=0.001, seed=f)  # well inside the 5 mm between the layers
+        fuse(m, Vn, Nn, Cn, T, CAM_NEG, f, cfg)
+    # in the image's interior (a copy that projects outside the image is not seen: it stays, as it should)
+    uv = m.position[:, :2] / m.position[:, 2:] * [CAM_NEG.fx, CAM_NEG.fy] + [CAM_NEG.cx, CAM_NEG.cy]
+    inner = np.all((uv >= 2) & (uv <= [CAM_NEG.width - 3, CAM_NEG.height - 3]), axis=1)
+    n_inner = int((wall & inner[: len(wall)]).sum())  # the wall's pixels there (one surfel each)
+    near_wall = m.alive_mask() & (np.abs(m.position[:, 2] - ROOM_HI[2]) < 0.05)
+    assert int((near_wall & inner).sum()) == n_inner > 1000  # one layer: as many surfels as wall pixels
+    assert np.abs(m.position[near_wall & inner, 2] - ROOM_HI[2]).max() < 0.005  # ... on the true wall
+    after = render(m, T, CAM_NEG).depth_m[on_wall_px]
+    np.testing.assert_allclose(np.median(after), ROOM_HI[2], atol=1e-3)
+    assert np.abs(after - ROOM_HI[2]).max() < 0.005
+
+
+def test_a_layer_behind_the_measured_surface_is_kept():
+    """The rule for layers acts on what the sensor saw through: a confirmed copy 3 cm BEHIND the wall (hidden by it,
+    beyond duplicate_dist_m) is left alone; the measurements keep merging into the wall."""
+    T = pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    V, N, C, _ = room_frame(T)
+    m = SurfelMap()
+    cfg = FusionConfig(weight_mode="constant", compact_dead_fraction=0.0)
+    fuse(m, V, N, C, T, CAM_NEG, 0, cfg)
+    wall = np.flatnonzero(np.abs(m.position[:, 2] - ROOM_HI[2]) < 1e-4)
+    m.append(m.position[wall] + [0.0, 0.0, 0.03], m.normal[wall], m.colour[wall], 10.0, m.radius[wall], 0)
+    m.confidence[:] = 10.0
+    m.hits[:] = 10
+    n0 = m.n_alive
+    for f in range(1, 4):
+        fuse(m, V, N, C, T, CAM_NEG, f, cfg)
+    assert m.n_alive == n0
+    np.testing.assert_array_equal(m.hits[wall], 13)  # the wall took every measurement

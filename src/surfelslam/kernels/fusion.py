@@ -227,13 +227,32 @@ def associate_ref(vertex, normal, bstart, border, pos, nrm, conf, R, t, dist_m, 
 
 
 @njit(cache=True, nogil=True)
-def flag_duplicates(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle, dead):
+def _is_duplicate(i, b, pos, nrm, rad, dist2, cos_angle, front_m):
+    """Whether surfel ``i`` duplicates ``b``: :func:`flag_duplicates`' normal, near-copy and layer-in-front tests (the
+    caller tests the confidence)."""
+    if nrm[i, 0] * nrm[b, 0] + nrm[i, 1] * nrm[b, 1] + nrm[i, 2] * nrm[b, 2] <= cos_angle:
+        return False
+    dx = pos[i, 0] - pos[b, 0]
+    dy = pos[i, 1] - pos[b, 1]
+    dz = pos[i, 2] - pos[b, 2]
+    d2 = dx * dx + dy * dy + dz * dz
+    if d2 < dist2:
+        return True
+    off = dx * nrm[b, 0] + dy * nrm[b, 1] + dz * nrm[b, 2]  # towards the camera: b's normal faces it
+    reach = np.float64(rad[i]) + np.float64(rad[b])
+    return 0.0 < off < front_m and d2 - off * off < reach * reach
+
+
+@njit(cache=True, nogil=True)
+def flag_duplicates(assoc, bstart, border, pos, nrm, rad, conf, dist_m, cos_angle, front_m, dead):
     """Flag as dead the duplicates of each pixel's chosen surfel (a fused map stays at one surfel per pixel).
 
     For every pixel with a chosen surfel ``b = assoc[v, u] >= 0``, each other surfel ``i`` of the pixel's
-    bucket (see :func:`bucket_by_pixel`) with ``|p_i - p_b| < dist_m``, ``n_i . n_b > cos_angle`` and
-    ``conf[i] <= conf[b]`` describes the same piece of surface: it is flagged (``dead[i] = 1``). Each surfel
-    lies in one bucket only, so the result does not depend on the pixel order. Returns the number flagged.
+    bucket (see :func:`bucket_by_pixel`) with ``n_i . n_b > cos_angle``, ``conf[i] <= conf[b]`` and either
+    ``|p_i - p_b| < dist_m`` (a near-copy) or an offset along ``n_b`` towards the camera in ``(0, front_m)`` with a
+    sideways distance below ``rad[i] + rad[b]`` (a layer in front of the measured surface, over it: the pixel's ray
+    went through it) describes the same piece of surface: it is flagged (``dead[i] = 1``). Each surfel lies in one
+    bucket only, so the result does not depend on the pixel order. Returns the number flagged.
     """
     H, W = assoc.shape
     dist2 = dist_m * dist_m
@@ -250,19 +269,13 @@ def flag_duplicates(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle, de
                 i = border[j]
                 if i == b or dead[i] != 0 or conf[i] > conf[b]:
                     continue
-                dx = pos[i, 0] - pos[b, 0]
-                dy = pos[i, 1] - pos[b, 1]
-                dz = pos[i, 2] - pos[b, 2]
-                if dx * dx + dy * dy + dz * dz >= dist2:
-                    continue
-                if nrm[i, 0] * nrm[b, 0] + nrm[i, 1] * nrm[b, 1] + nrm[i, 2] * nrm[b, 2] <= cos_angle:
-                    continue
-                dead[i] = 1
-                k += 1
+                if _is_duplicate(i, b, pos, nrm, rad, dist2, cos_angle, front_m):
+                    dead[i] = 1
+                    k += 1
     return k
 
 
-def flag_duplicates_ref(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle, dead):
+def flag_duplicates_ref(assoc, bstart, border, pos, nrm, rad, conf, dist_m, cos_angle, front_m, dead):
     """Numpy reference of :func:`flag_duplicates`; returns the rows it would flag (sorted)."""
     H, W = assoc.shape
     counts = np.diff(bstart)
@@ -272,9 +285,14 @@ def flag_duplicates_ref(assoc, bstart, border, pos, nrm, conf, dist_m, cos_angle
     ok = (b >= 0) & (rows != b) & (dead[rows] == 0)
     bb = np.where(ok, b, 0)
     ok &= conf[rows] <= conf[bb]
-    d2 = ((pos[rows].astype(np.float64) - pos[bb].astype(np.float64)) ** 2).sum(-1)
-    dot = (nrm[rows].astype(np.float64) * nrm[bb].astype(np.float64)).sum(-1)
-    ok &= (d2 < dist_m**2) & (dot > cos_angle)
+    d = pos[rows].astype(np.float64) - pos[bb].astype(np.float64)
+    d2 = (d**2).sum(-1)
+    nb = nrm[bb].astype(np.float64)
+    off = (d * nb).sum(-1)
+    dot = (nrm[rows].astype(np.float64) * nb).sum(-1)
+    reach = rad[rows].astype(np.float64) + rad[bb].astype(np.float64)
+    near = (d2 < dist_m**2) | ((off > 0) & (off < front_m) & (d2 - off * off < reach**2))
+    ok &= near & (dot > cos_angle)
     return np.sort(rows[ok])
 
 

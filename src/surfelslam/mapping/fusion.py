@@ -24,10 +24,13 @@ Per frame, at the frame's pose ``T_world_cam``:
    ``unstable_max_age_frames`` frames. Removed surfels are flagged at once (skipped by rendering and
    fusion) and compacted when they exceed ``compact_dead_fraction`` of the map.
 6. duplicates (``remove_duplicates``): in a pixel whose measurement was merged into surfel ``b``, the other
-   surfels of the pixel's bucket within ``duplicate_dist_m`` of ``b``, with normals within
-   ``duplicate_angle_deg`` and no more confidence, are flagged dead. Without this rule revisits keep adding
-   near-copies (noise, small pose errors), the surfels in view grow with time and so does the per-frame
-   cost (``benchmarks/bench_pipeline.py`` measures it over long hand-held runs).
+   surfels of the pixel's bucket with normals within ``duplicate_angle_deg`` of ``b``'s and no more confidence
+   are flagged dead when within ``duplicate_dist_m`` of ``b``, or in front of ``b`` (towards the camera, along
+   its normal) by less than ``dist_diff_m`` with the two discs overlapping along it: a layer the sensor saw
+   through (e.g. one a pose-graph correction left a few cm off the wall: it would be what the
+   renderer draws). Without this rule revisits keep adding near-copies (noise, small pose errors), the surfels
+   in view grow with time and so does the per-frame cost (``benchmarks/bench_pipeline.py`` measures it over
+   long hand-held runs).
 
 Weights: ``weight_mode = "keller"``: ``w = exp(-gamma^2 / (2 sigma^2))`` with ``gamma`` the pixel's distance
 from the principal point divided by the distance of the farthest image corner, ``sigma =
@@ -98,8 +101,9 @@ class FusionConfig(Config):
                                            doc="removed surfels are compacted away once they exceed this share of "
                                                "the map")
     cull_backfaces: bool = setting(True, doc="skip surfels whose normal faces away from the camera")
-    remove_duplicates: bool = setting(True, doc="flag near-copies of a surfel that a measurement merged into (else "
-                                      "revisits keep adding them)", user=True)
+    remove_duplicates: bool = setting(True, doc="flag near-copies of a surfel that a measurement merged into, and "
+                                      "layers in front of it within dist_diff_m (else revisits keep adding them)",
+                                      user=True)
     duplicate_dist_m: float = setting(0.02, unit="m", ge=0, le=10, doc="near-copies are within this distance")
     duplicate_angle_deg: float = setting(30.0, unit="deg", gt=0, le=180, doc="... and this normal angle")
     max_width_px: int = setting(320, unit="px", ge=0, le=65536,
@@ -214,8 +218,9 @@ def fuse(
     n_dup = 0
     if cfg.remove_duplicates:
         n_dup = int(kf.flag_duplicates(
-            assoc, bstart, border, arr["position"], arr["normal"], arr["confidence"], float(cfg.duplicate_dist_m),
-            math.cos(math.radians(cfg.duplicate_angle_deg)), arr["dead"],
+            assoc, bstart, border, arr["position"], arr["normal"], arr["radius"], arr["confidence"],
+            float(cfg.duplicate_dist_m), math.cos(math.radians(cfg.duplicate_angle_deg)), float(cfg.dist_diff_m),
+            arr["dead"],
         ))
         smap.add_dead_count(n_dup)
     kf.merge(
