@@ -81,3 +81,34 @@ def test_the_keyframe_points_are_selected_once_and_follow_the_keyframe(pair, mon
     P, uv = kept.of(other, grey.shape, cfg)
     assert len(calls) == 2 and len(P) == len(uv) <= other.valid.sum() < ref.valid.sum()
     assert np.all(np.isin(uv, other.keypoints_uv[other.valid]).all(axis=1))
+
+
+@pytest.mark.parametrize("n_outliers", [0, 10])
+def test_the_pose_refinement_stops_once_a_round_drops_no_point(monkeypatch, n_outliers) -> None:
+    """Without outliers the first Levenberg-Marquardt round keeps every point: a second round on the same points
+    would start from its own optimum, so it is not run (the pose is the one it would return). With 10 points 20 px off,
+    they are dropped and a second round refines on the rest; the pose is the true one either way."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    P = np.column_stack([rng.uniform(-1, 1, 200), rng.uniform(-0.8, 0.8, 200), rng.uniform(1.5, 3.0, 200)])
+    T_true = make_T(so3_exp(np.radians([1.0, -2.0, 0.5])), [0.03, -0.01, 0.02])
+    u, v, _ = project(P @ T_true[:3, :3].T + T_true[:3, 3], INTR)
+    uv = np.column_stack([u, v]) + rng.normal(0.0, 0.2, (200, 2))
+    uv[:n_outliers] += 20.0
+    calls = []
+    real = cv2.solvePnPRefineLM
+    monkeypatch.setattr(keyframe_track.cv2, "solvePnPRefineLM", lambda *a, **k: calls.append(1) or real(*a, **k))
+    T, kept = keyframe_track._refined(P, uv, _predicted(T_true, 1.0, 0.01), INTR, 2.0)
+    assert len(calls) == (1 if n_outliers == 0 else 2)
+    assert kept.sum() == 200 - n_outliers and not kept[:n_outliers].any()
+    dt, dr = pose_error(T, T_true)
+    assert dt < 0.002 and dr < 0.05, (dt, dr)
+    if n_outliers == 0:  # the round left out returns the same pose
+        K = INTR.K.copy()
+        img = uv.copy()
+        if INTR.fy < 0:
+            K[1, 1] = -INTR.fy
+            img[:, 1] = 2.0 * INTR.cy - img[:, 1]
+        rvec, tvec = real(P, img, K, None, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3].reshape(3, 1).copy())
+        assert pose_error(make_T(cv2.Rodrigues(rvec)[0], tvec.reshape(3)), T)[0] < 1e-6  # a micrometre

@@ -72,7 +72,8 @@ def _lk(grey_from: np.ndarray, grey_to: np.ndarray, p_from: np.ndarray, p_init: 
 def _refined(P: np.ndarray, uv: np.ndarray, T_init: np.ndarray, intr: Intrinsics,
              bound_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Pose refined by Levenberg-Marquardt from ``T_init`` on ``P (M, 3)`` -> ``uv (M, 2)``, dropping the points
-    that reproject beyond ``bound_px`` after each round: ``(T (4, 4), kept (M,) bool)``."""
+    that reproject beyond ``bound_px`` after each round (at most :data:`_REFINE_ROUNDS`; none after a round that
+    dropped none): ``(T (4, 4), kept (M,) bool)``."""
     K = intr.K.copy()
     img = uv.copy()
     if intr.fy < 0:  # OpenCV wants fy > 0: mirror the rows (the pose is unchanged)
@@ -84,8 +85,9 @@ def _refined(P: np.ndarray, uv: np.ndarray, T_init: np.ndarray, intr: Intrinsics
     for _ in range(_REFINE_ROUNDS):
         rvec, tvec = cv2.solvePnPRefineLM(P[kept], img[kept], K, None, rvec, tvec)
         T = make_T(so3_exp(rvec.reshape(3)), tvec.reshape(3))
-        kept = reprojection_inliers(P @ T[:3, :3].T + T[:3, 3], uv, intr, bound_px)
-        if kept.sum() < 4:
+        used, kept = kept, reprojection_inliers(P @ T[:3, :3].T + T[:3, 3], uv, intr, bound_px)
+        # fewer than 4 points: no pose; the same points: another round would start from its own optimum
+        if kept.sum() < 4 or np.array_equal(kept, used):
             break
     return make_T(so3_exp(np.asarray(rvec, np.float64).reshape(3)), np.asarray(tvec, np.float64).reshape(3)), kept
 
