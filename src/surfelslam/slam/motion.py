@@ -98,8 +98,9 @@ class MotionModel:
         ``measured=False``: the step is no measurement of the camera's motion, see :meth:`jumped`).
 
         A tracked frame: its step, damped along frozen directions (:meth:`damp_frozen`). A relocalised frame, or one
-        whose step is not measured (a recovery that corrected a stale prediction), has no known velocity (identity). A weak frame's step is known only along the directions the view constrains, so it
-        is not used: the velocity of the last fully tracked frame goes on, fading by
+        whose step is not measured (a recovery that corrected a stale prediction), has no known velocity
+        (identity). A weak frame's step is known only along the directions the view constrains, so it is not used:
+        the velocity of the last fully tracked frame goes on, fading by
         ``exp(-(t_s - t_tracked) / tracking.weak_velocity_decay_s)`` (a walk down a corridor keeps going; a weak step
         never feeds the next prediction, so ICP's slide along a free direction cannot build up speed).
         Updates the last fully tracked step; the caller sets ``state.velocity``."""
