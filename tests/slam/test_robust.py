@@ -99,6 +99,11 @@ def test_weak_frames_predict_the_last_tracked_velocity_fading_or_holding_still()
     held = _motion(SlamConfig())  # the default holds still
     held.velocity_after(v, FrameStatus.TRACKED, 10.0)
     assert np.array_equal(held.velocity_after(slide, FrameStatus.WEAK, 10.1), np.eye(4))
+    # a step that is no measurement of the motion (dense: a correction beyond any change of velocity, as after a
+    # gap) gives no velocity, and no last tracked step to fade from either
+    assert np.array_equal(fading.velocity_after(v, FrameStatus.TRACKED, 20.0), v)
+    assert np.array_equal(fading.velocity_after(slide, FrameStatus.TRACKED, 20.1, measured=False), np.eye(4))
+    assert np.array_equal(fading.velocity_after(slide, FrameStatus.WEAK, 20.2), np.eye(4))
 
 
 def test_frozen_directions_move_the_velocity_only_by_the_gain():

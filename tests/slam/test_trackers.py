@@ -347,11 +347,15 @@ def test_texture_holds_the_pose_where_geometric_icp_slides_at_3x_speed():
 
 @pytest.mark.shared
 @pytest.mark.heavy  # make test-all; in make test the synthetic gap below covers the same relocalisation
-def test_dense_relocalises_on_real_data_after_a_gap():
+def test_dense_comes_back_on_real_data_after_a_gap():
     """7-Scenes redkitchen 150-299 at 320x240 with frames 200-259 dropped (44 cm and 10 deg across the gap): the
-    shape-feature relocalisation brings dense back onto the trajectory it follows without the gap (measured: 1.5-3.5
-    mm from it from the third frame after the gap; dense drifts to 7.7 cm unaligned over these 150 frames either
-    way); without it every frame after the gap fails."""
+    first frame after it fails (ICP still moving at the finest level is not taken as a view beyond the map), the next
+    ones are registered from the pose before the gap, and the large correction across the gap is not taken as the
+    camera's velocity. Dense is then back on the trajectory it follows without the gap (measured: within 1.2 mm of it
+    from the third frame after the gap; dense drifts to 7.7 cm unaligned over these 150 frames either way), with or
+    without relocalisation. Before, that correction became the velocity, and dense ran 3.6 m off while calling every
+    frame tracked. Known limit: the second frame after the gap is placed 40 cm off and fused (a converged fit that
+    holds 40 % of its points: taken as a view reaching beyond the map)."""
     from surfelslam.datasets import DatasetOptions
 
     from helpers import shared_sequence
@@ -369,13 +373,12 @@ def test_dense_relocalises_on_real_data_after_a_gap():
         err = [se3.pose_error(e, se3.invert(T_gt[frames[0]]) @ T_gt[k])[0] for e, k in zip(est, frames, strict=True)]
         return dict(zip(frames, err, strict=True)), slam.finish().metrics
 
-    err_off, m_off = run([k for k in keep if k <= 270], 0)  # lost from the gap on: 11 frames show it
-    assert m_off["tracking_failures"] == 11 and err_off[270] > 0.2
-    err, m = run(keep, 3)
-    assert m["relocalisations"] == 1 and m["tracking_failures"] == 3
     err_ref, _ = run(every, 3)
-    worse = [err[k] - err_ref[k] for k in range(263, 300)]
-    assert max(worse) < 0.01, np.round(worse, 3)
+    for n in (0, 3):
+        err, m = run(keep, n)
+        assert m["tracking_failures"] >= 1 and err[260] > 0.2
+        worse = [err[k] - err_ref[k] for k in range(263, 300)]
+        assert max(worse) < 0.01, (n, np.round(worse, 3))
 
 
 @pytest.mark.heavy

@@ -465,3 +465,21 @@ def test_a_view_mostly_beyond_the_model_fails_on_the_fraction_but_keeps_its_over
     assert res.levels[-1].overlap_inlier_fraction > 0.8
     err = se3.invert(MOTIONS[4]) @ res.T_target_source
     assert abs(err[2, 3]) < 0.003  # the 1 cm start error along the depth, which the strip constrains, is removed
+
+
+def test_the_front_end_takes_a_view_beyond_the_map_only_from_a_converged_icp(pair_pyramids):
+    """The front end uses a frame that failed on its inlier fraction because most of its view lies beyond the model,
+    but only when ICP converged at the finest level: one that ran out of iterations there (as after a gap, a wrong
+    fit still moving) is a failure, not a new room."""
+    from surfelslam.slam import SlamConfig, build_slam
+
+    src, tgt = pair_pyramids
+    part = _unmapped_beyond(tgt, 0.2)
+    T0 = MOTIONS[4] @ motion((0, 0, 1), 0.5, (0, 0, 1), 0.01)
+    front = build_slam(tgt[0].intrinsics, SlamConfig(), "dense").front
+    converged = icp(src, part, T_init=T0, cfg=ICPConfig())
+    assert converged.status == "too_few_inliers" and converged.levels[-1].stop != "max_iterations"
+    assert front.failure_of(converged) is None
+    cut = icp(src, part, T_init=T0, cfg=ICPConfig(iterations=[1, 8, 10, 40]))  # the finest level stops after one
+    assert cut.levels[-1].stop == "max_iterations" and cut.levels[-1].overlap_inlier_fraction > 0.8
+    assert front.failure_of(cut) == "too_few_inliers"

@@ -111,7 +111,10 @@ class DenseSlam:
         res, failure, status, T_ref = self._track(frame, T_prev, T_pred, t)
         if failure is None:
             step, T_new = step_and_pose(T_ref, res)
-            s.velocity = front.motion.velocity_after(step, status, frame.time_s, res)
+            # a correction of the prediction beyond any change of velocity (after a gap: the prediction was stale) is
+            # taken as the pose, but the step across it is no velocity to go on with
+            jump = status is not FrameStatus.RELOCALISED and front.motion.jumped(res, frame.time_s)
+            s.velocity = front.motion.velocity_after(step, status, frame.time_s, res, measured=not jump)
             front.motion.mark_tracked(T_new, frame.time_s, status)
             front.fuse(frame, T_new)
             t.lap("fuse")

@@ -190,7 +190,8 @@ class DenseFrontEnd:
         ``icp.min_inlier_fraction`` of the source points that land on the rendered model. Such a frame is tracked and
         fused, so the map grows into the new space; refusing it would leave the map, and every later frame, short."""
         fine = res.levels[-1]
-        return (fine.stop not in (ICPStatus.TOO_FEW_INLIERS, ICPStatus.SOLVER) and not res.degenerate
+        return (fine.stop not in (ICPStatus.TOO_FEW_INLIERS, ICPStatus.SOLVER, ICPStatus.MAX_ITERATIONS)
+                and not res.degenerate
                 and fine.overlap_inlier_fraction >= self.cfg.icp.min_inlier_fraction
                 and res.motion_m <= self.cfg.icp.max_translation_m and res.motion_deg <= self.cfg.icp.max_rotation_deg)
 

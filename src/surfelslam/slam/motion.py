@@ -92,23 +92,25 @@ class MotionModel:
         return se3.orthonormalize(se3.exp((1 - g) * (P @ delta)) @ step)
 
     def velocity_after(self, step: np.ndarray, status: FrameStatus, t_s: float,
-                       res: ICPResult | None = None) -> np.ndarray:
+                       res: ICPResult | None = None, measured: bool = True) -> np.ndarray:
         """The velocity (``T_prev_cur`` per frame, ``(4, 4)``) after a registered frame at time ``t_s`` whose step
-        was ``step`` (``res``: its ICP result against the map rendered at the previous pose, if it was).
+        was ``step`` (``res``: its ICP result against the map rendered at the previous pose, if it was;
+        ``measured=False``: the step is no measurement of the camera's motion, see :meth:`jumped`).
 
-        A tracked frame: its step, damped along frozen directions (:meth:`damp_frozen`). A relocalised frame has no
-        known velocity (identity). A weak frame's step is known only along the directions the view constrains, so it
-        is not used: the velocity of the last fully tracked frame goes on, fading by
+        A tracked frame: its step, damped along frozen directions (:meth:`damp_frozen`). A relocalised frame, or one
+        whose step is not measured (a recovery that corrected a stale prediction), has no known velocity
+        (identity). A weak frame's step is known only along the directions the view constrains, so it is not used:
+        the velocity of the last fully tracked frame goes on, fading by
         ``exp(-(t_s - t_tracked) / tracking.weak_velocity_decay_s)`` (a walk down a corridor keeps going; a weak step
         never feeds the next prediction, so ICP's slide along a free direction cannot build up speed).
         Updates the last fully tracked step; the caller sets ``state.velocity``."""
         s = self.state
-        if status is FrameStatus.TRACKED:
+        if status is FrameStatus.TRACKED and measured:
             step = self.damp_frozen(step, res)
             s.v_tracked, s.t_v_tracked_s = step, t_s
             return step
         tau_s = self.cfg.weak_velocity_decay_s
-        if status is not FrameStatus.WEAK or tau_s <= 0:
+        if status is not FrameStatus.WEAK or tau_s <= 0 or not measured:
             s.v_tracked = np.eye(4)
             return np.eye(4)
         keep = float(np.exp(-max(t_s - s.t_v_tracked_s, 0.0) / tau_s))
