@@ -4,6 +4,8 @@ and libjpeg / libpng print nothing of their own on stderr."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -115,3 +117,15 @@ def test_good_images_still_decode(tmp_path):
     path = tmp_path / "trailing.jpg"
     path.write_bytes(_jpeg(path) + b"\x00" * 16)  # padding after the end marker is harmless
     assert read_rgb(path).shape == (60, 80, 3)
+
+
+def test_the_stderr_capture_file_is_closed_at_exit(tmp_path):
+    """Python's development mode reports a file left open at exit; decoding must leave none."""
+    cv2.imwrite(str(tmp_path / "a.png"), _rgb())
+    code = ("import sys; from pathlib import Path; from surfelslam.io.images import read_rgb; "
+            "read_rgb(Path(sys.argv[1])); read_rgb(Path(sys.argv[1]))")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    done = subprocess.run([sys.executable, "-X", "dev", "-c", code, str(tmp_path / "a.png")],
+                          capture_output=True, text=True, env=env, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "ResourceWarning" not in done.stderr

@@ -13,6 +13,7 @@ JPEG, and libjpeg / libpng report such problems only as lines on the process's s
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import re
@@ -48,6 +49,8 @@ _CV_LOG_PREFIX = re.compile(r"^\[\s*\w+:[^\]]*\]\s*(global\s+\S+\s+\S+\s+)?")
 #: held while fd 2 is redirected; writers of whole lines to stderr (the CLI's error line) take it too
 stderr_lock = threading.Lock()
 _capture_file = None
+#: how long the exit hook waits for a decode in another thread before leaving the capture file to the OS [s]
+_EXIT_LOCK_TIMEOUT_S = 1.0
 
 
 def _capture_fd() -> int | None:
@@ -57,7 +60,21 @@ def _capture_fd() -> int | None:
             _capture_file = tempfile.TemporaryFile(prefix="surfelslam-stderr-")
         except OSError:
             return None
+        atexit.register(_close_capture_file)
     return _capture_file.fileno()
+
+
+def _close_capture_file() -> None:
+    """Close the process-long capture file at exit (else Python reports it as an unclosed file)."""
+    global _capture_file
+    if not stderr_lock.acquire(timeout=_EXIT_LOCK_TIMEOUT_S):
+        return  # a daemon thread is inside a decode: the OS closes the file
+    try:
+        if _capture_file is not None:
+            _capture_file.close()
+            _capture_file = None
+    finally:
+        stderr_lock.release()
 
 
 @contextlib.contextmanager
