@@ -387,6 +387,8 @@ def test_scale_section_spliced_into_the_last_results(tmp_path) -> None:
         assert r["frames"] == 45 and r["fps"] > 0 and r["wall_s"] > r["startup_s"] > 0 and r["peak_mb"] > 50
         assert r["worst_1m_drift_cm"] >= 0 and r["surfels"] > 0 and r["map_points_measured"] > 0
         assert 0 <= r["map_accuracy_median_mm"] <= r["map_accuracy_p90_mm"] and r["map_ply_mb"] > 0
+        # the best-fit figure exists exactly when the run's ATE does (a run lost from its second frame has neither)
+        assert ("ate_aligned_map_accuracy_mean_mm" in r) == (r["ate_cm"] is not None)
     assert all(r["window"] == 15 and r["last_over_first"] > 0 for r in s["rows"][:2])
     assert s["rows"][0]["loops_found"] >= s["rows"][0]["loops_accepted"] >= 0
     mesh = s["outputs"][0]
