@@ -228,18 +228,3 @@ def test_path_variance_is_the_step_by_step_sum_and_gate_distances_keep_the_newes
     gated = _graph(gt, LoopConsistencyConfig())
     assert gated.apply_loop_checks(n - 1, [_check(0, invert(gt[0]) @ gt[n - 1]), *_wrong_edges(gt)], 30) == 1
     assert [d2 > gated.gate_threshold for _, _, d2 in gated.gate_d2] == [True, True]  # the last two of four
-
-
-def test_chi2_quantile_matches_scipy():
-    """The closed-form 6-dof chi-square quantile equals scipy's over the setting's range (1e-12 relative), and to
-    the last bit at the default 0.99 (the gate's threshold, so the loop decisions are unchanged)."""
-    from scipy.stats import chi2
-
-    from surfelslam.backend.loop_consistency import LoopConsistencyConfig, chi2_quantile_6dof
-
-    qs = np.concatenate([np.linspace(1e-4, 1 - 1e-4, 501), [1e-8, 0.5, 0.9, 0.95, 0.999, 1 - 1e-6, 1 - 1e-10]])
-    ours = np.array([chi2_quantile_6dof(float(q)) for q in qs])
-    np.testing.assert_allclose(ours, chi2.ppf(qs, 6), rtol=1e-12, atol=0)
-    q = LoopConsistencyConfig().quantile
-    assert chi2_quantile_6dof(q) == float(chi2.ppf(q, 6))
-    assert abs(chi2_quantile_6dof(0.99) - 16.811893829770927) < 1e-12  # the chi-square table's 16.812

@@ -10,13 +10,13 @@ squared Mahalanobis distance (residual covariance: chain plus edge) exceeds a ch
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from surfelslam.config import Config, setting
 from surfelslam.geometry.se3 import adjoint, invert, log, rotation_angle_deg
+from surfelslam.geometry.stats import chi2_quantile_6dof
 from surfelslam.types import GrowingRows, PoseArray
 
 
@@ -44,49 +44,6 @@ class LoopConsistencyConfig(Config):
     edge_sigma_m: float = setting(0.01, unit="m", gt=0, le=100,
                                   doc="floor of the edge's own translation sigma (added to its estimated covariance)")
     edge_sigma_rad: float = setting(0.01, unit="rad", gt=0, le=100, doc="the same on the rotation")
-
-
-#: Newton steps of :func:`chi2_quantile_6dof` at most (it converges in under ten from its start).
-_QUANTILE_MAX_STEPS = 100
-#: Its stopping rule: a step below this many ulps of the root.
-_QUANTILE_TOL_ULPS = 4
-
-
-def _lower_tail_3(y: float) -> float:
-    """``P(3, y)``, the regularised lower incomplete gamma function of shape 3, by its series ``e^-y sum_{n>=3}
-    y^n / n!`` (accurate where it is small, which the closed form ``1 - e^-y (1 + y + y^2/2)`` is not)."""
-    term = y ** 3 / 6.0
-    total, n = term, 3
-    while term > math.ulp(total):
-        n += 1
-        term *= y / n
-        total += term
-    return math.exp(-y) * total
-
-
-def chi2_quantile_6dof(q: float) -> float:
-    """The chi-square quantile with 6 degrees of freedom (scipy's ``chi2.ppf(q, 6)``, ``2 P^-1(3, q)``), ``0 < q < 1``.
-
-    With ``x = 2 y``: Newton's method on the logarithm of the upper tail ``1 - q = e^-y (1 + y + y^2 / 2)`` (the
-    closed form for an even number of degrees of freedom) when ``q >= 1/2``, of the lower tail ``q = P(3, y)`` (its
-    series) below. Both logarithms are concave in ``y``: the steps never overshoot. Within 1e-12 (relative) of
-    scipy's, equal at the default quantile; it spares a run's start the import of scipy.special (0.1 s of CPU)."""
-    upper = q >= 0.5
-    target = math.log1p(-q) if upper else math.log(q)
-    y = max(3.0, -target) if upper else (6.0 * q) ** (1.0 / 3.0)  # P(3, y) <= y^3 / 6: starts below the root
-    for _ in range(_QUANTILE_MAX_STEPS):
-        if upper:
-            s = 1.0 + y + 0.5 * y * y
-            step = (-y + math.log(s) - target) / (-0.5 * y * y / s)
-        else:
-            p = _lower_tail_3(y)
-            step = (math.log(p) - target) / (0.5 * y * y * math.exp(-y) / p)
-        y_next = y - step if y - step > 0 else 0.5 * y  # never across zero: halve instead
-        done = abs(y_next - y) <= _QUANTILE_TOL_ULPS * math.ulp(y_next)
-        y = y_next
-        if done:
-            break
-    return 2.0 * y
 
 
 class OdometryChain:
