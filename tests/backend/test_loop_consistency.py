@@ -133,8 +133,9 @@ def test_the_gate_follows_the_chi_square_law_of_the_drift_model():
     assert np.mean(d2 > chain.threshold) == pytest.approx(0.1, abs=0.04)
     from scipy.stats import chi2  # here, not at the top: importing scipy.stats costs every test worker a second
 
-    for q in (0.5, 0.9, 0.99, 0.9999):  # the threshold is the chi-square quantile itself, to the last bit
-        assert OdometryChain(LoopConsistencyConfig(quantile=q)).threshold == chi2.ppf(q, 6)
+    for q in (0.5, 0.9, 0.99, 0.9999):  # the threshold is the chi-square quantile itself (a few ulps; the default's
+        # to the last bit, test_chi2_quantile_matches_scipy)
+        assert OdometryChain(LoopConsistencyConfig(quantile=q)).threshold == pytest.approx(chi2.ppf(q, 6), rel=1e-14)
     # without the adjoints (drift added in place), the far end's rotation-induced drift is missed
     assert np.trace(ref.covariance(i, j, ref.path(i, j))[3:, 3:]) > 3 * np.sum(sd[i:j, 3:] ** 2)
 

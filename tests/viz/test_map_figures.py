@@ -136,3 +136,35 @@ def test_one_view_is_written_alone_and_an_unknown_view_is_one_line(tmp_path):
     with pytest.raises(ConfigError, match="map figure views: unknown side; known: camera, top"):
         mf.save_map_figures(tmp_path / "x", *args, views=("side", "top"))
     assert not (tmp_path / "x").exists()
+
+
+def test_panel_pixels_draw_what_imshow_draws_at_the_panel_size():
+    """The map figures' panels (PanelPixels) put each pixel where imshow at the panel's own size puts it: the whole
+    1600x1200 canvas equal, corners marked so that a flip or a one-pixel shift would show."""
+    from surfelslam.viz.save import new_figure
+
+    w, h = mf.IMAGE_SIZE_PX
+    img = np.random.default_rng(1).integers(0, 256, (h, w, 4), dtype=np.uint8)
+    img[..., 3] = 255
+    img[:5, :5, :3] = (255, 0, 0)  # top left
+    img[-5:, -5:, :3] = (0, 0, 255)  # bottom right
+    canvases = []
+    for pixels in (False, True):
+        fig = new_figure((mf.FIGURE_SIZE_PX[0] / mf.style.DPI, mf.FIGURE_SIZE_PX[1] / mf.style.DPI))
+        fig.subplots_adjust(**mf.PANEL_LAYOUT)
+        for k in range(4):
+            ax = fig.add_subplot(2, 2, k + 1)
+            if pixels:
+                ax.add_artist(mf.PanelPixels(ax, img))
+                ax.set_aspect("equal")
+            else:
+                ax.imshow(img, interpolation="nearest")
+            ax.set_xlim(-0.5, w - 0.5)
+            ax.set_ylim(h - 0.5, -0.5)
+        fig.canvas.draw()
+        canvases.append(np.asarray(fig.canvas.buffer_rgba()).copy())
+    reference, ours = canvases
+    red = (reference[..., :3] == (255, 0, 0)).all(axis=-1)
+    half_h, half_w = red.shape[0] // 2, red.shape[1] // 2
+    assert all(red[r:r + half_h, c:c + half_w].any() for r in (0, half_h) for c in (0, half_w))  # each panel's
+    np.testing.assert_array_equal(ours, reference)

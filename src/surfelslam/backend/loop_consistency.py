@@ -13,10 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaincinv
 
 from surfelslam.config import Config, setting
 from surfelslam.geometry.se3 import adjoint, invert, log, rotation_angle_deg
+from surfelslam.geometry.stats import chi2_quantile_6dof
 from surfelslam.types import GrowingRows, PoseArray
 
 
@@ -56,9 +56,7 @@ class OdometryChain:
 
     def __init__(self, cfg: LoopConsistencyConfig) -> None:
         self.cfg = cfg
-        # the chi-square quantile with 6 dof, 2 P^-1(3, q): scipy.stats' chi2.ppf to the last bit, without importing
-        # scipy.stats (half a second of every command's start)
-        self.threshold = float(2.0 * gammaincinv(3.0, cfg.quantile))
+        self.threshold = chi2_quantile_6dof(cfg.quantile)
         self._poses = PoseArray()  # T_world_kf from odometry alone
         self._parent: list[int] = []  # -1: a root (the first keyframe, or one placed without odometry)
         # per keyframe: (6,) drift variance of the step from the parent, (omega, v), and its sum

@@ -149,7 +149,7 @@ PosesOpt = Annotated[str | None, typer.Option(
 FiguresOpt = Annotated[bool, typer.Option("--figures/--no-figures", help="Write PNG figures.")]
 FigureOpt = Annotated[list[str] | None, typer.Option(
     "--figure", metavar="KIND", help="Only these figures: trajectory, ate_errors, map_camera, map_top (repeatable; "
-                                     "default: all of them; each map figure costs about half a second of CPU).")]
+                                     "default: all of them; each map figure costs about a third of a second of CPU).")]
 FormatOpt = Annotated[list[str] | None, typer.Option(
     "--format", help="Pose file formats: tum (always: trajectory.txt) and kitti (also trajectory_kitti.txt, the "
                      "3x4 poses row by row); repeatable.")]
