@@ -257,15 +257,26 @@ def preloading(figures: bool | Collection[str], on_progress: Callable[[int, Any]
             thread.join()
 
 
+_PRELOADS = {"active": 0, "interval_before": 0.0}  # preloads under way in this process, and the interval before them
+_PRELOADS_LOCK = threading.Lock()
+
+
 def _preload_politely(figures: bool | Collection[str]) -> None:
     """:func:`~surfelslam.viz.run_report.preload_figure_modules` with the thread switch interval at
-    :data:`PRELOAD_SWITCH_INTERVAL_S` meanwhile (it only changes how soon the GIL changes hands: no result does)."""
-    before = sys.getswitchinterval()
-    sys.setswitchinterval(min(before, PRELOAD_SWITCH_INTERVAL_S))
+    :data:`PRELOAD_SWITCH_INTERVAL_S` meanwhile (it only changes how soon the GIL changes hands: no result does); the
+    interval from before the first of overlapping preloads (runs in threads) is set again when the last one ends."""
+    with _PRELOADS_LOCK:
+        if _PRELOADS["active"] == 0:
+            _PRELOADS["interval_before"] = sys.getswitchinterval()
+            sys.setswitchinterval(min(_PRELOADS["interval_before"], PRELOAD_SWITCH_INTERVAL_S))
+        _PRELOADS["active"] += 1
     try:
         preload_figure_modules(figures)
     finally:
-        sys.setswitchinterval(before)
+        with _PRELOADS_LOCK:
+            _PRELOADS["active"] -= 1
+            if _PRELOADS["active"] == 0:
+                sys.setswitchinterval(_PRELOADS["interval_before"])
 
 
 @dataclass
