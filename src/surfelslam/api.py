@@ -16,6 +16,7 @@ Everything here is a thin layer over :mod:`surfelslam.slam` (the trackers and th
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections.abc import Callable, Collection
@@ -46,6 +47,12 @@ from surfelslam.viz.run_report import preload_figure_modules, run_report
 
 #: The progress bar's FPS and map size are refreshed every this many frames (a redraw costs a little).
 PROGRESS_EVERY = 10
+#: s: the interpreter's thread switch interval while the report's modules are preloaded beside the tracking (Python's
+#: default is 5 ms). The preload holds the GIL nearly all its second; a tracking thread coming back from a kernel (the
+#: kernels release the GIL, ~50 times a frame) waits up to one interval for it, so at 5 ms the frames of that second
+#: ran at a quarter of their speed. At 0.5 ms the main thread's GIL waits on a 100-frame run fell from ~5 to ~2.5 ms
+#: per frame; the old interval is back once the preload is done.
+PRELOAD_SWITCH_INTERVAL_S = 0.0005
 
 
 def open_sequence(path: str | Path, **dataset_options: Any) -> RGBDSequence:
@@ -233,8 +240,9 @@ def preloading(figures: bool | Collection[str], on_progress: Callable[[int, Any]
     """An ``on_progress`` callback (calling ``on_progress``) that, once the first frame is done, imports the report's
     modules (evo, matplotlib, the figures') in a background thread
     (:func:`~surfelslam.viz.run_report.preload_figure_modules`): the import overlaps the tracking instead of adding to
-    the run's end. The thread is joined on leaving."""
-    thread = threading.Thread(target=preload_figure_modules, args=(figures,), name="surfelslam-preload")
+    the run's end, at a short thread switch interval (:data:`PRELOAD_SWITCH_INTERVAL_S`) so that it holds the tracking
+    up less. The thread is joined on leaving."""
+    thread = threading.Thread(target=_preload_politely, args=(figures,), name="surfelslam-preload")
 
     def on_slot(done: int, res: FrameResult | None) -> None:
         if thread.ident is None:
@@ -247,6 +255,28 @@ def preloading(figures: bool | Collection[str], on_progress: Callable[[int, Any]
     finally:
         if thread.ident is not None:
             thread.join()
+
+
+_PRELOADS = {"active": 0, "interval_before": 0.0}  # preloads under way in this process, and the interval before them
+_PRELOADS_LOCK = threading.Lock()
+
+
+def _preload_politely(figures: bool | Collection[str]) -> None:
+    """:func:`~surfelslam.viz.run_report.preload_figure_modules` with the thread switch interval at
+    :data:`PRELOAD_SWITCH_INTERVAL_S` meanwhile (it only changes how soon the GIL changes hands: no result does); the
+    interval from before the first of overlapping preloads (runs in threads) is set again when the last one ends."""
+    with _PRELOADS_LOCK:
+        if _PRELOADS["active"] == 0:
+            _PRELOADS["interval_before"] = sys.getswitchinterval()
+            sys.setswitchinterval(min(_PRELOADS["interval_before"], PRELOAD_SWITCH_INTERVAL_S))
+        _PRELOADS["active"] += 1
+    try:
+        preload_figure_modules(figures)
+    finally:
+        with _PRELOADS_LOCK:
+            _PRELOADS["active"] -= 1
+            if _PRELOADS["active"] == 0:
+                sys.setswitchinterval(_PRELOADS["interval_before"])
 
 
 @dataclass

@@ -197,6 +197,27 @@ def test_options_start_end_stride_downsample(tmp_path):
         seq[3]
 
 
+def test_downsampled_frame_is_the_full_frame_subsampled(tmp_path):
+    """Downsampling keeps every f-th pixel of the converted frame: depth in metres, invalid raw values (0, and the
+    layout's invalid codes) at 0, colour as read; the conversion is done on the kept pixels only, same values."""
+    root = make_tum(tmp_path / "seq", n=2)
+    rng = np.random.default_rng(5)
+    raw = rng.integers(1, 20000, (H, W)).astype(np.uint16)
+    raw[0, 0], raw[2, 4], raw[1, 1] = 0, 0, 0  # invalid, two of them kept by a stride of 2
+    raw[4, 2] = 65535
+    depth_file = sorted((root / "depth").iterdir())[0]
+    write_png_depth(depth_file, raw)
+    full = open_sequence(root)
+    full.depth_invalid_raw = (0, 65535)
+    half = open_sequence(root, DatasetOptions(downsample=2))
+    half.depth_invalid_raw = (0, 65535)
+    f, h = full[0], half[0]
+    assert h.depth_m.shape == (3, 4) and h.depth_m.dtype == np.float32 and h.depth_m.flags.c_contiguous
+    assert np.array_equal(h.depth_m, f.depth_m[::2, ::2]) and np.array_equal(h.rgb, f.rgb[::2, ::2])
+    assert h.depth_m[0, 0] == 0 and h.depth_m[1, 2] == 0 and h.depth_m[2, 1] == 0 and h.rgb.flags.c_contiguous
+    assert h.depth_m[0, 1] == np.float32(raw[0, 2]) / np.float32(5000)
+
+
 def test_selection_with_no_frames_is_a_config_error(tmp_path):
     root = make_tum(tmp_path / "seq", n=3)
     with pytest.raises(ConfigError, match="keeps no frame"):

@@ -23,6 +23,28 @@ from surfelslam.types import Intrinsics
 from helpers import INTR
 
 
+def test_intensity_in_one_pass_is_the_numpy_form_bit_for_bit():
+    """The one-pass kernel gives the numpy form's float32 values bit for bit (every level of one channel against a
+    grid of the other two, and random images), NaN exactly where the mask is False; other inputs take the numpy
+    form."""
+    x = np.arange(256, dtype=np.uint8)
+    grid = np.stack(np.meshgrid(x, x, indexing="ij"), -1)
+    for k in (0, 1, 77, 128, 254, 255):
+        for order in ([0, 1, 2], [2, 0, 1], [1, 2, 0]):
+            rgb = np.concatenate([grid, np.full((256, 256, 1), k, np.uint8)], -1)[:, :, order]
+            assert np.array_equal(intensity_from_rgb(rgb), kph.intensity_from_rgb(rgb))
+    rng = np.random.default_rng(4)
+    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    valid = rng.random((48, 64)) > 0.4
+    expected = kph.intensity_from_rgb(rgb)
+    expected[~valid] = np.nan
+    got = intensity_from_rgb(rgb[:, ::-1], valid[:, ::-1])  # strided views are taken too
+    assert got.dtype == np.float32 and np.array_equal(got, expected[:, ::-1], equal_nan=True)
+    assert np.count_nonzero(np.isnan(got)) == np.count_nonzero(~valid) > 0
+    as_float = rgb.astype(np.float32)  # not uint8: the numpy form
+    assert np.array_equal(intensity_from_rgb(as_float, valid), expected, equal_nan=True)
+
+
 def _slanted_textured_plane(fy: float = 70.0):
     """A slanted plane seen by a 80x60 camera, with a smooth texture, its vertex map and intensity."""
     H, W, fx, cx, cy = 60, 80, 70.0, 39.5, 29.5

@@ -30,3 +30,48 @@ def test_warming_writes_nothing_and_changes_no_figure(tmp_path, monkeypatch):
     assert sorted(before) == ["map_camera.png", "map_top.png"] and min(len(b) for b in before.values()) > 10_000
     assert after == before
     assert sorted(os.listdir(tmp_path)) == ["after", "before"]
+
+
+def test_preload_runs_at_the_short_switch_interval_and_restores_it(monkeypatch):
+    """While the report's modules load beside the tracking, the GIL changes hands every 0.5 ms (not every 5 ms): a
+    tracking thread back from a kernel waits that long at most. The interval is back afterwards."""
+    import sys
+
+    from surfelslam import api
+
+    seen = []
+    monkeypatch.setattr(api, "preload_figure_modules", lambda figures: seen.append(sys.getswitchinterval()))
+    before = sys.getswitchinterval()
+    with api.preloading(True, None) as on_slot:
+        on_slot(1, None)
+    assert seen == [api.PRELOAD_SWITCH_INTERVAL_S] and api.PRELOAD_SWITCH_INTERVAL_S == 0.0005
+    assert sys.getswitchinterval() == before == 0.005
+
+
+def test_overlapping_preloads_restore_the_interval_from_before_the_first(monkeypatch):
+    """Two runs in threads of one process, the second preload still loading when the first ends: the interval stays
+    short until the second is done, and then the one from before both is back."""
+    import sys
+    import threading
+
+    from surfelslam import api
+
+    inside = {name: threading.Event() for name in ("first", "second")}
+    release = {name: threading.Event() for name in ("first", "second")}
+
+    def held(name):
+        inside[name].set()
+        release[name].wait(10)
+
+    monkeypatch.setattr(api, "preload_figure_modules", held)
+    before = sys.getswitchinterval()
+    threads = {name: threading.Thread(target=api._preload_politely, args=(name,)) for name in inside}
+    for name in ("first", "second"):
+        threads[name].start()
+        inside[name].wait(10)
+    release["first"].set()
+    threads["first"].join(10)
+    assert sys.getswitchinterval() == api.PRELOAD_SWITCH_INTERVAL_S  # the second is still loading
+    release["second"].set()
+    threads["second"].join(10)
+    assert sys.getswitchinterval() == before == 0.005

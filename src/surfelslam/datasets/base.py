@@ -272,16 +272,16 @@ class RGBDSequence:
                 raise FrameError(
                     path, f"image is {shape[1]}x{shape[0]}, expected {full.width}x{full.height}", index=i
                 )
+        f = self.options.downsample
+        if f > 1:  # the kept pixels first: the conversion below is per pixel, so 1 / f^2 of it is done, same values
+            rgb = rgb[::f, ::f]
+            raw = raw[::f, ::f]
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # inf / NaN are made invalid just below
             depth_m = raw.astype(np.float32) / np.float32(self.depth_scale)
         invalid = ~np.isfinite(depth_m) | (depth_m <= 0)
         for bad in self.depth_invalid_raw:
             invalid |= raw == bad
         depth_m[invalid] = 0.0
-        f = self.options.downsample
-        if f > 1:
-            rgb = rgb[::f, ::f]
-            depth_m = depth_m[::f, ::f]
         return RGBDFrame(i, e.timestamp, np.ascontiguousarray(rgb), np.ascontiguousarray(depth_m), e.depth_timestamp,
                          self.seconds_per_stamp)
 

@@ -52,8 +52,16 @@ def intensity_pyramid(intensity: np.ndarray, levels: int, gradients: bool) -> In
     return pyr
 
 
+#: the mask passed to the one-pass kernel when there is none (it is not read then)
+_NO_MASK = np.ones((1, 1), np.bool_)
+
+
 def intensity_from_rgb(rgb: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """``(H, W, 3)`` uint8 -> ``(H, W)`` float32 intensity in [0, 1]; NaN where ``valid`` is False."""
+    if rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3 and (valid is None
+                                                                           or valid.shape == rgb.shape[:2]):
+        mask = _NO_MASK if valid is None else np.ascontiguousarray(valid, dtype=np.bool_)
+        return kph.intensity_from_rgb_u8(np.ascontiguousarray(rgb), mask, valid is not None)
     img = kph.intensity_from_rgb(rgb)
     if valid is not None:
         img[~valid] = np.nan
