@@ -270,6 +270,41 @@ def test_splat_fill_and_index_kernels_match_references():
     assert len(np.unique(ids)) == len(ids) > 1000
 
 
+def test_splat_early_outs_match_the_reference_far_from_the_origin():
+    """The splat's early outs (a back face found in the world frame, a pixel already nearer than the disc can be) only
+    skip what its exact tests reject: layered surfels, half of them facing away, 60 m from the world origin, drawn
+    exactly as the reference draws them."""
+    rng = np.random.default_rng(4)
+    n = 60000
+    offset = np.array([60.0, -45.0, 20.0])
+    m = SurfelMap(MapConfig(initial_capacity=8))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pos = rng.uniform([-2, -1.5, 0.5], [2, 1.5, 5], size=(n, 3)) + offset
+    m.append(pos, nrm, rng.uniform(0, 255, size=(n, 3)), 1.0, rng.uniform(0.005, 0.04, n), 0)
+    T = make_T(so3_exp([0.03, 0.02, -0.01]), offset)
+    Tcw = invert(T)
+    R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
+    cand = np.arange(n, dtype=np.int32)
+    a = m.raw()
+    H, W = CAM_NEG.shape
+    args = (cand, n, a["position"], a["normal"], a["radius"], a["confidence"], a["first_seen"], 0.0, 0,
+            R, t, CAM_NEG.fx, CAM_NEG.fy, CAM_NEG.cx, CAM_NEG.cy, 2.0, 0.1, 8.0, True)
+    p_cam = (a["position"][:n].astype(np.float64) - T[:3, 3]) @ T[:3, :3]
+    facing = np.einsum("ij,ij->i", a["normal"][:n].astype(np.float64) @ T[:3, :3], p_cam) < 0
+    assert 0.4 < facing.mean() < 0.6
+    for band_rel in (0.0, 0.02):
+        depth = np.full((H, W), np.inf)
+        index = np.full((H, W), -1, np.int32)
+        kr.splat_zbuffer(*args, band_rel, depth, index)
+        depth_r, index_r = kr.splat_zbuffer_ref(*args, band_rel, (H, W))
+        drawn = index[index >= 0]
+        assert (index >= 0).mean() > 0.8 and facing[drawn].all()
+        assert len(np.unique(drawn)) < 0.5 * facing.sum()  # most facing surfels are hidden by nearer ones
+        np.testing.assert_array_equal(index, index_r)
+        np.testing.assert_array_equal(depth, depth_r)
+
+
 def test_render_index_map_cell_of_known_surfel():
     m = SurfelMap()
     # one surfel exactly on the ray of pixel (u, v) = (10.3, 20.6) at 2 m

@@ -15,6 +15,9 @@ from numba import njit, prange
 from surfelslam.kernels.threads import dual_njit
 
 _GRAZING_COS = 1e-3  # |n . ray| below this: the splat plane is edge-on, only the centre pixel is drawn
+# Rounding slack (metres) of the splat's early outs, which only skip what its exact tests reject anyway: float64 dot
+# products of coordinates below 1 km are off by < 1e-12 m, so 1e-9 m leaves a 1000x margin
+_EARLY_OUT_SLACK_M = 1e-9
 
 
 # ---------------------------------------------------------------------------------------------------- culling
@@ -144,9 +147,18 @@ def _splat_pass(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_f
     afy = abs(fy)
     ifx = 1.0 / fx
     ify = 1.0 / fy
+    # the camera centre in the world frame: n . (p - c) is the camera-frame n . p without rotating anything, so a
+    # surfel facing away is dropped before its transform (the exact camera-frame test follows for the others)
+    c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])
+    c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
+    c2 = -(R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2])
+    ztest = band_rel == 0.0
     for k in range(m):
         i = cand[k]
         if conf[i] < min_conf and first_seen[i] < young_from_frame:
+            continue
+        if cull_back and (nrm[i, 0] * (pos[i, 0] - c0) + nrm[i, 1] * (pos[i, 1] - c1)
+                          + nrm[i, 2] * (pos[i, 2] - c2)) > _EARLY_OUT_SLACK_M:
             continue
         px = R[0, 0] * pos[i, 0] + R[0, 1] * pos[i, 1] + R[0, 2] * pos[i, 2] + t[0]
         py = R[1, 0] * pos[i, 0] + R[1, 1] * pos[i, 1] + R[1, 2] * pos[i, 2] + t[1]
@@ -177,9 +189,12 @@ def _splat_pass(cand, m, pos, nrm, rad, conf, first_seen, min_conf, young_from_f
         u1 = min(u1, W - 1)
         v1 = min(v1, H - 1)
         r2 = float(r) * float(r)
+        zlow = pz - r - _EARLY_OUT_SLACK_M  # every depth this disc draws is at least pz - r
         for pv in range(v0, v1 + 1):
             dy = (pv - cy) * ify
             for pu in range(u0, u1 + 1):
+                if ztest and depth_buf[pv, pu] <= zlow:  # already nearer: the z-test below cannot pass
+                    continue
                 dx = (pu - cx) * ifx
                 centre = pu == ui and pv == vi
                 nd = nx * dx + ny * dy + nz

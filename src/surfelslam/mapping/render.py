@@ -23,7 +23,10 @@ class RenderConfig(Config):
     """Rendering the surfel map into a camera (the ICP target)."""
 
     min_depth_m: float = setting(0.1, unit="m", gt=0, le=100, doc="nearer surfels are not drawn")
-    max_depth_m: float = setting(8.0, unit="m", gt=0, le=100, doc="farther surfels are not drawn")
+    max_depth_m: float = setting(8.0, unit="m", gt=0, le=100,
+                                 doc="farther surfels are not drawn; the tracking target stops sooner, where ICP "
+                                     "cannot associate: preprocess.max_depth_m + the coarsest icp.dist_thresh_m "
+                                     "+ 0.5 m")
     max_splat_radius_px: float = setting(2.0, unit="px", ge=0, le=50, doc="cap of a surfel's footprint radius on "
                                          "screen")
     min_confidence: float = setting(0.0, ge=0, le=1e6,

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -22,7 +23,7 @@ from concurrent.futures import Future
 import numpy as np
 
 from surfelslam.backend.sparse_slam import features_for_width
-from surfelslam.mapping.render import render
+from surfelslam.mapping.render import RenderConfig, render
 from surfelslam.mapping.surfel_map import SurfelMap
 from surfelslam.slam.config import SlamConfig
 from surfelslam.slam.frame import FrameResult, FrameStatus, PreparedFrame, StageTimer, prepared_for
@@ -41,6 +42,22 @@ from surfelslam.tracking.photometric import (
 )
 from surfelslam.tracking.preprocess import FramePyramid, level_for_width, pyramid_from_maps
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame
+
+#: metres beyond the source's reach + the coarsest ICP gate that the tracking target still draws: a correction of the
+#: prediction the tracker accepts (a few cm, some degrees) moves a source point's depth in the rendered view by up to
+#: ~0.3 m (6 deg at a 5 m image corner)
+TARGET_FAR_SLACK_M = 0.5
+
+
+def tracking_render_config(cfg: SlamConfig) -> RenderConfig:
+    """``cfg.render`` with its far limit cut to what ICP can associate: a model point farther than the source's
+    ``preprocess.max_depth_m`` plus the coarsest ``icp.dist_thresh_m`` (plus :data:`TARGET_FAR_SLACK_M`) lies beyond
+    every association gate from any source point on its ray. On a floor most of the frustum's surfels are farther
+    rooms; they cost render time and can only pull the photometric term to the wrong surface."""
+    reach = cfg.preprocess.max_depth_m + max(cfg.icp.dist_thresh_m) + TARGET_FAR_SLACK_M
+    if not cfg.render.min_depth_m < reach < cfg.render.max_depth_m:
+        return cfg.render
+    return dataclasses.replace(cfg.render, max_depth_m=reach)
 
 
 class DenseFrontEnd:
@@ -72,6 +89,7 @@ class DenseFrontEnd:
         self.state = TrackingState()
         self.motion = MotionModel(cfg.tracking, cfg.icp, self.state)
         self._localiser: MapLocaliser | None = None  # with a loaded map, until the first frame is localised
+        self.render_cfg = tracking_render_config(cfg)
 
     @property
     def map(self) -> SurfelMap:
@@ -139,7 +157,7 @@ class DenseFrontEnd:
         """The map rendered at ``T_world_cam`` at the tracking resolution, straight into the target pyramid's
         level 0 (geometry, and the intensity pyramid of the rendered colour when tracking photometrically)."""
         lvl0 = self.target[0]
-        view = render(self.map, T_world_cam, lvl0.intrinsics, self.cfg.render, vertex_out=lvl0.vertex,
+        view = render(self.map, T_world_cam, lvl0.intrinsics, self.render_cfg, vertex_out=lvl0.vertex,
                       normal_out=lvl0.normal, attributes=self.photometric)
         if self.photometric:
             self._tgt_intensity = intensity_pyramid(intensity_from_rgb(view.colour, view.valid), self.cfg.icp.levels,
