@@ -86,8 +86,9 @@ def test_hash_tables_hold_every_row_once_per_table() -> None:
     np.testing.assert_array_equal(keys[:, 0], unpacked[:, bits[0]] @ (1 << np.arange(9, -1, -1)))
     head = np.full((4, 1 << 10), hamming_hash.NO_ROW, np.int32)
     nxt = np.zeros((4, 500), np.int32)
-    hamming_hash.insert_rows(keys[:300], 0, head, nxt)
-    hamming_hash.insert_rows(keys[300:], 300, head, nxt)
+    count = np.zeros(head.shape, np.uint16)
+    hamming_hash.insert_rows(keys[:300], 0, head, nxt, count)
+    hamming_hash.insert_rows(keys[300:], 300, head, nxt, count)
     for t in range(4):
         rows = []
         for k in range(1 << 10):
@@ -98,6 +99,7 @@ def test_hash_tables_hold_every_row_once_per_table() -> None:
                 bucket.append(r)
                 r = nxt[t, r]
             assert bucket == sorted(bucket, reverse=True)  # newest first
+            assert count[t, k] == len(bucket)
             rows += bucket
         assert sorted(rows) == list(range(500))
 
@@ -124,20 +126,46 @@ def test_keys_gain_a_bit_per_doubling_and_still_find_the_planted_keyframe() -> N
     assert idx.query(q, 1)[0][0] == 30
 
 
-def test_bucket_bound_silences_descriptors_of_crowded_buckets() -> None:
-    rng = np.random.default_rng(6)
-    a = rng.integers(0, 256, (200, 32), dtype=np.uint8)
-    b = _noisy(a, 40, rng)  # a second keyframe of look-alikes, 40 bits away: some share a bucket with their twin
-    q = _noisy(a, 5, rng)
-    votes = {}
-    for bound in (0, 1):
-        idx = DescriptorIndex(replace(RetrievalConfig(), exact_below_descriptors=0, hash_bucket_rows=bound))
-        idx.add(a)
-        idx.add(b)
-        votes[bound] = dict(idx.query(q, 2)).get(0, 0)
-    assert votes[0] == 200  # 5 bits against 40: every descriptor passes the ratio test
-    # with at most one row per bucket, those sharing a bucket with their look-alike are silenced, the others vote
-    assert 20 < votes[1] < 180
+def _crowded_walk(n_kf: int, seed: int = 6) -> tuple[list[np.ndarray], np.ndarray]:
+    """``n_kf`` keyframes of 100 distinctive descriptors and 100 look-alikes of one common set (3 bits from it, in
+    every keyframe), and a query: keyframe 5's distinctive ones (5 bits off) with the common set."""
+    rng = np.random.default_rng(seed)
+    common = rng.integers(0, 256, (100, 32), dtype=np.uint8)
+    kfs = [np.concatenate([rng.integers(0, 256, (100, 32), dtype=np.uint8), _noisy(common, 3, rng)])
+           for _ in range(n_kf)]
+    return kfs, np.concatenate([_noisy(kfs[5][:100], 5, rng), common])
+
+
+def test_common_appearances_are_stop_words_and_bound_the_work() -> None:
+    work = {}
+    for bound in (0, 8):
+        for n_kf in (20, 80):
+            kfs, q = _crowded_walk(n_kf)
+            idx = DescriptorIndex(replace(HASHED, hash_bucket_rows=bound))
+            for d in kfs:
+                idx.add(d)
+            before = idx.rows_compared
+            top = idx.query(q, 2)
+            work[bound, n_kf] = idx.rows_compared - before
+            # keyframe 5's distinctive descriptors vote for it either way (the look-alikes fail the ratio test)
+            assert top[0][0] == 5 and top[0][1] >= 95
+    # without the bound the look-alikes of the common set are compared in most of the tables they share a key in (3 to
+    # 6 bits apart): the work grows with the map
+    assert work[0, 80] > 3 * work[0, 20] > 3 * 8 * 20 * 100
+    # with it the buckets of the common set (16 rows and more each) are left out before any row is
+    # compared: the work is that of the 100 distinctive ones (about their own look-alike each, compared once),
+    # whatever the map size
+    assert work[8, 20] <= 200 and work[8, 80] <= 200
+
+
+def test_stop_word_rows_are_counted_per_bucket() -> None:
+    kfs, q = _crowded_walk(30)
+    idx = DescriptorIndex(HASHED)
+    for d in kfs:
+        idx.add(d)
+    keys = idx._keys(np.concatenate(kfs))
+    for t in range(keys.shape[1]):
+        np.testing.assert_array_equal(idx._count[t], np.bincount(keys[:, t], minlength=idx._count.shape[1]))
 
 
 def test_the_exact_search_over_the_word_major_copy_equals_the_reference() -> None:

@@ -11,7 +11,14 @@ beyond that in a locality-sensitive hash index that every descriptor enters
 when it is added (bit sampling, :mod:`surfelslam.kernels.hamming_hash`): a query then compares each descriptor with
 the few rows that share one of its hash keys instead of every keyframe's, and the keys gain a bit each time the
 database doubles (the tables are rebuilt, O(1) per row on average), so its cost stays nearly flat as a floor-sized
-map gathers thousands of keyframes (``benchmarks/bench_retrieval.py`` measures it). The hashed search
+map gathers thousands of keyframes (``benchmarks/bench_retrieval.py`` measures it). That holds for descriptors spread
+over the space; real ones crowd: on a floor walk with revisits a fifth of a query's descriptors share their buckets
+with thousands of rows (common appearances, and their count grows with the map), and they were 3/4 of the rows
+compared for 2 % of the votes; the rows compared per query descriptor grow from 250 to 2500 over a floor's 1662
+keyframes. Each bucket counts its rows, and with ``hash_bucket_rows`` one of more rows is a stop word, left out before
+any of its rows is compared (the descriptor's other buckets are searched): a query then compares at most
+``hash_tables`` times that many rows per descriptor (:attr:`DescriptorIndex.rows_compared` counts them). It is off by
+default: the floor walks' loop candidates change with it, and one of them lost its track. The hashed search
 finds a close nearest neighbour with a high probability and may miss the second-nearest (the ratio test is then
 looser); the bit positions are drawn from a fixed seed, so results are deterministic. A library index was weighed:
 OpenCV's FLANN LSH cannot append rows without rebuilding and draws its tables from the C library's global random
@@ -37,8 +44,8 @@ _HASH_SEED = 0  # seed of the hash tables' bit positions (fixed: retrieval is de
 # the bits keys are drawn from: the half whose share of ones is nearest 1/2 (ORB bits are unbalanced; on a floor walk
 # the balanced half gave 5x smaller buckets than all 256 bits, at 3% lower recall of the voting neighbours)
 _BALANCED_BITS = 128
-# the key grows by one bit per doubling of the database up to this: the bucket heads take tables x 2 ** bits x 4 bytes
-# (64 MB for 16 tables at 20 bits)
+# the key grows by one bit per doubling of the database up to this: the bucket heads and counts take tables x 2 ** bits
+# x 6 bytes (96 MB for 16 tables at 20 bits)
 _MAX_KEY_BITS = 20
 
 
@@ -58,11 +65,14 @@ class RetrievalConfig(Config):
         doc="queries over a database smaller than this are brute force (exact); larger ones use the hash index")
     hash_tables: int = setting(16, unit="tables", ge=1, le=64,
                                doc="hash tables of the index (more: higher recall, slower queries)")
+    # 256 on the 5000-frame floor walks: rows compared per query descriptor over the last 160 keyframes 2500 -> 430
+    # (250 over the first 250), retrieval 13.8 -> 4.7 ms per frame over the last 500 frames, 97.5 % of the retrieved
+    # keyframes kept; floor3 1.81 -> 1.83 cm, but floor0 1.79 cm -> 2.9 m with 7 lost segments: not the default
     hash_bucket_rows: int = setting(
-        0, unit="rows", ge=0, le=1 << 30,
-        doc="a query descriptor with a hash bucket of more rows than this is a common appearance and casts no vote "
-            "(a stop word): bounds a query's cost whatever the map size (0: no bound; 64 lost 3/4 of the retrieved "
-            "keyframes on the synthetic floor)")
+        0, unit="rows", ge=0, le=hamming_hash.COUNT_MAX - 1,  # the buckets' counts saturate at COUNT_MAX
+        doc="a hash bucket of more rows than this is a common appearance (a stop word): it is not searched, the query "
+            "descriptor's other buckets are, so a query compares at most hash_tables x this rows per descriptor "
+            "whatever the map size (0: no bound)")
     hash_key_bits: int = setting(
         16, unit="bits", ge=1, le=_MAX_KEY_BITS,
         doc="sampled bits per hash key when the index starts; one more each time the database doubles (up to 20), so "
@@ -104,6 +114,8 @@ class DescriptorIndex:
         self._rebuild_at = 0  # rows at which the tables are rebuilt with one more key bit
         self._head = np.zeros((0, 0), np.int32)  # (tables, 2 ** key bits) newest row of each bucket
         self._next = np.zeros((0, 0), np.int32)  # (tables, capacity) the next (older) row of each row's bucket
+        self._count = np.zeros((0, 0), np.uint16)  # (tables, 2 ** key bits) rows of each bucket (saturating)
+        self._compared = np.zeros(1, np.int64)  # rows compared by the hashed queries so far
 
     @property
     def n_keyframes(self) -> int:
@@ -136,7 +148,7 @@ class DescriptorIndex:
         if self._columns is not None:
             self._columns[:, self._n : need] = hamming.as_words(d).T
         if self.hashed:
-            hamming_hash.insert_rows(self._keys(d), self._n, self._head, self._next)
+            hamming_hash.insert_rows(self._keys(d), self._n, self._head, self._next, self._count)
         self._n = need
         self._kf_end.append(need)
         if not self.hashed and need >= self.cfg.exact_below_descriptors:
@@ -144,6 +156,11 @@ class DescriptorIndex:
         elif self.hashed and need >= self._rebuild_at:
             self._build_tables(self.key_bits + 1)
         return kf
+
+    @property
+    def rows_compared(self) -> int:
+        """Rows the hashed queries have compared so far (their work; brute-force queries are not counted)."""
+        return int(self._compared[0])
 
     @property
     def key_bits(self) -> int:
@@ -158,7 +175,8 @@ class DescriptorIndex:
         self._bits = hash_bit_positions(self._desc[: self._n], cfg.hash_tables, key_bits)
         self._head = np.full((cfg.hash_tables, 1 << key_bits), hamming_hash.NO_ROW, np.int32)
         self._next = np.zeros((cfg.hash_tables, len(self._desc)), np.int32)
-        hamming_hash.insert_rows(self._keys(self._desc[: self._n]), 0, self._head, self._next)
+        self._count = np.zeros(self._head.shape, np.uint16)
+        hamming_hash.insert_rows(self._keys(self._desc[: self._n]), 0, self._head, self._next, self._count)
         self._rebuild_at = 2 * max(self._n, 1) if key_bits < _MAX_KEY_BITS else np.iinfo(np.int64).max
 
     def query(self, descriptors: np.ndarray, n_results: int, before_kf: int | None = None) -> list[tuple[int, int]]:
@@ -202,7 +220,8 @@ class DescriptorIndex:
         n = len(words)
         best_d, second_d, best_idx = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
         hamming_hash.nearest_two_hashed(words, self._keys(descriptors), hamming.as_words(self._desc), self._head,
-                                        self._next, end, self.cfg.hash_bucket_rows, best_d, second_d, best_idx)
+                                        self._next, self._count, end, self.cfg.hash_bucket_rows, best_d, second_d,
+                                        best_idx, self._compared)
         return best_d, second_d, best_idx
 
 
