@@ -18,7 +18,7 @@ compared for 2 % of the votes; the rows compared per query descriptor grow from 
 keyframes. Each bucket counts its rows, and with ``hash_bucket_rows`` one of more rows is a stop word, left out before
 any of its rows is compared (the descriptor's other buckets are searched): a query then compares at most
 ``hash_tables`` times that many rows per descriptor (:attr:`DescriptorIndex.rows_compared` counts them). It is off by
-default: the floor walks' loop candidates change with it, and one of them lost its track. The hashed search
+default: it changes which loop candidates a floor walk finds. The hashed search
 finds a close nearest neighbour with a high probability and may miss the second-nearest (the ratio test is then
 looser); the bit positions are drawn from a fixed seed, so results are deterministic. A library index was weighed:
 OpenCV's FLANN LSH cannot append rows without rebuilding and draws its tables from the C library's global random
