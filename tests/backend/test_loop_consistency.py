@@ -228,3 +228,31 @@ def test_path_variance_is_the_step_by_step_sum_and_gate_distances_keep_the_newes
     gated = _graph(gt, LoopConsistencyConfig())
     assert gated.apply_loop_checks(n - 1, [_check(0, invert(gt[0]) @ gt[n - 1]), *_wrong_edges(gt)], 30) == 1
     assert [d2 > gated.gate_threshold for _, _, d2 in gated.gate_d2] == [True, True]  # the last two of four
+
+
+def test_paths_inside_and_across_runs_of_the_chain_are_the_tree_walk():
+    """A path within one run of keyframes that each hang from the one before is a range of ids (no walk); across a
+    branch (a keyframe tracked against an older one), a second root or an unknown step, it is the tree walk's."""
+    chain = OdometryChain(LoopConsistencyConfig())
+    step = make_T(np.eye(3), [0.1, 0, 0])
+    parents = [None, 0, 1, 2, 3, 1, 5, 6, None, 8, 9, 7, 11]  # branches at 5 and 11, a second root at 8
+    for k, p in enumerate(parents):
+        chain.add(np.eye(4) if p is None else chain.poses[p] @ step, p, None if p is None else step)
+    assert chain.path(1, 4) == [4, 3, 2] and chain.path(4, 1) == [4, 3, 2]
+    assert chain.path(4, 6) == [6, 5, 4, 3, 2] and chain.path(3, 12) == [12, 11, 7, 6, 5, 3, 2]
+    assert chain.path(2, 9) is None and chain.path(8, 10) == [10, 9]
+
+    def walk(a, b):  # up the tree from both ends, the newer first
+        out = []
+        while a != b:
+            if a < 0 or b < 0:
+                return None
+            out.append(max(a, b))
+            a, b = (chain.parent(a), b) if a > b else (a, chain.parent(b))
+        return out
+
+    for i in range(len(parents)):
+        for j in range(len(parents)):
+            assert chain.path(i, j) == walk(i, j)
+    chain.mark_unknown(6)
+    assert chain.path(5, 7) is None and chain.path(6, 7) == [7] and chain.path(2, 12) is None

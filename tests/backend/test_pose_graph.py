@@ -92,6 +92,28 @@ def test_incremental_graph_matches_batch() -> None:
         g.add_edge(PoseEdge(0, 99, np.eye(4)))
 
 
+def test_last_errors_stay_those_of_the_last_optimisation_when_estimates_change_after_it() -> None:
+    """The errors before/after the last optimisation are kept without copying the estimates: a later set_pose (which
+    moves an estimate far off) or add_node does not change them, and the next optimisation starts from the moved
+    estimate."""
+    gt = _square_loop(n_side=3)
+    init, edges = _drifted_odometry(gt, seed=4)
+    g = PoseGraph()
+    for T in init:
+        g.add_node(T)
+    for e in edges + [PoseEdge(len(gt) - 1, 0, invert(gt[-1]) @ gt[0], "loop")]:
+        g.add_edge(e)
+    g.optimise()
+    before, after = g.last_error_before, g.last_error_after
+    assert after < before
+    g.set_pose(3, init[3] @ make_T(np.eye(3), [1.0, 0, 0]))
+    g.add_node(init[-1])
+    assert (g.last_error_before, g.last_error_after) == (before, after)
+    g.add_edge(PoseEdge(len(gt) - 1, len(gt), np.eye(4)))
+    g.optimise()
+    assert g.last_error_before > after + 1.0  # started from the moved keyframe (1 m off, sigma 0.1)
+
+
 def test_estimated_information_weighs_each_axis_by_its_own_certainty() -> None:
     """Two conflicting measurements of node 1: the optimum is their information-weighted mean, per axis
     (translation-only disagreement, diagonal information: exact); the isotropic mode takes the plain mean."""

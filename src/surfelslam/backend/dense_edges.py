@@ -232,21 +232,19 @@ class DenseEdgeRefiner:
             return None
         return float(np.median(np.fromiter(self._spread, float))) / _MAD_TO_SIGMA
 
-    def loop_residual_spread(self, T_ij: np.ndarray, i: np.ndarray, j: np.ndarray,
-                             poses_world_kf: np.ndarray) -> tuple[float, float] | None:
+    def loop_residual_spread(self, T_ij: np.ndarray, i: np.ndarray, j: np.ndarray, poses_world_kf: np.ndarray,
+                             residuals: LoopResiduals | None = None) -> tuple[float, float] | None:
         """Robust spreads ``(rad, m)`` of the rotation and translation residuals of the refined loop edges, stacked
         as :meth:`PoseGraph.loop_edges` keeps them (``T_i_j`` ``(L, 4, 4)``, ``i`` and ``j`` ``(L,)``), at the poses
-        ``(K, 4, 4)`` their graph was optimised to; ``None`` with fewer than ``min_spread_edges`` of them."""
+        ``(K, 4, 4)`` their graph was optimised to; ``None`` with fewer than ``min_spread_edges`` of them.
+        ``residuals``: the same edges' residuals kept from the previous call (:class:`LoopResiduals`: only the edges
+        that are new or whose keyframes moved are recomputed; the same result)."""
         if len(T_ij) < self.cfg.min_spread_edges:
             return None
-        P = np.asarray(poses_world_kf, np.float64)
-        # each residual T_i_j^-1 T_world_i^-1 T_world_j, as one batch: rotation (K, 3) and translation (K, 3)
-        Rt_ij = np.swapaxes(T_ij[:, :3, :3], 1, 2)
-        Rt_i = np.swapaxes(P[i, :3, :3], 1, 2)
-        rot = se3.so3_log(Rt_ij @ Rt_i @ P[j, :3, :3])
-        t_rel = np.einsum("kab,kb->ka", Rt_i, P[j, :3, 3] - P[i, :3, 3])
-        trans = np.einsum("kab,kb->ka", Rt_ij, t_rel - T_ij[:, :3, 3])
-        return (float(np.median(np.abs(rot))) / _MAD_TO_SIGMA, float(np.median(np.abs(trans))) / _MAD_TO_SIGMA)
+        if residuals is None:
+            residuals = LoopResiduals()
+        r = residuals.update(T_ij, i, j, poses_world_kf)
+        return (float(np.median(r[:, :3])) / _MAD_TO_SIGMA, float(np.median(r[:, 3:])) / _MAD_TO_SIGMA)
 
     def trusted(self, spread: tuple[float, float] | None) -> bool:
         """Whether refined edges whose graph leaves the residual ``spread`` ``(rad, m)`` (:meth:`loop_residual_spread`)
@@ -360,3 +358,43 @@ class DenseEdgeRefiner:
         spread = reprojection_spread_px(se3.transform_points(T_cur_ref, pts), uv, self._intr)
         return ReprojectionTerm(pts, uv, self._intr, max(c.feature_sigma_px, spread), c.feature_huber,
                                 c.feature_weight * self._icp_cfg.finest_robust_scale_m ** 2)
+
+
+def loop_residuals(T_ij: np.ndarray, i: np.ndarray, j: np.ndarray, poses_world_kf: np.ndarray) -> np.ndarray:
+    """``(L, 6)`` absolute rotation (rad) and translation (m) residuals ``T_i_j^-1 T_world_i^-1 T_world_j`` of the
+    edges ``T_i_j`` ``(L, 4, 4)`` between keyframes ``i`` and ``j`` ``(L,)`` at the poses ``(K, 4, 4)``, as one
+    batch (each row depends on its own edge alone)."""
+    P = np.asarray(poses_world_kf, np.float64)
+    Rt_ij = np.swapaxes(T_ij[:, :3, :3], 1, 2)
+    Rt_i = np.swapaxes(P[i, :3, :3], 1, 2)
+    rot = se3.so3_log(Rt_ij @ Rt_i @ P[j, :3, :3])
+    t_rel = np.einsum("kab,kb->ka", Rt_i, P[j, :3, 3] - P[i, :3, 3])
+    trans = np.einsum("kab,kb->ka", Rt_ij, t_rel - T_ij[:, :3, 3])
+    return np.abs(np.concatenate([rot, trans], axis=1))
+
+
+class LoopResiduals:
+    """The :func:`loop_residuals` of a list of edges that only grows (each edge's ``T_i_j``, ``i`` and ``j`` fixed
+    once added), kept between calls: a call recomputes only the new edges and those with a keyframe whose pose is
+    not bit-for-bit the one of the previous call, so a graph optimisation that moved a few keyframes costs what it
+    moved (the result equals a full recomputation)."""
+
+    def __init__(self) -> None:
+        self._res = np.zeros((0, 6))  # (L, 6) per edge, at self._poses
+        self._poses = np.zeros((0, 4, 4))  # the poses of the last call
+
+    def update(self, T_ij: np.ndarray, i: np.ndarray, j: np.ndarray, poses_world_kf: np.ndarray) -> np.ndarray:
+        """``(L, 6)`` residuals of the edges (the previous call's followed by new ones) at ``poses_world_kf``."""
+        P = np.asarray(poses_world_kf, np.float64)
+        n_old, k_old = len(self._res), min(len(self._poses), len(P))
+        moved = np.ones(len(P), bool)
+        moved[:k_old] = np.any(P[:k_old] != self._poses[:k_old], axis=(1, 2))
+        redo = np.flatnonzero(moved[i[:n_old]] | moved[j[:n_old]])
+        res = np.empty((len(T_ij), 6))
+        res[:n_old] = self._res
+        if len(redo):
+            res[redo] = loop_residuals(T_ij[redo], i[redo], j[redo], P)
+        if len(T_ij) > n_old:
+            res[n_old:] = loop_residuals(T_ij[n_old:], i[n_old:], j[n_old:], P)
+        self._res, self._poses = res, P.copy()
+        return res

@@ -59,6 +59,9 @@ class OdometryChain:
         self.threshold = chi2_quantile_6dof(cfg.quantile)
         self._poses = PoseArray()  # T_world_kf from odometry alone
         self._parent: list[int] = []  # -1: a root (the first keyframe, or one placed without odometry)
+        # per keyframe: the first of the run of keyframes that each hang from the one before, ending at it (a path
+        # inside one run is a range of ids, found without walking the tree)
+        self._run_start: list[int] = []
         # per keyframe: (6,) drift variance of the step from the parent, (omega, v), and its sum
         self._step_var = GrowingRows((6,))
         self._step_trace = GrowingRows()
@@ -78,6 +81,7 @@ class OdometryChain:
         if parent is None or T_parent_kf is None:
             self._poses.append(np.asarray(T_world_kf, np.float64))
             self._parent.append(-1)
+            self._run_start.append(len(self._parent) - 1)
             self._append_step(np.zeros(6))
             return
         T = np.asarray(T_parent_kf, np.float64)
@@ -87,6 +91,8 @@ class OdometryChain:
         var_t = c.drift_m_per_sqrt_m ** 2 * dist_m
         self._poses.append(self.poses[parent] @ T)
         self._parent.append(parent)
+        k = len(self._parent) - 1
+        self._run_start.append(self._run_start[parent] if parent == k - 1 else k)
         self._append_step(np.array([var_rot] * 3 + [var_t] * 3))
 
     def _append_step(self, var: np.ndarray) -> None:
@@ -125,7 +131,18 @@ class OdometryChain:
 
     def path(self, i: int, j: int) -> list[int] | None:
         """Keyframes whose odometry step lies on the chain between ``i`` and ``j`` (``None``: not connected, or across
-        an unknown step)."""
+        an unknown step), newest first."""
+        lo, hi = min(i, j), max(i, j)
+        if self._run_start[hi] <= lo:  # one run: the steps into lo + 1 .. hi
+            out = list(range(hi, lo, -1))
+        else:
+            out = self._walk(i, j)
+            if out is None:
+                return None
+        return None if not self._unknown.isdisjoint(out) else out
+
+    def _walk(self, i: int, j: int) -> list[int] | None:
+        """:meth:`path` by walking up the tree from both ends (unknown steps not checked)."""
         a, b, out = i, j, []
         while a != b:
             if a < 0 or b < 0:
@@ -136,7 +153,7 @@ class OdometryChain:
             else:
                 out.append(b)
                 b = self._parent[b]
-        return None if any(k in self._unknown for k in out) else out
+        return out
 
     def relative(self, i: int, j: int) -> np.ndarray:
         """``T_i_j`` ``(4, 4)`` from the odometry alone."""

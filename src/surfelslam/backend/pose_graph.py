@@ -200,6 +200,8 @@ class PoseGraph:
 
     def set_pose(self, k: int, T_world_kf: np.ndarray) -> None:
         """Overwrite node ``k``'s current estimate (e.g. an initial guess)."""
+        if self._last[2] is self._values:  # the last optimisation's result keeps its estimate
+            self._last = (self._last[0], self._last[1], gtsam.Values(self._values))
         self._values.update(k, _pose3(T_world_kf))
         if self._new_values.exists(k):
             self._new_values.update(k, _pose3(T_world_kf))
@@ -212,7 +214,9 @@ class PoseGraph:
         ``(K, 4, 4)``."""
         if self._n == 0:
             return np.zeros((0, 4, 4))
-        before = gtsam.Values(self._values)
+        # the estimate the solve starts from: the solvers copy it and self._values is replaced by their result, so the
+        # object itself stays as it was (no O(K) copy per optimisation)
+        before = self._values
         if self.cfg.solver == "batch" or full:
             self._values = self._batch_solve()
             self._isam = None  # isam2: its linearisation point is stale, rebuilt at the next optimisation
@@ -225,7 +229,9 @@ class PoseGraph:
                 self._values = self._batch_solve()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self._last = (self._graph.size(), before, gtsam.Values(self._values))
+        # the result is self._values itself until set_pose changes an estimate (it copies it first; add_node only
+        # inserts new ones, which the last optimisation's factors do not read)
+        self._last = (self._graph.size(), before, self._values)
         return self.poses()
 
     def _batch_solve(self) -> gtsam.Values:

@@ -77,7 +77,7 @@ class KeyframeAnchors:
 
     def correction(self, k: int) -> np.ndarray:
         """``C_k = T_kf_graph inv(T_kf_dense)``: maps dense-frame poses near keyframe ``k`` into the graph frame."""
-        return self.sparse.keyframe_poses()[k] @ se3.invert(self.kf_dense.poses[k])
+        return self.sparse.keyframe_pose(k) @ se3.invert(self.kf_dense.poses[k])
 
     def corrections(self, kf_new: np.ndarray) -> np.ndarray:
         """``(K, 4, 4)`` each keyframe's correction ``T_new inv(T_dense)`` for the graph poses ``kf_new``."""

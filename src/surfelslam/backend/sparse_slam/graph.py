@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from surfelslam.backend.dense_edges import DenseEdgeRefiner, RefinedEdge
+from surfelslam.backend.dense_edges import DenseEdgeRefiner, LoopResiduals, RefinedEdge
 from surfelslam.backend.edge_graph_gate import EdgeGraph
 from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
@@ -49,6 +49,7 @@ class KeyframeGraph:
         self._refined_robust_scale = refined_robust_scale
         self._graph = PoseGraph(cfg)
         self._graph_refined = None if refiner is None else PoseGraph(cfg)
+        self._loop_residuals = LoopResiduals()  # the refined loop edges' residuals, kept between optimisations
         self._pose_buf = PoseArray()  # current estimates T_world_kf
         # T_world_kf chained from odometry edges alone (never optimised), and the gate against it
         self._chain = OdometryChain(consistency or LoopConsistencyConfig())
@@ -246,7 +247,7 @@ class KeyframeGraph:
             self.poses[:] = self._graph.optimise(full)
             return
         poses = self._graph_refined.optimise(full)
-        spread = self._refiner.loop_residual_spread(*self._graph_refined.loop_edges(), poses)
+        spread = self._refiner.loop_residual_spread(*self._graph_refined.loop_edges(), poses, self._loop_residuals)
         self.refined_residual_rad, self.refined_residual_m = (None, None) if spread is None else spread
         self.refined_trusted = self._refiner.trusted(spread)
         self.poses[:] = poses if self.refined_trusted else self._graph.optimise(full)

@@ -149,6 +149,10 @@ class SparseSlam:
         """Current (optimised) keyframe poses ``T_world_kf`` ``(K, 4, 4)``; ids = keyframe ids."""
         return self._kf_poses.copy()
 
+    def keyframe_pose(self, k: int) -> np.ndarray:
+        """Keyframe ``k``'s current pose ``T_world_kf`` ``(4, 4)``, a copy of it alone (not of every pose)."""
+        return self._kf_poses[k].copy()
+
     def keyframe_frame_indices(self) -> np.ndarray:
         """``(K,)`` frame index of each keyframe."""
         return np.array([k.frame_index for k in self._kfs], dtype=np.int64)
