@@ -80,6 +80,47 @@ def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, u
         visible_out[b] = vis
 
 
+@njit(cache=True, nogil=True)
+def lod_strides(visible, nb, block_ijk, count, block_size, R, t, fx, fy, per_px, max_stride):
+    """Level of detail: for each visible block ``b < nb`` (``visible[b] != 0``), the stride at which its surfels are
+    drawn, written into ``visible[b]`` (1: all of them, ``k``: one of each ``k`` of its grouped surfels, see
+    :func:`surfelslam.kernels.surfels.gather_candidates`).
+
+    A block holding ``count[b]`` surfels whose face covers ``A = (block_size |fx| / z) (block_size |fy| / z)`` pixels
+    at the camera depth ``z`` of its centre puts about ``count[b] / A`` surfels on each of them (far blocks of a floor:
+    several, of which the z-buffer keeps one). The stride is ``floor(count[b] / (A per_px))``, within
+    ``[1, max_stride]``. Blocks whose centre lies within ``block_size`` of the camera plane keep stride 1.
+
+    Args:
+        visible: uint8 ``(>= nb,)`` from :func:`cull_blocks`, modified in place.
+        count: int32 ``(>= nb,)`` surfels grouped in each block.
+        R, t: float64 world-to-camera rotation and translation.
+        per_px: surfels per pixel kept (> 0).
+    """
+    half = 0.5 * block_size
+    area_z2 = block_size * block_size * abs(fx) * abs(fy)  # the face's pixel area times z^2
+    for b in range(nb):
+        if visible[b] == 0:
+            continue
+        mx = block_ijk[b, 0] * block_size + half
+        my = block_ijk[b, 1] * block_size + half
+        mz = block_ijk[b, 2] * block_size + half
+        z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
+        if z <= block_size:
+            continue
+        k = count[b] * z * z / (area_z2 * per_px)
+        visible[b] = int(min(max(k, 1.0), max_stride))
+
+
+def lod_strides_ref(visible, nb, block_ijk, count, block_size, R, t, fx, fy, per_px, max_stride):
+    """Numpy reference of :func:`lod_strides`; returns the new ``visible[:nb]``."""
+    centre = block_ijk[:nb].astype(np.float64) * block_size + 0.5 * block_size
+    z = R[2, 0] * centre[:, 0] + R[2, 1] * centre[:, 1] + R[2, 2] * centre[:, 2] + t[2]
+    k = count[:nb] * z * z / (block_size * block_size * abs(fx) * abs(fy) * per_px)
+    stride = np.minimum(np.maximum(k, 1.0), max_stride).astype(np.uint8)
+    return np.where((visible[:nb] != 0) & (z > block_size), stride, visible[:nb]).astype(np.uint8)
+
+
 def frustum_reach(fx, fy, cx, cy, umin, umax, vmin, vmax, far):
     """Distance (metres) from the camera centre of the farthest point of the frustum (image rectangle ``[umin, umax]
     x [vmin, vmax]`` pixels, depth up to ``far``): a far-plane corner's."""

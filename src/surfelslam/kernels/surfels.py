@@ -8,6 +8,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+# level-of-detail offsets (gather_candidates): a 31-bit linear congruential generator with glibc's constants; its low
+# bits have short periods, so an offset is drawn from bits 8 and up
+_LCG_MUL = 1103515245
+_LCG_ADD = 12345
+_LCG_MASK = (1 << 31) - 1
+_LCG_SHIFT = 8
+
 
 @njit(cache=True, nogil=True)
 def compact_rows(position, normal, colour, confidence, radius, first_seen, last_seen, hits, block_id, dead, size):
@@ -90,7 +97,11 @@ def gather_candidates(visible, order, start, count, n_blocks_sorted, block_id, n
     """Surfel indices that may be in view: those of visible blocks (grouped part) + the visible tail.
 
     Args:
-        visible: uint8 ``(n_blocks,)`` 1 where the block's box meets the view frustum.
+        visible: uint8 ``(n_blocks,)`` 0 where the block's box misses the view frustum, else the stride at which its
+            grouped surfels are taken (1: all; ``k``: one of each run of ``k`` in the block's order, at a
+            pseudo-random offset drawn per run from a generator seeded with the block's number, so that a block whose
+            surfels were fused in raster order is not thinned in stripes; see
+            :func:`surfelslam.kernels.render.lod_strides`). The tail is taken whole.
         order, start, count: the grouping of surfels ``0..n_sorted-1`` (see :func:`group_by_block`), covering
             blocks ``0..n_blocks_sorted-1``.
         block_id: int32 ``(>= size,)``; used for the ungrouped tail ``n_sorted..size-1``.
@@ -102,13 +113,23 @@ def gather_candidates(visible, order, start, count, n_blocks_sorted, block_id, n
     """
     m = 0
     for b in range(n_blocks_sorted):
-        if visible[b]:
-            s = start[b]
-            for k in range(s, s + count[b]):
-                i = order[k]
-                if not dead[i]:
-                    out[m] = i
-                    m += 1
+        st = visible[b]
+        if st == 0:
+            continue
+        s = start[b]
+        e = s + count[b]
+        h = b  # offsets seeded by the block's number: deterministic, and neighbouring blocks draw different ones
+        for k0 in range(s, e, st):
+            k = k0
+            if st > 1:
+                h = (h * _LCG_MUL + _LCG_ADD) & _LCG_MASK
+                k = k0 + (h >> _LCG_SHIFT) % st
+                if k >= e:
+                    continue
+            i = order[k]
+            if not dead[i]:
+                out[m] = i
+                m += 1
     for i in range(n_sorted, size):
         if visible[block_id[i]] and not dead[i]:
             out[m] = i
@@ -120,7 +141,16 @@ def gather_candidates_ref(visible, order, start, count, n_blocks_sorted, block_i
     """Numpy reference of :func:`gather_candidates` (returns the array)."""
     parts = []
     for b in np.flatnonzero(visible[:n_blocks_sorted]):
-        parts.append(order[start[b] : start[b] + count[b]])
+        st, s, e = int(visible[b]), int(start[b]), int(start[b] + count[b])
+        k = np.arange(s, e, st)
+        if st > 1:
+            h, off = int(b), []
+            for _ in k:
+                h = (h * _LCG_MUL + _LCG_ADD) & _LCG_MASK
+                off.append((h >> _LCG_SHIFT) % st)
+            k = k + np.array(off, np.int64)
+            k = k[k < e]
+        parts.append(order[k])
     grouped = np.concatenate(parts) if parts else np.zeros(0, np.int32)
     grouped = grouped[dead[grouped] == 0]
     tail = np.arange(n_sorted, size)

@@ -40,6 +40,10 @@ class RenderConfig(Config):
                                     doc="discs within this fraction of the nearest one's depth at a pixel compete by "
                                         "confidence, the most confident is drawn; 0 (default): the nearest. "
                                         "Experimental: better on noisy orbits, worse on textured planes")
+    lod_surfels_per_px: float = setting(
+        2.0, unit="surfels/px", ge=0, le=1000,
+        doc="level of detail: a block of the map whose surfels would crowd more than this many onto each pixel of "
+            "its face on screen (far blocks of a floor) draws one of each k of them, k = crowding / this; 0 draws all")
     vertex: str = setting("centre", choices=("centre", "disc"),
                           doc="a pixel's point: the winning surfel's centre, or its disc point on the pixel ray")
 
@@ -114,7 +118,8 @@ def render(
     Each surfel covers the pixels whose rays meet its disc (footprint radius capped at
     ``cfg.max_splat_radius_px``; the nearest pixel of its centre is always covered); the nearest
     intersection wins, or the most confident within ``cfg.front_band_rel`` of its depth. Returns
-    camera-frame vertex and normal maps (see :class:`RenderedView`).
+    camera-frame vertex and normal maps (see :class:`RenderedView`). Blocks of the map that crowd more than
+    ``cfg.lod_surfels_per_px`` surfels onto each pixel of their face draw only a share of them (level of detail).
 
     ``vertex_out`` / ``normal_out``: optional float32 ``(H, W, 3)`` buffers to write the vertex / normal maps
     into (e.g. level 0 of an ICP target pyramid, which :func:`~surfelslam.tracking.preprocess.pyramid_from_maps`
@@ -125,7 +130,7 @@ def render(
     H, W = intr.height, intr.width
     R, t = _world_to_cam(T_world_cam)
     cand = smap.visible_candidates(T_world_cam, intr, cfg.min_depth_m, cfg.max_depth_m,
-                                   margin_px=cfg.max_splat_radius_px)
+                                   margin_px=cfg.max_splat_radius_px, lod_surfels_per_px=cfg.lod_surfels_per_px)
     depth = smap.scratch("render_depth", H * W, np.float64).reshape(H, W)
     depth.fill(np.inf)
     index = np.full((H, W), -1, np.int32)

@@ -52,6 +52,7 @@ _KEY_BITS = 21
 # it (geometric: O(1) moves per row; below, only the new rows are regrouped, among themselves)
 _FULL_REORDER_GROWTH = 0.25
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
+_LOD_MAX_STRIDE = 255  # a block's level-of-detail stride is kept in its uint8 visibility flag
 
 
 @dataclass(frozen=True)
@@ -401,7 +402,7 @@ class SurfelMap:
 
     def visible_candidates(
         self, T_world_cam: np.ndarray, intr: Intrinsics, min_depth_m: float, max_depth_m: float,
-        margin_px: float = 0.0,
+        margin_px: float = 0.0, lod_surfels_per_px: float = 0.0,
     ) -> np.ndarray:
         """Indices of live surfels whose block's box meets the view frustum (a superset of what is seen).
 
@@ -410,6 +411,10 @@ class SurfelMap:
             intr: intrinsics of the view.
             min_depth_m, max_depth_m: depth range of the frustum (camera z).
             margin_px: the image rectangle is grown by this many pixels (for splats crossing the border).
+            lod_surfels_per_px: > 0: level of detail, a block whose surfels crowd more than this many onto each
+                pixel of its face gives only one of each ``k`` of them (:func:`~surfelslam.kernels.render.lod_strides`,
+                :func:`~surfelslam.kernels.surfels.gather_candidates`; no longer a superset of what is seen: for a
+                z-buffer, not for fusion). 0: every surfel.
 
         Returns:
             ``(M,)`` int32 view into an internal buffer (valid until the next call).
@@ -428,6 +433,11 @@ class SurfelMap:
             *camera, *image, float(min_depth_m), float(max_depth_m),
             kr.frustum_reach(*camera, *image, float(max_depth_m)), self._visible,
         )
+        if lod_surfels_per_px > 0:
+            kr.lod_strides(self._visible, self._n_blocks_grouped, self._block_ijk, self._block_count,
+                           self.cfg.block_size_m, np.ascontiguousarray(T_cam_world[:3, :3]),
+                           np.ascontiguousarray(T_cam_world[:3, 3]), camera[0], camera[1], float(lod_surfels_per_px),
+                           _LOD_MAX_STRIDE)
         m = ks.gather_candidates(
             self._visible, self._order, self._block_start, self._block_count, self._n_blocks_grouped,
             self._block_id, self._n_grouped, self._size, self._dead, self._cand,
