@@ -236,7 +236,7 @@ def test_paths_inside_and_across_runs_of_the_chain_are_the_tree_walk():
     chain = OdometryChain(LoopConsistencyConfig())
     step = make_T(np.eye(3), [0.1, 0, 0])
     parents = [None, 0, 1, 2, 3, 1, 5, 6, None, 8, 9, 7, 11]  # branches at 5 and 11, a second root at 8
-    for k, p in enumerate(parents):
+    for p in parents:
         chain.add(np.eye(4) if p is None else chain.poses[p] @ step, p, None if p is None else step)
     assert chain.path(1, 4) == [4, 3, 2] and chain.path(4, 1) == [4, 3, 2]
     assert chain.path(4, 6) == [6, 5, 4, 3, 2] and chain.path(3, 12) == [12, 11, 7, 6, 5, 3, 2]
