@@ -248,3 +248,79 @@ def test_a_features_pose_near_the_prediction_bridges_without_a_relocalisation():
     for k in range(motion.cfg.max_held_frames):
         motion.mark_held(one + k / 30)
     assert not motion.bridge_holds(T_pred, near, one + motion.cfg.max_held_frames / 30)
+
+
+def test_an_unconverged_registration_that_moved_the_prediction_beyond_the_slack_is_a_slide():
+    """A finest level out of iterations after correcting a good prediction (one tracked step old) by more than
+    CORRECTION_SLACK_M is still sliding: not a measurement, even within the jump bound; converged, or small, or after
+    a held frame (a worse prediction), it is not."""
+    from types import SimpleNamespace
+
+    from surfelslam.slam.frame import FrameStatus
+    from surfelslam.slam.motion import CORRECTION_SLACK_DEG, CORRECTION_SLACK_M
+    from surfelslam.tracking.icp import ICPStatus
+
+    motion = _motion(SlamConfig())
+    motion.mark_tracked(np.eye(4), 10.0, FrameStatus.TRACKED)
+
+    def res(status, m, deg=0.0):
+        return SimpleNamespace(status=status, motion_m=m, motion_deg=deg)
+
+    slide = res(ICPStatus.MAX_ITERATIONS, CORRECTION_SLACK_M + 0.025)  # 4.5 cm: within the jump bound of 5.3 cm
+    assert not motion.slid_unconverged(slide)  # an identity velocity (none measured yet): no prediction to judge
+    motion.state.velocity = se3.make_T(np.eye(3), [0.0, 0.0, 0.04])
+    assert motion.slid_unconverged(slide) and not motion.jumped(slide, 10.0 + 1 / 30)
+    assert motion.slid_unconverged(res(ICPStatus.MAX_ITERATIONS, 0.0, CORRECTION_SLACK_DEG + 0.5))
+    assert not motion.slid_unconverged(res(ICPStatus.MAX_ITERATIONS, CORRECTION_SLACK_M - 1e-3))
+    assert not motion.slid_unconverged(res(ICPStatus.CONVERGED, CORRECTION_SLACK_M + 0.025))
+    motion.mark_held(10.0 + 1 / 30)
+    assert not motion.slid_unconverged(slide)
+
+
+@cache
+def _textured_room():
+    """A slow pass in a textured room: PnP against the keyframe has its inliers (a trusted pose)."""
+    scene = make_scene("room", 1)
+    traj = make_trajectory("slow", 25, scene, seed=1)
+    gt = se3.invert(traj.T_world_cam[0]) @ traj.T_world_cam
+    return list(iter_frames(scene, traj, INTR_SMALL, noise_config("kinect"), 1)), gt
+
+
+def _pnp_retry_run(monkeypatch, pred_off_m: float, retry_off_m: float):
+    """Hybrid on the textured room; at frame 20 the prediction is planted ``pred_off_m`` off (sideways), ICP from it
+    fails (too few inliers) and ICP from the PnP pose is planted ``retry_off_m`` off its own result with a converged
+    status. Returns (frame 20's result, its truth, the tracker's counts)."""
+    from surfelslam.slam import HybridSlam
+
+    frames, gt = _textured_room()
+    slam = HybridSlam(INTR_SMALL, SlamConfig())
+    results = [slam.process(f) for f in frames[:20]]
+    icp_from, predict = slam.localiser.icp_from, slam.front.predict
+    calls = []
+
+    def planted_icp(T_render, T_init_rel, match=None, match_of=None):
+        res, failure, T = icp_from(T_render, T_init_rel, match, match_of)
+        calls.append(failure)
+        if len(calls) == 1:
+            return res, "too_few_inliers", T
+        return res, failure, T @ se3.make_T(np.eye(3), [retry_off_m, 0.0, 0.0])
+
+    monkeypatch.setattr(slam.localiser, "icp_from", planted_icp)
+    monkeypatch.setattr(slam.front, "predict", lambda: predict() @ se3.make_T(np.eye(3), [pred_off_m, 0.0, 0.0]))
+    r = slam.process(frames[20])
+    T0 = results[0].T_world_cam
+    return r, se3.invert(T0) @ r.T_world_cam, gt[20], slam.counts, len(calls)
+
+
+def test_icp_from_a_pnp_pose_far_from_the_prediction_needs_the_pnp_pose_as_evidence(monkeypatch):
+    """ICP from the PnP pose that lands 12 cm from its own start (and from a good prediction), disagreeing with the
+    trusted PnP pose, is no tracked frame: held at the prediction (before: fused 12 cm off). A PnP pose far from a
+    bad prediction (planted 12 cm off) whose ICP converges on it is a well-supported correction: tracked there."""
+    from surfelslam.slam.frame import FrameStatus
+
+    r, T, truth, counts, n = _pnp_retry_run(monkeypatch, pred_off_m=0.0, retry_off_m=0.12)
+    assert n == 2 and r.status == FrameStatus.HELD and counts["pnp_unsupported"] == 1
+    assert se3.pose_error(T, truth)[0] < 0.01
+    r, T, truth, counts, n = _pnp_retry_run(monkeypatch, pred_off_m=0.12, retry_off_m=0.0)
+    assert n == 2 and r.status == FrameStatus.TRACKED and counts["pnp_unsupported"] == 0
+    assert counts["pnp_guesses_tracked"] == 1 and se3.pose_error(T, truth)[0] < 0.01

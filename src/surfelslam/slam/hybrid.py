@@ -146,6 +146,7 @@ class HybridSlam:
                 "relocalisations_tried": c["relocalisations_tried"],
                 "relocalisations_tracked": c["relocalisations_tracked"],
                 "map_corrections": self.anchors.map_corrections, "pnp_disagreements": c["pnp_disagreements"],
+                "pnp_unsupported": c["pnp_unsupported"], "unconverged_slides": c["unconverged_slides"],
                 "loop_correction_skipped": self._loop_correction_skipped,
                 "final_correction_m": self._final_correction_m}
 

@@ -86,7 +86,8 @@ class HybridLocaliser:
         self.depth_noise_per_frame: list[float] = []
         self._worker = worker
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
-                       "relocalisations_tracked": 0, "pnp_disagreements": 0}
+                       "relocalisations_tracked": 0, "pnp_disagreements": 0, "pnp_unsupported": 0,
+                       "unconverged_slides": 0}
 
     def record_noise(self, res: ICPResult) -> None:
         """Keep a tracked frame's finest-level depth noise (when its finest ICP level is the input's)."""
@@ -171,8 +172,12 @@ class HybridLocaliser:
                 loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, T_init_rel)
             loc.from_prev = True
             t.lap("icp")
-            if loc.failure is None and self.front.motion.jumped(loc.res, frame.time_s):
+            motion = self.front.motion
+            if loc.failure is None and motion.jumped(loc.res, frame.time_s):
                 loc.failure = JUMPED
+            elif loc.failure is None and motion.slid_unconverged(loc.res):
+                loc.failure = JUMPED
+                self.counts["unconverged_slides"] += 1
         bad = loc.res is None or loc.failure is not None or loc.res.degenerate
         if match is None and h.pnp_retry and bad:
             match = self.pnp_match(frame, T_pred)
@@ -185,26 +190,43 @@ class HybridLocaliser:
             loc.failure = DISAGREES
             self.counts["pnp_disagreements"] += 1
         if loc.guess is not None and h.pnp_retry and (not first_ok or loc.res.degenerate):
-            self._retry_from_pnp(loc, match, first_ok, t)
+            self._retry_from_pnp(loc, match, first_ok, T_pred, frame.time_s, t)
         elif loc.res is None:  # untrusted velocity and no PnP guess: the velocity guess after all
             loc.res, loc.failure, loc.T_new = self.icp_from(T_prev, se3.invert(T_prev) @ T_pred)
             loc.from_prev = True
             t.lap("icp")
         return loc
 
-    def _retry_from_pnp(self, loc: Localised, match: KeyframeMatch, first_ok: bool, t: StageTimer) -> None:
-        """ICP again from the PnP pose; its result replaces ``loc``'s when it is good (or the first one was not)."""
+    def _retry_from_pnp(self, loc: Localised, match: KeyframeMatch, first_ok: bool, T_pred: np.ndarray,
+                        time_s: float, t: StageTimer) -> None:
+        """ICP again from the PnP pose; its result replaces ``loc``'s when it is good (or the first one was not).
+
+        A result beyond :meth:`MotionModel.jumped`'s bound of the prediction ``T_pred`` (at ``time_s``) is a jump
+        (held at the prediction) unless the PnP pose supports it (:meth:`_supports`): ICP from a PnP pose of a few
+        inliers, itself centimetres off, converged 12 cm from the truth on a floor and was fused as tracked."""
         self.counts["pnp_guesses_tried"] += 1
         r2, f2, T2 = self.icp_from(loc.guess, np.eye(4), match)
         t.lap("icp")
         # after a jump the PnP pose is the evidence: ICP from it must agree with it
         if f2 is None and (self.cfg.hybrid.pnp_check or loc.failure == JUMPED) and self.disagrees(T2, match):
             f2 = DISAGREES
+        if f2 is None and not self.front.motion.within_reach(T_pred, T2, time_s) and not self._supports(match, T2):
+            f2 = JUMPED
+            self.counts["pnp_unsupported"] += 1
         if f2 is None and (not r2.degenerate or not first_ok):
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, None, T2, False
             self.counts["pnp_guesses_tracked"] += 1
         elif not first_ok and loc.failure != JUMPED:  # a jump with no better pose from PnP stays one (held)
             loc.res, loc.failure, loc.T_new, loc.from_prev = r2, f2, T2, False
+
+    def _supports(self, match: KeyframeMatch, T: np.ndarray) -> bool:
+        """Whether ``match`` is evidence for the pose ``T`` of ICP from its PnP pose: the PnP pose is trusted
+        (:meth:`trusted`) and ``T`` stays within the metric bounds of it (``hybrid.pnp_check_max_m`` / ``_deg``).
+        Unlike :meth:`disagrees`, inliers that still reproject under ``T`` are no evidence: on a floor ICP from a
+        288-inlier PnP pose 4 mm from the truth converged 5.2 cm away, and most of the inliers reprojected there."""
+        h = self.cfg.hybrid
+        dt, dr = se3.pose_error(T, match.T_world_cam)
+        return self.trusted(match) and dt <= h.pnp_check_max_m and dr <= h.pnp_check_max_deg
 
     def pnp_match(self, frame: RGBDFrame, T_pred: np.ndarray) -> KeyframeMatch | None:
         """PnP pose and inliers against the reference keyframe, in the dense frame (the graph frame may have

@@ -14,7 +14,7 @@ import numpy as np
 from surfelslam.geometry import se3
 from surfelslam.slam.config import TrackingConfig
 from surfelslam.slam.frame import FrameStatus
-from surfelslam.tracking.icp import ICPConfig, ICPResult, weak_projector
+from surfelslam.tracking.icp import ICPConfig, ICPResult, ICPStatus, weak_projector
 
 #: ICP's own correction of a good prediction stays below this (m; at most 1.4 cm on the synthetic and TUM test rows)
 CORRECTION_SLACK_M = 0.02
@@ -153,6 +153,24 @@ class MotionModel:
             return False
         return self._beyond_reach(res.motion_m, res.motion_deg, time_s)
 
+    def slid_unconverged(self, res: ICPResult) -> bool:
+        """Whether ``res``, a registration from the constant-velocity prediction after a tracked frame, ran out of
+        iterations at the finest level (still moving) after correcting the prediction by more than ICP corrects a
+        good one (:data:`CORRECTION_SLACK_M` / :data:`CORRECTION_SLACK_DEG`): a slide in progress, not a measurement,
+        even within :meth:`jumped`'s bound (on a floor, 4.5 cm slides of this kind were fused and fed the next
+        prediction). After a held frame, or with an identity velocity, the prediction is not that good: ``False``."""
+        s = self.state
+        if res.status is not ICPStatus.MAX_ITERATIONS or s.held_in_a_row > 0 or np.array_equal(s.velocity, np.eye(4)):
+            return False
+        return res.motion_m > CORRECTION_SLACK_M or res.motion_deg > CORRECTION_SLACK_DEG
+
+    def within_reach(self, T_pred: np.ndarray, T: np.ndarray, time_s: float) -> bool:
+        """Whether the pose ``T`` is within :meth:`jumped`'s bound of the prediction ``T_pred`` at ``time_s``; with an
+        identity velocity (none measured) every pose is."""
+        if np.array_equal(self.state.velocity, np.eye(4)):
+            return True
+        return not self._beyond_reach(*se3.pose_error(T, T_pred), time_s)
+
     def _beyond_reach(self, d_m: float, d_deg: float, time_s: float) -> bool:
         """Whether a correction of ``d_m`` / ``d_deg`` to the prediction at ``time_s`` exceeds the change of velocity
         a camera makes since the last posed frame (see :meth:`jumped`)."""
@@ -167,7 +185,7 @@ class MotionModel:
         velocity) and fewer than ``tracking.max_held_frames`` frames were held in a row."""
         if np.array_equal(self.state.velocity, np.eye(4)) or not self.may_hold():
             return False
-        return not self._beyond_reach(*se3.pose_error(T_bridge, T_pred), time_s)
+        return self.within_reach(T_pred, T_bridge, time_s)
 
     def may_hold(self) -> bool:
         """Whether one more frame may be held at the prediction (``tracking.max_held_frames`` in a row)."""
