@@ -58,12 +58,15 @@ class MapEdgeCounts:
     accepted: int = 0  # ... the back end's gates passed: an edge
     closures: int = 0  # ... of them farther than ICP's noise from the graph's estimate (the graph was optimised)
     ms: list[float] = field(default_factory=list)  # tracking-thread time per tried check
+    checks: int = 0  # keyframes checked (the inactive render drawn)
+    total_ms: float = 0.0  # tracking-thread time of every check
 
     def as_metrics(self) -> dict:
         return {"map_edges_tried": self.tried, "map_edges_registered": self.registered,
                 "map_edges_repeated": self.repeated, "map_edges_accepted": self.accepted,
                 "map_edges_closures": self.closures,
-                "map_edge_ms_median": float(np.median(self.ms)) if self.ms else None}
+                "map_edge_ms_median": float(np.median(self.ms)) if self.ms else None,
+                "map_edge_ms_per_keyframe": self.total_ms / self.checks if self.checks else None}
 
 
 @dataclass
@@ -124,13 +127,13 @@ class MapEdges:
         self._target: FramePyramid | None = None
         self._last: tuple[int, np.ndarray] | None = None  # (keyframe, correction T_reg inv(T_kf)) of the last check
 
-    def register(self, smap, source: FramePyramid, T_world_kf: np.ndarray, time_s: float, frame_index: int,
-                 sigma: float) -> MapRegistration | None:
-        """Register ``source`` (the new keyframe's pyramid at the tracking level, frame ``frame_index`` at ``time_s``
-        s) at ``T_world_kf`` (dense frame) to the inactive part of ``smap`` rendered there; ``None`` when too little
-        of it is in view, ICP fails, leaves a direction looser than the edge's ``sigma`` (m), or no old keyframe
-        dominates."""
-        old_frame = min(self.anchors.last_frame_before(time_s - INACTIVE_AFTER_S), frame_index - 1)
+    def register(self, smap, source: FramePyramid, T_world_kf: np.ndarray, stamp: float, frame_index: int,
+                 sigma: float, seconds_per_stamp: float = 1.0) -> MapRegistration | None:
+        """Register ``source`` (the new keyframe's pyramid at the tracking level, frame ``frame_index`` stamped
+        ``stamp``, in units of ``seconds_per_stamp``) at ``T_world_kf`` (dense frame) to the inactive part of ``smap``
+        rendered there; ``None`` when too little of it is in view, ICP fails, leaves a direction looser than the
+        edge's ``sigma`` (m), or no old keyframe dominates."""
+        old_frame = min(self.anchors.last_frame_before(stamp - INACTIVE_AFTER_S / seconds_per_stamp), frame_index - 1)
         if old_frame < 0 or smap.size == 0:
             return None
         intr = source[0].intrinsics
@@ -193,11 +196,11 @@ class MapEdges:
         d = np.linalg.norm(view.vertex_cam[w, u] - p, axis=1)
         return idx[(idx >= 0) & (d <= self.icp_cfg.dist_thresh_m[0])]
 
-    def check(self, smap, source: FramePyramid, T_world_kf: np.ndarray, time_s: float, frame_index: int,
-              sigma: float) -> bool:
+    def check(self, smap, source: FramePyramid, T_world_kf: np.ndarray, stamp: float, frame_index: int,
+              sigma: float, seconds_per_stamp: float = 1.0) -> bool:
         """The new (last) keyframe's map-edge check: registered (:meth:`register`) and handed to the back end with
         ``sigma`` (m and rad). Returns whether the back end re-optimised its graph (a correction to apply)."""
-        reg = self.register(smap, source, T_world_kf, time_s, frame_index, sigma)
+        reg = self.register(smap, source, T_world_kf, stamp, frame_index, sigma, seconds_per_stamp)
         kf_new = self.sparse.n_keyframes - 1
         last, self._last = self._last, None
         if reg is None:
