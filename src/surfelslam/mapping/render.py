@@ -7,6 +7,7 @@ rendered view directly as its target. Only surfels of blocks that meet the view 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -112,6 +113,7 @@ def _out_buffer(buf: np.ndarray | None, shape: tuple[int, ...], name: str) -> np
 def render(
     smap: SurfelMap, T_world_cam: np.ndarray, intr: Intrinsics, cfg: RenderConfig | None = None,
     vertex_out: np.ndarray | None = None, normal_out: np.ndarray | None = None, attributes: bool = True,
+    select: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> RenderedView:
     """Splat the map into the camera at ``T_world_cam`` (camera-to-world, ``(4, 4)``).
 
@@ -124,13 +126,17 @@ def render(
     ``vertex_out`` / ``normal_out``: optional float32 ``(H, W, 3)`` buffers to write the vertex / normal maps
     into (e.g. level 0 of an ICP target pyramid, which :func:`~surfelslam.tracking.preprocess.pyramid_from_maps`
     then does not copy); the view refers to them. ``attributes=False`` skips the colour and confidence
-    maps (``None`` in the view): tracking only needs the geometry.
+    maps (``None`` in the view): tracking only needs the geometry. ``select``: draws only part of the map, given the
+    surfel rows that survive culling (int32 ``(M,)``) it returns those to draw (e.g. the hybrid's inactive map), so
+    its cost follows the view, not the map.
     """
     cfg = cfg or RenderConfig()
     H, W = intr.height, intr.width
     R, t = _world_to_cam(T_world_cam)
     cand = smap.visible_candidates(T_world_cam, intr, cfg.min_depth_m, cfg.max_depth_m,
                                    margin_px=cfg.max_splat_radius_px, lod_surfels_per_px=cfg.lod_surfels_per_px)
+    if select is not None:
+        cand = np.ascontiguousarray(select(cand), np.int32)
     depth = smap.scratch("render_depth", H * W, np.float64).reshape(H, W)
     depth.fill(np.inf)
     index = np.full((H, W), -1, np.int32)

@@ -68,6 +68,7 @@ from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.hybrid_anchors import KeyframeAnchors
 from surfelslam.slam.hybrid_localise import JUMPED, HybridLocaliser, Localised
 from surfelslam.slam.hybrid_profile import LOOP_ROBUST_SCALE_M, hybrid_sparse_config
+from surfelslam.slam.map_edges import MapEdges
 from surfelslam.slam.motion import step_and_pose
 from surfelslam.slam.orb import loop_stamps, sparse_metrics
 from surfelslam.slam.registry import register_tracker
@@ -106,6 +107,7 @@ class HybridSlam:
         self.joint = colour_switch(cfg.hybrid.joint_features, colour_registered)
         self.sparse = _sparse_back_end(cfg, intr, colour_registered)
         self.anchors = KeyframeAnchors(self.sparse)
+        self.map_edges = MapEdges(self.anchors, self.sparse, cfg.icp, self.front.render_cfg, cfg.preprocess)
         # one worker thread beside the main one: the frame's match while the map is rendered, a new keyframe's
         # features while the frame is fused
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-hybrid")
@@ -148,7 +150,7 @@ class HybridSlam:
                 "map_corrections": self.anchors.map_corrections, "pnp_disagreements": c["pnp_disagreements"],
                 "pnp_unsupported": c["pnp_unsupported"], "unconverged_slides": c["unconverged_slides"],
                 "loop_correction_skipped": self._loop_correction_skipped,
-                "final_correction_m": self._final_correction_m}
+                "final_correction_m": self._final_correction_m, **self.map_edges.counts.as_metrics()}
 
     def warmup(self) -> None:
         """The dense kernels, the feature side's (matching, PnP, keypoint depth, RGB-D refinement), then a throwaway
@@ -301,15 +303,33 @@ class HybridSlam:
             t.lap("sparse")
             if sr.is_keyframe:
                 self.anchors.add_keyframe(T_new)
+        map_closure = sr is not None and sr.is_keyframe and self._map_edge(frame, T_new, t)
         self._last_placed = frame if sr is not None and not sr.is_keyframe else None
         self._keyframe_feats = None
         self.anchors.record(frame.index, frame.timestamp, T_new, tracked)
         self.front.state.T_world_cam = T_new
-        if sr is not None and sr.loops_added > 0 and self.cfg.hybrid.loop_correction:
+        if sr is not None and (sr.loops_added > 0 or map_closure) and self.cfg.hybrid.loop_correction:
             kf = self.sparse.keyframe_poses()
             if self.anchors.keyframe_moves_m(kf).max() > self.cfg.hybrid.live_correction_min_m:
                 self.correct(kf, min_move_m=self.cfg.hybrid.live_correction_keyframe_min_m)
                 t.lap("correct")
+
+    def _map_edge(self, frame: RGBDFrame, T_new: np.ndarray, t: StageTimer) -> bool:
+        """The new keyframe registered to the inactive map (:mod:`.map_edges`, not with a frozen loaded map): whether
+        its edge made the back end re-optimise (a correction to apply)."""
+        if self.front.mapper.frozen or len(self.anchors) < 2:
+            return False
+        c0, tried = time.perf_counter(), self.map_edges.counts.tried  # the time: metrics, not a decision
+        sigma = self.sparse.dense_edge_stats()["edge_sigma_m"] or self.cfg.hybrid.loop_icp.sigma_m
+        closes = self.map_edges.check(self.map, self.front.track_source, T_new, frame.timestamp, frame.index, sigma,
+                                      frame.seconds_per_stamp)
+        counts, ms = self.map_edges.counts, (time.perf_counter() - c0) * 1e3
+        counts.checks += 1
+        counts.total_ms += ms
+        if counts.tried > tried:
+            counts.ms.append(ms)
+        t.lap("map_edge")
+        return closes
 
     def _graph_pose(self, T_world_cam: np.ndarray) -> np.ndarray:
         """A dense pose in the graph frame: moved by the last keyframe's pending correction, so the odometry edge is

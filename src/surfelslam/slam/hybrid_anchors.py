@@ -39,6 +39,7 @@ class KeyframeAnchors:
         self.kf_step: list[np.ndarray] = []
         self.kf_slot: list[int] = []
         self.stamps: list[float] = []
+        self.frame_index: list[int] = []  # per record: the frame's index
         self.anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
         self.T_kf_cam: list[np.ndarray] = []
         self.fused_frames: list[int] = []  # frame index of each fused frame (increasing)
@@ -72,6 +73,7 @@ class KeyframeAnchors:
             self.fused_frames.append(frame_index)
             self.fused_anchor.append(anchor)
         self.stamps.append(timestamp)
+        self.frame_index.append(int(frame_index))
         self.anchor.append(anchor)
         self.T_kf_cam.append(se3.invert(self.kf_dense.poses[anchor]) @ T_world_cam)
 
@@ -115,11 +117,21 @@ class KeyframeAnchors:
 
     def surfel_anchors(self, smap: SurfelMap) -> np.ndarray:
         """``(size,)`` int64 anchor keyframe of each surfel of ``smap`` (that of the fused frame that created it)."""
+        return self.anchors_of(smap.first_seen)
+
+    def anchors_of(self, first_seen: np.ndarray) -> np.ndarray:
+        """``(n,)`` int64 anchor keyframe of surfels first seen in the frames ``first_seen`` ``(n,)`` (fused frames)."""
         frames = np.asarray(self.fused_frames, np.int64)
-        first_seen = smap.first_seen
+        if len(first_seen) == 0:
+            return np.zeros(0, np.int64)
         # a table per frame index up to the newest surfel's (the frame count): one gather per surfel, no search
         row = np.clip(np.searchsorted(frames, np.arange(int(first_seen.max()) + 1)), 0, len(frames) - 1)
         return np.asarray(self.fused_anchor, np.int64)[row][first_seen]
+
+    def last_frame_before(self, time_s: float) -> int:
+        """Index of the last recorded frame whose timestamp is at most ``time_s`` (s); -1 when there is none."""
+        slot = int(np.searchsorted(np.asarray(self.stamps), time_s, side="right")) - 1
+        return self.frame_index[slot] if slot >= 0 else -1
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose with the keyframe poses ``kf_poses`` ``(K, 4, 4)`` (default: the graph's):

@@ -13,7 +13,7 @@ from surfelslam.backend.edge_graph_gate import EdgeGraph
 from surfelslam.backend.loop_consistency import LoopConsistencyConfig, OdometryChain
 from surfelslam.backend.pose_graph import PoseEdge, PoseGraph, PoseGraphConfig
 from surfelslam.backend.sparse_slam.results import LoopCheck
-from surfelslam.geometry.se3 import invert, orthonormalize
+from surfelslam.geometry.se3 import invert, orthonormalize, pose_error
 from surfelslam.types import PoseArray
 
 # the graph gate searches paths up to the odometry chain's variance times this (the chain is such a path: the margin
@@ -71,6 +71,8 @@ class KeyframeGraph:
         self.n_loops_rejected_graph = 0  # ... of them, those the odometry chain passed and the graph gate rejected
         self.n_nearby_rejected_inconsistent = 0  # ... nearby ones (``gate_nearby``)
         self.n_nearby_pnp_left_out = 0  # verified nearby PnP edges kept out of the PnP graph (``pnp_nearby`` off)
+        self.n_map_edges = 0  # edges from registrations to the old map accepted (:meth:`add_map_edge`)
+        self.n_map_edges_rejected = 0  # ... that a gate (odometry chain or graph) rejected
         # (kf_old, kf_new, squared distance) of the last GATE_D2_KEPT gated edges, and the same for the graph gate
         self.gate_d2: deque[tuple[int, int, float]] = deque(maxlen=GATE_D2_KEPT)
         self.gate_d2_graph: deque[tuple[int, int, float]] = deque(maxlen=GATE_D2_KEPT)
@@ -87,6 +89,8 @@ class KeyframeGraph:
                 "nearby_rejected_inconsistent": self.n_nearby_rejected_inconsistent,
                 "nearby_pnp_left_out": self.n_nearby_pnp_left_out,
                 "segments_merged": self.n_segments_merged,
+                "map_edges_accepted": self.n_map_edges,
+                "map_edges_rejected_inconsistent": self.n_map_edges_rejected,
                 "edges_dense_refined": self.n_dense_refined,
                 "edges_dense_rejected": self.n_dense_rejected,
                 "depth_only_edges": self.n_depth_only_edges,
@@ -182,6 +186,35 @@ class KeyframeGraph:
         if n_loops > 0 or bridging is not None:
             self.optimise()
         return n_loops
+
+    def add_map_edge(self, i: int, j: int, T_i_j: np.ndarray, sigma: float, shift_m: float,
+                     shift_deg: float) -> bool:
+        """A measured ``T_i_j`` ``(4, 4)`` between an old keyframe ``i`` and a newer one ``j`` with isotropic ``sigma``
+        (m and rad), e.g. keyframe ``j`` registered to the map anchored to ``i``: through the gates of a far loop edge
+        (the odometry chain, then the accepted edges' graph), into both graphs like a refined edge (the refined loop
+        kernel). The graph is optimised when the edge is farther than ``shift_m`` / ``shift_deg`` from its estimate of
+        the pair (else the next optimisation takes it in). Returns whether the edge was added."""
+        T_i_j = np.asarray(T_i_j, np.float64)
+        info = np.eye(6) * sigma ** -2
+        c = self._chain.cfg
+        if c.enabled:
+            d2 = self._chain.mahalanobis2(i, j, T_i_j, info)
+            passed = self._chain.consistent(d2)
+            if passed and c.graph_gate:
+                path = self._chain.path(i, j)
+                limit = np.inf if path is None else self._chain.path_variance(path) * _LIMIT_MARGIN
+                d2g = self._edge_graph.mahalanobis2(i, j, T_i_j, self._chain.edge_covariance(info), limit)
+                passed = self._chain.consistent(d2g)
+            if not passed:
+                self.n_map_edges_rejected += 1
+                return False
+        dt_m, dr_deg = pose_error(T_i_j, invert(self.poses[i]) @ self.poses[j])
+        edge = PoseEdge(i, j, T_i_j, "loop", information=sigma ** -2, robust_scale=self._refined_robust_scale)
+        self.add_edge(edge, edge if self._graph_refined is not None else None)
+        self.n_map_edges += 1
+        if dt_m > shift_m or dr_deg > shift_deg:
+            self.optimise()
+        return True
 
     def _refined_edge(self, i: int, j: int, refined: RefinedEdge, far: bool) -> PoseEdge:
         """The refined version of a verified edge ``i -> j`` (counted; a nearby one is also compared with the

@@ -413,6 +413,15 @@ class SparseSlam:
         while self._loops.n_pending > keep:
             self._apply_loop_checks(*self._loops.collect())
 
+    def add_map_edge(self, kf_old: int, kf_new: int, T_old_new: np.ndarray, sigma: float, shift_m: float,
+                     shift_deg: float) -> bool:
+        """A keyframe edge measured outside the back end (the hybrid: keyframe ``kf_new`` registered to the map
+        anchored to the older ``kf_old``), ``T_old_new`` ``(4, 4)`` with isotropic ``sigma`` (m and rad): gated as a
+        far loop edge and added (:meth:`KeyframeGraph.add_map_edge`; the graph is optimised when it is farther than
+        ``shift_m`` / ``shift_deg`` from the graph's estimate). Tracking thread only (as the loop checks' results).
+        Returns whether it was added."""
+        return self._graph.add_map_edge(kf_old, kf_new, T_old_new, sigma, shift_m, shift_deg)
+
     # --- queries for the dense pipeline ---------------------------------------------------------------
 
     def _relocalise_features(self, feats: Features) -> tuple[np.ndarray, int, MotionResult] | None:
