@@ -81,16 +81,20 @@ class MapRegistration:
 
 def _unoccluded(view, depth_m: np.ndarray) -> np.ndarray:
     """``(H, W)`` the pixels of the inactive render ``view`` within :data:`TARGET_FAR_SLACK_M` (the largest depth
-    change a correction ICP may find makes) of the frame's own depth ``depth_m`` ``(H, W)`` (0: none); the others are
-    cleared in ``view``: without the active map in front of it, the inactive render shows the rooms behind the walls
-    the camera sees, and surfaces it cannot see."""
+    change a correction ICP may find makes) of the frame's own depth ``depth_m`` ``(H, W)`` (0: none): without the
+    active map in front of it, the inactive render shows the rooms behind the walls the camera sees, and surfaces it
+    cannot see (:func:`_clear_outside` removes them)."""
     z = view.vertex_cam[..., 2]
-    keep = (view.index >= 0) & (depth_m > 0) & (np.abs(z - depth_m) <= TARGET_FAR_SLACK_M)
+    return (view.index >= 0) & (depth_m > 0) & (np.abs(z - depth_m) <= TARGET_FAR_SLACK_M)
+
+
+def _clear_outside(view, keep: np.ndarray) -> None:
+    """Clear the pixels of ``view`` outside ``keep`` ``(H, W)`` (no surfel, no vertex, no normal). Only for a view
+    that passes the coverage test: most checks end before it, and masked copies cost milliseconds per view."""
     drop = ~keep
-    view.index[drop] = -1
-    view.vertex_cam[drop] = 0.0
-    view.normal_cam[drop] = 0.0
-    return keep
+    np.copyto(view.index, -1, where=drop)
+    np.copyto(view.vertex_cam, 0.0, where=drop[..., None])
+    np.copyto(view.normal_cam, 0.0, where=drop[..., None])
 
 
 def weakest_sigma_m(res: ICPResult) -> float:
@@ -143,6 +147,7 @@ class MapEdges:
         valid = _unoccluded(view, source[0].vertex[..., 2])
         if np.count_nonzero(valid) < MIN_COVERAGE * valid.size:
             return None
+        _clear_outside(view, valid)
         self.counts.tried += 1
         if self._target is None or self._target[0].intrinsics != intr or len(self._target) != len(source):
             self._target = FramePyramid.empty(intr, len(source))
