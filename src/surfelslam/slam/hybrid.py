@@ -319,15 +319,9 @@ class HybridSlam:
         its edge made the back end re-optimise (a correction to apply)."""
         if self.front.mapper.frozen or len(self.anchors) < 2:
             return False
-        c0, tried = time.perf_counter(), self.map_edges.counts.tried  # the time: metrics, not a decision
         sigma = self.sparse.dense_edge_stats()["edge_sigma_m"] or self.cfg.hybrid.loop_icp.sigma_m
         closes = self.map_edges.check(self.map, self.front.track_source, T_new, frame.timestamp, frame.index, sigma,
                                       frame.seconds_per_stamp)
-        counts, ms = self.map_edges.counts, (time.perf_counter() - c0) * 1e3
-        counts.checks += 1
-        counts.total_ms += ms
-        if counts.tried > tried:
-            counts.ms.append(ms)
         t.lap("map_edge")
         return closes
 

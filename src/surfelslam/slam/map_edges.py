@@ -12,6 +12,7 @@ still a constraint the graph otherwise lacks (frames that partly see the old map
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -204,7 +205,19 @@ class MapEdges:
     def check(self, smap, source: FramePyramid, T_world_kf: np.ndarray, stamp: float, frame_index: int,
               sigma: float, seconds_per_stamp: float = 1.0) -> bool:
         """The new (last) keyframe's map-edge check: registered (:meth:`register`) and handed to the back end with
-        ``sigma`` (m and rad). Returns whether the back end re-optimised its graph (a correction to apply)."""
+        ``sigma`` (m and rad). Returns whether the back end re-optimised its graph (a correction to apply). Its time
+        goes into :attr:`counts` (metrics, not a decision)."""
+        c0, tried = time.perf_counter(), self.counts.tried
+        closes = self._check(smap, source, T_world_kf, stamp, frame_index, sigma, seconds_per_stamp)
+        ms = (time.perf_counter() - c0) * 1e3
+        self.counts.checks += 1
+        self.counts.total_ms += ms
+        if self.counts.tried > tried:
+            self.counts.ms.append(ms)
+        return closes
+
+    def _check(self, smap, source: FramePyramid, T_world_kf: np.ndarray, stamp: float, frame_index: int,
+               sigma: float, seconds_per_stamp: float) -> bool:
         reg = self.register(smap, source, T_world_kf, stamp, frame_index, sigma, seconds_per_stamp)
         kf_new = self.sparse.n_keyframes - 1
         last, self._last = self._last, None

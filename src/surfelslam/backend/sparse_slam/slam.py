@@ -113,8 +113,7 @@ class SparseSlam:
     # --- state: the keyframe graph's edges, loops and poses -------------------------------------------
     @property
     def dense_edges_trusted(self) -> bool | None:
-        """Whether the poses come from the graph of dense-refined edges (else from the PnP edges' graph);
-        ``None`` without an edge refiner."""
+        """Whether the poses come from the dense-refined edges' graph (else the PnP edges'); ``None``: no refiner."""
         return None if self._refiner is None else self._graph.refined_trusted
 
     def dense_edge_stats(self) -> dict[str, float | bool | None]:
@@ -133,8 +132,7 @@ class SparseSlam:
 
     @property
     def edge_counts(self) -> dict[str, int]:
-        """The keyframe graph's edge and segment counts, by their ``metrics.json`` names
-        (:meth:`KeyframeGraph.edge_counts`)."""
+        """The keyframe graph's edge and segment counts by ``metrics.json`` name (:meth:`KeyframeGraph.edge_counts`)."""
         return self._graph.edge_counts()
 
     @property
@@ -415,11 +413,8 @@ class SparseSlam:
 
     def add_map_edge(self, kf_old: int, kf_new: int, T_old_new: np.ndarray, sigma: float, shift_m: float,
                      shift_deg: float) -> bool:
-        """A keyframe edge measured outside the back end (the hybrid: keyframe ``kf_new`` registered to the map
-        anchored to the older ``kf_old``), ``T_old_new`` ``(4, 4)`` with isotropic ``sigma`` (m and rad): gated as a
-        far loop edge and added (:meth:`KeyframeGraph.add_map_edge`; the graph is optimised when it is farther than
-        ``shift_m`` / ``shift_deg`` from the graph's estimate). Tracking thread only (as the loop checks' results).
-        Returns whether it was added."""
+        """Whether the edge ``T_old_new`` ``(4, 4)`` from outside the back end (keyframe ``kf_new`` registered to the
+        map anchored to ``kf_old``) was added: :meth:`KeyframeGraph.add_map_edge`. Tracking thread only."""
         return self._graph.add_map_edge(kf_old, kf_new, T_old_new, sigma, shift_m, shift_deg)
 
     # --- queries for the dense pipeline ---------------------------------------------------------------
@@ -499,14 +494,7 @@ class SparseSlam:
         if self.n_keyframes > 1:
             self._graph.optimise(full=True)
         xyz, rgb = self.map_points()
-        return SparseSlamResult(
-            trajectory=self.trajectory(),
-            keyframe_indices=self.keyframe_frame_indices(),
-            keyframe_poses=self.keyframe_poses(),
-            loops_found=list(self.loops_found),
-            loops_accepted=list(self.loops_accepted),
-            n_nearby_edges=self._graph.n_nearby_edges,
-            rejected=dict(self.rejected),
-            map_xyz=xyz,
-            map_rgb=rgb,
-        )
+        return SparseSlamResult(trajectory=self.trajectory(), keyframe_indices=self.keyframe_frame_indices(),
+                                keyframe_poses=self.keyframe_poses(), loops_found=list(self.loops_found),
+                                loops_accepted=list(self.loops_accepted), n_nearby_edges=self._graph.n_nearby_edges,
+                                rejected=dict(self.rejected), map_xyz=xyz, map_rgb=rgb)
