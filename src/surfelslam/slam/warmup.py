@@ -96,14 +96,25 @@ def _graph_gate_extras() -> None:
 
 
 def _long_run_extras() -> None:
-    """Kernels the full-length warm-up run reaches and the hybrid's short one does not: retrieval over the place
-    index's word columns, the map correction's per-group surfel transform and its block test (argument types as
-    their callers pass them; the values are arbitrary)."""
+    """Kernels the full-length warm-up run reaches and the hybrid's short one does not, or only later in a long run
+    (each would otherwise stall a first run's frames for seconds): retrieval over the place index's word columns and,
+    once the index is large, its hash tables; the map correction's per-group surfel transform and its block test; the
+    rotation logarithm of a stack of poses; the map edges' geometry-only render (argument types as their callers pass
+    them; the values are arbitrary)."""
+    from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
+    from surfelslam.geometry.se3 import so3_log
     from surfelslam.kernels import hamming
     from surfelslam.kernels import surfels as ks
 
-    words = hamming.as_words(np.random.default_rng(0).integers(0, 256, (4, 32)).astype(np.uint8))
+    desc = np.random.default_rng(0).integers(0, 256, (4, 32)).astype(np.uint8)
+    words = hamming.as_words(desc)
     hamming.nearest_two_columns_words(words, words.T.copy(), len(words))
+    hashed = DescriptorIndex(RetrievalConfig(exact_below_descriptors=0))  # hashed from its first keyframe
+    hashed.add(desc)
+    hashed.add(desc)
+    hashed.query(desc, 1)
+    so3_log(np.stack([np.eye(3), np.eye(3)]))
+    _geometry_render_extras()
     xyz = np.zeros((2, 3), np.float32)
     rows = np.arange(2, dtype=np.int64)
     ks.transform_rows(xyz, xyz.copy(), rows, np.zeros(2, np.int64), np.eye(3, dtype=np.float32)[None].copy(),
@@ -154,25 +165,26 @@ def _dense_part() -> None:
     # tracking and fusion at a block-averaged level of the input (640x480 input worked on at 320x240)
     warm_up_dense(replace(cfg, tracking=replace(cfg.tracking, max_width_px=_HALF_WIDTH_PX),
                           fusion=replace(cfg.fusion, max_width_px=_HALF_WIDTH_PX)))
+    _geometry_render_extras()
+
+
+def _geometry_render_extras() -> None:
+    """Map kernels a short dense run does not reach but map reuse, map edges and loop corrections do: the culling
+    blocks' grouping, the geometry-only render and the map's compaction, on a one-frame map of a ``given`` run."""
+    from surfelslam.mapping.render import render
+
     intr = _DENSE_INTR
     v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float32)
     depth = (1.5 + 0.004 * u + 0.002 * v).astype(np.float32)
-    mapper = build_tracker("given", intr, cfg)
+    mapper = build_tracker("given", intr, _no_map_saving(SlamConfig()))
     mapper.process(RGBDFrame(0, 0.0, np.zeros((intr.height, intr.width, 3), np.uint8), depth),
                    T_world_cam=np.eye(4))
-    mapper.map.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
-    _map_extras(intr, mapper.map)
-    mapper.finish()  # compaction of the map
-
-
-def _map_extras(intr: Intrinsics, smap) -> None:
-    """Map kernels a short dense run does not reach but map reuse and loop corrections do: the geometry-only render
-    and the map's compaction."""
-    from surfelslam.mapping.render import render
-
+    smap = mapper.map
+    smap.rebuild_index()  # the culling blocks' grouping (after pose-graph corrections and reorders)
     render(smap, np.eye(4), intr, attributes=False)
     smap.mark_dead(np.arange(min(4, smap.size)))
     smap.compact()
+    mapper.finish()
 
 
 def _shape_part() -> None:
@@ -231,6 +243,7 @@ def _sparse_part() -> None:
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
     _feature_extras(intr, pre.process(frames[0].depth_m))  # last: the dense part has cached the ICP kernels by now
     _graph_gate_extras()
+    _long_run_extras()
 
 
 def _parallel_part() -> None:
