@@ -9,7 +9,7 @@ from surfelslam.geometry.se3 import invert, pose_error
 from surfelslam.slam import SlamConfig
 from surfelslam.slam.frontend import DenseFrontEnd
 from surfelslam.slam.hybrid_anchors import KeyframeAnchors
-from surfelslam.slam.map_edges import INACTIVE_AFTER_S, MapEdges
+from surfelslam.slam.map_edges import INACTIVE_AFTER_S, MIN_DOMINANT_SHARE, MapEdges, dominant_visit
 from surfelslam.types import RGBDFrame
 
 from helpers import ROOM_INTR, look_pose, motion, render_room
@@ -65,3 +65,28 @@ def test_recent_surfels_are_not_the_old_map():
     # the map's only frame is younger than INACTIVE_AFTER_S: nothing inactive to register to
     assert edges.register(front.map, front.track_source, T_BACK, 0.5 * INACTIVE_AFTER_S, 300, SIGMA) is None
     assert edges.counts.tried == 0
+
+
+def _stamps(ids):
+    """Keyframe stamps (s): keyframes 0-19 every 0.3 s (one pass through a room), 20-29 a minute later."""
+    ids = np.asarray(ids)
+    return np.where(ids < 20, 0.3 * ids, 60.0 + 0.3 * (ids - 20))
+
+
+def test_one_visit_spread_over_many_keyframes_dominates():
+    # a room swept once: its inlier pixels spread over 15 keyframes, none with a tenth; a later pass holds a fifth
+    anchors = np.concatenate([np.repeat(np.arange(2, 17), 8), [9] * 4, np.repeat([24, 25], 17)])
+    k_old, share = dominant_visit(anchors, _stamps, INACTIVE_AFTER_S)
+    assert k_old == 9  # the first pass's keyframe with most pixels (12), not the later pass's 17
+    assert share == 124 / 158 and share >= MIN_DOMINANT_SHARE
+    assert np.bincount(anchors).max() / len(anchors) < MIN_DOMINANT_SHARE / 4  # no single keyframe would pass
+
+
+def test_two_visits_of_equal_weight_split_the_pixels():
+    anchors = np.concatenate([np.repeat(np.arange(0, 5), 10), np.repeat(np.arange(21, 26), 10)])
+    k_old, share = dominant_visit(anchors, _stamps, INACTIVE_AFTER_S)
+    assert share == 0.5 and k_old == 0  # ties: the earlier visit, its earliest keyframe
+    k_old, share = dominant_visit(anchors[:-1], _stamps, INACTIVE_AFTER_S)
+    assert share == 50 / 99 and k_old == 0
+    # within the inactive window the two passes are one visit
+    assert dominant_visit(anchors, lambda ids: 0.3 * np.asarray(ids), INACTIVE_AFTER_S) == (0, 1.0)

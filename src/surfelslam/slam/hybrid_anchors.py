@@ -128,6 +128,10 @@ class KeyframeAnchors:
         row = np.clip(np.searchsorted(frames, np.arange(int(first_seen.max()) + 1)), 0, len(frames) - 1)
         return np.asarray(self.fused_anchor, np.int64)[row][first_seen]
 
+    def keyframe_stamps(self, keyframes: np.ndarray) -> np.ndarray:
+        """``(n,)`` timestamps of the frames of ``keyframes`` ``(n,)`` (ids)."""
+        return np.asarray(self.stamps)[np.asarray(self.kf_slot, np.int64)[keyframes]]
+
     def last_frame_before(self, time_s: float) -> int:
         """Index of the last recorded frame whose timestamp is at most ``time_s`` (s); -1 when there is none."""
         slot = int(np.searchsorted(np.asarray(self.stamps), time_s, side="right")) - 1

@@ -4,15 +4,17 @@ Loop edges of the back end need an appearance match between keyframes (ORB retri
 back to a place facing another way retrieves no old keyframe, and its drifted pose leaves the old surfels beside the
 ones it fuses now. But every surfel is anchored to a keyframe (:class:`KeyframeAnchors`), and ``kf_dense[k]`` is where
 keyframe ``k``'s surfels are. So at each new keyframe the *inactive* map (surfels not fused into for
-:data:`INACTIVE_AFTER_S`) is rendered at its pose and its frame registered to it by ICP; the dominant anchor ``k_old``
-among the inlier pixels gives ``inv(kf_dense[k_old]) T_registered``: an edge ``k_old -> new`` that needs no
-appearance match and holds from any viewing direction. A large one closes a loop; a tiny one (below ICP's noise) is
-still a constraint the graph otherwise lacks (frames that partly see the old map).
+:data:`INACTIVE_AFTER_S`) is rendered at its pose and its frame registered to it by ICP; the main anchor ``k_old``
+of the visit that anchors most inlier pixels (:func:`dominant_visit`) gives ``inv(kf_dense[k_old]) T_registered``:
+an edge ``k_old -> new`` that needs no appearance match and holds from any viewing direction. A large one closes a
+loop; a tiny one (below ICP's noise) is still a constraint the graph otherwise lacks (frames that partly see the old
+map).
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -34,8 +36,10 @@ INACTIVE_AFTER_S = 200 / 30
 #: ICP level's minimum inliers (``icp.min_inliers`` at its source stride); a smaller patch of the old map constrains
 #: the 6 DoF of an edge too weakly, and the check would run at most keyframes for nothing
 MIN_COVERAGE = 0.1
-#: fraction of the inlier pixels the dominant anchor keyframe must hold: below it the pixels mix keyframes from several
-#: visits (two copies of a wall), and the edge to one of them is not what the registration measured
+#: fraction of the inlier pixels the dominant visit's keyframes must hold (:func:`dominant_visit`): below it the pixels
+#: mix surfels from several visits (two copies of a wall), and the edge to one of them is not what the registration
+#: measured. One visit's surfels are spread over many keyframes (a room swept for a minute: 20 of them, none with
+#: more than a tenth), but they were fused by one odometry run and lie as its keyframes do
 MIN_DOMINANT_SHARE = 0.5
 #: the ICP's inliers must be at least this fraction of the frame's points that land on the rendered old map (a wrong
 #: place's render overlaps the view but most of its pixels do not fit; the tracker's own overlap test uses its
@@ -54,7 +58,7 @@ class MapEdgeCounts:
     """What the map-edge checks did (``metrics.json``: ``map_edges_*``)."""
 
     tried: int = 0  # inactive render covered enough of the view: ICP run
-    registered: int = 0  # ... ICP accepted and a dominant old keyframe found
+    registered: int = 0  # ... ICP accepted and a dominant old visit found
     repeated: int = 0  # ... the previous keyframe's registration agreed
     accepted: int = 0  # ... the back end's gates passed: an edge
     closures: int = 0  # ... of them farther than ICP's noise from the graph's estimate (the graph was optimised)
@@ -77,7 +81,7 @@ class MapRegistration:
     kf_old: int
     T_old_new: np.ndarray
     res: ICPResult
-    share: float  # the dominant keyframe's share of the inlier pixels
+    share: float  # the dominant visit's share of the inlier pixels
 
 
 def _unoccluded(view, depth_m: np.ndarray) -> np.ndarray:
@@ -96,6 +100,23 @@ def _clear_outside(view, keep: np.ndarray) -> None:
     np.copyto(view.index, -1, where=drop)
     np.copyto(view.vertex_cam, 0.0, where=drop[..., None])
     np.copyto(view.normal_cam, 0.0, where=drop[..., None])
+
+
+def dominant_visit(anchors: np.ndarray, kf_stamps: Callable[[np.ndarray], np.ndarray],
+                   gap: float) -> tuple[int, float]:
+    """``(k_old, share)``: the visit that anchors most of the inlier pixels, and its keyframe with most of them.
+
+    ``anchors`` ``(N,)`` int64 anchor keyframe per inlier pixel; ``kf_stamps`` gives the stamps of keyframe ids. A
+    visit is a run of the voting keyframes (in id order, so in time) whose stamps follow each other by at most
+    ``gap``: a camera away from a place for longer left its surfels inactive, and came back with another drift.
+    ``share`` is the visit's fraction of the ``N`` pixels."""
+    votes = np.bincount(anchors)
+    voters = np.flatnonzero(votes)
+    visit = np.concatenate([[0], np.cumsum(np.diff(kf_stamps(voters)) > gap)])
+    per_visit = np.bincount(visit, weights=votes[voters])
+    best = int(np.argmax(per_visit))
+    members = voters[visit == best]
+    return int(members[np.argmax(votes[members])]), float(per_visit[best]) / len(anchors)
 
 
 def weakest_sigma_m(res: ICPResult) -> float:
@@ -137,7 +158,7 @@ class MapEdges:
         """Register ``source`` (the new keyframe's pyramid at the tracking level, frame ``frame_index`` stamped
         ``stamp``, in units of ``seconds_per_stamp``) at ``T_world_kf`` (dense frame) to the inactive part of ``smap``
         rendered there; ``None`` when too little of it is in view, ICP fails, leaves a direction looser than the
-        edge's ``sigma`` (m), or no old keyframe dominates."""
+        edge's ``sigma`` (m), or no visit dominates."""
         old_frame = min(self.anchors.last_frame_before(stamp - INACTIVE_AFTER_S / seconds_per_stamp), frame_index - 1)
         if old_frame < 0 or smap.size == 0:
             return None
@@ -160,10 +181,8 @@ class MapEdges:
         rows = self._inlier_rows(source, view, res)
         if len(rows) == 0:
             return None
-        k = self.anchors.anchors_of(smap.first_seen[rows])
-        votes = np.bincount(k)
-        k_old = int(np.argmax(votes))
-        share = float(votes[k_old]) / len(k)
+        k_old, share = dominant_visit(self.anchors.anchors_of(smap.first_seen[rows]), self.anchors.keyframe_stamps,
+                                      INACTIVE_AFTER_S / seconds_per_stamp)
         if share < MIN_DOMINANT_SHARE:
             return None
         T_reg = step_and_pose(T_world_kf, res)[1]
