@@ -566,7 +566,7 @@ def _count_triangles_block(nbr, tsdf, weight, min_weight, tri_count, counts, b):
             continue
         case = _cube_case(nbr, tsdf, weight, min_weight, b, k & 7, (k >> 3) & 7, k >> 6)
         if case > 0:
-            c += tri_count[case]
+            c += np.int64(tri_count[case])  # int64 as numba types it (plain Python would add in int8)
     counts[b] = c
 
 
