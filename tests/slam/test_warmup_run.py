@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -63,3 +67,31 @@ def test_the_hybrid_short_warmup_run_loads_what_the_full_one_does():
     tracker.finish()
     assert len(before) > 20
     assert _loaded_signatures() == before
+
+
+#: numba kernels a long hybrid run reaches late (a keyframe database past ``exact_below_descriptors``, the map edges'
+#: geometry-only render, a stack of rotations): the warm-up must compile them, or a first run stalls mid-run
+LATE_KERNELS = ("surfelslam.kernels.hamming_hash:hash_keys", "surfelslam.kernels.hamming_hash:insert_rows",
+                "surfelslam.kernels.hamming_hash:nearest_two_hashed", "surfelslam.geometry.so3_kernels:log_scales",
+                "surfelslam.geometry.so3_kernels:markley_many", "surfelslam.kernels.render:fill_geometry")
+
+
+def test_the_hybrids_warmup_compiles_what_a_long_run_reaches_late():
+    """In a fresh process (no other test's calls), after the hybrid's ``warmup()`` each late kernel holds a compiled
+    signature (compiled, or loaded from numba's cache)."""
+    code = f"""
+import importlib, json
+from surfelslam.slam import SlamConfig, build_slam
+from surfelslam.types import Intrinsics
+build_slam(Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240), SlamConfig(), "hybrid").warmup()
+out = {{}}
+for name in {LATE_KERNELS!r}:
+    module, fn = name.split(":")
+    kernel = getattr(importlib.import_module(module), fn)
+    out[name] = len(getattr(kernel, "serial", kernel).signatures)  # a dual kernel: its serial compilation
+print(json.dumps(out))
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    compiled = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert all(n >= 1 for n in compiled.values()), compiled
