@@ -97,14 +97,18 @@ def _graph_gate_extras() -> None:
 
 def _long_run_extras() -> None:
     """Kernels the full-length warm-up run reaches and the hybrid's short one does not, or only later in a long run
-    (each would otherwise stall a first run's frames for seconds): retrieval over the place index's word columns and,
-    once the index is large, its hash tables; the map correction's per-group surfel transform and its block test; the
-    rotation logarithm of a stack of poses; the map edges' geometry-only render (argument types as their callers pass
-    them; the values are arbitrary)."""
+    (each would otherwise stall a first run's frames for seconds): the back end's (:func:`_back_end_extras`) and the
+    map's (:func:`_map_extras`)."""
+    _back_end_extras()
+    _map_extras()
+
+
+def _back_end_extras() -> None:
+    """Retrieval over the place index's word columns and, once the index is large, its hash tables; the rotation
+    logarithm of a stack of poses (argument types as their callers pass them; the values are arbitrary)."""
     from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig
     from surfelslam.geometry.se3 import so3_log
     from surfelslam.kernels import hamming
-    from surfelslam.kernels import surfels as ks
 
     desc = np.random.default_rng(0).integers(0, 256, (4, 32)).astype(np.uint8)
     words = hamming.as_words(desc)
@@ -114,12 +118,6 @@ def _long_run_extras() -> None:
     hashed.add(desc)
     hashed.query(desc, 1)
     so3_log(np.stack([np.eye(3), np.eye(3)]))
-    _geometry_render_extras()
-    xyz = np.zeros((2, 3), np.float32)
-    rows = np.arange(2, dtype=np.int64)
-    ks.transform_rows(xyz, xyz.copy(), rows, np.zeros(2, np.int64), np.eye(3, dtype=np.float32)[None].copy(),
-                      np.zeros((1, 3), np.float32))
-    ks.rows_off_block(xyz, rows, np.zeros(2, np.int32), np.zeros((1, 3), np.int32), np.float32(4.0))
 
 
 def _dense_tracker(tracker) -> None:
@@ -165,12 +163,14 @@ def _dense_part() -> None:
     # tracking and fusion at a block-averaged level of the input (640x480 input worked on at 320x240)
     warm_up_dense(replace(cfg, tracking=replace(cfg.tracking, max_width_px=_HALF_WIDTH_PX),
                           fusion=replace(cfg.fusion, max_width_px=_HALF_WIDTH_PX)))
-    _geometry_render_extras()
+    _map_extras()
 
 
-def _geometry_render_extras() -> None:
+def _map_extras() -> None:
     """Map kernels a short dense run does not reach but map reuse, map edges and loop corrections do: the culling
-    blocks' grouping, the geometry-only render and the map's compaction, on a one-frame map of a ``given`` run."""
+    blocks' grouping, the geometry-only render and the map's compaction on a one-frame map of a ``given`` run; the map
+    correction's per-group surfel transform and its block test (argument types as their callers pass them)."""
+    from surfelslam.kernels import surfels as ks
     from surfelslam.mapping.render import render
 
     intr = _DENSE_INTR
@@ -185,6 +185,11 @@ def _geometry_render_extras() -> None:
     smap.mark_dead(np.arange(min(4, smap.size)))
     smap.compact()
     mapper.finish()
+    xyz = np.zeros((2, 3), np.float32)
+    rows = np.arange(2, dtype=np.int64)
+    ks.transform_rows(xyz, xyz.copy(), rows, np.zeros(2, np.int64), np.eye(3, dtype=np.float32)[None].copy(),
+                      np.zeros((1, 3), np.float32))
+    ks.rows_off_block(xyz, rows, np.zeros(2, np.int32), np.zeros((1, 3), np.int32), np.float32(4.0))
 
 
 def _shape_part() -> None:
@@ -243,7 +248,7 @@ def _sparse_part() -> None:
     pre = Preprocessor(intr, PreprocessConfig(pyramid_levels=1))
     _feature_extras(intr, pre.process(frames[0].depth_m))  # last: the dense part has cached the ICP kernels by now
     _graph_gate_extras()
-    _long_run_extras()
+    _back_end_extras()  # the map's extras are the dense part's
 
 
 def _parallel_part() -> None:
