@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from surfelslam.backend import place_recognition
 from surfelslam.backend.place_recognition import DescriptorIndex, RetrievalConfig, hash_bit_positions
 from surfelslam.kernels import hamming, hamming_hash
 
@@ -85,23 +86,57 @@ def test_hash_tables_hold_every_row_once_per_table() -> None:
     unpacked = np.unpackbits(desc, axis=1, bitorder="little")
     np.testing.assert_array_equal(keys[:, 0], unpacked[:, bits[0]] @ (1 << np.arange(9, -1, -1)))
     head = np.full((4, 1 << 10), hamming_hash.NO_ROW, np.int32)
-    nxt = np.zeros((4, 500), np.int32)
+    start = np.zeros((4, (1 << 10) + 1), np.int32)
+    sealed = np.zeros((4, 500), np.int32)
+    nxt = np.zeros((4, 300), np.int32)  # the longest tail: the first 300 rows
     count = np.zeros(head.shape, np.uint16)
-    hamming_hash.insert_rows(keys[:300], 0, head, nxt, count)
-    hamming_hash.insert_rows(keys[300:], 300, head, nxt, count)
+    hamming_hash.insert_rows(keys[:300], 0, head, nxt, count, 0)  # a tail of 300 rows, sealed
+    hamming_hash.seal_rows(keys[:300], 0, start, sealed, head)
+    assert np.all(head == hamming_hash.NO_ROW)  # the tail lists are empty after a seal
+    hamming_hash.insert_rows(keys[300:400], 300, head, nxt, count, 300)  # 100 more, sealed behind them
+    hamming_hash.seal_rows(keys[300:400], 300, start, sealed, head)
+    hamming_hash.insert_rows(keys[400:], 400, head, nxt, count, 400)  # the last 100: the tail
     for t in range(4):
         rows = []
         for k in range(1 << 10):
+            run = sealed[t, start[t, k] : start[t, k + 1]]
+            np.testing.assert_array_equal(run, np.flatnonzero(keys[:400, t] == k))  # the bucket's rows, ascending
             r = head[t, k]
-            bucket = []
+            tail = []
             while r != hamming_hash.NO_ROW:
                 assert keys[r, t] == k
-                bucket.append(r)
-                r = nxt[t, r]
-            assert bucket == sorted(bucket, reverse=True)  # newest first
-            assert count[t, k] == len(bucket)
-            rows += bucket
+                tail.append(r)
+                r = nxt[t, r - 400]
+            assert tail == sorted(tail, reverse=True) and all(r >= 400 for r in tail)  # newest first
+            assert count[t, k] == len(run) + len(tail)
+            rows += list(run) + tail
         assert sorted(rows) == list(range(500))
+        assert start[t, -1] == 400
+
+
+def test_the_hashed_search_is_the_two_nearest_among_the_rows_sharing_a_key(monkeypatch) -> None:
+    # a small seal size, so that the tables hold sealed rows and a tail between their rebuilds
+    monkeypatch.setattr(place_recognition, "SEAL_ROWS", 500)
+    kfs, q = _planted(n_kf=30)
+    idx = DescriptorIndex(HASHED)
+    seals = set()
+    for d in kfs:
+        idx.add(d)
+        seals.add((idx.key_bits, idx._n_sealed))
+    db = np.concatenate(kfs)
+    assert 0 < len(db) - idx._n_sealed < 500 and len(seals) > idx.key_bits - HASHED.hash_key_bits + 2
+    keys, q_keys = idx._keys(db), idx._keys(q)
+    dist = np.unpackbits(q[:, None, :] ^ db[None, :, :], axis=2).sum(axis=2)  # (queries, rows)
+    for end in (len(db), 4100, 900):  # every row; a prefix ending in the sealed rows
+        best, second, nearest = idx._nearest_two(q, end)
+        for i in range(len(q)):
+            shared = np.flatnonzero((keys[:end] == q_keys[i]).any(axis=1))
+            d = dist[i, shared]
+            if len(d) == 0:
+                assert (best[i], nearest[i]) == (hamming.NO_MATCH, -1)
+                continue
+            assert best[i] == d.min() and nearest[i] == shared[d == d.min()].min()
+            assert second[i] == (np.sort(d)[1] if len(d) > 1 else hamming.NO_MATCH)
 
 
 def test_balanced_bits_are_preferred() -> None:

@@ -72,7 +72,8 @@ def test_the_hybrid_short_warmup_run_loads_what_the_full_one_does():
 #: numba kernels a long hybrid run reaches late (a keyframe database past ``exact_below_descriptors``, the map edges'
 #: geometry-only render, a stack of rotations): the warm-up must compile them, or a first run stalls mid-run
 LATE_KERNELS = ("surfelslam.kernels.hamming_hash:hash_keys", "surfelslam.kernels.hamming_hash:insert_rows",
-                "surfelslam.kernels.hamming_hash:nearest_two_hashed", "surfelslam.geometry.so3_kernels:log_scales",
+                "surfelslam.kernels.hamming_hash:seal_rows", "surfelslam.kernels.hamming_hash:nearest_two_hashed",
+                "surfelslam.geometry.so3_kernels:log_scales",
                 "surfelslam.geometry.so3_kernels:markley_many", "surfelslam.kernels.render:fill_geometry")
 
 

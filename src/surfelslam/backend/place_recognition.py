@@ -7,11 +7,12 @@ distance bound casts one vote for the keyframe that owns the nearest descriptor.
 
 The nearest descriptors are searched by brute force (exact, :mod:`surfelslam.kernels.hamming`, over a word-major copy
 of the database: half the time of the row-major search) while the database is small (``exact_below_descriptors``),
-beyond that in a locality-sensitive hash index that every descriptor enters
-when it is added (bit sampling, :mod:`surfelslam.kernels.hamming_hash`): a query then compares each descriptor with
-the few rows that share one of its hash keys instead of every keyframe's, and the keys gain a bit each time the
-database doubles (the tables are rebuilt, O(1) per row on average), so its cost stays nearly flat as a floor-sized
-map gathers thousands of keyframes (``benchmarks/bench_retrieval.py`` measures it). That holds for descriptors spread
+beyond that in a locality-sensitive hash index that every descriptor enters when it is added (bit sampling,
+:mod:`surfelslam.kernels.hamming_hash`): a query then compares each descriptor with the few rows that share one of its
+hash keys instead of every keyframe's, and the keys gain a bit each time the database doubles (the tables are rebuilt,
+O(1) per row on average), so its cost stays nearly flat as a floor-sized map gathers thousands of keyframes
+(``benchmarks/bench_retrieval.py`` measures it); the rows are kept bucket after bucket, sealed every
+:data:`SEAL_ROWS` new ones, so that a query reads each bucket as one contiguous run. That holds for descriptors spread
 over the space; real ones crowd: on a floor walk with revisits a fifth of a query's descriptors share their buckets
 with thousands of rows (common appearances, and their count grows with the map), and they were 3/4 of the rows
 compared for 2 % of the votes; the rows compared per query descriptor grow from 250 to 2500 over a floor's 1662
@@ -44,9 +45,14 @@ _HASH_SEED = 0  # seed of the hash tables' bit positions (fixed: retrieval is de
 # the bits keys are drawn from: the half whose share of ones is nearest 1/2 (ORB bits are unbalanced; on a floor walk
 # the balanced half gave 5x smaller buckets than all 256 bits, at 3% lower recall of the voting neighbours)
 _BALANCED_BITS = 128
-# the key grows by one bit per doubling of the database up to this: the bucket heads and counts take tables x 2 ** bits
-# x 6 bytes (96 MB for 16 tables at 20 bits)
+# the key grows by one bit per doubling of the database up to this: the bucket heads, starts and counts take tables x
+# 2 ** bits x 10 bytes (160 MB for 16 tables at 20 bits)
 _MAX_KEY_BITS = 20
+# rows added to the hash tables since the last seal that make the next one (:func:`hamming_hash.seal_rows`): a seal
+# costs about a query's walk of the whole database (on a 600k-row floor database some 30 ms), the tail's linked walk
+# costs a query about 8x the same rows sealed; 8192 rows (27 keyframes of 300) keeps the tail's share of a query's
+# work small at any size while the seals cost about 1 ms per keyframe
+SEAL_ROWS = 8192
 
 
 @dataclass(frozen=True)
@@ -112,8 +118,11 @@ class DescriptorIndex:
         # the hash tables, made once the database reaches exact_below_descriptors rows (:meth:`_build_tables`)
         self._bits: np.ndarray | None = None  # (tables, key bits) bit positions
         self._rebuild_at = 0  # rows at which the tables are rebuilt with one more key bit
-        self._head = np.zeros((0, 0), np.int32)  # (tables, 2 ** key bits) newest row of each bucket
-        self._next = np.zeros((0, 0), np.int32)  # (tables, capacity) the next (older) row of each row's bucket
+        self._start = np.zeros((0, 0), np.int32)  # (tables, 2 ** key bits + 1) where each bucket's sealed rows start
+        self._rows = np.zeros((0, 0), np.int32)  # (tables, capacity) the sealed rows, bucket after bucket
+        self._n_sealed = 0  # rows [0, _n_sealed) are sealed, the rest are the tail
+        self._head = np.zeros((0, 0), np.int32)  # (tables, 2 ** key bits) newest tail row of each bucket
+        self._next = np.zeros((0, 0), np.int32)  # (tables, tail capacity) the older tail row after each in its bucket
         self._count = np.zeros((0, 0), np.uint16)  # (tables, 2 ** key bits) rows of each bucket (saturating)
         self._compared = np.zeros(1, np.int64)  # rows compared by the hashed queries so far
 
@@ -138,23 +147,29 @@ class DescriptorIndex:
             self._owner = _grown(self._owner, self._n, cap)
             if self._columns is not None:
                 self._columns = _grown(self._columns.T, self._n, cap).T.copy()
-            if self.hashed:  # grown along rows: each table's links stay contiguous (its bucket walks stay in cache)
-                nxt = np.zeros((len(self._next), cap), np.int32)
-                nxt[:, : self._n] = self._next[:, : self._n]
-                self._next = nxt
+            if self.hashed:  # grown along rows: each table's sealed rows stay contiguous
+                rows = np.zeros((len(self._rows), cap), np.int32)
+                rows[:, : self._n_sealed] = self._rows[:, : self._n_sealed]
+                self._rows = rows
         kf = len(self._kf_end)
         self._desc[self._n : need] = d
         self._owner[self._n : need] = kf
         if self._columns is not None:
             self._columns[:, self._n : need] = hamming.as_words(d).T
         if self.hashed:
-            hamming_hash.insert_rows(self._keys(d), self._n, self._head, self._next, self._count)
+            if need - self._n_sealed > self._next.shape[1]:
+                nxt = np.zeros((len(self._next), 2 * (need - self._n_sealed)), np.int32)
+                nxt[:, : self._n - self._n_sealed] = self._next[:, : self._n - self._n_sealed]
+                self._next = nxt
+            hamming_hash.insert_rows(self._keys(d), self._n, self._head, self._next, self._count, self._n_sealed)
         self._n = need
         self._kf_end.append(need)
         if not self.hashed and need >= self.cfg.exact_below_descriptors:
             self._build_tables(self.cfg.hash_key_bits)
         elif self.hashed and need >= self._rebuild_at:
             self._build_tables(self.key_bits + 1)
+        elif self.hashed and need - self._n_sealed >= SEAL_ROWS:
+            self._seal()
         return kf
 
     @property
@@ -168,16 +183,28 @@ class DescriptorIndex:
         return 0 if self._bits is None else self._bits.shape[1]
 
     def _build_tables(self, key_bits: int) -> None:
-        """(Re)make the tables with ``key_bits``-bit keys, their bit positions drawn from the rows so far, and enter
-        every row; the next rebuild (one more bit) comes when the rows have doubled."""
+        """(Re)make the tables with ``key_bits``-bit keys, their bit positions drawn from the rows so far, and seal
+        every row in them; the next rebuild (one more bit) comes when the rows have doubled."""
         cfg = self.cfg
         self._columns = None
         self._bits = hash_bit_positions(self._desc[: self._n], cfg.hash_tables, key_bits)
+        keys = self._keys(self._desc[: self._n])
         self._head = np.full((cfg.hash_tables, 1 << key_bits), hamming_hash.NO_ROW, np.int32)
-        self._next = np.zeros((cfg.hash_tables, len(self._desc)), np.int32)
-        self._count = np.zeros(self._head.shape, np.uint16)
-        hamming_hash.insert_rows(self._keys(self._desc[: self._n]), 0, self._head, self._next, self._count)
+        self._next = np.zeros((cfg.hash_tables, SEAL_ROWS), np.int32)
+        self._count = np.stack([np.minimum(np.bincount(keys[:, t], minlength=1 << key_bits), hamming_hash.COUNT_MAX)
+                                for t in range(cfg.hash_tables)]).astype(np.uint16)
+        self._start = np.zeros((cfg.hash_tables, (1 << key_bits) + 1), np.int32)
+        self._rows = np.zeros((cfg.hash_tables, len(self._desc)), np.int32)
+        self._n_sealed = 0
+        self._seal(keys)
         self._rebuild_at = 2 * max(self._n, 1) if key_bits < _MAX_KEY_BITS else np.iinfo(np.int64).max
+
+    def _seal(self, keys: np.ndarray | None = None) -> None:
+        """Move the tail rows into the sealed part of the tables (``keys``: theirs, ``(tail, tables)``, if known)."""
+        if keys is None:
+            keys = self._keys(self._desc[self._n_sealed : self._n])
+        hamming_hash.seal_rows(keys, self._n_sealed, self._start, self._rows, self._head)
+        self._n_sealed = self._n
 
     def query(self, descriptors: np.ndarray, n_results: int, before_kf: int | None = None) -> list[tuple[int, int]]:
         """Best keyframes for a query frame.
@@ -219,9 +246,9 @@ class DescriptorIndex:
             return hamming.nearest_two_words(words, hamming.as_words(self._desc[:end]))
         n = len(words)
         best_d, second_d, best_idx = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
-        hamming_hash.nearest_two_hashed(words, self._keys(descriptors), hamming.as_words(self._desc), self._head,
-                                        self._next, self._count, end, self.cfg.hash_bucket_rows, best_d, second_d,
-                                        best_idx, self._compared)
+        hamming_hash.nearest_two_hashed(words, self._keys(descriptors), hamming.as_words(self._desc), self._start,
+                                        self._rows, self._head, self._next, self._n_sealed, self._count, end,
+                                        self.cfg.hash_bucket_rows, best_d, second_d, best_idx, self._compared)
         return best_d, second_d, best_idx
 
 
