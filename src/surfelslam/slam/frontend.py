@@ -172,10 +172,14 @@ class DenseFrontEnd:
         return photometric_term(self._src_intensity, self._tgt_intensity, self.cfg.icp)
 
     def register(self, target: FramePyramid, T_init: np.ndarray,
-                 reprojection: ReprojectionTerm | None = None) -> ICPResult:
+                 reprojection: ReprojectionTerm | None = None, levels: int | None = None) -> ICPResult:
         """ICP of the current source against ``target`` (the last :meth:`render_target`) from ``T_init``
-        (``T_target_source``, ``(4, 4)``), with the photometric term and an optional reprojection term."""
-        return icp(self.track_source, target, T_init=T_init, cfg=self.cfg.icp, reprojection=reprojection,
+        (``T_target_source``, ``(4, 4)``), with the photometric term and an optional reprojection term; ``levels``:
+        only that many of the finest pyramid levels (``None``: ``icp.levels``)."""
+        cfg = self.cfg.icp
+        if levels is not None and levels < cfg.levels:
+            cfg = dataclasses.replace(cfg, levels=levels)
+        return icp(self.track_source, target, T_init=T_init, cfg=cfg, reprojection=reprojection,
                    photometric=self.photometric_term())
 
     def register_frame_to_frame(self, T_init: np.ndarray) -> ICPResult:

@@ -149,6 +149,7 @@ class HybridSlam:
                 "relocalisations_tracked": c["relocalisations_tracked"],
                 "map_corrections": self.anchors.map_corrections, "pnp_disagreements": c["pnp_disagreements"],
                 "pnp_unsupported": c["pnp_unsupported"], "unconverged_slides": c["unconverged_slides"],
+                "fine_retries_tried": c["fine_retries_tried"], "fine_retries_tracked": c["fine_retries_tracked"],
                 "loop_correction_skipped": self._loop_correction_skipped,
                 "final_correction_m": self._final_correction_m, **self.map_edges.counts.as_metrics()}
 

@@ -35,6 +35,10 @@ IMPLAUSIBLE = "relocalisation_implausible"
 DISAGREES = "disagrees_with_pnp"
 #: failure of an ICP pose that moved the motion prediction farther than the camera could (MotionModel.jumped)
 JUMPED = "implausible_correction"
+#: pyramid levels of the retry of a jumped registration: the two finest, whose correspondence gates
+#: (``icp.dist_thresh_m``, 0.1 and 0.2 m by default) keep ICP in the prediction's basin; the coarser ones (0.4 and 1 m)
+#: are where a view of plain walls slid 35 cm from a prediction 3 cm off
+FINE_RETRY_LEVELS = 2
 
 
 @dataclass
@@ -87,7 +91,7 @@ class HybridLocaliser:
         self._worker = worker
         self.counts = {"pnp_guesses_tried": 0, "pnp_guesses_tracked": 0, "relocalisations_tried": 0,
                        "relocalisations_tracked": 0, "pnp_disagreements": 0, "pnp_unsupported": 0,
-                       "unconverged_slides": 0}
+                       "unconverged_slides": 0, "fine_retries_tried": 0, "fine_retries_tracked": 0}
 
     def record_noise(self, res: ICPResult) -> None:
         """Keep a tracked frame's finest-level depth noise (when its finest ICP level is the input's)."""
@@ -178,6 +182,9 @@ class HybridLocaliser:
             elif loc.failure is None and motion.slid_unconverged(loc.res):
                 loc.failure = JUMPED
                 self.counts["unconverged_slides"] += 1
+            if loc.failure == JUMPED:
+                self._fine_retry(loc, T_prev, T_init_rel, match, frame.time_s)
+                t.lap("icp")
         bad = loc.res is None or loc.failure is not None or loc.res.degenerate
         if match is None and h.pnp_retry and bad:
             match = self.pnp_match(frame, T_pred)
@@ -196,6 +203,22 @@ class HybridLocaliser:
             loc.from_prev = True
             t.lap("icp")
         return loc
+
+    def _fine_retry(self, loc: Localised, T_prev: np.ndarray, T_init_rel: np.ndarray, match: KeyframeMatch | None,
+                    time_s: float) -> None:
+        """A registration from the prediction that jumped (or slid) is retried from the prediction against the same
+        rendered map at the :data:`FINE_RETRY_LEVELS` finest levels only: the coarse levels' wide correspondence
+        gates can carry ICP into another basin where the view constrains it weakly (plain walls, a corridor), the
+        fine ones cannot. Its result replaces ``loc``'s when it is usable, within the jump bound and not a slide;
+        else the frame stays a jump (held, or retried from the PnP pose)."""
+        self.counts["fine_retries_tried"] += 1
+        front = self.front
+        res = front.register(front.target, se3.orthonormalize(T_init_rel),
+                             reprojection=self._reprojection_term(T_prev, match), levels=FINE_RETRY_LEVELS)
+        if (front.failure_of(res) is None and not front.motion.jumped(res, time_s)
+                and not front.motion.slid_unconverged(res)):
+            loc.res, loc.failure, loc.T_new = res, None, step_and_pose(T_prev, res)[1]
+            self.counts["fine_retries_tracked"] += 1
 
     def _retry_from_pnp(self, loc: Localised, match: KeyframeMatch, first_ok: bool, T_pred: np.ndarray,
                         time_s: float, t: StageTimer) -> None:
