@@ -126,11 +126,13 @@ def test_the_hashed_search_is_the_two_nearest_among_the_rows_sharing_a_key(monke
     db = np.concatenate(kfs)
     assert 0 < len(db) - idx._n_sealed < 500 and len(seals) > idx.key_bits - HASHED.hash_key_bits + 2
     keys, q_keys = idx._keys(db), idx._keys(q)
-    dist = np.unpackbits(q[:, None, :] ^ db[None, :, :], axis=2).sum(axis=2)  # (queries, rows)
+    ones = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1)  # set bits of each byte value
+    dist = ones[q[:, None, :] ^ db[None, :, :]].sum(axis=2)  # (queries, rows) Hamming distances
+    sharing = (keys[None] == q_keys[:, None]).any(axis=2)  # (queries, rows): the row shares a key with the query
     for end in (len(db), 4100, 900):  # every row; a prefix ending in the sealed rows
         best, second, nearest = idx._nearest_two(q, end)
         for i in range(len(q)):
-            shared = np.flatnonzero((keys[:end] == q_keys[i]).any(axis=1))
+            shared = np.flatnonzero(sharing[i, :end])
             d = dist[i, shared]
             if len(d) == 0:
                 assert (best[i], nearest[i]) == (hamming.NO_MATCH, -1)
