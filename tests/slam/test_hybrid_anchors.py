@@ -140,7 +140,7 @@ def test_the_last_frame_promoted_to_keyframe_anchors_itself_and_takes_the_change
     before = anchors.trajectory().T_world_cam
     anchors.promote_last()
     graph.poses.append(anchors.kf_dense.poses[-1].copy())
-    assert anchors.anchor == [0, 0, 0, 0, 1] and len(anchors) == 2
+    assert list(anchors.anchor) == [0, 0, 0, 0, 1] and len(anchors) == 2
     np.testing.assert_allclose(anchors.kf_dense.poses[1], before[4], atol=1e-12)
     np.testing.assert_allclose(anchors.trajectory().T_world_cam, before, atol=1e-12)
     kf_new = np.array(graph.poses)

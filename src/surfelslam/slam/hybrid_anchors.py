@@ -18,7 +18,7 @@ import numpy as np
 from surfelslam.backend.sparse_slam import SparseSlam
 from surfelslam.geometry import se3
 from surfelslam.mapping.surfel_map import SurfelMap
-from surfelslam.types import PoseArray, Trajectory
+from surfelslam.types import GrowingRows, PoseArray, Trajectory
 
 # surfels lie within the sensor's depth range of the keyframe that anchors them: a correction's rotation moves them by
 # at most its angle times this
@@ -36,32 +36,44 @@ class KeyframeAnchors:
         self.kf_dense = PoseArray()  # keyframe poses in the dense (tracking and map) frame
         # per keyframe: its pose relative to the previous keyframe's in the dense frame when it was added (the
         # odometry edge the graph got; identity for the first), and the slot of its own frame in the records
-        self.kf_step: list[np.ndarray] = []
-        self.kf_slot: list[int] = []
-        self.stamps: list[float] = []
-        self.frame_index: list[int] = []  # per record: the frame's index
-        self.anchor: list[int] = []  # per frame: anchor keyframe (-1: before any keyframe, never happens)
-        self.T_kf_cam: list[np.ndarray] = []
-        self.fused_frames: list[int] = []  # frame index of each fused frame (increasing)
-        self.fused_anchor: list[int] = []
+        self._kf_step = PoseArray()
+        self._kf_slot = GrowingRows((), np.int64)
+        # per record (a processed frame): its timestamp, frame index, anchor keyframe and pose relative to it; growing
+        # arrays, so that the per-keyframe lookups (:meth:`last_frame_before`, :meth:`keyframe_stamps`) convert nothing
+        self._stamps = GrowingRows((), np.float64)
+        self._frame_index = GrowingRows((), np.int64)
+        self._anchor = GrowingRows((), np.int64)
+        self._T_kf_cam = PoseArray()
+        self._fused_frames = GrowingRows((), np.int64)  # frame index of each fused frame (increasing)
+        self._fused_anchor = GrowingRows((), np.int64)
         self.map_corrections = 0  # corrections applied to the map and the current pose
 
     def __len__(self) -> int:
         """Keyframes known in the dense frame."""
         return len(self.kf_dense)
 
+    @property
+    def anchor(self) -> np.ndarray:
+        """``(N,)`` int64 each recorded frame's anchor keyframe (a view: valid until the next record)."""
+        return self._anchor.rows
+
+    @property
+    def T_kf_cam(self) -> np.ndarray:
+        """``(N, 4, 4)`` each recorded frame's pose relative to its anchor (a view: valid until the next record)."""
+        return self._T_kf_cam.poses
+
     def add_keyframe(self, T_world_kf: np.ndarray) -> None:
         """A new keyframe at ``T_world_kf`` ``(4, 4)`` in the dense frame (its own frame is recorded next)."""
         prev = self.kf_dense.poses[-1] if len(self.kf_dense) else np.asarray(T_world_kf)
-        self.kf_step.append(se3.invert(prev) @ T_world_kf)
-        self.kf_slot.append(len(self.stamps))
+        self._kf_step.append(se3.invert(prev) @ T_world_kf)
+        self._kf_slot.append(len(self._stamps))
         self.kf_dense.append(T_world_kf)
 
     def promote_last(self) -> None:
         """The last recorded frame became a keyframe (:meth:`SparseSlam.promote_last_frame`): it anchors itself."""
         T_world_kf = self.kf_dense.poses[self.anchor[-1]] @ self.T_kf_cam[-1]
-        self.kf_step.append(self.T_kf_cam[-1])
-        self.kf_slot.append(len(self.stamps) - 1)
+        self._kf_step.append(self.T_kf_cam[-1])
+        self._kf_slot.append(len(self._stamps) - 1)
         self.kf_dense.append(T_world_kf)
         self.anchor[-1] = len(self.kf_dense) - 1
         self.T_kf_cam[-1] = np.eye(4)
@@ -70,12 +82,12 @@ class KeyframeAnchors:
         """A processed frame at ``T_world_cam`` (dense frame), anchored to the back end's last keyframe."""
         anchor = self.sparse.n_keyframes - 1
         if fused:
-            self.fused_frames.append(frame_index)
-            self.fused_anchor.append(anchor)
-        self.stamps.append(timestamp)
-        self.frame_index.append(int(frame_index))
-        self.anchor.append(anchor)
-        self.T_kf_cam.append(se3.invert(self.kf_dense.poses[anchor]) @ T_world_cam)
+            self._fused_frames.append(frame_index)
+            self._fused_anchor.append(anchor)
+        self._stamps.append(timestamp)
+        self._frame_index.append(int(frame_index))
+        self._anchor.append(anchor)
+        self._T_kf_cam.append(se3.invert(self.kf_dense.poses[anchor]) @ T_world_cam)
 
     def correction(self, k: int) -> np.ndarray:
         """``C_k = T_kf_graph inv(T_kf_dense)``: maps dense-frame poses near keyframe ``k`` into the graph frame."""
@@ -121,21 +133,21 @@ class KeyframeAnchors:
 
     def anchors_of(self, first_seen: np.ndarray) -> np.ndarray:
         """``(n,)`` int64 anchor keyframe of surfels first seen in the frames ``first_seen`` ``(n,)`` (fused frames)."""
-        frames = np.asarray(self.fused_frames, np.int64)
+        frames = self._fused_frames.rows
         if len(first_seen) == 0:
             return np.zeros(0, np.int64)
         # a table per frame index up to the newest surfel's (the frame count): one gather per surfel, no search
         row = np.clip(np.searchsorted(frames, np.arange(int(first_seen.max()) + 1)), 0, len(frames) - 1)
-        return np.asarray(self.fused_anchor, np.int64)[row][first_seen]
+        return self._fused_anchor.rows[row][first_seen]
 
     def keyframe_stamps(self, keyframes: np.ndarray) -> np.ndarray:
         """``(n,)`` timestamps of the frames of ``keyframes`` ``(n,)`` (ids)."""
-        return np.asarray(self.stamps)[np.asarray(self.kf_slot, np.int64)[keyframes]]
+        return self._stamps.rows[self._kf_slot.rows[keyframes]]
 
     def last_frame_before(self, time_s: float) -> int:
         """Index of the last recorded frame whose timestamp is at most ``time_s`` (s); -1 when there is none."""
-        slot = int(np.searchsorted(np.asarray(self.stamps), time_s, side="right")) - 1
-        return self.frame_index[slot] if slot >= 0 else -1
+        slot = int(np.searchsorted(self._stamps.rows, time_s, side="right")) - 1
+        return int(self._frame_index.rows[slot]) if slot >= 0 else -1
 
     def trajectory(self, kf_poses: np.ndarray | None = None) -> Trajectory:
         """Every frame's pose with the keyframe poses ``kf_poses`` ``(K, 4, 4)`` (default: the graph's):
@@ -144,9 +156,9 @@ class KeyframeAnchors:
         step between them, and ``W_k(a)`` its fraction ``a`` (rotation angle and translation scaled by ``a``), ``a``
         the frame's time from keyframe ``k``'s over the time to ``k + 1``'s (0 after the last keyframe)."""
         kf = self.sparse.keyframe_poses() if kf_poses is None else kf_poses
-        anchor = np.asarray(self.anchor, np.int64)
-        T_kf_cam = np.asarray(self.T_kf_cam).reshape(-1, 4, 4)
-        stamps = np.asarray(self.stamps, np.float64)
+        anchor = self.anchor
+        T_kf_cam = self.T_kf_cam
+        stamps = self._stamps.rows
         W = self._next_keyframe_changes(kf)
         frac = self._fractions(stamps, anchor, len(W))
         Wa = np.tile(np.eye(4), (len(anchor), 1, 1))
@@ -162,14 +174,14 @@ class KeyframeAnchors:
         (identity where ``kf`` keeps the dense step)."""
         if len(kf) < 2:
             return np.zeros((0, 4, 4))
-        steps = np.asarray(self.kf_step[1:len(kf)])
+        steps = self._kf_step.poses[1:len(kf)]
         return se3.invert(kf[:-1]) @ kf[1:] @ se3.invert(steps)
 
     def _fractions(self, stamps: np.ndarray, anchor: np.ndarray, n_changes: int) -> np.ndarray:
         """``(N,)`` each record's fraction of the way (in time) from its anchor keyframe's frame to the next
         keyframe's (0 without a recorded next keyframe, or when their times do not increase)."""
         frac = np.zeros(len(anchor))
-        slots = np.asarray(self.kf_slot, np.int64)
+        slots = self._kf_slot.rows
         has_next = anchor < min(n_changes, int(np.count_nonzero(slots < len(stamps))) - 1)
         if not has_next.any():
             return frac
