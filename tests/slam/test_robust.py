@@ -286,15 +286,20 @@ def _textured_room():
     return list(iter_frames(scene, traj, INTR_SMALL, noise_config("kinect"), 1)), gt
 
 
-def _pnp_retry_run(monkeypatch, pred_off_m: float, retry_off_m: float):
-    """Hybrid on the textured room; at frame 20 the prediction is planted ``pred_off_m`` off (sideways), ICP from it
-    fails (too few inliers) and ICP from the PnP pose is planted ``retry_off_m`` off its own result with a converged
-    status. Returns (frame 20's result, its truth, the tracker's counts)."""
+def _hybrid_after_20_frames():
+    """The hybrid after the textured room's first 20 frames: (frames, truth, the tracker, its 20 results)."""
     from surfelslam.slam import HybridSlam
 
     frames, gt = _textured_room()
     slam = HybridSlam(INTR_SMALL, SlamConfig())
-    results = [slam.process(f) for f in frames[:20]]
+    return frames, gt, slam, [slam.process(f) for f in frames[:20]]
+
+
+def _pnp_retry_run(monkeypatch, pred_off_m: float, retry_off_m: float):
+    """Hybrid on the textured room; at frame 20 the prediction is planted ``pred_off_m`` off (sideways), ICP from it
+    fails (too few inliers) and ICP from the PnP pose is planted ``retry_off_m`` off its own result with a converged
+    status. Returns (frame 20's result, its truth, the tracker's counts)."""
+    frames, gt, slam, results = _hybrid_after_20_frames()
     icp_from, predict = slam.localiser.icp_from, slam.front.predict
     calls = []
 
@@ -333,12 +338,9 @@ def test_a_registration_that_slid_off_a_good_prediction_is_retried_at_the_fine_l
     fused, not held."""
     import dataclasses
 
-    from surfelslam.slam import HybridSlam
     from surfelslam.slam.frame import FrameStatus
 
-    frames, gt = _textured_room()
-    slam = HybridSlam(INTR_SMALL, SlamConfig())
-    results = [slam.process(f) for f in frames[:20]]
+    frames, gt, slam, results = _hybrid_after_20_frames()
     icp_from, register = slam.localiser.icp_from, slam.front.register
     levels = []
 

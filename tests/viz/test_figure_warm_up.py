@@ -32,6 +32,16 @@ def test_warming_writes_nothing_and_changes_no_figure(tmp_path, monkeypatch):
     assert sorted(os.listdir(tmp_path)) == ["after", "before"]
 
 
+def test_the_map_figures_are_warmed_once_per_process(monkeypatch):
+    drawn = []
+    map_figure = mf.map_figure
+    monkeypatch.setattr(mf, "map_figure", lambda *a, **k: drawn.append(1) or map_figure(*a, **k))
+    monkeypatch.setattr(mf, "_warmed_up", False)  # as in a fresh process
+    mf.warm_up_map_figures()
+    mf.warm_up_map_figures()
+    assert drawn == [1]
+
+
 def test_preload_runs_at_the_short_switch_interval_and_restores_it(monkeypatch):
     """While the report's modules load beside the tracking, the GIL changes hands every 0.5 ms (not every 5 ms): a
     tracking thread back from a kernel waits that long at most. The interval is back afterwards."""

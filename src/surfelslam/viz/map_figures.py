@@ -44,6 +44,7 @@ FIT_PERCENTILE = 0.2  # framing ignores this percentage of outlying surfels on e
 MARGIN = 0.04  # fraction of the image kept free on each side
 #: surfels of the throwaway figure of :func:`warm_up_map_figures` (a few: it is drawn for its first-use costs)
 WARM_UP_SURFELS = 200
+_warmed_up = False  # whether this process has drawn the warm-up figure (:func:`warm_up_map_figures`)
 
 
 def _rotate(R: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -412,7 +413,11 @@ def save_map_figures(out_dir: str | Path, position: np.ndarray, normal: np.ndarr
 def warm_up_map_figures() -> None:
     """Draw a small map figure in memory (nothing is written): the splat kernel is loaded from numba's cache and
     matplotlib's fonts and PNG writer are set up, so that a run's map figures do not pay for them at its end (a run
-    calls this in a background thread while it tracks)."""
+    calls this in a background thread while it tracks). Once per process: what it sets up stays set up, and a
+    process that makes many runs (``surfelslam experiments``, a batch, the tests) paid 0.5 s of drawing for each."""
+    global _warmed_up
+    if _warmed_up:
+        return
     rng = np.random.default_rng(0)
     position = rng.uniform(-1.0, 1.0, (WARM_UP_SURFELS, 3))
     normal = position / np.linalg.norm(position, axis=1, keepdims=True)
@@ -423,3 +428,4 @@ def warm_up_map_figures() -> None:
     cam = top_view(position, poses, normal)
     fig = map_figure(cam, position, normal, colour, values, values, np.full(WARM_UP_SURFELS, 0.01), poses, "warm-up")
     write_png(fig, io.BytesIO())
+    _warmed_up = True
