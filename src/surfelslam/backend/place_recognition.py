@@ -49,10 +49,10 @@ _BALANCED_BITS = 128
 # 2 ** bits x 10 bytes (160 MB for 16 tables at 20 bits)
 _MAX_KEY_BITS = 20
 # rows added to the hash tables since the last seal that make the next one (:func:`hamming_hash.seal_rows`): a seal
-# costs about a query's walk of the whole database (on a 600k-row floor database some 30 ms), the tail's linked walk
-# costs a query about 8x the same rows sealed; 8192 rows (27 keyframes of 300) keeps the tail's share of a query's
-# work small at any size while the seals cost about 1 ms per keyframe
-SEAL_ROWS = 8192
+# moves every row (145 ms at 600k rows and 20-bit keys), the tail's linked walk costs a query about 7x the same rows
+# sealed; at that size 16384 rows (55 keyframes of 300) minimises the estimated sum: 2.6 ms of seals per keyframe,
+# 2 ms of tail per query on floor-like crowding (8192: 5.2 + 1)
+SEAL_ROWS = 16384
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ offset per key, then each bucket's row numbers ascending), so a query reads a bu
 added since the last seal (the *tail*) are a linked list per bucket (a head per key, a "next row" link per tail row,
 newest first), so appending a row is O(T). :func:`seal_rows` moves the tail into the sealed part. The linked walk
 costs a cache miss per link besides the row's descriptor: on a floor-sized database whose common appearances crowd
-buckets with thousands of rows, a query walked them at about 8x the cost of the contiguous runs.
+buckets with thousands of rows, a query walked them at about 7x the cost of the contiguous runs.
 
 :func:`nearest_two_hashed` returns what :func:`surfelslam.kernels.hamming.nearest_two` returns, over the rows it
 reaches: the nearest one is found with that probability, and the second-nearest distance is an upper bound of the
