@@ -191,13 +191,13 @@ class DescriptorIndex:
         keys = self._keys(self._desc[: self._n])
         self._head = np.full((cfg.hash_tables, 1 << key_bits), hamming_hash.NO_ROW, np.int32)
         self._next = np.zeros((cfg.hash_tables, SEAL_ROWS), np.int32)
-        self._count = np.empty((cfg.hash_tables, 1 << key_bits), np.uint16)
-        for t in range(cfg.hash_tables):  # one table's counts at a time: no (tables, 2 ** key bits) int64 temporary
-            self._count[t] = np.minimum(np.bincount(keys[:, t], minlength=1 << key_bits), hamming_hash.COUNT_MAX)
         self._start = np.zeros((cfg.hash_tables, (1 << key_bits) + 1), np.int32)
         self._rows = np.zeros((cfg.hash_tables, len(self._desc)), np.int32)
         self._n_sealed = 0
         self._seal(keys)
+        self._count = np.empty((cfg.hash_tables, 1 << key_bits), np.uint16)
+        for t in range(cfg.hash_tables):  # every row is sealed: a bucket's count is its run's length (saturated)
+            self._count[t] = np.minimum(np.diff(self._start[t]), hamming_hash.COUNT_MAX)
         self._rebuild_at = 2 * max(self._n, 1) if key_bits < _MAX_KEY_BITS else np.iinfo(np.int64).max
 
     def _seal(self, keys: np.ndarray | None = None) -> None:
