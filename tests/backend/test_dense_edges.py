@@ -193,11 +193,16 @@ def test_edge_sigma_follows_the_spread_of_nearby_edges():
     the odometry (never below sigma_m)."""
     ref = _refiner(DenseEdgeConfig(min_spread_edges=5, spread_window_edges=20))
     rng = np.random.default_rng(4)
+    seen = []  # |log| components of every edge: the spread is over the last 20 edges' (kept once per change)
     for k in range(40):
         if k < 5:
             assert ref.edge_sigma() == 0.003 and ref.spread() is None
+        else:
+            assert ref.spread() == float(np.median(seen[-6 * 20:])) / 0.6745
         T = se3.exp(rng.normal(0, 0.02, 6))
-        ref.observe_nearby(T, T @ se3.exp(rng.normal(0, 0.01, 6)))
+        T_odo = T @ se3.exp(rng.normal(0, 0.01, 6))
+        ref.observe_nearby(T, T_odo)
+        seen += np.abs(se3.log(se3.invert(T) @ T_odo)).tolist()
     assert ref.edge_sigma() == pytest.approx(0.01, rel=0.3) and ref.edge_sigma() == ref.spread()
     tight = _refiner(DenseEdgeConfig(min_spread_edges=5))
     for _ in range(10):

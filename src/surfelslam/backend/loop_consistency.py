@@ -65,6 +65,9 @@ class OdometryChain:
         # per keyframe: (6,) drift variance of the step from the parent, (omega, v), and its sum
         self._step_var = GrowingRows((6,))
         self._step_trace = GrowingRows()
+        # per keyframe: the running sum over keyframes 0..k of each step's drift covariance in the world frame,
+        # Ad(T_world_c) diag(var_c) Ad(T_world_c)^T: a path inside one run sums it in O(1) (a difference of two rows)
+        self._world_cov_sum = GrowingRows((6, 6))
         self._unknown: set[int] = set()  # keyframes whose step from the parent is unknown (a new segment)
 
     def __len__(self) -> int:
@@ -96,9 +99,13 @@ class OdometryChain:
         self._append_step(np.array([var_rot] * 3 + [var_t] * 3))
 
     def _append_step(self, var: np.ndarray) -> None:
-        """Record the ``(6,)`` drift variance of the newest keyframe's step (and its sum)."""
+        """Record the ``(6,)`` drift variance of the newest keyframe's step (its sum, and the running sum of the
+        steps' world-frame covariances)."""
         self._step_var.append(var)
         self._step_trace.append(np.sum(var))
+        A = adjoint(self.poses[-1])
+        before = self._world_cov_sum.rows[-1] if len(self._world_cov_sum) else np.zeros((6, 6))
+        self._world_cov_sum.append(before + (A * var) @ A.T)
 
     def parent(self, kf: int) -> int:
         """The keyframe that ``kf`` hangs from (-1: a root)."""
@@ -163,6 +170,12 @@ class OdometryChain:
         """``(6, 6)`` covariance of the odometry's ``T_i_j`` (right perturbation, ``(omega, v)``) over ``path``."""
         if not path:
             return np.zeros((6, 6))
+        if len(path) == path[0] - path[-1] + 1 and path[0] == max(i, j) and path[-1] == min(i, j) + 1:
+            # the steps into keyframes lo + 1 .. hi: the difference of the running sums, moved into keyframe j's frame
+            # (a far loop's path holds thousands of steps; the sum over them took milliseconds per edge)
+            S = self._world_cov_sum.rows[path[0]] - self._world_cov_sum.rows[path[-1] - 1]
+            A = adjoint(invert(self.poses[j]))
+            return A @ S @ A.T
         rows = np.asarray(path, np.intp)
         T_j_c = invert(self.poses[j])[None] @ self.poses[rows]
         A = adjoint(T_j_c)
