@@ -147,6 +147,45 @@ def test_cull_and_gather_match_reference_and_keep_every_visible_surfel():
     assert len(cand) < 0.8 * m.size  # and culling removed a real share
 
 
+def test_culling_by_cubes_of_blocks_equals_culling_block_by_block():
+    """A floor-sized map (a floor and walls over 20 x 15 m, negative coordinates, blocks at the cubes' edges),
+    grouped in cubes, then more blocks added (tested one by one): at 60 poses, some looking into empty space and some
+    from inside a cube, the cubes give exactly the per-block test's flags, and most blocks are rejected by their
+    cube."""
+    rng = np.random.default_rng(11)
+    m = MapConfig(initial_capacity=8)
+    smap = SurfelMap(m)
+    floor = rng.uniform([-10, -7.5, 0], [10, 7.5, 0], size=(8300, 3))
+    wall = rng.uniform([-10, -7.5, 0], [10, 7.5, 2.5], size=(8300, 3))
+    wall[:, 0] = np.round(wall[:, 0] / 5) * 5  # walls every 5 m across the floor
+    xyz = np.where(rng.random((8300, 1)) < 0.6, floor, wall)[rng.permutation(8300)]
+    smap.append(xyz[:8000], np.tile([0, 0, 1.0], (8000, 1)), np.zeros((8000, 3)), 1.0, 0.01, 0)
+    intr = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+    smap.visible_candidates(np.eye(4), intr, 0.1, 8.0)  # groups the blocks so far in cubes
+    smap.append(xyz[8000:], np.tile([0, 0, 1.0], (300, 1)), np.zeros((300, 3)), 1.0, 0.01, 1)
+    group_ijk, start, blocks, n_in = smap._cull_groups()
+    assert n_in < smap.n_blocks and len(group_ijk) < n_in / 4
+    nb, bs, margin = smap.n_blocks, m.block_size_m, m.block_margin_m
+    view = (intr.fx, intr.fy, intr.cx, intr.cy, -2.5, intr.width + 1.5, -2.5, intr.height + 1.5)
+    rejected = []
+    for k in range(60):
+        centre = xyz[rng.integers(len(xyz))] + rng.normal(0, 0.2, 3) if k % 2 else rng.uniform(-15, 15, 3)
+        Tcw = invert(make_T(so3_exp(rng.uniform(-np.pi, np.pi, 3)), centre))
+        R, t = np.ascontiguousarray(Tcw[:3, :3]), np.ascontiguousarray(Tcw[:3, 3])
+        args = (bs, margin, R, t, *view, 0.1, 8.0, kr.frustum_reach(*view, 8.0))
+        flat = np.full(nb, 7, np.uint8)
+        kr.cull_blocks(smap._block_ijk, nb, *args, flat)
+        cubes = np.full(nb, 7, np.uint8)
+        kr.cull_blocks_grouped(group_ijk, start, blocks, 4 * bs, n_in, smap._block_ijk, nb, *args, cubes)
+        np.testing.assert_array_equal(cubes, flat)
+        np.testing.assert_array_equal(flat, kr.cull_blocks_ref(smap._block_ijk, nb, *args))
+        in_view = np.ones(len(group_ijk), np.uint8)
+        kr.cull_blocks(group_ijk, len(group_ijk), 4 * bs, margin + 1e-3, R, t, *view, 0.1, 8.0,
+                       kr.frustum_reach(*view, 8.0), in_view)
+        rejected.append(np.sum(np.diff(start)[in_view == 0]) / n_in)
+    assert np.mean(rejected) > 0.8
+
+
 # ------------------------------------------------------------------------------------------------ render
 def test_render_plane_depth_and_normal_at_known_pixels():
     z0 = 2.0
