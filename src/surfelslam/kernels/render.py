@@ -25,12 +25,19 @@ _GROUP_SLACK_M = 1e-3
 
 # ---------------------------------------------------------------------------------------------------- culling
 @njit(cache=True, nogil=True)
-def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far,
-                reach, visible_out):
+def cull_blocks_grouped(group_ijk, group_start, group_blocks, group_edge, n_in_groups, block_ijk, nb, block_size,
+                        margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far, reach, visible_out):
     """Frustum test of block boxes: ``visible_out[b] = 1`` unless all 8 corners lie outside one face, or the box's
-    bounding sphere lies farther than ``reach`` (metres) from the camera centre.
+    bounding sphere lies farther than ``reach`` (metres) from the camera centre (reference: :func:`cull_blocks_ref`).
+
+    The blocks ``0..n_in_groups-1`` are grouped in cubes, and a cube whose box (grown by ``margin`` and
+    :data:`_GROUP_SLACK_M`) misses the view rejects all its blocks in one test: their grown boxes lie inside it, so
+    each of them would fail the same test. The blocks of the other cubes are tested one by one, as are the blocks
+    from ``n_in_groups`` to ``nb``, added since the grouping.
 
     Args:
+        group_ijk: int32 ``(G, 3)`` integer coordinates of the cubes, of edge ``group_edge`` (metres, a multiple of
+            ``block_size``); cube ``g`` holds blocks ``group_blocks[group_start[g]:group_start[g + 1]]``.
         block_ijk: int32 ``(>= nb, 3)`` integer block coordinates; block ``b`` spans
             ``[ijk * block_size - margin, (ijk + 1) * block_size + margin]`` (metres, world frame).
         R, t: ``(3, 3)``, ``(3,)`` float64 world-to-camera rotation and translation.
@@ -43,20 +50,6 @@ def cull_blocks(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, u
     The frustum faces are the half-spaces ``z >= near``, ``z <= far``, ``fx x + (cx - umin) z >= 0``,
     ``(umax - cx) z - fx x >= 0`` and the same for ``v`` with ``fy`` (valid for either sign of ``fy``).
     """
-    for b in range(nb):
-        visible_out[b] = _box_visible(block_ijk[b, 0], block_ijk[b, 1], block_ijk[b, 2], block_size, margin, R, t,
-                                      fx, fy, cx, cy, umin, umax, vmin, vmax, near, far, reach)
-
-
-@njit(cache=True, nogil=True)
-def cull_blocks_grouped(group_ijk, group_start, group_blocks, group_edge, n_in_groups, block_ijk, nb, block_size,
-                        margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far, reach, visible_out):
-    """:func:`cull_blocks`, the same ``visible_out``, with fewer tests: the blocks ``0..n_in_groups-1`` are grouped
-    in cubes of edge ``group_edge`` (metres, a multiple of ``block_size``; cube ``g`` at integer coordinates
-    ``group_ijk[g]`` holds blocks ``group_blocks[group_start[g]:group_start[g + 1]]``), and a cube whose box (grown by
-    ``margin`` and :data:`_GROUP_SLACK_M`) misses the view rejects all its blocks at once: their grown boxes lie
-    inside it, so each of them would fail the same test. The other blocks are tested one by one, as are the blocks
-    from ``n_in_groups`` to ``nb``, added since the grouping."""
     grow = margin + _GROUP_SLACK_M
     for g in range(group_ijk.shape[0]):
         in_view = _box_visible(group_ijk[g, 0], group_ijk[g, 1], group_ijk[g, 2], group_edge, grow, R, t, fx, fy,
@@ -74,7 +67,8 @@ def cull_blocks_grouped(group_ijk, group_start, group_blocks, group_edge, n_in_g
 @njit(cache=True, nogil=True)
 def _box_visible(i, j, k, edge, grow, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far, reach):
     """1 unless the box ``[(i, j, k) * edge - grow, (i, j, k) * edge + edge + grow]`` (metres) lies outside one face
-    of the frustum or its bounding sphere farther than ``reach`` from the camera centre (:func:`cull_blocks`)."""
+    of the frustum or its bounding sphere farther than ``reach`` from the camera centre
+    (:func:`cull_blocks_grouped`)."""
     half = 0.5 * edge
     sphere = math.sqrt(3.0) * (half + grow)  # bounding-sphere radius of a grown box
     mx = i * edge + half
@@ -114,7 +108,7 @@ def lod_strides(visible, nb, block_ijk, count, block_size, R, t, fx, fy, per_px,
     ``[1, max_stride]``. Blocks whose centre lies within ``block_size`` of the camera plane keep stride 1.
 
     Args:
-        visible: uint8 ``(>= nb,)`` from :func:`cull_blocks`, modified in place.
+        visible: uint8 ``(>= nb,)`` from :func:`cull_blocks_grouped`, modified in place.
         count: int32 ``(>= nb,)`` surfels grouped in each block.
         R, t: float64 world-to-camera rotation and translation.
         per_px: surfels per pixel kept (> 0).
@@ -153,7 +147,7 @@ def frustum_reach(fx, fy, cx, cy, umin, umax, vmin, vmax, far):
 
 def cull_blocks_ref(block_ijk, nb, block_size, margin, R, t, fx, fy, cx, cy, umin, umax, vmin, vmax, near, far,
                     reach=math.inf):
-    """Numpy reference of :func:`cull_blocks`; returns uint8 ``(nb,)``."""
+    """Numpy reference of :func:`cull_blocks_grouped` (block by block); returns uint8 ``(nb,)``."""
     bits = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.float64)  # (8, 3)
     lo = block_ijk[:nb].astype(np.float64)[:, None, :] * block_size - margin
     corners = lo + bits[None] * (block_size + 2 * margin)  # (nb, 8, 3)
