@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
+import threading
 import types
 
 from numba import njit
@@ -25,6 +27,26 @@ _STATE = {"parallel": False}
 # starves the reader thread and other processes on a small machine). Read by libgomp when numba loads its
 # OpenMP threading layer, i.e. at the first parallel kernel call, after this import; a user setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+#: the least priority a thread can be given (Linux nice values run from -20 to 19)
+_LOWEST_NICE = 19
+
+
+def lower_thread_priority(nice_increment: int) -> None:
+    """Lower the calling thread's CPU priority by ``nice_increment`` nice levels (Linux, where nice is per thread;
+    elsewhere nothing: a process-wide call would slow the tracking thread too). For worker threads whose results
+    are wanted later than their inputs arrive (a thread pool's ``initializer``): on two cores, four busy threads
+    share them, and the tracking thread waits each frame for the one that works on its path; the others then
+    take the cores it leaves idle instead of slowing it. Scheduling only: no result changes."""
+    if sys.platform != "linux" or nice_increment <= 0:
+        return
+    tid = threading.get_native_id()
+    try:
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, min(nice + nice_increment, _LOWEST_NICE))
+    except OSError:  # a system that refuses the hint runs the thread at its priority
+        pass
 
 
 def set_parallel(on: bool) -> None:

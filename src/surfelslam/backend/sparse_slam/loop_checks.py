@@ -15,6 +15,7 @@ from surfelslam.backend.loops import LoopConfig, loop_candidates, verify_edge
 from surfelslam.backend.place_recognition import DescriptorIndex, select_descriptors
 from surfelslam.backend.sparse_slam.results import LoopCheck
 from surfelslam.geometry.se3 import invert, pose_error
+from surfelslam.kernels.threads import lower_thread_priority
 from surfelslam.tracking.features import FeatureConfig, Features
 from surfelslam.tracking.preprocess import FramePyramid
 from surfelslam.types import Intrinsics
@@ -26,6 +27,9 @@ ODOMETRY_MIN_INLIER_FRACTION = 0.5
 #: has already closed (``LoopConfig.closed_retrieved``); well above a refined edge's error, well below a drift's
 CLOSED_LOOP_SHIFT_M = 0.01
 CLOSED_LOOP_SHIFT_DEG = 1.0
+#: nice levels below the tracking thread for the loop checks: their results are collected keyframes later, so they
+#: take the cores the tracking thread and the hybrid's feature worker (whose result it waits for) leave idle
+LOOP_CHECK_NICE = 10
 
 
 class LoopChecker:
@@ -86,7 +90,8 @@ class LoopChecker:
         are checked and indexed in order); :meth:`collect` returns the results in that order. The candidates' poses
         are copied here, on the caller's thread."""
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks")
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks",
+                                            initializer=lower_thread_priority, initargs=(LOOP_CHECK_NICE,))
         self._pending.append(self._pool.submit(self._check, kf_id, feats, self._candidate_poses(kf_id, poses_world_kf),
                                                pyramid))
 
