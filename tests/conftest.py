@@ -54,3 +54,21 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     then the whole-sequence tests (marker ``slow``), then the rest."""
     items.sort(key=lambda item: (item.get_closest_marker("xdist_group") is None,
                                  item.get_closest_marker("slow") is None))
+
+
+#: the names of the threads a tracker or sparse back end runs its background work in (stopped by its ``finish()``)
+_BACKGROUND_THREADS = ("loop-checks", "surfelslam-hybrid")
+
+
+@pytest.fixture(autouse=True)
+def _background_threads_end_with_their_test():
+    """A test that leaves a tracker unfinished leaves its background threads running into the next tests, where they
+    call whatever those tests patch (a patched function then counts calls that are not the test's own): each test
+    finishes the trackers it starts."""
+    import threading
+
+    before = {t.ident for t in threading.enumerate()}
+    yield
+    left = [t.name for t in threading.enumerate()
+            if t.ident not in before and t.name.startswith(_BACKGROUND_THREADS) and t.is_alive()]
+    assert not left, f"background threads left running (finish the tracker): {left}"

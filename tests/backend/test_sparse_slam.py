@@ -151,6 +151,8 @@ def test_coarse_match_keeps_the_rgbd_refinement_when_asked(loop_frames) -> None:
     assert 1e-5 < pose_error(a.T_world_cam, b.T_world_cam)[0] < 0.01
     # 1 % depth noise: the depths move the pose closer to the truth (3.3 against 3.6 mm)
     assert pose_error(b.T_world_cam, poses[6])[0] < min(0.005, pose_error(a.T_world_cam, poses[6])[0])
+    plain.finish()  # their background threads stop here, not in a later test (whose patched functions they would call)
+    rgbd.finish()
 
 
 def test_rejected_frames_counted_and_predicted(loop_frames) -> None:
@@ -261,6 +263,7 @@ def test_a_long_texture_loss_holds_the_last_pose(loop_frames) -> None:
     np.testing.assert_allclose(poses[8 + n :], np.broadcast_to(poses[8 + n - 1], poses[8 + n :].shape))
     with pytest.raises(ValueError, match="velocity_reset_after_failures"):
         SparseSlamConfig(velocity_reset_after_failures=0)
+    slam.finish()  # its background loop checks stop here, not in a later test (they would call its patched functions)
 
 
 @pytest.mark.parametrize("field,value", [("reinit_after_failures", -1), ("reinit_min_keypoints", -5),

@@ -157,6 +157,7 @@ def test_loop_correction_moves_map_and_trajectory():
     # the culling index follows: the map rendered at the moved pose is the map seen before
     view = slam.front.render_target(slam.front.state.T_world_cam)
     assert np.count_nonzero(view[0].vertex[..., 2] > 0) > 0.5 * INTR.width * INTR.height
+    slam.finish()  # its worker and loop-check threads stop here, not in a later test
 
 
 @pytest.mark.shared

@@ -314,7 +314,9 @@ def _pnp_retry_run(monkeypatch, pred_off_m: float, retry_off_m: float):
     monkeypatch.setattr(slam.front, "predict", lambda: predict() @ se3.make_T(np.eye(3), [pred_off_m, 0.0, 0.0]))
     r = slam.process(frames[20])
     T0 = results[0].T_world_cam
-    return r, se3.invert(T0) @ r.T_world_cam, gt[20], slam.counts, len(calls)
+    counts = dict(slam.counts)
+    slam.finish()  # its background threads stop with the test
+    return r, se3.invert(T0) @ r.T_world_cam, gt[20], counts, len(calls)
 
 
 def test_icp_from_a_pnp_pose_far_from_the_prediction_needs_the_pnp_pose_as_evidence(monkeypatch):
@@ -360,3 +362,4 @@ def test_a_registration_that_slid_off_a_good_prediction_is_retried_at_the_fine_l
     assert r.status == FrameStatus.TRACKED and r.fused
     assert slam.counts["fine_retries_tried"] == slam.counts["fine_retries_tracked"] == 1
     assert se3.pose_error(T, gt[20])[0] < 0.01
+    slam.finish()  # its background threads stop with the test

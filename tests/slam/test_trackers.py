@@ -419,7 +419,10 @@ def _walk_back_to_the_start():
 def _hybrid_run(run_frames):
     """``(frame results, failure reasons)`` of the default hybrid on ``run_frames``."""
     slam = build_slam(INTR, SlamConfig(), "hybrid")
-    return [slam.process(f) for f in run_frames], slam.front.state.failure_reasons
+    results = [slam.process(f) for f in run_frames]
+    reasons = dict(slam.front.state.failure_reasons)
+    slam.finish()  # its background threads stop with the test
+    return results, reasons
 
 
 def test_a_refused_relocalisation_is_no_bridge():
