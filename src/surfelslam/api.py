@@ -33,6 +33,7 @@ from surfelslam.datasets.registry import open_sequence as _open_sequence
 from surfelslam.errors import ConfigError, FrameError
 from surfelslam.eval.protocol import DEFAULT_MAX_DIFF_S
 from surfelslam.io.trajectory import read_tum
+from surfelslam.kernels.threads import lower_thread_priority
 from surfelslam.slam import FrameResult, SlamConfig, SlamResult, Tracker
 from surfelslam.slam.colour_check import colour_is_registered
 from surfelslam.slam.runner import run_sequence as _run_sequence
@@ -53,6 +54,9 @@ PROGRESS_EVERY = 10
 #: ran at a quarter of their speed. At 0.5 ms the main thread's GIL waits on a 100-frame run fell from ~5 to ~2.5 ms
 #: per frame; the old interval is back once the preload is done.
 PRELOAD_SWITCH_INTERVAL_S = 0.0005
+#: nice levels below the tracking thread for the preload thread (Linux): its imports are wanted at the run's end, so
+#: it takes the cores the frames' threads leave idle (:func:`~surfelslam.kernels.threads.lower_thread_priority`)
+PRELOAD_NICE = 10
 
 
 def open_sequence(path: str | Path, **dataset_options: Any) -> RGBDSequence:
@@ -264,7 +268,9 @@ _PRELOADS_LOCK = threading.Lock()
 def _preload_politely(figures: bool | Collection[str]) -> None:
     """:func:`~surfelslam.viz.run_report.preload_figure_modules` with the thread switch interval at
     :data:`PRELOAD_SWITCH_INTERVAL_S` meanwhile (it only changes how soon the GIL changes hands: no result does); the
-    interval from before the first of overlapping preloads (runs in threads) is set again when the last one ends."""
+    interval from before the first of overlapping preloads (runs in threads) is set again when the last one ends.
+    Runs at a lower priority (:data:`PRELOAD_NICE`)."""
+    lower_thread_priority(PRELOAD_NICE)
     with _PRELOADS_LOCK:
         if _PRELOADS["active"] == 0:
             _PRELOADS["interval_before"] = sys.getswitchinterval()

@@ -4,8 +4,10 @@ figures drawn afterwards are byte for byte those drawn without it."""
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
+import pytest
 
 from surfelslam.viz import map_figures as mf
 from surfelslam.viz.run_report import preload_figure_modules
@@ -56,6 +58,25 @@ def test_preload_runs_at_the_short_switch_interval_and_restores_it(monkeypatch):
         on_slot(1, None)
     assert seen == [api.PRELOAD_SWITCH_INTERVAL_S] and api.PRELOAD_SWITCH_INTERVAL_S == 0.0005
     assert sys.getswitchinterval() == before == 0.005
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="nice is per thread on Linux only")
+def test_preload_runs_below_the_tracking_thread(monkeypatch):
+    """The preload thread's imports are wanted at the run's end: it runs PRELOAD_NICE levels below the thread that
+    started it, which keeps its own priority."""
+    import threading
+
+    from surfelslam import api
+
+    def nice() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    seen = []
+    monkeypatch.setattr(api, "preload_figure_modules", lambda figures: seen.append(nice()))
+    mine = nice()
+    with api.preloading(True, None) as on_slot:
+        on_slot(1, None)
+    assert seen == [min(mine + api.PRELOAD_NICE, 19)] and nice() == mine and api.PRELOAD_NICE > 0
 
 
 def test_overlapping_preloads_restore_the_interval_from_before_the_first(monkeypatch):
