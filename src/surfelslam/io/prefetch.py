@@ -18,8 +18,7 @@ from surfelslam.kernels.threads import lower_thread_priority
 from surfelslam.types import RGBDFrame
 
 #: nice levels below the tracking thread for the reader: its frames are queued ahead, so it can take the core the
-#: tracking thread leaves idle rather than compete with the work on that thread's path (issue 69's two-core host:
-#: about 5 % more FPS for the hybrid with the loop checks' lower priority, nothing changed in the results)
+#: tracking thread leaves idle rather than compete with the work on that thread's path
 READER_NICE = 5
 
 
