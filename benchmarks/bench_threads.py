@@ -22,11 +22,13 @@ import time
 from pathlib import Path
 
 from benchmarks.common import print_rows
+from surfelslam.backend.sparse_slam.loop_checks import LOOP_CHECK_THREAD
+from surfelslam.io.prefetch import READER_THREAD
+from surfelslam.slam.hybrid import WORKER_THREAD
 
 TASKS = Path("/proc/self/task")
 #: thread name prefix -> the row's column (threads not listed are summed under ``other``)
-ROLES = {"MainThread": "tracking", "surfelslam-read": "reader", "surfelslam-hybrid": "features",
-         "loop-checks": "loop_checks"}
+ROLES = {"MainThread": "tracking", READER_THREAD: "reader", WORKER_THREAD: "features", LOOP_CHECK_THREAD: "loop_checks"}
 
 
 def thread_cpu_s() -> dict[str, float]:
@@ -63,6 +65,8 @@ def measure(seq_dir: Path, tracker: str, out_dir: Path) -> dict:
 
     metrics = run_sequence(seq, out_dir / tracker, SlamConfig(), tracker, progress=False, figures=False,
                            on_frame=on_frame)
+    if "last" not in marks:
+        raise SystemExit(f"bench_threads: the last frame of {seq_dir} was not tracked (unreadable?): no measurement")
     (cpu0, proc0), (cpu1, proc1) = marks["first"], marks["last"]
     n = max(len(seq) - 1, 1)
     row = {"tracker": tracker, "frames": len(seq), "fps": round(metrics["fps"], 1)}

@@ -56,19 +56,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                                  item.get_closest_marker("slow") is None))
 
 
-#: the names of the threads a tracker or sparse back end runs its background work in (stopped by its ``finish()``)
-_BACKGROUND_THREADS = ("loop-checks", "surfelslam-hybrid")
-
-
 @pytest.fixture(autouse=True)
 def _background_threads_end_with_their_test():
-    """A test that leaves a tracker unfinished leaves its background threads running into the next tests, where they
-    call whatever those tests patch (a patched function then counts calls that are not the test's own): each test
-    finishes the trackers it starts."""
+    """A test that leaves a tracker unfinished leaves its background threads (loop checks, the hybrid's worker; stopped
+    by its ``finish()``) running into the next tests, where they call whatever those tests patch (a patched function
+    then counts calls that are not the test's own): each test finishes the trackers it starts."""
     import threading
 
+    from surfelslam.backend.sparse_slam.loop_checks import LOOP_CHECK_THREAD
+    from surfelslam.slam.hybrid import WORKER_THREAD
+
+    background = (LOOP_CHECK_THREAD, WORKER_THREAD)
     before = {t.ident for t in threading.enumerate()}
     yield
     left = [t.name for t in threading.enumerate()
-            if t.ident not in before and t.name.startswith(_BACKGROUND_THREADS) and t.is_alive()]
+            if t.ident not in before and t.name.startswith(background) and t.is_alive()]
     assert not left, f"background threads left running (finish the tracker): {left}"

@@ -5,6 +5,8 @@ Imported as ``from helpers import ...`` (``tests/`` is on ``sys.path`` through t
 
 from __future__ import annotations
 
+import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +43,11 @@ def square_walk(n_side: int, side_m: float) -> np.ndarray:
         if (k + 1) % n_side == 0:
             T = T @ turn
     return np.array(poses)
+
+
+def thread_nice() -> int:
+    """The calling thread's nice value (Linux: nice is per thread)."""
+    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
 
 
 def shared_sequence(name: str) -> Path:

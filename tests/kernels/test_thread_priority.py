@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import sys
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -14,27 +12,25 @@ from surfelslam.errors import FrameError
 from surfelslam.io import prefetch
 from surfelslam.kernels import threads
 
-
-def _nice_of_this_thread() -> int:
-    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+from helpers import thread_nice
 
 
 def _nice_in_worker(nice_increment: int) -> tuple[int, int]:
     """``(nice before, nice after)`` in a pool thread given ``lower_thread_priority(nice_increment)``."""
     with ThreadPoolExecutor(max_workers=1) as pool:
-        before = pool.submit(_nice_of_this_thread).result()
+        before = pool.submit(thread_nice).result()
     with ThreadPoolExecutor(max_workers=1, initializer=threads.lower_thread_priority,
                             initargs=(nice_increment,)) as pool:
-        after = pool.submit(_nice_of_this_thread).result()
+        after = pool.submit(thread_nice).result()
     return before, after
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="nice is per thread on Linux only")
 def test_lower_thread_priority_lowers_the_worker_and_not_the_caller():
-    main_before = _nice_of_this_thread()
+    main_before = thread_nice()
     before, after = _nice_in_worker(5)
     assert after == min(before + 5, 19)
-    assert _nice_of_this_thread() == main_before
+    assert thread_nice() == main_before
     assert _nice_in_worker(0)[1] == before  # no increment: unchanged
 
 
@@ -45,13 +41,13 @@ def test_reader_and_loop_checks_run_below_the_tracking_thread():
 
     class Seq(list):
         def __getitem__(self, i):
-            seen["nice"] = _nice_of_this_thread()
+            seen["nice"] = thread_nice()
             raise FrameError(None, "unreadable", i)  # the reader reports it as the slot's error
 
     reader = prefetch.FrameReader(Seq([0]), ahead=1)
     with reader:
         list(reader.frames())
-    assert seen["nice"] == min(_nice_of_this_thread() + prefetch.READER_NICE, 19)
+    assert seen["nice"] == min(thread_nice() + prefetch.READER_NICE, 19)
 
 
 def test_lower_thread_priority_does_nothing_off_linux(monkeypatch):

@@ -64,12 +64,9 @@ def test_preload_runs_at_the_short_switch_interval_and_restores_it(monkeypatch):
 def test_preload_runs_below_the_tracking_thread(monkeypatch):
     """The preload thread's imports are wanted at the run's end: it runs PRELOAD_NICE levels below the thread that
     started it, which keeps its own priority."""
-    import threading
-
     from surfelslam import api
 
-    def nice() -> int:
-        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    from helpers import thread_nice as nice
 
     seen = []
     monkeypatch.setattr(api, "preload_figure_modules", lambda figures: seen.append(nice()))

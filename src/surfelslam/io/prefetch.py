@@ -20,6 +20,8 @@ from surfelslam.types import RGBDFrame
 #: nice levels below the tracking thread for the reader: its frames are queued ahead, so it can take the core the
 #: tracking thread leaves idle rather than compete with the work on that thread's path
 READER_NICE = 5
+#: the reader thread's name prefix (a thread pool numbers its threads after it)
+READER_THREAD = "surfelslam-read"
 
 
 @dataclass
@@ -81,7 +83,7 @@ class FrameReader:
         self._pool: ThreadPoolExecutor | None = None
         self._early: dict[int, Future] = {}
         if self.ahead > 0:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-read",
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=READER_THREAD,
                                             initializer=lower_thread_priority, initargs=(READER_NICE,))
             for i in range(min(self.ahead, len(seq))):
                 self._early[i] = self._pool.submit(_load, seq, i, None)

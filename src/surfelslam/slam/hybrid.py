@@ -77,6 +77,9 @@ from surfelslam.tracking.features import Features
 from surfelslam.tracking.photometric import colour_switch
 from surfelslam.types import ColourCamera, Intrinsics, RGBDFrame, Trajectory
 
+#: the worker thread's name prefix (the feature work beside the tracking thread)
+WORKER_THREAD = "surfelslam-hybrid"
+
 
 def _sparse_back_end(cfg: SlamConfig, intr: Intrinsics, colour_registered: bool) -> SparseSlam:
     """The hybrid's sparse back end (:func:`hybrid_sparse_config`); ICP-refined keyframe edges with
@@ -110,7 +113,7 @@ class HybridSlam:
         self.map_edges = MapEdges(self.anchors, self.sparse, cfg.icp, self.front.render_cfg, cfg.preprocess)
         # one worker thread beside the main one: the frame's match while the map is rendered, a new keyframe's
         # features while the frame is fused
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="surfelslam-hybrid")
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=WORKER_THREAD)
         self.localiser = HybridLocaliser(self.front, self.sparse, self.anchors, cfg, intr, self.joint,
                                          self._features, self._worker)
         self._keyframe_feats: Future | None = None  # the features of a frame about to become a keyframe

@@ -30,6 +30,8 @@ CLOSED_LOOP_SHIFT_DEG = 1.0
 #: nice levels below the tracking thread for the loop checks: their results are collected keyframes later, so they
 #: take the cores the tracking thread and the hybrid's feature worker (whose result it waits for) leave idle
 LOOP_CHECK_NICE = 10
+#: the loop-check thread's name prefix
+LOOP_CHECK_THREAD = "loop-checks"
 
 
 class LoopChecker:
@@ -90,7 +92,7 @@ class LoopChecker:
         are checked and indexed in order); :meth:`collect` returns the results in that order. The candidates' poses
         are copied here, on the caller's thread."""
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="loop-checks",
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=LOOP_CHECK_THREAD,
                                             initializer=lower_thread_priority, initargs=(LOOP_CHECK_NICE,))
         self._pending.append(self._pool.submit(self._check, kf_id, feats, self._candidate_poses(kf_id, poses_world_kf),
                                                pyramid))
