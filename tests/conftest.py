@@ -56,6 +56,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                                  item.get_closest_marker("slow") is None))
 
 
+#: s: how long a test's leftover background thread may take to end (a tracker's queued loop checks: well under this)
+_BACKGROUND_GRACE_S = 10.0
+
+
 @pytest.fixture(autouse=True)
 def _background_threads_end_with_their_test():
     """A test that leaves a tracker unfinished leaves its background threads (loop checks, the hybrid's worker; stopped
@@ -69,6 +73,8 @@ def _background_threads_end_with_their_test():
     background = (LOOP_CHECK_THREAD, WORKER_THREAD)
     before = {t.ident for t in threading.enumerate()}
     yield
-    left = [t.name for t in threading.enumerate()
-            if t.ident not in before and t.name.startswith(background) and t.is_alive()]
+    left = [t for t in threading.enumerate() if t.ident not in before and t.name.startswith(background)]
+    for t in left:  # a pool whose tracker was collected ends its thread after its queued work: give it that time
+        t.join(_BACKGROUND_GRACE_S)
+    left = [t.name for t in left if t.is_alive()]
     assert not left, f"background threads left running (finish the tracker): {left}"

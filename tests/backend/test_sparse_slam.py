@@ -320,6 +320,7 @@ def test_posed_frames_are_extracted_only_when_they_become_keyframes(loop_frames)
     assert 2 < len(kf_frames) < 12 and slam.extracted == kf_frames
     assert all(r.ok and r.n_inliers == -1 for r in out[1:])
     np.testing.assert_allclose(slam.keyframe_poses(), poses[kf_frames], atol=1e-9)
+    slam.finish()  # its background thread stops with the test
 
 
 def test_the_last_placed_frame_can_become_a_keyframe_at_its_pose(loop_frames) -> None:
